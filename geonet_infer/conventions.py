@@ -1,0 +1,111 @@
+"""The one home of GeoNet's conventions.
+
+Training, export and the runtime all read these objects; nothing else re-types
+the numbers. ``export`` writes :func:`as_dict` into every model manifest, and
+the runtime rebuilds its pre/post-processing from the manifest.
+
+Facts (from the official TF implementation, see ``docs/conventions.md``):
+
+* Images: uint8 RGB -> float in [0, 1] -> ``x * 2 - 1`` (range [-1, 1]).
+  No ImageNet mean/std.
+* Reference size 128 x 416 (H x W), 4 pyramid scales (s = 0..3, H / 2**s).
+* Pose vectors ``[tx, ty, tz, rx, ry, rz]``: translation in the depth's units,
+  Euler angles in radians, ``R = Rx(rx) @ Ry(ry) @ Rz(rz)``. ``T = [R | t]``
+  maps points from the *target* camera frame to the *source* frame.
+* Intrinsics at scale s: fx, fy, cx, cy divided by 2**s, no half-pixel shift.
+  Resizing an image by (sx, sy) multiplies (fx, cx) by sx and (fy, cy) by sy.
+* Pixel grid: u = 0..W-1, v = 0..H-1 at pixel centres; sampling is
+  corner-aligned (``grid_sample(align_corners=True)``).
+* Disparity heads: ``scale * sigmoid(x) + 0.01``; depth = 1 / disparity.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ImageNorm:
+    """Network input = pixel / 255 * scale + offset."""
+
+    scale: float = 2.0
+    offset: float = -1.0
+
+    def apply(self, image01):
+        """[0, 1] floats (numpy array or torch tensor) -> network range."""
+        return image01 * self.scale + self.offset
+
+    def invert(self, normalised):
+        return (normalised - self.offset) / self.scale
+
+
+@dataclass(frozen=True)
+class PoseConvention:
+    vector: tuple[str, ...] = ("tx", "ty", "tz", "rx", "ry", "rz")
+    rotation: str = "R = Rx(rx) @ Ry(ry) @ Rz(rz), radians"
+    direction: str = "target_to_source"
+    output_scale: float = 0.01  # PoseNet multiplies its raw output by this
+
+
+@dataclass(frozen=True)
+class IntrinsicsScaling:
+    per_scale_divisor: float = 2.0  # K_s = K_0 / 2**s for fx, fy, cx, cy
+    half_pixel_correction: bool = False
+
+
+@dataclass(frozen=True)
+class Sampler:
+    align_corners: bool = True
+    padding: str = "zeros"
+
+
+@dataclass(frozen=True)
+class DispHead:
+    """disparity = scale * sigmoid(x) + offset; depth = 1 / disparity."""
+
+    scale: float
+    offset: float = 0.01
+
+
+IMAGE_NORM = ImageNorm()
+POSE = PoseConvention()
+INTRINSICS = IntrinsicsScaling()
+SAMPLER = Sampler()
+REFERENCE_HEIGHT = 128
+REFERENCE_WIDTH = 416
+NUM_SCALES = 4
+DISP_HEADS = {"resnet50": DispHead(5.0), "vgg": DispHead(10.0), "small": DispHead(5.0)}
+FLOW_SCALING = 0.1  # ResFlowNet heads output 0.1 * conv, in units of image size
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """Intrinsics after resizing an image by (sx, sy) = (W'/W, H'/H).
+
+    Args:
+        K: (..., 3, 3) pinhole matrix.
+    Returns:
+        (..., 3, 3) copy with row 0 (fx, skew, cx) times sx and row 1 (fy, cy) times sy.
+    """
+    K = np.array(K, dtype=np.float64, copy=True)
+    K[..., 0, :] *= sx
+    K[..., 1, :] *= sy
+    return K
+
+
+def as_dict() -> dict:
+    """Everything a consumer of an exported model needs, JSON-ready."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "image_norm": asdict(IMAGE_NORM),
+        "input_range": [0.0, 1.0],
+        "channel_order": "RGB",
+        "pose": asdict(POSE),
+        "intrinsics": asdict(INTRINSICS),
+        "sampler": asdict(SAMPLER),
+        "reference_size": [REFERENCE_HEIGHT, REFERENCE_WIDTH],
+        "disp_heads": {k: asdict(v) for k, v in DISP_HEADS.items()},
+        "flow_scaling": FLOW_SCALING,
+    }
