@@ -1,0 +1,58 @@
+import torch
+
+from training.losses import dssim, edge_aware_smoothness, masked_mean, photometric_error, ssim
+
+
+def rand(*shape, seed=0):
+    return torch.rand(*shape, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+
+
+def test_ssim_of_identical_images_is_one():
+    x = rand(2, 3, 16, 20)
+    assert torch.allclose(ssim(x, x), torch.ones_like(x), atol=1e-6)
+    assert dssim(x, x).abs().max() < 1e-6
+    assert photometric_error(x, x).abs().max() < 1e-6
+
+
+def test_ssim_border_windows_exclude_padding():
+    # A constant image has SSIM 1 everywhere only if border means ignore the zero padding.
+    x = torch.full((1, 1, 5, 5), 0.7)
+    y = torch.full((1, 1, 5, 5), 0.7)
+    assert torch.allclose(ssim(x, y), torch.ones(1, 1, 5, 5), atol=1e-6)
+
+
+def test_ssim_of_constant_images_by_hand():
+    # Constant a vs b: sigmas are 0, so SSIM = (2ab + C1) / (a^2 + b^2 + C1).
+    a, b, C1 = 0.5, -0.25, 0.01 ** 2
+    s = ssim(torch.full((1, 1, 4, 4), a), torch.full((1, 1, 4, 4), b))
+    assert torch.allclose(s, torch.full_like(s, (2 * a * b + C1) / (a * a + b * b + C1)), atol=1e-6)
+
+
+def test_photometric_error_weights():
+    # Constant images: DSSIM from the hand formula above, L1 = |a - b|.
+    a, b, C1 = 0.5, -0.25, 0.01 ** 2
+    x, y = torch.full((1, 3, 4, 4), a), torch.full((1, 3, 4, 4), b)
+    s = (2 * a * b + C1) / (a * a + b * b + C1)
+    expected = 0.85 * (1 - s) / 2 + 0.15 * abs(a - b)
+    assert torch.allclose(photometric_error(x, y), torch.full_like(x, expected), atol=1e-6)
+
+
+def test_smoothness_of_constant_field_is_zero():
+    assert edge_aware_smoothness(torch.full((2, 1, 8, 8), 3.0), rand(2, 3, 8, 8)).item() == 0.0
+    assert edge_aware_smoothness(torch.full((2, 2, 8, 8), -1.5), rand(2, 3, 8, 8)).item() == 0.0
+
+
+def test_smoothness_ramp_by_hand():
+    # field = x (ramp of slope 1), flat image -> weights 1: x-term = 1, y-term = 0.
+    field = torch.arange(6.0).expand(1, 1, 4, 6)
+    assert abs(edge_aware_smoothness(field, torch.zeros(1, 3, 4, 6)).item() - 1.0) < 1e-6
+    # An image edge with |dI| = 2 on every channel damps the x-term to exp(-2).
+    image = torch.arange(6.0).mul(2).expand(1, 3, 4, 6)
+    assert abs(edge_aware_smoothness(field, image).item() - torch.exp(torch.tensor(-2.0)).item()) < 1e-6
+
+
+def test_masked_mean_by_hand():
+    values = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]], [[3.0, 4.0], [5.0, 6.0]]]])  # channel means 2,3,4,5
+    mask = torch.tensor([[[[1.0, 0.0], [0.0, 1.0]]]])
+    assert masked_mean(values, mask).item() == (2.0 + 5.0) / 2
+    assert masked_mean(values, torch.zeros_like(mask)).item() == 0.0

@@ -1,0 +1,96 @@
+"""Training configuration: one dataclass, saved inside every checkpoint."""
+from __future__ import annotations
+
+import argparse
+from dataclasses import asdict, dataclass, field, fields
+
+from training.losses import LossWeights
+
+STAGES = ("rigid", "flow")
+ARCHS = ("resnet50", "vgg", "small")
+
+
+@dataclass
+class TrainConfig:
+    stage: str = "rigid"
+    arch: str = "resnet50"
+    data_dir: str = "data/prepared"
+    out_dir: str = "runs/rigid"
+    init_checkpoint: str | None = None  # stage flow: the rigid checkpoint to freeze
+    resume: str | None = None  # checkpoint of this stage to continue exactly
+    seq_length: int = 3
+    height: int = 128
+    width: int = 416
+    batch_size: int = 4
+    lr: float = 2e-4
+    beta1: float = 0.9
+    beta2: float = 0.999
+    max_steps: int = 1000
+    seed: int = 8964
+    num_workers: int = 2
+    augment: bool = True
+    share_color_gain: bool = False
+    bn_momentum: float = 1e-3
+    log_every: int = 10
+    save_every: int = 500
+    val_every: int = 500
+    val_batches: int = 20
+    weights: LossWeights = field(default_factory=LossWeights)
+
+    @property
+    def num_source(self) -> int:
+        return self.seq_length - 1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        d["weights"] = LossWeights(**d.get("weights", {}))
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown config keys {sorted(unknown)}")
+        return cls(**d)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m training.train",
+        description="Train GeoNet stage-wise. Stage 'rigid' trains DepthNet+PoseNet from scratch; "
+                    "stage 'flow' loads a rigid checkpoint, freezes it (eval-mode BN) and trains "
+                    "ResFlowNet. Data: a folder made by `python -m training.prepare`.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    d = TrainConfig()
+    p.add_argument("--stage", choices=STAGES, default=d.stage)
+    p.add_argument("--arch", choices=ARCHS, default=d.arch,
+                   help="DepthNet encoder; 'small' also selects the small PoseNet and ResFlowNet")
+    p.add_argument("--data-dir", default=d.data_dir, help="prepared data (train.txt, val.txt)")
+    p.add_argument("--out-dir", default=d.out_dir, help="checkpoints and log.jsonl go here")
+    p.add_argument("--init-checkpoint", default=None,
+                   help="stage flow: rigid-stage checkpoint whose DepthNet/PoseNet are frozen")
+    p.add_argument("--resume", default=None, help="checkpoint of the same stage to continue exactly")
+    p.add_argument("--seq-length", type=int, default=d.seq_length, help="3 for depth/flow, 5 for pose")
+    p.add_argument("--height", type=int, default=d.height)
+    p.add_argument("--width", type=int, default=d.width)
+    p.add_argument("--batch-size", type=int, default=d.batch_size)
+    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--max-steps", type=int, default=d.max_steps)
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--num-workers", type=int, default=d.num_workers, help="data-loading processes")
+    p.add_argument("--no-augment", dest="augment", action="store_false")
+    p.add_argument("--share-color-gain", action="store_true",
+                   help="one colour gain for all frames of a sample (the official code draws one per frame)")
+    p.add_argument("--bn-momentum", type=float, default=d.bn_momentum,
+                   help="PyTorch BN momentum; 1e-3 = official TF decay 0.999 (slow for short runs)")
+    p.add_argument("--log-every", type=int, default=d.log_every)
+    p.add_argument("--save-every", type=int, default=d.save_every)
+    p.add_argument("--val-every", type=int, default=d.val_every)
+    p.add_argument("--val-batches", type=int, default=d.val_batches)
+    return p
+
+
+def config_from_args(argv=None) -> TrainConfig:
+    args = vars(build_parser().parse_args(argv))
+    return TrainConfig(**args)

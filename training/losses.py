@@ -1,0 +1,99 @@
+"""GeoNet's loss terms, per the official implementation (spec section 5).
+
+All images here are network-range ([-1, 1]); the SSIM constants tuned for
+[0, 1] images are kept as in the official code.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+SSIM_C1 = 0.01 ** 2
+SSIM_C2 = 0.03 ** 2
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Loss weights and constants (official defaults, paper section 4.1)."""
+
+    rigid_warp: float = 1.0
+    disp_smooth: float = 0.5
+    flow_warp: float = 1.0
+    flow_smooth: float = 0.2
+    flow_consistency: float = 0.2
+    alpha_recon: float = 0.85  # weight of DSSIM vs L1 in the photometric error
+    consistency_alpha: float = 3.0
+    consistency_beta: float = 0.05
+
+
+def _mean_3x3(x: torch.Tensor) -> torch.Tensor:
+    # TF 'SAME' average pooling: border windows average only the real pixels.
+    return F.avg_pool2d(x, 3, stride=1, padding=1, count_include_pad=False)
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM over 3x3 windows.
+
+    Args:
+        x, y: (B, C, H, W).
+    Returns:
+        (B, C, H, W) SSIM; equals 1 where x == y.
+    """
+    mu_x, mu_y = _mean_3x3(x), _mean_3x3(y)
+    sigma_x = _mean_3x3(x * x) - mu_x ** 2
+    sigma_y = _mean_3x3(y * y) - mu_y ** 2
+    sigma_xy = _mean_3x3(x * y) - mu_x * mu_y
+    numerator = (2 * mu_x * mu_y + SSIM_C1) * (2 * sigma_xy + SSIM_C2)
+    denominator = (mu_x ** 2 + mu_y ** 2 + SSIM_C1) * (sigma_x + sigma_y + SSIM_C2)
+    return numerator / denominator
+
+
+def dssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Structural dissimilarity ``clip((1 - SSIM) / 2, 0, 1)``, (B, C, H, W)."""
+    return torch.clamp((1.0 - ssim(x, y)) / 2.0, 0.0, 1.0)
+
+
+def photometric_error(warped: torch.Tensor, reference: torch.Tensor,
+                      alpha: float = LossWeights.alpha_recon) -> torch.Tensor:
+    """``alpha * DSSIM + (1 - alpha) * |warped - reference|`` per channel.
+
+    Args:
+        warped, reference: (B, 3, H, W) network-range images.
+    Returns:
+        (B, 3, H, W) error map.
+    """
+    return alpha * dssim(warped, reference) + (1.0 - alpha) * (warped - reference).abs()
+
+
+def edge_aware_smoothness(field: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """First-order smoothness weighted by ``exp(-mean_rgb |grad I|)``.
+
+    For a multi-channel field (flow) this equals the official average of the
+    per-component terms, since every component has the same pixel count.
+
+    Args:
+        field: (B, C, H, W) disparity (C=1) or flow (C=2).
+        image: (B, 3, H, W) the matching network-range image.
+    Returns:
+        scalar ``mean|d_x f * w_x| + mean|d_y f * w_y|``.
+    """
+    field_dx = field[:, :, :, :-1] - field[:, :, :, 1:]
+    field_dy = field[:, :, :-1, :] - field[:, :, 1:, :]
+    weight_x = torch.exp(-(image[:, :, :, :-1] - image[:, :, :, 1:]).abs().mean(1, keepdim=True))
+    weight_y = torch.exp(-(image[:, :, :-1, :] - image[:, :, 1:, :]).abs().mean(1, keepdim=True))
+    return (field_dx * weight_x).abs().mean() + (field_dy * weight_y).abs().mean()
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``sum(mean_c(values) * mask) / sum(mask)``.
+
+    Args:
+        values: (B, C, H, W).
+        mask: (B, 1, H, W) with 0/1 entries.
+    Returns:
+        scalar; 0 when the mask is empty (the official code divides by zero there).
+    """
+    weighted = (values.mean(dim=1, keepdim=True) * mask).sum()
+    return weighted / mask.sum().clamp(min=1.0)

@@ -1,0 +1,200 @@
+"""GeoNet as a whole: the three nets wired together, and the two stages' losses.
+
+Batch layout follows the official code so every loss is a mean over the same
+elements: ``N`` sources are stacked along the batch i-major (source i occupies
+rows ``[i*B, (i+1)*B)``), and the target is tiled ``N`` times to match.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from geonet_infer.conventions import IMAGE_NORM, NUM_SCALES
+from training.geometry import (flow_consistency, flow_warp, intrinsics_at_scale, invert_intrinsics,
+                               invert_rigid, l2_norm, pose_vec_to_mat, rigid_flow)
+from training.losses import (LossWeights, edge_aware_smoothness, masked_mean,
+                             photometric_error)
+from training.networks import DepthNet, PoseNet, ResFlowNet
+
+
+def image_pyramid(image: torch.Tensor, num_scales: int = NUM_SCALES) -> list[torch.Tensor]:
+    """Area-downsampled copies (official ``resize_area``; floor sizes).
+
+    Args:
+        image: (B, C, H, W).
+    Returns:
+        list of (B, C, H // 2**s, W // 2**s), s = 0..num_scales-1.
+    """
+    _, _, H, W = image.shape
+    return [image] + [F.interpolate(image, size=(H // 2 ** s, W // 2 ** s), mode="area")
+                      for s in range(1, num_scales)]
+
+
+def rigid_warp(depth: torch.Tensor, T: torch.Tensor, K: torch.Tensor,
+               frame_from: torch.Tensor, frame_to: torch.Tensor, alpha: float = LossWeights.alpha_recon):
+    """Rigid flow of ``frame_from``, ``frame_to`` warped onto it, and the photometric error.
+
+    This is the op exported as ``rigidflow.onnx``.
+
+    Args:
+        depth: (B, 1, H, W) depth of ``frame_from``.
+        T: (B, 4, 4) transform from ``frame_from``'s camera to ``frame_to``'s.
+        K: (B, 3, 3) intrinsics at H x W.
+        frame_from, frame_to: (B, 3, H, W) network-range images.
+    Returns:
+        flow (B, 2, H, W) pixels, warped (B, 3, H, W), error (B, 3, H, W).
+    """
+    flow = rigid_flow(depth, T, K, invert_intrinsics(K))
+    warped = flow_warp(frame_to, flow)
+    return flow, warped, photometric_error(warped, frame_from, alpha)
+
+
+def flownet_input(frame_from, frame_to, warped, flow, error) -> torch.Tensor:
+    """The 12 ResFlowNet channels, in the official order.
+
+    ``[I_from (3), I_to (3), I_to rigidly warped to I_from (3), rigid flow (2),
+    L2 norm of the rigid photometric error (1)]`` -> (B, 12, H, W).
+    """
+    return torch.cat([frame_from, frame_to, warped, flow, l2_norm(error)], dim=1)
+
+
+@dataclass
+class RigidOutputs:
+    """Per-scale tensors of the rigid stage (lists indexed by scale)."""
+
+    disp: list  # (B*(1+N), 1, H_s, W_s): target rows first, then sources i-major
+    poses: torch.Tensor  # (B, N, 6)
+    fwd_flow: list  # (N*B, 2, H_s, W_s) target -> source i
+    bwd_flow: list  # (N*B, 2, H_s, W_s) source i -> target
+    fwd_warp: list  # sources warped to the target
+    bwd_warp: list  # target warped to each source
+    fwd_error: list  # (N*B, 3, H_s, W_s)
+    bwd_error: list
+
+
+@dataclass
+class StageLoss:
+    total: torch.Tensor
+    terms: dict = field(default_factory=dict)  # name -> float, for logging
+
+
+class GeoNet(nn.Module):
+    """DepthNet + PoseNet (+ ResFlowNet in stage ``flow``).
+
+    Inputs to every method are [0, 1] images; normalisation happens here once.
+    """
+
+    def __init__(self, arch: str = "resnet50", num_source: int = 2, with_flow: bool = False,
+                 bn_momentum: float = 1e-3, weights: LossWeights = LossWeights()):
+        super().__init__()
+        self.arch = arch
+        self.num_source = num_source
+        self.weights = weights
+        self.depth_net = DepthNet(arch, bn_momentum=bn_momentum)
+        pose_arch = "small" if arch == "small" else "standard"
+        self.pose_net = PoseNet(num_source, arch=pose_arch, bn_momentum=bn_momentum)
+        flow_arch = "small" if arch == "small" else "resnet50"
+        self.flow_net = ResFlowNet(flow_arch, bn_momentum=bn_momentum) if with_flow else None
+
+    # ----------------------------------------------------------------- rigid
+    def rigid_forward(self, target: torch.Tensor, sources: torch.Tensor,
+                      K: torch.Tensor) -> tuple[RigidOutputs, list, list]:
+        """Depth of every frame, poses, and rigid warps at every scale.
+
+        Args:
+            target: (B, 3, H, W) in [0, 1].
+            sources: (B, N, 3, H, W) in [0, 1], temporal order.
+            K: (B, 3, 3) intrinsics at H x W.
+        Returns:
+            (outputs, target pyramid tiled N times, source pyramid), images network-range.
+        """
+        B, N = sources.shape[:2]
+        target_n = IMAGE_NORM.apply(target)
+        sources_n = IMAGE_NORM.apply(sources)
+        source_rows = sources_n.transpose(0, 1).reshape(N * B, *sources_n.shape[2:])
+        disp = self.depth_net(torch.cat([target_n, source_rows], dim=0))
+        poses = self.pose_net(torch.cat([target_n, sources_n.flatten(1, 2)], dim=1))
+
+        T_fwd = pose_vec_to_mat(poses.transpose(0, 1).reshape(N * B, 6))
+        T_bwd = invert_rigid(T_fwd)
+        K_rows = K.repeat(N, 1, 1)
+        target_pyr = image_pyramid(target_n.repeat(N, 1, 1, 1))
+        source_pyr = image_pyramid(source_rows)
+        out = RigidOutputs(disp, poses, [], [], [], [], [], [])
+        for s in range(NUM_SCALES):
+            depth_s = 1.0 / disp[s]
+            K_s = intrinsics_at_scale(K_rows, s)
+            flow, warp, err = rigid_warp(depth_s[:B].repeat(N, 1, 1, 1), T_fwd, K_s,
+                                         target_pyr[s], source_pyr[s], self.weights.alpha_recon)
+            out.fwd_flow.append(flow), out.fwd_warp.append(warp), out.fwd_error.append(err)
+            flow, warp, err = rigid_warp(depth_s[B:], T_bwd, K_s,
+                                         source_pyr[s], target_pyr[s], self.weights.alpha_recon)
+            out.bwd_flow.append(flow), out.bwd_warp.append(warp), out.bwd_error.append(err)
+        return out, target_pyr, source_pyr
+
+    def rigid_loss(self, target, sources, K) -> StageLoss:
+        """Stage 1: rigid warping + disparity smoothness, summed over scales."""
+        w = self.weights
+        out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
+        N = self.num_source
+        B = target.shape[0]
+        rigid_warp_loss = disp_smooth_loss = 0.0
+        for s in range(NUM_SCALES):
+            rigid_warp_loss = rigid_warp_loss + w.rigid_warp * N / 2 * (
+                out.fwd_error[s].mean() + out.bwd_error[s].mean())
+            images_s = torch.cat([target_pyr[s][:B], source_pyr[s]], dim=0)
+            disp_smooth_loss = disp_smooth_loss + w.disp_smooth / 2 ** s * edge_aware_smoothness(
+                out.disp[s], images_s)
+        total = rigid_warp_loss + disp_smooth_loss
+        return StageLoss(total, {"rigid_warp": float(rigid_warp_loss),
+                                 "disp_smooth": float(disp_smooth_loss), "total": float(total)})
+
+    # ------------------------------------------------------------------ flow
+    def flow_forward(self, target, sources, K):
+        """Full (residual + rigid) flows both ways at every scale.
+
+        The rigid part comes from the frozen DepthNet/PoseNet under no_grad.
+        Returns (fwd_full, bwd_full, target_pyr, source_pyr), each flow list
+        holding (N*B, 2, H_s, W_s) pixels.
+        """
+        with torch.no_grad():
+            rigid, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
+        fwd_in = flownet_input(target_pyr[0], source_pyr[0], rigid.fwd_warp[0],
+                               rigid.fwd_flow[0], rigid.fwd_error[0])
+        bwd_in = flownet_input(source_pyr[0], target_pyr[0], rigid.bwd_warp[0],
+                               rigid.bwd_flow[0], rigid.bwd_error[0])
+        residual = self.flow_net(torch.cat([fwd_in, bwd_in], dim=0))
+        NB = fwd_in.shape[0]
+        fwd_full = [residual[s][:NB] + rigid.fwd_flow[s] for s in range(NUM_SCALES)]
+        bwd_full = [residual[s][NB:] + rigid.bwd_flow[s] for s in range(NUM_SCALES)]
+        return fwd_full, bwd_full, target_pyr, source_pyr
+
+    def flow_loss(self, target, sources, K) -> StageLoss:
+        """Stage 2: full-flow warping (consistency-masked), flow smoothness, consistency."""
+        w = self.weights
+        fwd_full, bwd_full, target_pyr, source_pyr = self.flow_forward(target, sources, K)
+        N = self.num_source
+        warp_loss = smooth_loss = consistency_loss = 0.0
+        for s in range(NUM_SCALES):
+            fwd_err = photometric_error(flow_warp(source_pyr[s], fwd_full[s]), target_pyr[s], w.alpha_recon)
+            bwd_err = photometric_error(flow_warp(target_pyr[s], bwd_full[s]), source_pyr[s], w.alpha_recon)
+            if w.flow_consistency > 0:
+                diff_fwd, mask_tgt = flow_consistency(fwd_full[s], bwd_full[s], s,
+                                                      w.consistency_alpha, w.consistency_beta)
+                diff_bwd, mask_src = flow_consistency(bwd_full[s], fwd_full[s], s,
+                                                      w.consistency_alpha, w.consistency_beta)
+                warp_loss = warp_loss + w.flow_warp * N / 2 * (
+                    masked_mean(fwd_err, mask_tgt) + masked_mean(bwd_err, mask_src))
+                consistency_loss = consistency_loss + w.flow_consistency / 2 * (
+                    masked_mean(diff_fwd, mask_tgt) + masked_mean(diff_bwd, mask_src))
+            else:
+                warp_loss = warp_loss + w.flow_warp * N / 2 * (fwd_err.mean() + bwd_err.mean())
+            smooth_loss = smooth_loss + w.flow_smooth / 2 ** (s + 1) * (
+                edge_aware_smoothness(fwd_full[s], target_pyr[s])
+                + edge_aware_smoothness(bwd_full[s], source_pyr[s]))
+        total = warp_loss + smooth_loss + consistency_loss
+        return StageLoss(total, {"flow_warp": float(warp_loss), "flow_smooth": float(smooth_loss),
+                                 "flow_consistency": float(consistency_loss), "total": float(total)})
