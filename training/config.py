@@ -31,6 +31,7 @@ class TrainConfig:
     augment: bool = True
     share_color_gain: bool = False
     bn_momentum: float = 1e-3
+    channels_last: bool = True  # NHWC convolutions: ~2x faster on CPU for the small nets
     log_every: int = 10
     save_every: int = 500
     val_every: int = 500
@@ -84,6 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one colour gain for all frames of a sample (the official code draws one per frame)")
     p.add_argument("--bn-momentum", type=float, default=d.bn_momentum,
                    help="PyTorch BN momentum; 1e-3 = official TF decay 0.999 (slow for short runs)")
+    p.add_argument("--nchw", dest="channels_last", action="store_false",
+                   help="keep NCHW memory format (default: channels_last, faster on CPU)")
     p.add_argument("--log-every", type=int, default=d.log_every)
     p.add_argument("--save-every", type=int, default=d.save_every)
     p.add_argument("--val-every", type=int, default=d.val_every)

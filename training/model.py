@@ -81,6 +81,10 @@ class StageLoss:
     terms: dict = field(default_factory=dict)  # name -> float, for logging
 
 
+def _as_floats(**terms) -> dict:
+    return {name: float(torch.as_tensor(value).detach()) for name, value in terms.items()}
+
+
 class GeoNet(nn.Module):
     """DepthNet + PoseNet (+ ResFlowNet in stage ``flow``).
 
@@ -149,8 +153,8 @@ class GeoNet(nn.Module):
             disp_smooth_loss = disp_smooth_loss + w.disp_smooth / 2 ** s * edge_aware_smoothness(
                 out.disp[s], images_s)
         total = rigid_warp_loss + disp_smooth_loss
-        return StageLoss(total, {"rigid_warp": float(rigid_warp_loss),
-                                 "disp_smooth": float(disp_smooth_loss), "total": float(total)})
+        return StageLoss(total, _as_floats(rigid_warp=rigid_warp_loss, disp_smooth=disp_smooth_loss,
+                                           total=total))
 
     # ------------------------------------------------------------------ flow
     def flow_forward(self, target, sources, K):
@@ -196,5 +200,5 @@ class GeoNet(nn.Module):
                 edge_aware_smoothness(fwd_full[s], target_pyr[s])
                 + edge_aware_smoothness(bwd_full[s], source_pyr[s]))
         total = warp_loss + smooth_loss + consistency_loss
-        return StageLoss(total, {"flow_warp": float(warp_loss), "flow_smooth": float(smooth_loss),
-                                 "flow_consistency": float(consistency_loss), "total": float(total)})
+        return StageLoss(total, _as_floats(flow_warp=warp_loss, flow_smooth=smooth_loss,
+                                           flow_consistency=consistency_loss, total=total))

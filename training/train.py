@@ -161,6 +161,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict:
         rigid = load_checkpoint(cfg.init_checkpoint, expect_stage="rigid", expect_arch=cfg.arch)
         rigid_state = {k: v for k, v in rigid["model"].items() if not k.startswith("flow_net.")}
         model.load_state_dict(rigid_state, strict=False)
+    if cfg.channels_last:
+        model = model.to(memory_format=torch.channels_last)
     params = [p for m in trainable_modules(model, cfg.stage) for p in m.parameters() if p.requires_grad]
     frozen = [m for m in (model.depth_net, model.pose_net) if cfg.stage == "flow"]
     for module in frozen:

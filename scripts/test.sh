@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# Set up a virtual environment and run the whole test suite.
+# Works on a fresh machine with Python 3.11: `bash scripts/test.sh` (extra args go to pytest).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install --quiet --upgrade pip >/dev/null
+.venv/bin/python -m pip install --quiet -e '.[train,dev]'
+exec .venv/bin/python -m pytest -q "$@"

@@ -1,0 +1,257 @@
+"""training.data.SequenceDataset: format reading, augmentation geometry/colour, errors.
+
+Prepared folders are written here by hand (cv2 + plain text), independent of training.prepare,
+except for the held-out test which checks the two together.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.formats import write_calib_K, write_depth_kitti
+from training import data as D
+from training import prepare as P
+
+H, W = 128, 416
+K0 = np.array([[200.0, 0.0, 208.0], [0.0, 190.0, 64.0], [0.0, 0.0, 1.0]])
+
+
+def write_sample(root: Path, folder: str, frame: str, frames_rgb: list[np.ndarray], K: np.ndarray) -> None:
+    """One prepared sample by hand: frames side by side in a q95 JPEG + official _cam.txt line."""
+    (root / folder).mkdir(parents=True, exist_ok=True)
+    strip = np.concatenate(frames_rgb, axis=1)
+    cv2.imwrite(str(root / folder / f"{frame}.jpg"), cv2.cvtColor(strip, cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, 95])
+    fx, cx, fy, cy = K[0, 0], K[0, 2], K[1, 1], K[1, 2]
+    (root / folder / f"{frame}_cam.txt").write_text(f"{fx},0.,{cx},0.,{fy},{cy},0.,0.,1.")
+
+
+def write_lists(root: Path, train: list[str], val: list[str] = (), heldout: list[str] | None = None) -> None:
+    (root / "train.txt").write_text("".join(n + "\n" for n in train))
+    (root / "val.txt").write_text("".join(n + "\n" for n in val))
+    if heldout is not None:
+        (root / "heldout.txt").write_text("".join(n + "\n" for n in heldout))
+
+
+def const_frames(values, h=H, w=W) -> list[np.ndarray]:
+    return [np.full((h, w, 3), v, np.uint8) for v in values]
+
+
+# --------------------------------------------------------------------------- shapes / order
+@pytest.mark.parametrize("seq_length", [3, 5])
+def test_shapes_ranges_and_temporal_order(tmp_path, seq_length):
+    values = [20 + 40 * k for k in range(seq_length)]  # frame k has grey level values[k]
+    write_sample(tmp_path, "s", "000007", const_frames(values), K0)
+    write_lists(tmp_path, ["s 000007"], ["s 000007"])
+    for split, aug in (("val", False), ("train", True)):
+        ds = D.SequenceDataset(tmp_path, split, seq_length=seq_length, augment=aug, seed=3)
+        item = ds[0]
+        assert set(item) == {"target", "sources", "intrinsics", "name"}
+        assert item["name"] == "s 000007"
+        assert item["target"].shape == (3, H, W) and item["target"].dtype == torch.float32
+        assert item["sources"].shape == (seq_length - 1, 3, H, W) and item["sources"].dtype == torch.float32
+        assert item["intrinsics"].shape == (3, 3) and item["intrinsics"].dtype == torch.float32
+        for t in (item["target"], item["sources"]):
+            assert 0.0 <= float(t.min()) and float(t.max()) <= 1.0
+    ds = D.SequenceDataset(tmp_path, "val", seq_length=seq_length)
+    item = ds[0]
+    mid = seq_length // 2
+    src_values = values[:mid] + values[mid + 1:]  # seq 3: [t-1, t+1]; seq 5: [t-2, t-1, t+1, t+2]
+    assert abs(float(item["target"].mean()) - values[mid] / 255) < 2 / 255
+    for s, v in zip(item["sources"], src_values):
+        assert abs(float(s.mean()) - v / 255) < 2 / 255
+    np.testing.assert_allclose(item["intrinsics"].numpy(), K0, rtol=1e-6)
+
+
+# --------------------------------------------------------------------------- augmentation geometry
+def blob_image(u: float, v: float, sigma: float = 2.5, h=H, w=W) -> np.ndarray:
+    """(h, w, 3) uint8: black with a Gaussian spot centred at pixel (u, v) (pixel-centre coords)."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    g = np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma ** 2))
+    return np.repeat((g * 230)[..., None], 3, axis=2).round().astype(np.uint8)
+
+
+def centroid(img_chw: np.ndarray) -> tuple[float, float]:
+    """Intensity-weighted centre of the spot (background and JPEG noise thresholded away)."""
+    g = img_chw.mean(axis=0)
+    wgt = np.clip(g - 0.1 * g.max(), 0, None)
+    yy, xx = np.mgrid[0:g.shape[0], 0:g.shape[1]]
+    return float((wgt * xx).sum() / wgt.sum()), float((wgt * yy).sum() / wgt.sum())
+
+
+def project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
+    p = K @ X
+    return p[:2] / p[2]
+
+
+X_POINT = np.array([1.3, -0.4, 7.0])  # metres, camera frame
+
+
+def test_scale_crop_moves_pixels_where_new_K_projects():
+    u, v = project(K0, X_POINT)
+    frames = blob_image(u, v)[None].astype(np.float32) / 255
+    offsets = set()
+    for seed in range(8):
+        out, K, info = D.random_scale_crop(frames, K0, np.random.default_rng(seed))
+        assert out.shape == (1, H, W, 3)
+        assert 1.0 <= info["sx"] <= 1.15 and 1.0 <= info["sy"] <= 1.15
+        offsets.add((info["x0"], info["y0"]))
+        cu, cv = centroid(out[0].transpose(2, 0, 1))
+        pu, pv = project(K, X_POINT)
+        # cv2 resizes with half-pixel centres, K with corner alignment: <= 0.5*(s-1) = 0.075 px apart
+        assert abs(cu - pu) < 0.2 and abs(cv - pv) < 0.2, (seed, info, (cu, cv), (pu, pv))
+    assert len(offsets) > 4  # the crop really moved around
+
+
+def test_dataset_augmentation_updates_intrinsics(tmp_path):
+    """End to end through the JPEG and the dataset: the spot lands where the item's K projects X."""
+    u, v = project(K0, X_POINT)
+    spot = blob_image(u, v)
+    write_sample(tmp_path, "s", "000001", [spot, spot, spot], K0)
+    write_lists(tmp_path, ["s 000001"], ["s 000001"])
+    ds = D.SequenceDataset(tmp_path, "train", augment=True, seed=11)
+    changed = 0
+    for epoch in range(6):
+        ds.set_epoch(epoch)
+        item = ds[0]
+        K = item["intrinsics"].numpy().astype(np.float64)
+        changed += not np.allclose(K, K0)
+        pu, pv = project(K, X_POINT)
+        for img in (item["target"], *item["sources"]):
+            cu, cv = centroid(img.numpy())
+            assert abs(cu - pu) < 0.25 and abs(cv - pv) < 0.25, (epoch, (cu, cv), (pu, pv))
+    assert changed == 6
+    # determinism: same (seed, epoch, index) -> same item; another epoch -> another draw
+    ds.set_epoch(2)
+    a, b = ds[0], ds[0]
+    assert torch.equal(a["target"], b["target"]) and torch.equal(a["intrinsics"], b["intrinsics"])
+    ds.set_epoch(3)
+    assert not torch.equal(a["intrinsics"], ds[0]["intrinsics"])
+    # val and heldout are never augmented
+    item = D.SequenceDataset(tmp_path, "val", augment=True)[0]
+    np.testing.assert_allclose(item["intrinsics"].numpy(), K0, rtol=1e-6)
+
+
+# --------------------------------------------------------------------------- augmentation colour
+def test_random_color_gain_shared_or_not():
+    frames = np.full((3, 4, 5, 3), 0.5, np.float32)
+    same = D.random_color(frames, np.random.default_rng(0), share_gain=True)
+    assert np.array_equal(same[0], same[1]) and np.array_equal(same[0], same[2])
+    diff = D.random_color(frames, np.random.default_rng(0), share_gain=False)
+    assert not np.allclose(diff[0], diff[1]) and not np.allclose(diff[0], diff[2])
+    # colour is (0.5 ** gamma) * brightness * gain, gamma in [0.8, 1.2], brightness in [0.5, 2],
+    # gain in [0.8, 1.2]; channel ratios within a frame = gain ratios, in [0.8/1.2, 1.2/0.8]
+    for out in (same, diff):
+        assert 0.0 <= out.min() and out.max() <= 1.0
+        px = out[:, 0, 0]
+        assert px.min() >= 0.5 ** 1.2 * 0.5 * 0.8 - 1e-6
+        ratio = px.max(axis=1) / px.min(axis=1)
+        assert np.all(ratio <= 1.2 / 0.8 + 1e-6)
+
+
+@pytest.mark.parametrize("share", [True, False])
+def test_dataset_color_gain_per_frame_quirk(tmp_path, share):
+    """Identical frames stay identical only if the gain is shared."""
+    rng = np.random.default_rng(5)
+    # grey texture: JPEG chroma upsampling would blend across the frame borders of the strip
+    tex = np.repeat(rng.integers(40, 200, size=(H, W, 1), dtype=np.uint8), 3, axis=2)
+    write_sample(tmp_path, "s", "000001", [tex, tex, tex], K0)
+    write_lists(tmp_path, ["s 000001"], ["s 000001"])
+    plain = D.SequenceDataset(tmp_path, "val")[0]
+    assert all(torch.equal(plain["target"], s) for s in plain["sources"])  # precondition
+    ds = D.SequenceDataset(tmp_path, "train", augment=True, share_color_gain=share, seed=1)
+    n_diff = 0
+    for epoch in range(8):  # colour fires with p = 0.5
+        ds.set_epoch(epoch)
+        item = ds[0]
+        d = max(float((item["target"] - s).abs().max()) for s in item["sources"])
+        n_diff += d > 1e-3
+        if share:
+            assert d < 1e-6  # JPEG decodes the three copies identically; same ops on each
+    if not share:
+        assert n_diff >= 1
+
+
+# --------------------------------------------------------------------------- held-out + prepare
+def test_heldout_split_and_refusal(tmp_path):
+    src = tmp_path / "synth"
+    rng = np.random.default_rng(0)
+    for s in range(3):
+        d = src / f"seq_{s}"
+        (d / "image").mkdir(parents=True)
+        for i in range(4):
+            cv2.imwrite(str(d / "image" / f"{i:06d}.png"), rng.integers(0, 256, (64, 96, 3), dtype=np.uint8))
+            write_depth_kitti(d / "depth" / f"{i:06d}.png", np.full((64, 96), 10.0 + i))
+        write_calib_K(d / "calib.txt", np.array([[80.0, 0, 48], [0, 80, 32], [0, 0, 1]]))
+    out = tmp_path / "out"
+    res = P.prepare("synth", src, out, height=32, width=48, heldout=1, val_fraction=0.3, seed=1)
+    held = D.SequenceDataset(out, "heldout", height=32, width=48)
+    assert sorted(held.names) == ["seq_2 000001", "seq_2 000002"]
+    item = held[1]
+    assert item["depth_gt"].shape == (1, 32, 48) and item["depth_gt"].dtype == torch.float32
+    frame = int(item["name"].split()[1])
+    assert torch.all(item["depth_gt"] == 10.0 + frame)
+    train = D.SequenceDataset(out, "train", height=32, width=48)
+    assert not set(train.names) & set(held.names) and len(train) == len(res.train)
+    assert "depth_gt" not in train[0]
+    # a train list that leaks a held-out sample is refused
+    (out / "train.txt").write_text((out / "train.txt").read_text() + "seq_2 000001\n")
+    with pytest.raises(GeoNetInputError, match="heldout"):
+        D.SequenceDataset(out, "train", height=32, width=48)
+
+
+# --------------------------------------------------------------------------- errors
+def test_clear_errors(tmp_path):
+    with pytest.raises(GeoNetInputError, match="training.prepare") as err:
+        D.SequenceDataset(tmp_path / "nope")
+    assert str(tmp_path / "nope") in str(err.value)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(GeoNetInputError, match="training.prepare") as err:
+        D.SequenceDataset(tmp_path / "empty")
+    assert "train.txt" in str(err.value)
+    with pytest.raises(GeoNetInputError, match="heldout"):
+        D.SequenceDataset(tmp_path / "empty", "heldout")
+
+    root = tmp_path / "ds"
+    write_sample(root, "s", "000001", const_frames([10, 20, 30]), K0)
+    write_lists(root, ["s 000001", "s 000002"], [])
+    with pytest.raises(GeoNetInputError, match="empty"):
+        D.SequenceDataset(root, "val")
+    ds = D.SequenceDataset(root, "train", augment=False)
+    with pytest.raises(GeoNetInputError) as err:  # listed but missing
+        ds[1]
+    assert "000002.jpg" in str(err.value)
+    (root / "s" / "000002.jpg").write_bytes(b"\xff\xd8garbage")
+    (root / "s" / "000002_cam.txt").write_text("1,0,0,0,1,0,0,0,1")
+    with pytest.raises(GeoNetInputError) as err:  # corrupt
+        ds[1]
+    assert str(root / "s" / "000002.jpg") in str(err.value)
+    with pytest.raises(GeoNetInputError) as err:  # a seq-3 snippet read as seq 5
+        D.SequenceDataset(root, "train", seq_length=5)[0]
+    assert str(root / "s" / "000001.jpg") in str(err.value) and "seq_length=5" in str(err.value)
+    assert "holds 3 frames" in str(err.value)
+    (root / "s" / "000001_cam.txt").write_text("1,2,3")
+    with pytest.raises(GeoNetInputError, match="_cam.txt"):
+        ds[0]
+
+
+def test_make_loader_is_seeded(tmp_path):
+    names = [f"s {i:06d}" for i in range(6)]
+    for i in range(6):
+        write_sample(tmp_path, "s", f"{i:06d}", const_frames([i * 10] * 3, 16, 24), K0)
+    write_lists(tmp_path, names)
+    ds = D.SequenceDataset(tmp_path, "train", height=16, width=24, seed=4)
+
+    def order(seed):
+        return [n for b in D.make_loader(ds, 2, shuffle=True, num_workers=0, seed=seed) for n in b["name"]]
+
+    assert order(7) == order(7) and sorted(order(7)) == names
+    assert any(order(7) != order(s) for s in (8, 9, 10))
+    batch = next(iter(D.make_loader(ds, 4, shuffle=False, seed=0)))
+    assert batch["target"].shape == (4, 3, 16, 24) and batch["sources"].shape == (4, 2, 3, 16, 24)
+    assert batch["intrinsics"].shape == (4, 3, 3)

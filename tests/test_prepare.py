@@ -1,0 +1,316 @@
+"""training.prepare: real KITTI extracts, a tiny synthetic tree, and bad inputs.
+
+Golden values come from outside the code under test: P_rect_02 / P0 are parsed here from the
+calibration text, the resize factors are the documented image sizes (1242x375, 1241x376), and
+snippet contents are compared with frames resized independently in the test.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.formats import write_calib_K, write_depth_kitti
+from training import prepare as P
+
+REALDATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
+RAW = REALDATA / "kitti_raw_2011_09_26_sfnd"
+ODOM00 = REALDATA / "kitti_odometry_00"
+needs_raw = pytest.mark.skipif(not RAW.is_dir(), reason="realdata KITTI raw extract absent")
+needs_odom = pytest.mark.skipif(not ODOM00.is_dir(), reason="realdata KITTI odometry extract absent")
+
+
+def calib_values(path: Path, key: str) -> np.ndarray:
+    """Plain-text parse of 'key: v1 v2 ...' (independent of geonet_infer.formats)."""
+    for line in path.read_text().splitlines():
+        if line.startswith(key + ":"):
+            return np.array([float(v) for v in line.split(":", 1)[1].split()])
+    raise KeyError(key)
+
+
+def read_cam_txt(path: Path) -> np.ndarray:
+    return np.array([float(v) for v in path.read_text().strip().split(",")]).reshape(3, 3)
+
+
+def assert_no_partial_files(out: Path) -> None:
+    """No temp files (atomic_write uses hidden '.name.*' temps) and every sample is complete."""
+    for p in out.rglob("*"):
+        assert not p.name.startswith("."), f"leftover temp file {p}"
+    for jpg in out.rglob("*.jpg"):
+        assert jpg.with_name(jpg.stem + "_cam.txt").is_file(), f"{jpg} without _cam.txt"
+    for cam in out.rglob("*_cam.txt"):
+        assert cam.with_name(cam.name[:-len("_cam.txt")] + ".jpg").is_file(), f"{cam} without .jpg"
+
+
+# --------------------------------------------------------------------------- tiny synthetic tree
+def make_synth_seq(folder: Path, n_frames: int, size=(64, 96), seed=0, K=None) -> None:
+    """Generator-like folder: image/NNNNNN.png, depth/NNNNNN.png, calib.txt ('K: ...')."""
+    h, w = size
+    rng = np.random.default_rng(seed)
+    (folder / "image").mkdir(parents=True)
+    for i in range(n_frames):
+        img = rng.integers(0, 256, size=(h, w, 3), dtype=np.uint8)
+        cv2.imwrite(str(folder / "image" / f"{i:06d}.png"), img)
+        # depth constant on 2x2 blocks, so a 2x nearest downsample picks exact block values
+        blocks = rng.integers(1, 80 * 256, size=(h // 2, w // 2)).astype(np.float64) / 256.0
+        write_depth_kitti(folder / "depth" / f"{i:06d}.png", np.kron(blocks, np.ones((2, 2))))
+    K = np.array([[80.0, 0, 47.5], [0, 78.0, 31.5], [0, 0, 1]]) if K is None else K
+    write_calib_K(folder / "calib.txt", K)
+
+
+# --------------------------------------------------------------------------- KITTI raw (real)
+@needs_raw
+def test_kitti_raw_extract(tmp_path):
+    out = tmp_path / "raw"
+    res = P.main(["--kind", "kitti_raw", "--src", str(RAW), "--out", str(out), "--max-frames", "12",
+                  "--workers", "2", "--split", "eigen"])
+    folder = out / "kitti_raw_2011_09_26_sfnd_02"
+    # 12 frames, seq 3 -> targets 1..10
+    names = sorted(res.train + res.val)
+    assert names == [f"kitti_raw_2011_09_26_sfnd_02 {i:010d}" for i in range(1, 11)]
+    assert not set(res.train) & set(res.val) and res.val  # random split, but not empty
+    lines = (out / "train.txt").read_text().split("\n")[:-1] + (out / "val.txt").read_text().split("\n")[:-1]
+    assert sorted(lines) == names
+
+    P_rect = calib_values(RAW / "calib_cam_to_cam.txt", "P_rect_02").reshape(3, 4)
+    K_expected = P_rect[:3, :3].copy()
+    K_expected[0] *= 416 / 1242  # README: frames are 1242x375
+    K_expected[1] *= 128 / 375
+    src = RAW / "image_02" / "data"
+    frames = {i: cv2.resize(cv2.imread(str(src / f"{i:010d}.png")), (416, 128), interpolation=cv2.INTER_AREA)
+              .astype(np.float64) for i in range(12)}
+    for t in range(1, 11):
+        img = cv2.imread(str(folder / f"{t:010d}.jpg"))
+        assert img.shape == (128, 1248, 3)
+        np.testing.assert_allclose(read_cam_txt(folder / f"{t:010d}_cam.txt"), K_expected, rtol=0, atol=1e-6)
+        # thirds are frames t-1, t, t+1 in that order (BGR vs BGR, JPEG noise ~2.5, neighbours ~11)
+        for k, part in enumerate(np.split(img.astype(np.float64), 3, axis=1)):
+            err = {i: np.abs(part - f).mean() for i, f in frames.items()}
+            assert min(err, key=err.get) == t - 1 + k
+            assert err[t - 1 + k] < 4.0
+    assert_no_partial_files(out)
+
+    # resumable: a second run writes nothing; a missing _cam.txt is redone
+    (folder / "0000000004_cam.txt").unlink()
+    res2 = P.main(["--kind", "kitti_raw", "--src", str(RAW), "--out", str(out), "--max-frames", "12", "--workers", "1"])
+    assert (res2.written, res2.existing) == (1, 9)
+    np.testing.assert_allclose(read_cam_txt(folder / "0000000004_cam.txt"), K_expected, atol=1e-6)
+
+
+@needs_raw
+def test_kitti_raw_root_layout_split_and_static(tmp_path):
+    """A raw root (<date>/<drive>/image_02, calib in the date folder) with a test-scene drive."""
+    root = tmp_path / "raw_root" / "2011_09_26"
+    root.mkdir(parents=True)
+    (root / "calib_cam_to_cam.txt").write_text((RAW / "calib_cam_to_cam.txt").read_text())
+    for drive in ("2011_09_26_drive_0001_sync", "2011_09_26_drive_0002_sync"):  # 0002 is an Eigen test scene
+        d = root / drive / "image_02" / "data"
+        d.mkdir(parents=True)
+        for i in range(5):
+            (d / f"{i:010d}.png").symlink_to((RAW / "image_02" / "data" / f"{i:010d}.png").resolve())
+    out = tmp_path / "out"
+    res = P.prepare("kitti_raw", tmp_path / "raw_root", out, split="eigen")
+    assert sorted(res.train + res.val) == [f"2011_09_26_drive_0001_sync_02 {i:010d}" for i in (1, 2, 3)]
+    res = P.prepare("kitti_raw", tmp_path / "raw_root", tmp_path / "out_none", split="none")
+    assert len(res.train + res.val) == 6
+
+    # --remove-static: neighbours skip removed frames. Drive 0009 frames 386, 387, 390, 391 are
+    # static (official static_frames.txt), 384, 385, 388, 389 are not.
+    d = root / "2011_09_26_drive_0009_sync" / "image_02" / "data"
+    d.mkdir(parents=True)
+    for i in range(384, 392):
+        (d / f"{i:010d}.png").symlink_to((RAW / "image_02" / "data" / f"{i - 384:010d}.png").resolve())
+    res = P.prepare("kitti_raw", tmp_path / "raw_root", tmp_path / "out_static", split="stereo",
+                    remove_static=True, workers=1)
+    names = sorted(res.train + res.val)
+    # 0009 is a stereo test scene -> excluded; 0001 and 0002 stay
+    assert not any("drive_0009" in n for n in names) and len(names) == 6
+    res = P.prepare("kitti_raw", tmp_path / "raw_root", tmp_path / "out_static2", split="none",
+                    remove_static=True, workers=1)
+    kept = sorted(n.split()[1] for n in res.train + res.val if "drive_0009" in n)
+    # static: 386, 387, 390, 391 -> kept 384 385 388 389 -> targets 385 (384, 388) and 388 (385, 389)
+    assert kept == [f"{i:010d}" for i in (385, 388)]
+    static = P.read_static_frames()
+    assert ("2011_09_26_drive_0009_sync", "0000000386") in static
+    assert ("2011_09_26_drive_0009_sync", "0000000388") not in static
+
+
+def test_scene_lists_are_official_sizes():
+    """28 Eigen test scenes, 29 KITTI-2015 scenes, 8051 static frames (spec §7)."""
+    eigen = P.read_scene_list("test_scenes_eigen.txt")
+    stereo = P.read_scene_list("test_scenes_stereo.txt")
+    assert len(eigen) == 28 and len(stereo) == 29
+    assert "2011_09_26_drive_0002" in eigen and "2011_09_26_drive_0005" in stereo
+    lines = [l for l in (P.LISTS_DIR / "static_frames.txt").read_text().splitlines() if l.strip()]
+    assert len(lines) == 8051 and len(set(lines)) == 8051
+
+
+# --------------------------------------------------------------------------- KITTI odometry (real, grey)
+@needs_odom
+def test_kitti_odom_grey_fallback(tmp_path, caplog):
+    out = tmp_path / "odom"
+    with caplog.at_level(logging.WARNING, logger="training.prepare"):
+        res = P.main(["--kind", "kitti_odom", "--src", str(ODOM00), "--out", str(out), "--workers", "1"])
+    assert "greyscale" in caplog.text
+    # 6 frames, seq 5 (odom default) -> targets 2, 3
+    assert sorted(res.train + res.val) == ["00 000002", "00 000003"]
+    K = calib_values(ODOM00 / "sequences" / "00" / "calib.txt", "P0").reshape(3, 4)[:, :3].copy()
+    K[0] *= 416 / 1241  # README: 1241x376
+    K[1] *= 128 / 376
+    for t in (2, 3):
+        img = cv2.imread(str(out / "00" / f"{t:06d}.jpg"))
+        assert img.shape == (128, 5 * 416, 3)
+        assert np.abs(img.astype(int)[..., 0] - img[..., 2]).max() <= 3  # grey copied to 3 channels
+        np.testing.assert_allclose(read_cam_txt(out / "00" / f"{t:06d}_cam.txt"), K, atol=1e-6)
+    # the pose test sequences are left out by default
+    seq09 = tmp_path / "odom_root" / "sequences" / "09"
+    (seq09 / "image_0").mkdir(parents=True)
+    (seq09 / "calib.txt").write_text((ODOM00 / "sequences" / "00" / "calib.txt").read_text())
+    with pytest.raises(GeoNetInputError, match="no sample"):
+        P.prepare("kitti_odom", tmp_path / "odom_root", tmp_path / "o2")
+
+
+# --------------------------------------------------------------------------- synthetic
+def test_synth_heldout(tmp_path):
+    src = tmp_path / "synth"
+    for s in range(3):
+        make_synth_seq(src / f"seq_{s:02d}", 5, seed=s)
+    out = tmp_path / "out"
+    res = P.main(["--kind", "synth", "--src", str(src), "--out", str(out), "--heldout", "1",
+                  "--height", "32", "--width", "48", "--workers", "1"])
+    held = [l for l in (out / "heldout.txt").read_text().splitlines()]
+    assert held == [f"seq_02 {i:06d}" for i in (1, 2, 3)] == res.heldout
+    trained = set(res.train + res.val)
+    assert trained == {f"seq_{s:02d} {i:06d}" for s in (0, 1) for i in (1, 2, 3)}
+    listed = set((out / "train.txt").read_text().splitlines() + (out / "val.txt").read_text().splitlines())
+    assert listed == trained and not listed & set(held)
+    for i in (1, 2, 3):
+        # held-out GT: nearest 2x downsample of 2x2-constant blocks = the blocks themselves
+        src_depth = cv2.imread(str(src / "seq_02" / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        got = cv2.imread(str(out / "seq_02" / f"{i:06d}_depth.png"), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(got, src_depth[::2, ::2])
+        np.testing.assert_allclose(read_cam_txt(out / "seq_02" / f"{i:06d}_cam.txt"),
+                                   [[40.0, 0, 23.75], [0, 39.0, 15.75], [0, 0, 1]], atol=1e-9)
+        assert cv2.imread(str(out / "seq_02" / f"{i:06d}.jpg")).shape == (32, 144, 3)
+    assert not (out / "seq_00" / "000001_depth.png").exists()  # GT only for held-out samples
+    with pytest.raises(GeoNetInputError, match="--heldout"):
+        P.prepare("synth", src, tmp_path / "o2", heldout=3)
+
+
+def test_synth_generator_output(tmp_path):
+    """The real generator's tree (training.synth), if that module is there."""
+    synth = pytest.importorskip("training.synth")
+    if not hasattr(synth, "write_sequence"):
+        pytest.skip("training.synth.write_sequence not available")
+    src = tmp_path / "synth"
+    for i in range(3):
+        synth.write_sequence(src, 0, i, 4, 48, 144)
+    (src / ".tmp_seq_0009" / "image").mkdir(parents=True)  # unfinished generator work is ignored
+    out = tmp_path / "out"
+    res = P.prepare("synth", src, out, height=32, width=96, heldout=1)
+    names = sorted(p.name for p in src.iterdir() if not p.name.startswith("."))
+    assert res.heldout == [f"{names[-1]} {i:06d}" for i in (1, 2)]
+    assert sorted(res.train + res.val) == [f"{n} {i:06d}" for n in names[:-1] for i in (1, 2)]
+    K = calib_values(src / names[-1] / "calib.txt", "K").reshape(3, 3)
+    K[0] *= 96 / 144
+    K[1] *= 32 / 48
+    for i in (1, 2):
+        np.testing.assert_allclose(read_cam_txt(out / names[-1] / f"{i:06d}_cam.txt"), K, atol=1e-6)
+        got = cv2.imread(str(out / names[-1] / f"{i:06d}_depth.png"), cv2.IMREAD_UNCHANGED)
+        full = cv2.imread(str(src / names[-1] / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        assert got.shape == (32, 96) and got.dtype == np.uint16
+        assert set(np.unique(got)) <= set(np.unique(full))  # nearest: no blended depths
+
+
+# --------------------------------------------------------------------------- bad inputs
+BAD_CASES = ("a_short", "b_gap", "c_trunc", "d_mixed", "e_nokey")
+
+
+def _bad_tree(root: Path, cases=BAD_CASES) -> dict[str, Path]:
+    """a_short: 2 frames; b_gap: frame 3 is garbage; c_trunc: frame 5 has a PNG header but no
+    data; d_mixed: one frame of another size; e_nokey: calib.txt without K."""
+    files = {}
+    if "a_short" in cases:
+        make_synth_seq(root / "a_short", 2)
+    if "b_gap" in cases:
+        make_synth_seq(root / "b_gap", 7, seed=1)
+        files["bad"] = root / "b_gap" / "image" / "000003.png"
+        files["bad"].write_bytes(b"not a png at all")
+    if "c_trunc" in cases:
+        make_synth_seq(root / "c_trunc", 8, seed=2)
+        files["trunc"] = root / "c_trunc" / "image" / "000005.png"
+        files["trunc"].write_bytes(files["trunc"].read_bytes()[:60])
+    if "d_mixed" in cases:
+        make_synth_seq(root / "d_mixed", 4, seed=3)
+        files["mixed"] = root / "d_mixed" / "image" / "000002.png"
+        cv2.imwrite(str(files["mixed"]), np.zeros((32, 32, 3), np.uint8))
+    if "e_nokey" in cases:
+        make_synth_seq(root / "e_nokey", 4, seed=4)
+        (root / "e_nokey" / "calib.txt").write_text("P2: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    return files
+
+
+def test_bad_inputs_are_skipped_and_named(tmp_path, capsys):
+    src = tmp_path / "src"
+    files = _bad_tree(src)
+    out = tmp_path / "out"
+    res = P.main(["--kind", "synth", "--src", str(src), "--out", str(out), "--heldout", "0",
+                  "--height", "32", "--width", "48", "--workers", "2"])
+    reasons = [str(s) for s in res.skipped]
+    text = capsys.readouterr().out  # the printed summary lists every skip
+    for r in reasons:
+        assert r in text
+
+    def find(fragment, where):
+        return [r for r in reasons if r.startswith(str(where)) and fragment in r]
+
+    assert find("too short", src / "a_short" / "image")
+    assert find("unreadable", files["bad"])
+    # truncated body: the header is fine, decoding fails -> the 3 snippets using it are skipped
+    assert len([r for r in reasons if str(files["trunc"]) in r and "decode" in r]) == 3
+    assert find("mixed resolutions", src / "d_mixed" / "image")
+    assert find("'K'", src / "e_nokey" / "calib.txt")
+    # the gap breaks the run: b_gap keeps targets 1 and 5 only (0-1-2 | 4-5-6)
+    names = set(res.train + res.val)
+    assert {n for n in names if n.startswith("b_gap")} == {"b_gap 000001", "b_gap 000005"}
+    # c_trunc: frames 0..7 without 5 -> targets 1, 2, 3 (4 and 6 need frame 5)
+    assert {n for n in names if n.startswith("c_trunc")} == {f"c_trunc {i:06d}" for i in (1, 2, 3)}
+    assert not any(n.startswith(("a_", "d_", "e_")) for n in names)
+    assert not (out / "c_trunc" / "000004.jpg").exists()
+    assert_no_partial_files(out)
+
+
+@pytest.mark.parametrize("case, fragment", [("a_short", "too short"), ("b_gap", "unreadable"),
+                                             ("c_trunc", "decode"), ("d_mixed", "mixed resolutions"),
+                                             ("e_nokey", "'K'")])
+def test_strict_turns_skips_into_errors(tmp_path, case, fragment):
+    src = tmp_path / "src"
+    _bad_tree(src, cases=(case,))
+    make_synth_seq(src / "z_good", 4, seed=9)  # a good sequence does not hide the bad one
+    out = tmp_path / "out"
+    with pytest.raises(GeoNetInputError) as err:
+        P.prepare("synth", src, out, heldout=0, height=32, width=48, strict=True)
+    assert str(src / case) in str(err.value) and fragment in str(err.value)
+    assert_no_partial_files(out)
+
+
+def test_clear_errors_and_help(tmp_path, capsys):
+    with pytest.raises(GeoNetInputError, match="source folder not found"):
+        P.prepare("synth", tmp_path / "missing", tmp_path / "out")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(GeoNetInputError, match="no KITTI raw drive"):
+        P.prepare("kitti_raw", tmp_path / "empty", tmp_path / "out")
+    with pytest.raises(GeoNetInputError, match="seq-length"):
+        P.prepare("synth", tmp_path / "empty", tmp_path / "out", seq_length=4)
+    with pytest.raises(GeoNetInputError, match="--split eigen does not apply"):
+        P.prepare("synth", tmp_path / "empty", tmp_path / "out", split="eigen")
+    with pytest.raises(SystemExit) as ex:
+        P.main(["--help"])
+    assert ex.value.code == 0
+    help_text = capsys.readouterr().out
+    for kind in P.KINDS:
+        assert f"python -m training.prepare --kind {kind}" in help_text

@@ -1,0 +1,246 @@
+"""Training data: reads the folder written by ``python -m training.prepare``.
+
+Augmentation follows the official data loader (spec §6) with two documented differences:
+one random draw per *sample* (the official draws once per batch), and the intrinsics are
+scaled by the exact resize ratio (out_w / W) rather than by the drawn factor.
+"""
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.formats import read_depth_kitti, read_image
+
+SPLITS = ("train", "val", "heldout")
+PREPARE_CMD = "run python -m training.prepare --kind synth|kitti_raw|kitti_odom --src DIR --out ROOT first"
+
+# Augmentation ranges (official data_loader.py).
+SCALE_RANGE = (1.0, 1.15)
+COLOR_PROB = 0.5
+GAMMA_RANGE = (0.8, 1.2)
+BRIGHTNESS_RANGE = (0.5, 2.0)
+GAIN_RANGE = (0.8, 1.2)
+
+
+# --------------------------------------------------------------------------- augmentation
+def random_scale_crop(frames: np.ndarray, K: np.ndarray, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Scale x and y independently by U[1, 1.15], then crop back to the input size.
+
+    One draw is shared by all frames, so the geometry between them is unchanged.
+
+    Args:
+        frames: (N, H, W, 3) float32 in [0, 1].
+        K: (3, 3) intrinsics at H x W.
+        rng: numpy Generator (per-sample).
+    Returns:
+        frames (N, H, W, 3) float32, K (3, 3) float64 for the cropped frames,
+        info {"sx", "sy", "x0", "y0"}: the exact resize ratios and the crop offset.
+    """
+    n, h, w, _ = frames.shape
+    fx, fy = rng.uniform(*SCALE_RANGE, size=2)
+    out_w, out_h = int(w * fx), int(h * fy)  # floor, as tf.cast(int32) in the official code
+    # cv2's INTER_AREA on enlargement degenerates to near-nearest-neighbour (blocky); TF's
+    # resize_area interpolates, and bilinear is the closest cv2 filter for a <= 15 % zoom.
+    scaled = np.stack([cv2.resize(f, (out_w, out_h), interpolation=cv2.INTER_LINEAR) for f in frames])
+    y0 = int(rng.integers(0, out_h - h + 1))
+    x0 = int(rng.integers(0, out_w - w + 1))
+    cropped = scaled[:, y0:y0 + h, x0:x0 + w]
+    # Exact ratios of the resize that was done (the official uses the drawn factor; < 0.3 % apart).
+    sx, sy = out_w / w, out_h / h
+    K = scale_intrinsics(K, sx, sy)
+    K[0, 2] -= x0  # cropping moves the principal point, focal lengths stay
+    K[1, 2] -= y0
+    return np.ascontiguousarray(cropped), K, {"sx": sx, "sy": sy, "x0": x0, "y0": y0}
+
+
+def random_color(frames: np.ndarray, rng: np.random.Generator, share_gain: bool) -> np.ndarray:
+    """Gamma U[0.8, 1.2], brightness U[0.5, 2], per-channel gain U[0.8, 1.2], clip to [0, 1].
+
+    Gamma and brightness are shared by all frames. The official code draws the gain for all
+    3*N channels of the stacked sample, so every frame gets its own gain (``share_gain=False``
+    reproduces that quirk); ``share_gain=True`` uses one gain for all frames.
+
+    Args:
+        frames: (N, H, W, 3) float32 in [0, 1].
+    Returns:
+        (N, H, W, 3) float32 in [0, 1].
+    """
+    n = frames.shape[0]
+    gamma = rng.uniform(*GAMMA_RANGE)
+    brightness = rng.uniform(*BRIGHTNESS_RANGE)
+    gains = rng.uniform(*GAIN_RANGE, size=(1 if share_gain else n, 1, 1, 3))
+    out = np.power(frames, gamma) * brightness * gains
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+def augment(frames: np.ndarray, K: np.ndarray, rng: np.random.Generator, share_gain: bool
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Official training augmentation: scale + crop (always), colour with p = 0.5.
+
+    Args:
+        frames: (N, H, W, 3) float32 in [0, 1]; K: (3, 3).
+    Returns:
+        frames (N, H, W, 3) float32 in [0, 1], K (3, 3).
+    """
+    frames, K, _ = random_scale_crop(frames, K, rng)
+    if rng.uniform() < COLOR_PROB:
+        frames = random_color(frames, rng, share_gain)
+    return frames, K
+
+
+# --------------------------------------------------------------------------- reading
+def read_list(path: Path) -> list[str]:
+    """Lines "<folder> <frame>" -> names; GeoNetInputError on a malformed line."""
+    names = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(parts) != 2:
+            raise GeoNetInputError(path, f"line {lineno} is not '<folder> <frame>': {line.strip()[:60]!r}", PREPARE_CMD)
+        names.append(f"{parts[0]} {parts[1]}")
+    return names
+
+
+def read_cam(path: Path) -> np.ndarray:
+    """<frame>_cam.txt "fx,0.,cx,0.,fy,cy,0.,0.,1." -> (3, 3) float64."""
+    if not path.is_file():
+        raise GeoNetInputError(path, "intrinsics file not found", PREPARE_CMD)
+    try:
+        vals = [float(v) for v in path.read_text().replace(",", " ").split()]
+    except ValueError:
+        vals = []
+    if len(vals) != 9:
+        raise GeoNetInputError(path, "expected 9 comma-separated numbers 'fx,0.,cx,0.,fy,cy,0.,0.,1.'", PREPARE_CMD)
+    return np.array(vals, dtype=np.float64).reshape(3, 3)
+
+
+class SequenceDataset(Dataset):
+    """GeoNet training samples from a ``training.prepare`` folder.
+
+    Item keys:
+        ``target``      float32 (3, H, W) in [0, 1], the middle frame.
+        ``sources``     float32 (N_src, 3, H, W) in [0, 1], temporal order:
+                        seq 3 -> [t-1, t+1]; seq 5 -> [t-2, t-1, t+1, t+2].
+        ``intrinsics``  float32 (3, 3), K at H x W (after augmentation).
+        ``name``        str "<folder> <frame>".
+        ``depth_gt``    float32 (1, H, W) metres, 0 = none; split "heldout" only, when
+                        ``<frame>_depth.png`` exists.
+
+    Augmentation (``augment=True`` and split "train" only) draws once per sample from an RNG
+    seeded by (seed, epoch, index), so an item is reproducible whatever worker loads it; call
+    :meth:`set_epoch` before each epoch to get new draws. Samples listed in ``heldout.txt``
+    are refused for "train" and "val".
+    """
+
+    def __init__(self, root, split: str = "train", seq_length: int = 3, height: int = REFERENCE_HEIGHT,
+                 width: int = REFERENCE_WIDTH, augment: bool = True, share_color_gain: bool = False, seed: int = 0):
+        if split not in SPLITS:
+            raise GeoNetInputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
+        if seq_length < 3 or seq_length % 2 == 0:
+            raise GeoNetInputError(None, f"seq_length must be odd and >= 3, got {seq_length}", "use 3 or 5")
+        self.root = Path(root)
+        self.split = split
+        self.seq_length = seq_length
+        self.height, self.width = height, width
+        self.augment = augment and split == "train"
+        self.share_color_gain = share_color_gain
+        self.seed = seed
+        self.epoch = 0
+
+        if not self.root.is_dir():
+            raise GeoNetInputError(self.root, "dataset folder not found", PREPARE_CMD)
+        list_path = self.root / f"{split}.txt"
+        if not list_path.is_file():
+            hint = ("only --kind synth writes held-out samples; " + PREPARE_CMD) if split == "heldout" else PREPARE_CMD
+            raise GeoNetInputError(list_path, f"no {split}.txt in the dataset folder", hint)
+        self.names = read_list(list_path)
+        if not self.names:
+            raise GeoNetInputError(list_path, f"the {split} split is empty",
+                                   "prepare more data or a larger --val-fraction; " + PREPARE_CMD)
+        heldout_path = self.root / "heldout.txt"
+        if split != "heldout" and heldout_path.is_file():
+            leaked = set(self.names) & set(read_list(heldout_path))
+            if leaked:
+                raise GeoNetInputError(list_path, f"{len(leaked)} samples are also in heldout.txt "
+                                                  f"(e.g. {sorted(leaked)[0]!r}); held-out data must never be trained on",
+                                       "re-run python -m training.prepare into a fresh folder")
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def set_epoch(self, epoch: int) -> None:
+        """New augmentation draws per epoch (deterministic given seed and epoch)."""
+        self.epoch = int(epoch)
+
+    def load_frames(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """-> frames (seq_length, H, W, 3) float32 in [0, 1], K (3, 3) float64 at H x W."""
+        folder, frame = name.split(" ")
+        jpg = self.root / folder / f"{frame}.jpg"
+        img = read_image(jpg)  # raises GeoNetInputError naming the file if missing/corrupt
+        h, w = self.height, self.width
+        if img.shape[:2] != (h, self.seq_length * w):
+            held = f"it holds {img.shape[1] // w} frames of width {w}; " if img.shape[1] % w == 0 and img.shape[0] == h else ""
+            raise GeoNetInputError(jpg, f"snippet is {img.shape[1]}x{img.shape[0]} but seq_length={self.seq_length} at "
+                                        f"{h}x{w} needs {self.seq_length * w}x{h}",
+                                   f"{held}pass the seq_length/height/width used by training.prepare, "
+                                   f"or re-run it with --seq-length {self.seq_length}")
+        frames = img.reshape(h, self.seq_length, w, 3).transpose(1, 0, 2, 3)  # split the horizontal strip
+        frames = frames.astype(np.float32) / 255.0
+        return frames, read_cam(self.root / folder / f"{frame}_cam.txt")
+
+    def __getitem__(self, index: int) -> dict:
+        name = self.names[index]
+        frames, K = self.load_frames(name)
+        if self.augment:
+            rng = np.random.default_rng([self.seed, self.epoch, index])
+            frames, K = augment(frames, K, rng, self.share_color_gain)
+        chw = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))  # (N, 3, H, W)
+        mid = self.seq_length // 2
+        item = {
+            "target": chw[mid],
+            "sources": torch.cat([chw[:mid], chw[mid + 1:]]),
+            "intrinsics": torch.from_numpy(K.astype(np.float32)),
+            "name": name,
+        }
+        if self.split == "heldout":
+            folder, frame = name.split(" ")
+            depth_path = self.root / folder / f"{frame}_depth.png"
+            if depth_path.is_file():
+                depth = read_depth_kitti(depth_path)
+                if depth.shape != (self.height, self.width):
+                    raise GeoNetInputError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, "
+                                                       f"expected {self.width}x{self.height}", PREPARE_CMD)
+                item["depth_gt"] = torch.from_numpy(depth[None].astype(np.float32))
+        return item
+
+
+# --------------------------------------------------------------------------- loader
+def _seed_worker(worker_id: int) -> None:
+    """Seed the global RNGs of a loader worker from torch's per-worker seed (for any code that
+    uses them; our augmentation has its own per-item RNG) and keep OpenCV single-threaded so
+    workers do not oversubscribe the CPU."""
+    seed = torch.initial_seed() % 2 ** 32
+    np.random.seed(seed)
+    random.seed(seed)
+    cv2.setNumThreads(1)
+
+
+def make_loader(dataset: Dataset, batch_size: int, shuffle: bool, num_workers: int = 0, seed: int = 0,
+                drop_last: bool = False) -> DataLoader:
+    """DataLoader whose shuffling order is fixed by ``seed`` (seeded torch.Generator).
+
+    Batches are dicts of the item keys with a leading batch dimension; "name" becomes a list.
+    """
+    generator = torch.Generator()
+    generator.manual_seed(seed)
+    return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, num_workers=num_workers,
+                      generator=generator, worker_init_fn=_seed_worker, drop_last=drop_last)

@@ -1,0 +1,621 @@
+"""Turn image sequences into GeoNet's training format (the official ``prepare_train_data.py``).
+
+Output under ``--out DIR`` (read back by :class:`training.data.SequenceDataset`)::
+
+    DIR/<folder>/<frame>.jpg         seq_length frames at H x W side by side: (H, seq_length*W, 3),
+                                     temporal order, target (middle frame) in the middle; JPEG q95
+    DIR/<folder>/<frame>_cam.txt     one line "fx,0.,cx,0.,fy,cy,0.,0.,1.": the target's K at H x W
+    DIR/<folder>/<frame>_depth.png   synth held-out samples only: target depth (KITTI 16-bit, m*256)
+                                     resized to H x W with nearest neighbour
+    DIR/train.txt, DIR/val.txt       "<folder> <frame>" per line
+    DIR/heldout.txt                  synth only: held-out samples (never in train.txt / val.txt)
+
+``<folder>`` is ``<drive>_02`` / ``<drive>_03`` for KITTI raw, the sequence name for odometry and
+synthetic data; ``<frame>`` is the target frame's file stem.
+
+Every file goes through :func:`geonet_infer.formats.atomic_write`, so an interrupted run never
+leaves half a sample; a re-run skips samples whose files all exist (resumable).
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.formats import (atomic_write, read_calib_K, read_calib_file, read_depth_kitti,
+                                  read_image, require_key, write_depth_kitti)
+
+log = logging.getLogger(__name__)
+
+KINDS = ("synth", "kitti_raw", "kitti_odom")
+SPLITS = ("eigen", "stereo", "odom", "none")
+LISTS_DIR = Path(__file__).with_name("kitti_lists")
+RAW_CAMS = ("02", "03")  # KITTI raw colour cameras: left, right
+ODOM_TEST_SEQS = ("09", "10")  # the pose benchmark sequences (spec §8), never trained on
+JPEG_QUALITY = 95
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PREPARE_HINT = "see python -m training.prepare --help"
+
+
+# --------------------------------------------------------------------------- data records
+@dataclass
+class Sequence:
+    """One camera's frames: the unit inside which snippets are formed."""
+
+    folder: str  # output folder name
+    image_dir: Path
+    frames: list[Path]  # image files, sorted by frame number
+    K: np.ndarray  # (3, 3) intrinsics at the frames' original resolution
+    scene: str = ""  # KITTI raw drive folder name, e.g. 2011_09_26_drive_0001_sync (static_frames.txt)
+    heldout: bool = False
+    depth_dir: Path | None = None  # synth: depth/ folder (for held-out GT)
+    static_removed: set = field(default_factory=set)  # frame numbers dropped by --remove-static
+
+
+@dataclass
+class Snippet:
+    """One training sample: seq_length consecutive frames, target in the middle."""
+
+    folder: str
+    frame: str  # target frame stem
+    paths: tuple[Path, ...]  # temporal order
+    K: np.ndarray  # (3, 3) target intrinsics at original resolution
+    heldout: bool = False
+    depth_path: Path | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.folder} {self.frame}"
+
+
+@dataclass
+class Skip:
+    where: Path
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.where}: {self.reason}"
+
+
+@dataclass
+class PrepareResult:
+    """What :func:`prepare` did. Names are "<folder> <frame>"."""
+
+    out: Path
+    train: list[str] = field(default_factory=list)
+    val: list[str] = field(default_factory=list)
+    heldout: list[str] = field(default_factory=list)
+    written: int = 0
+    existing: int = 0  # already complete from an earlier run (resume)
+    skipped: list[Skip] = field(default_factory=list)
+
+    def summary(self) -> str:
+        lines = [f"prepare: {self.written} samples written, {self.existing} already present, "
+                 f"{len(self.skipped)} skipped -> {self.out}",
+                 f"  train {len(self.train)}, val {len(self.val)}, heldout {len(self.heldout)}"]
+        if self.skipped:
+            lines.append("  skipped:")
+            lines += [f"    - {s}" for s in self.skipped]
+        return "\n".join(lines)
+
+
+class Skips:
+    """Collects skip reasons; with ``strict`` the first one raises instead."""
+
+    def __init__(self, strict: bool):
+        self.strict = strict
+        self.items: list[Skip] = []
+
+    def add(self, where, reason: str, hint: str = "") -> None:
+        if self.strict:
+            raise GeoNetInputError(where, reason, hint or "fix or remove the file, or run without --strict to skip it")
+        self.items.append(Skip(Path(where), reason))
+        log.warning("skip %s: %s", where, reason)
+
+
+# --------------------------------------------------------------------------- small helpers
+def frame_number(path: Path) -> int | None:
+    """Frame index from a file stem like 0000000042; None for non-numeric names."""
+    return int(path.stem) if path.stem.isdigit() else None
+
+
+def list_images(folder: Path) -> list[Path]:
+    """PNG/JPEG files of a folder, sorted by frame number (then name)."""
+    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".jpg", ".jpeg")
+             and not p.name.startswith(".")]
+    return sorted(files, key=lambda p: (frame_number(p) is None, frame_number(p) or 0, p.name))
+
+
+def png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG header without decoding; None if unreadable.
+
+    Raises ValueError for a PNG-named file whose header is not a PNG header.
+    Non-PNG files return None (their size is checked when they are decoded).
+    """
+    if path.suffix.lower() != ".png":
+        return None
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise ValueError("not a valid PNG header (truncated or corrupt file)")
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def read_scene_list(name: str) -> set[str]:
+    """Scene names from training/kitti_lists/<name> (blank lines ignored)."""
+    path = LISTS_DIR / name
+    if not path.is_file():
+        raise GeoNetInputError(path, "scene list missing from the repository", "restore training/kitti_lists/")
+    return {line.strip() for line in path.read_text().splitlines() if line.strip()}
+
+
+def read_static_frames() -> set[tuple[str, str]]:
+    """{(drive folder, frame stem)} from static_frames.txt ("date drive frame" lines)."""
+    path = LISTS_DIR / "static_frames.txt"
+    if not path.is_file():
+        raise GeoNetInputError(path, "static frame list missing from the repository", "restore training/kitti_lists/")
+    out = set()
+    for line in path.read_text().splitlines():
+        parts = line.split()
+        if len(parts) == 3:
+            out.add((parts[1], parts[2]))
+    return out
+
+
+def resize(img: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(h, w, 3) uint8 -> (height, width, 3) uint8.
+
+    The official dump used scipy.misc.imresize (PIL bilinear). scipy.misc is gone, so we use
+    INTER_AREA when shrinking (box filter, no aliasing; matches TF resize_area used elsewhere)
+    and INTER_LINEAR when enlarging; pixels differ slightly from the official dump.
+    """
+    shrink = height <= img.shape[0] and width <= img.shape[1]
+    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+
+
+def cam_line(K: np.ndarray) -> str:
+    """Official _cam.txt line "fx,0.,cx,0.,fy,cy,0.,0.,1." (full float precision)."""
+    fx, cx, fy, cy = (float(v) for v in (K[0, 0], K[0, 2], K[1, 1], K[1, 2]))
+    return f"{fx!r},0.,{cx!r},0.,{fy!r},{cy!r},0.,0.,1."
+
+
+# --------------------------------------------------------------------------- finding sequences
+def _has_any(folder: Path, names) -> bool:
+    return any((folder / n).is_dir() for n in names)
+
+
+def _raw_drives(src: Path) -> list[Path]:
+    """Drive folders under a KITTI raw root (date/drive), a date folder, or one drive folder."""
+    cam_dirs = [f"image_{c}" for c in RAW_CAMS]
+    if _has_any(src, cam_dirs):
+        return [src]
+    drives = []
+    for d in sorted(p for p in src.iterdir() if p.is_dir()):
+        if _has_any(d, cam_dirs):
+            drives.append(d)
+            continue
+        drives += [dd for dd in sorted(p for p in d.iterdir() if p.is_dir()) if _has_any(dd, cam_dirs)]
+    return drives
+
+
+def collect_kitti_raw(src: Path, split: str, skips: Skips) -> list[Sequence]:
+    """One Sequence per (drive, camera 02/03); K = P_rect_0X[:3, :3] of calib_cam_to_cam.txt."""
+    drives = _raw_drives(src)
+    if not drives:
+        raise GeoNetInputError(src, "no KITTI raw drive found (no image_02/ or image_03/ folder here or 1-2 levels down)",
+                               "pass a KITTI raw root (<date>/<drive>/image_02/data/*.png) or one drive folder")
+    test_scenes = read_scene_list(f"test_scenes_{split}.txt") if split in ("eigen", "stereo") else set()
+    seqs = []
+    for drive in drives:
+        # The official loader compares the drive name minus "_sync" with the scene lists.
+        scene = drive.name[:-5] if drive.name.endswith("_sync") else drive.name
+        if scene in test_scenes:
+            log.info("exclude %s: test scene of the %s split", drive.name, split)
+            continue
+        # Calibration sits in the date folder of a raw root, or beside image_02 in a lone drive.
+        calib_path = next((p for p in (drive / "calib_cam_to_cam.txt", drive.parent / "calib_cam_to_cam.txt")
+                           if p.is_file()), None)
+        if calib_path is None:
+            skips.add(drive, "no calib_cam_to_cam.txt in the drive folder or its parent",
+                      "copy the date's calibration files next to the drive folders")
+            continue
+        calib = read_calib_file(calib_path)
+        for cam in RAW_CAMS:
+            cam_dir = drive / f"image_{cam}"
+            if not cam_dir.is_dir():
+                continue
+            image_dir = cam_dir / "data" if (cam_dir / "data").is_dir() else cam_dir
+            try:
+                P = require_key(calib, f"P_rect_{cam}", calib_path)
+            except GeoNetInputError as err:
+                skips.add(calib_path, err.problem, f"camera {cam} of {drive.name} needs it")
+                continue
+            seqs.append(Sequence(folder=f"{drive.name}_{cam}", image_dir=image_dir, frames=list_images(image_dir),
+                                 K=np.asarray(P, dtype=np.float64).reshape(3, 4)[:, :3].copy(), scene=drive.name))
+    return seqs
+
+
+def remove_static_frames(seqs: list[Sequence]) -> None:
+    """Drop the frames of static_frames.txt (official --remove_static), before snippets are formed."""
+    static = read_static_frames()
+    for s in seqs:
+        kept = [p for p in s.frames if (s.scene, p.stem) not in static]
+        s.static_removed = {frame_number(p) for p in s.frames if (s.scene, p.stem) in static}
+        if len(kept) != len(s.frames):
+            log.info("%s: %d static frames removed", s.folder, len(s.frames) - len(kept))
+        s.frames = kept
+
+
+def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
+    """One Sequence per odometry sequence; image_2 + P2, else grey image_0 + P0."""
+    if (src / "calib.txt").is_file() or _has_any(src, ("image_2", "image_0")):
+        seq_dirs = [src]
+    else:
+        root = src / "sequences" if (src / "sequences").is_dir() else src
+        seq_dirs = [d for d in sorted(root.iterdir())
+                    if d.is_dir() and not d.name.startswith(".") and _has_any(d, ("image_2", "image_0"))]
+    if not seq_dirs:
+        raise GeoNetInputError(src, "no KITTI odometry sequence found (expected sequences/XX/image_2 or image_0)",
+                               "pass the odometry root that holds sequences/")
+    seqs = []
+    for d in seq_dirs:
+        if split == "odom" and d.name in ODOM_TEST_SEQS:
+            log.info("exclude sequence %s: pose test sequence (use --split none to include it)", d.name)
+            continue
+        colour = d / "image_2"
+        if colour.is_dir() and list_images(colour):
+            image_dir, key = colour, "P2"
+        else:
+            # Only greyscale frames: read_image expands them to 3 identical channels.
+            image_dir, key = d / "image_0", "P0"
+            log.warning("sequence %s: no colour frames in image_2/, using greyscale image_0/ (P0) "
+                        "converted to 3 channels", d.name)
+        calib_path = d / "calib.txt"
+        try:
+            K = read_calib_K(calib_path, key)
+        except GeoNetInputError as err:
+            skips.add(err.path or calib_path, err.problem, f"sequence {d.name} needs {key}")
+            continue
+        seqs.append(Sequence(folder=d.name, image_dir=image_dir, frames=list_images(image_dir), K=K))
+    return seqs
+
+
+def collect_synth(src: Path, heldout: int, skips: Skips) -> list[Sequence]:
+    """One Sequence per generator folder (image/, depth/, calib.txt); the last ``heldout`` are held out."""
+    if (src / "image").is_dir():
+        seq_dirs = [src]
+    else:
+        # Hidden folders are unfinished work (e.g. the generator's .tmp_seq_NNNN).
+        seq_dirs = [d for d in sorted(src.iterdir())
+                    if d.is_dir() and not d.name.startswith(".") and (d / "image").is_dir()]
+    if not seq_dirs:
+        raise GeoNetInputError(src, "no synthetic sequence found (expected <seq>/image/*.png and <seq>/calib.txt)",
+                               "pass the output root of the synthetic generator (training.synth)")
+    if heldout >= len(seq_dirs):
+        raise GeoNetInputError(src, f"{len(seq_dirs)} sequences but --heldout {heldout}: nothing left to train on",
+                               "generate more sequences or lower --heldout")
+    held = {d.name for d in seq_dirs[len(seq_dirs) - heldout:]}
+    seqs = []
+    for d in seq_dirs:
+        try:
+            K = read_calib_K(d / "calib.txt", "K")
+        except GeoNetInputError as err:
+            skips.add(err.path or d, err.problem, err.hint)
+            continue
+        seqs.append(Sequence(folder=d.name, image_dir=d / "image", frames=list_images(d / "image"), K=K,
+                             heldout=d.name in held, depth_dir=d / "depth"))
+    return seqs
+
+
+# --------------------------------------------------------------------------- snippets
+def check_frames(seq: Sequence, skips: Skips) -> bool:
+    """Drop frames with an unreadable header; refuse a sequence with mixed resolutions.
+
+    Reads only PNG headers (24 bytes), so this is cheap; a frame that decodes badly later
+    is caught by the worker. Returns False if the whole sequence must be skipped.
+    """
+    good, first = [], None
+    for p in seq.frames:
+        try:
+            size = png_size(p)
+        except (OSError, ValueError) as err:
+            skips.add(p, f"unreadable frame ({err})")
+            continue
+        if size is not None:
+            if first is None:
+                first = (p, size)
+            elif size != first[1]:
+                skips.add(seq.image_dir, f"mixed resolutions: {p.name} is {size[0]}x{size[1]}, "
+                                         f"{first[0].name} is {first[1][0]}x{first[1][1]}; whole sequence skipped",
+                          "one calibration fits one resolution; split the sequence into separate folders")
+                return False
+        good.append(p)
+    seq.frames = good
+    return True
+
+
+def make_snippets(seq: Sequence, seq_length: int, skips: Skips) -> list[Snippet]:
+    """All snippets of a sequence: target at the middle, neighbours = adjacent kept frames.
+
+    Frames removed as static are simply absent from ``seq.frames`` (neighbours skip them, as in
+    the official loader); a gap in the file numbering (missing or unreadable file) ends a run,
+    because frames across it are not consecutive.
+    """
+    half = seq_length // 2
+    runs: list[list[Path]] = []
+    prev = None
+    for p in seq.frames:
+        n = frame_number(p)
+        if runs and prev is not None and n is not None and n - prev > 1 and not _static_gap(seq, prev, n):
+            runs.append([])
+        if not runs:
+            runs.append([])
+        runs[-1].append(p)
+        prev = n
+    out = []
+    for run in runs:
+        for i in range(half, len(run) - half):
+            window = tuple(run[i - half:i + half + 1])
+            tgt = window[half]
+            depth = seq.depth_dir / f"{tgt.stem}.png" if seq.depth_dir is not None else None
+            out.append(Snippet(seq.folder, tgt.stem, window, seq.K, seq.heldout, depth))
+    if not out:
+        longest = max((len(r) for r in runs), default=0)
+        skips.add(seq.image_dir, f"sequence too short: at most {longest} consecutive usable frames, "
+                                 f"a snippet needs {seq_length}",
+                  "add frames or use a shorter --seq-length")
+    return out
+
+
+def _static_gap(seq: Sequence, prev: int, n: int) -> bool:
+    """True if every frame between prev and n was removed as static (neighbours may skip those)."""
+    return all(k in seq.static_removed for k in range(prev + 1, n))
+
+
+# --------------------------------------------------------------------------- one sample (worker)
+def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
+    base = out / snip.folder
+    paths = {"jpg": base / f"{snip.frame}.jpg", "cam": base / f"{snip.frame}_cam.txt"}
+    if snip.heldout:
+        paths["depth"] = base / f"{snip.frame}_depth.png"
+    return paths
+
+
+def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[str, Path | None, str | None]:
+    """Read, resize and write one sample. Runs in a worker process.
+
+    Everything is read and checked before the first write, and each file is written
+    atomically, so a failure leaves either nothing new or complete files.
+
+    Returns:
+        ("written" | "exists" | "skipped", offending file or None, reason or None)
+    """
+    paths = sample_paths(out, snip)
+    if all(p.is_file() for p in paths.values()):
+        return "exists", None, None
+    frames = []
+    for p in snip.paths:
+        try:
+            frames.append(read_image(p))
+        except GeoNetInputError as err:
+            return "skipped", p, f"{err.problem} (needed by sample '{snip.name}')"
+    h0, w0 = frames[len(frames) // 2].shape[:2]
+    for p, f in zip(snip.paths, frames):
+        if f.shape[:2] != (h0, w0):
+            return "skipped", p, (f"frame is {f.shape[1]}x{f.shape[0]} but the target is {w0}x{h0} "
+                                  "(mixed resolutions in one snippet)")
+    strip = np.concatenate([resize(f, height, width) for f in frames], axis=1)  # (H, seq*W, 3)
+    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(strip, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        return "skipped", snip.paths[len(frames) // 2], "JPEG encoding failed"
+    # K is scaled by the target frame's own resize factors (official: zoom_x, zoom_y of the target).
+    K = scale_intrinsics(snip.K, width / w0, height / h0)
+    depth = None
+    if snip.heldout:
+        try:
+            depth = read_depth_kitti(snip.depth_path)
+        except GeoNetInputError as err:
+            return "skipped", snip.depth_path, err.problem
+        if depth.shape != (h0, w0):
+            return "skipped", snip.depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, image {w0}x{h0}"
+        # Nearest keeps measured values (no blending of depth across edges / with 0 = none).
+        depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    with atomic_write(paths["jpg"]) as tmp:
+        tmp.write_bytes(jpg.tobytes())
+    with atomic_write(paths["cam"]) as tmp:
+        tmp.write_text(cam_line(K) + "\n")
+    if depth is not None:
+        write_depth_kitti(paths["depth"], depth)
+    return "written", None, None
+
+
+def _write_snippet_args(args):
+    return write_snippet(*args)
+
+
+# --------------------------------------------------------------------------- driver
+def split_train_val(names: list[str], val_fraction: float, seed: int) -> tuple[list[str], list[str]]:
+    """Each sample goes to val with probability val_fraction (as the official script), seeded.
+
+    Names are sorted first so the split does not depend on directory listing order. If that
+    leaves val empty while val_fraction > 0 and there are >= 2 samples, one sample is moved to
+    val so a tiny dataset still has something to validate on.
+    """
+    names = sorted(names)
+    rng = np.random.RandomState(seed)
+    to_val = rng.random_sample(len(names)) < val_fraction
+    train = [n for n, v in zip(names, to_val) if not v]
+    val = [n for n, v in zip(names, to_val) if v]
+    if not val and val_fraction > 0 and len(train) >= 2:
+        val.append(train.pop(int(rng.randint(len(train)))))
+    return train, val
+
+
+def write_list(path: Path, names: list[str]) -> None:
+    with atomic_write(path) as tmp:
+        tmp.write_text("".join(n + "\n" for n in names))
+
+
+def prepare(kind: str, src, out, seq_length: int | None = None, height: int = REFERENCE_HEIGHT,
+            width: int = REFERENCE_WIDTH, split: str | None = None, remove_static: bool = False,
+            workers: int = 1, val_fraction: float = 0.1, seed: int = 8964, heldout: int = 2,
+            max_frames: int | None = None, strict: bool = False) -> PrepareResult:
+    """Prepare one dataset; see the module docstring for the output. Returns what was done."""
+    if kind not in KINDS:
+        raise GeoNetInputError(None, f"unknown --kind {kind!r}", f"choose one of {', '.join(KINDS)}")
+    src, out = Path(src), Path(out)
+    if not src.is_dir():
+        raise GeoNetInputError(src, "source folder not found", PREPARE_HINT)
+    seq_length = seq_length or (5 if kind == "kitti_odom" else 3)
+    if seq_length < 3 or seq_length % 2 == 0:
+        raise GeoNetInputError(None, f"--seq-length must be odd and >= 3, got {seq_length}", "use 3 (depth/flow) or 5 (pose)")
+    split = split or {"kitti_raw": "eigen", "kitti_odom": "odom", "synth": "none"}[kind]
+    valid_splits = {"kitti_raw": ("eigen", "stereo", "none"), "kitti_odom": ("odom", "none"), "synth": ("none",)}[kind]
+    if split not in valid_splits:
+        raise GeoNetInputError(None, f"--split {split} does not apply to --kind {kind}",
+                               f"choose one of {', '.join(valid_splits)}")
+    if remove_static and kind != "kitti_raw":
+        raise GeoNetInputError(None, "--remove-static only applies to --kind kitti_raw", "drop the flag")
+
+    skips = Skips(strict)
+    if kind == "kitti_raw":
+        seqs = collect_kitti_raw(src, split, skips)
+    elif kind == "kitti_odom":
+        seqs = collect_kitti_odom(src, split, skips)
+    else:
+        seqs = collect_synth(src, heldout, skips)
+
+    snippets: list[Snippet] = []
+    for seq in seqs:
+        if max_frames is not None:
+            seq.frames = seq.frames[:max_frames]
+    if remove_static:
+        remove_static_frames(seqs)
+    for seq in seqs:
+        if check_frames(seq, skips):
+            snippets += make_snippets(seq, seq_length, skips)
+
+    result = PrepareResult(out=out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(s, out, height, width) for s in snippets]
+    done: list[Snippet] = []
+    bar = tqdm(total=len(jobs), desc=f"prepare {kind}", unit="sample", disable=None)
+
+    def record(snip: Snippet, status: str, where: Path | None, reason: str | None) -> None:
+        bar.update(1)
+        if status == "skipped":
+            skips.add(where or snip.paths[len(snip.paths) // 2], reason or "unknown error")
+            return
+        done.append(snip)
+        if status == "written":
+            result.written += 1
+        else:
+            result.existing += 1
+
+    try:
+        if workers <= 1:
+            for job in jobs:
+                record(job[0], *write_snippet(*job))
+        else:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                futures = {pool.submit(_write_snippet_args, job): job[0] for job in jobs}
+                try:
+                    for fut in as_completed(futures):
+                        record(futures[fut], *fut.result())
+                except BaseException:
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    raise
+    finally:
+        bar.close()
+
+    result.skipped = skips.items
+    if not done:
+        raise GeoNetInputError(src, f"no sample could be made ({len(skips.items)} skipped)",
+                               "; ".join(str(s) for s in skips.items[:5]) or PREPARE_HINT)
+    result.heldout = sorted(s.name for s in done if s.heldout)
+    result.train, result.val = split_train_val([s.name for s in done if not s.heldout], val_fraction, seed)
+    write_list(out / "train.txt", result.train)
+    write_list(out / "val.txt", result.val)
+    if kind == "synth":
+        write_list(out / "heldout.txt", result.heldout)
+    return result
+
+
+EPILOG = """\
+kinds:
+  kitti_raw   --src = a KITTI raw root (<date>/<drive>_sync/image_02/data/*.png, calibration in
+              <date>/calib_cam_to_cam.txt) or one drive folder (calibration beside image_02 or in
+              its parent). Cameras 02 and 03 both become sequences (<drive>_02, <drive>_03);
+              K = P_rect_0X[:3,:3]. --split eigen (default) drops the 28 Eigen test scenes,
+              --split stereo the 29 KITTI-2015 scenes (flow experiments); --remove-static drops
+              the frames in training/kitti_lists/static_frames.txt before forming snippets.
+      python -m training.prepare --kind kitti_raw --src ../shared/realdata/kitti_raw_2011_09_26_sfnd \\
+          --out data/prepared_raw --split eigen
+  kitti_odom  --src = an odometry root with sequences/XX/{image_2,calib.txt}; K = P2. Sequences with
+              only greyscale image_0 use P0, converted to 3 channels. Default --seq-length 5;
+              --split odom (default) leaves out the pose test sequences 09 and 10.
+      python -m training.prepare --kind kitti_odom --src ../shared/realdata/kitti_odometry_00 \\
+          --out data/prepared_odom
+  synth       --src = the synthetic generator's output root (<seq>/image/*.png, depth/, calib.txt
+              with "K: fx 0 cx 0 fy cy 0 0 1"). The last --heldout sequences (sorted by name) go to
+              heldout.txt, with the target depth copied as <frame>_depth.png, never to train/val.
+      python -m training.prepare --kind synth --src data/synth --out data/prepared_synth --heldout 2
+
+Skipped inputs (unreadable frames, missing calibration keys, too-short or mixed-resolution
+sequences) are listed at the end; --strict makes the first one an error. Re-running resumes.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m training.prepare",
+        description="Cut image sequences into GeoNet training samples: seq_length frames resized to "
+                    "HxW side by side in one JPEG, the target's intrinsics in <frame>_cam.txt, and "
+                    "train.txt / val.txt lists.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--kind", required=True, choices=KINDS, help="input layout (see below)")
+    p.add_argument("--src", required=True, help="input root (see below)")
+    p.add_argument("--out", required=True, help="output folder (created; re-running resumes)")
+    p.add_argument("--seq-length", type=int, default=None, help="frames per sample, odd: 3 (default) or 5 (kitti_odom default)")
+    p.add_argument("--height", type=int, default=REFERENCE_HEIGHT, help="frame height (default %(default)s)")
+    p.add_argument("--width", type=int, default=REFERENCE_WIDTH, help="frame width (default %(default)s)")
+    p.add_argument("--split", choices=SPLITS, default=None,
+                   help="test scenes to leave out: eigen|stereo (kitti_raw, default eigen), odom "
+                        "(kitti_odom: sequences 09, 10; the default), none")
+    p.add_argument("--remove-static", action="store_true", help="kitti_raw: drop static frames first")
+    p.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1), help="processes (default %(default)s)")
+    p.add_argument("--val-fraction", type=float, default=0.1, help="probability of a sample going to val.txt")
+    p.add_argument("--seed", type=int, default=8964, help="seed of the train/val split (official 8964)")
+    p.add_argument("--heldout", type=int, default=2, help="synth: last N sequences held out for evaluation")
+    p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames of each sequence (quick runs)")
+    p.add_argument("--strict", action="store_true", help="stop at the first bad input instead of skipping it")
+    return p
+
+
+def main(argv=None) -> PrepareResult:
+    args = build_parser().parse_args(argv)
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    result = prepare(args.kind, args.src, args.out, seq_length=args.seq_length, height=args.height,
+                     width=args.width, split=args.split, remove_static=args.remove_static,
+                     workers=args.workers, val_fraction=args.val_fraction, seed=args.seed,
+                     heldout=args.heldout, max_frames=args.max_frames, strict=args.strict)
+    print(result.summary())
+    return result
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except GeoNetInputError as err:
+        sys.exit(f"error: {err}")
