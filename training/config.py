@@ -26,6 +26,7 @@ class TrainConfig:
     beta1: float = 0.9
     beta2: float = 0.999
     max_steps: int = 1000
+    max_minutes: float | None = None  # wall-clock budget; stops early and saves
     seed: int = 8964
     num_workers: int = 2
     augment: bool = True
@@ -78,6 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=d.batch_size)
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--max-steps", type=int, default=d.max_steps)
+    p.add_argument("--max-minutes", type=float, default=None,
+                   help="stop (and save) once this much wall time has passed, even before --max-steps")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--num-workers", type=int, default=d.num_workers, help="data-loading processes")
     p.add_argument("--no-augment", dest="augment", action="store_false")

@@ -208,7 +208,10 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict:
             step += 1
             bar.update(1)
             row = {"step": step, "epoch": epoch, **loss.terms}
-            if step % cfg.val_every == 0 or step == cfg.max_steps:
+            out_of_time = (cfg.max_minutes is not None
+                           and time.perf_counter() - started > 60 * cfg.max_minutes)
+            last_step = step == cfg.max_steps or out_of_time
+            if step % cfg.val_every == 0 or last_step:
                 row.update(validate(model, cfg, val_set))
                 if row.get("val_total", float("inf")) < best:
                     best = row["val_total"]
@@ -221,8 +224,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict:
                 log.write(json.dumps(row) + "\n")
                 log.flush()
                 bar.set_postfix({k: f"{v:.4f}" for k, v in loss.terms.items()})
-            if step % cfg.save_every == 0 or step == cfg.max_steps:
+            if step % cfg.save_every == 0 or last_step:
                 save_checkpoint(out_dir / "last.pt", model, optimizer, step, cfg, metrics)
+            if out_of_time:
+                print(f"stopping at step {step}: --max-minutes {cfg.max_minutes} reached")
+                break
     bar.close()
     return {"step": step, "log": log_path, "last": out_dir / "last.pt",
             "best": out_dir / "best.pt", "metrics": metrics}

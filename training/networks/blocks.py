@@ -226,7 +226,20 @@ class BasicBlock(nn.Module):
         return F.relu(self.conv2(self.conv1(x)) + self.shortcut(x))
 
 
-class ResNet50Encoder(nn.Module):
+class _StemStagesEncoder(nn.Module):
+    """conv1 -> pool1 -> 4 stages; subclasses build ``conv1``, ``pool1`` and ``stages``."""
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        conv1 = self.conv1(x)
+        pool1 = self.pool1(conv1)
+        s1 = self.stages[0](pool1)
+        s2 = self.stages[1](s1)
+        s3 = self.stages[2](s2)
+        s4 = self.stages[3](s3)
+        return s4, [conv1, pool1, s1, s2, s3]
+
+
+class ResNet50Encoder(_StemStagesEncoder):
     """GeoNet ``build_resnet50`` encoder (not torchvision-compatible).
 
     conv1 7x7/2 (64) -> maxpool 3x3/2 -> 4 bottleneck stages (3, 4, 6, 3 blocks;
@@ -258,17 +271,9 @@ class ResNet50Encoder(nn.Module):
             stages.append(nn.Sequential(*blocks))
         self.stages = nn.ModuleList(stages)
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        conv1 = self.conv1(x)
-        pool1 = self.pool1(conv1)
-        s1 = self.stages[0](pool1)
-        s2 = self.stages[1](s1)
-        s3 = self.stages[2](s2)
-        s4 = self.stages[3](s3)
-        return s4, [conv1, pool1, s1, s2, s3]
 
 
-class SmallResNetEncoder(nn.Module):
+class SmallResNetEncoder(_StemStagesEncoder):
     """Encoder of the ``small`` nets: same pyramid as :class:`ResNet50Encoder`, far cheaper.
 
     conv1 5x5/2 (16) -> maxpool 3x3/2 -> 4 stages of basic blocks (2, 2, 2, 1 blocks;
@@ -301,14 +306,6 @@ class SmallResNetEncoder(nn.Module):
             stages.append(nn.Sequential(*blocks))
         self.stages = nn.ModuleList(stages)
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        conv1 = self.conv1(x)
-        pool1 = self.pool1(conv1)
-        s1 = self.stages[0](pool1)
-        s2 = self.stages[1](s1)
-        s3 = self.stages[2](s2)
-        s4 = self.stages[3](s3)
-        return s4, [conv1, pool1, s1, s2, s3]
 
 
 class UpconvDecoder(nn.Module):

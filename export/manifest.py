@@ -1,0 +1,147 @@
+"""Build the manifest of an exported model directory (schema: ``geonet_infer.manifest``).
+
+Also the per-graph ``metadata_props`` written into every ONNX file, so a single
+graph carries its key conventions even without the manifest.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import subprocess
+from pathlib import Path
+
+from export.wrappers import io_spec
+from geonet_infer import conventions
+from geonet_infer.manifest import (SCHEMA_VERSION, GraphEntry, Manifest, Provenance, Quantization,
+                                   TensorSpec, file_sha256)
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+GRAPH_NOTES = {
+    "depthnet": "image (B,3,H,W) normalised RGB (x/255*2-1) -> disparity (B,1,H,W) = scale*sigmoid+0.01, "
+                "depth = 1/disparity; scale 0 only",
+    "posenet": "snippet (B,3L,H,W) normalised RGB, channels [target, sources in temporal order] -> "
+               "pose (B,L-1,6) [tx,ty,tz,rx,ry,rz] (x0.01 inside), pose_matrix (B,L-1,4,4) target->source, "
+               "R = Rx@Ry@Rz",
+    "rigidflow": "depth (B,1,H,W) of the target, pose (B,6) target->source, intrinsics (B,3,3) at HxW, "
+                 "target/source (B,3,H,W) normalised -> rigid_flow (B,2,H,W) px (x then y), warped (B,3,H,W) "
+                 "source sampled at grid+flow (bilinear, align_corners, zero padding), error (B,1,H,W) = "
+                 "||0.85*DSSIM+0.15*|warped-target| + 1e-10||_2 over channels",
+    "resflownet": "flow_input (B,12,H,W) = [target(3), source(3), warped(3), rigid_flow(2) px, error(1)] -> "
+                  "residual_flow (B,2,H,W) px, flow = residual_flow + rigid_flow, scale 0",
+}
+
+
+def git_commit() -> str | None:
+    """``git rev-parse HEAD`` of the repository, or None (no git, not a checkout)."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True,
+                             timeout=10, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
+def versions() -> dict:
+    import onnx
+    import onnxruntime
+    import onnxscript
+    import torch
+    return {"torch": torch.__version__, "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__,
+            "onnxscript": getattr(onnxscript, "__version__", "unknown")}
+
+
+def utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def json_safe(value):
+    """Recursively turn non-finite floats into None and tuples into lists (strict JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):  # numpy / torch scalars
+        try:
+            return json_safe(value.item())
+        except (TypeError, ValueError):
+            pass
+    return value
+
+
+def graph_metadata(graph: str, arch: str, height: int, width: int, seq_length: int, precision: str,
+                   random_init: bool) -> dict[str, str]:
+    """``metadata_props`` of one ONNX file: its I/O contract and the conventions it relies on."""
+    conv = conventions.as_dict()
+    meta = {
+        "geonet.graph": graph,
+        "geonet.arch": arch,
+        "geonet.precision": precision,
+        "geonet.height": str(height),
+        "geonet.width": str(width),
+        "geonet.seq_length": str(seq_length),
+        "geonet.random_init": json.dumps(random_init),
+        "geonet.io": GRAPH_NOTES[graph],
+        "geonet.schema_version": str(SCHEMA_VERSION),
+        "geonet.conventions": json.dumps(conv, sort_keys=True),
+    }
+    meta["geonet.image_norm"] = json.dumps(conv["image_norm"])  # every graph takes normalised images
+    meta["geonet.channel_order"] = conv["channel_order"]
+    if graph == "depthnet":
+        meta["geonet.disp_head"] = json.dumps(conv["disp_heads"][arch])
+    if graph in ("posenet", "rigidflow"):
+        meta["geonet.pose"] = json.dumps(conv["pose"])
+    if graph == "rigidflow":
+        meta["geonet.sampler"] = json.dumps(conv["sampler"])
+        meta["geonet.intrinsics"] = json.dumps(conv["intrinsics"])
+    return meta
+
+
+def graph_entry(directory: Path, file: str, graph: str, height: int, width: int, seq_length: int,
+                opset: int, precision: str, exporter: str) -> GraphEntry:
+    """Manifest entry of ``directory/file`` (hash computed from the file as written)."""
+    spec = io_spec(graph, height, width, seq_length)
+    return GraphEntry(
+        file=file, sha256=file_sha256(directory / file), opset=opset, precision=precision,
+        inputs=tuple(TensorSpec(n, tuple(s), spec.dtype) for n, s in spec.inputs),
+        outputs=tuple(TensorSpec(n, tuple(s), spec.dtype) for n, s in spec.outputs),
+        exporter=exporter)
+
+
+def provenance(arch: str, random_init: bool, exporter: str, checkpoint: str | Path | None = None,
+               ckpt: dict | None = None) -> Provenance:
+    cfg = (ckpt or {}).get("config", {})
+    return Provenance(
+        architecture=arch, random_init=random_init, export_date=utc_now(), git_commit=git_commit(),
+        checkpoint=str(checkpoint) if checkpoint else None,
+        checkpoint_sha256=file_sha256(checkpoint) if checkpoint else None,
+        checkpoint_stage=(ckpt or {}).get("stage"), checkpoint_step=(ckpt or {}).get("step"),
+        training_command=(ckpt or {}).get("command"), data_dir=cfg.get("data_dir"),
+        exporter=exporter, versions=versions())
+
+
+def build_manifest(*, height: int, width: int, seq_length: int, arch: str, random_init: bool,
+                   graphs: dict, prov: Provenance, metrics: dict | None,
+                   quantization: Quantization | None) -> Manifest:
+    return Manifest(
+        schema_version=SCHEMA_VERSION, height=height, width=width, seq_length=seq_length, arch=arch,
+        random_init=random_init, precisions=tuple(graphs), graphs=graphs,
+        conventions=conventions.as_dict(), provenance=prov, metrics=json_safe(metrics or {}),
+        quantization=quantization)
+
+
+def quantization_record(settings_description: dict, calibration_data: str, samples: dict,
+                        intrinsics_source: str, accuracy_delta: dict | None,
+                        reason: str | None) -> Quantization:
+    from export.quantize import FP32_ONLY_GRAPHS
+    return Quantization(
+        method=settings_description["method"], activation_type=settings_description["activation_type"],
+        weight_type=settings_description["weight_type"], per_channel=settings_description["per_channel"],
+        reduce_range=settings_description["reduce_range"],
+        calibrate_method=settings_description["calibrate_method"], calibration_data=calibration_data,
+        calibration_samples=dict(samples), calibration_intrinsics=intrinsics_source,
+        fp32_graphs=tuple(FP32_ONLY_GRAPHS), accuracy_delta=json_safe(accuracy_delta),
+        accuracy_delta_reason=reason)

@@ -1,0 +1,166 @@
+"""Export modules: one ``nn.Module`` per ONNX graph, with the graph's fixed I/O names.
+
+Every graph takes images ALREADY NORMALISED to the network range
+(``conventions.IMAGE_NORM``: x / 255 * 2 - 1); the runtime normalises in numpy.
+One rule for all graphs, so the rigid-flow op's zero-padded warp sees exactly
+the values it saw in training.
+
+=================  ===========================================  ==========================================
+graph              inputs                                        outputs
+=================  ===========================================  ==========================================
+depthnet.onnx      image (B,3,H,W)                               disparity (B,1,H,W), depth (B,1,H,W)
+posenet.onnx       snippet (B,3L,H,W) [target, sources]          pose (B,L-1,6), pose_matrix (B,L-1,4,4)
+rigidflow.onnx     depth (B,1,H,W), pose (B,6), intrinsics       rigid_flow (B,2,H,W), warped (B,3,H,W),
+                   (B,3,3), target (B,3,H,W), source (B,3,H,W)   error (B,1,H,W)
+resflownet.onnx    flow_input (B,12,H,W)                         residual_flow (B,2,H,W), flow (B,2,H,W)
+=================  ===========================================  ==========================================
+
+The wrappers only re-use training code (``training.model.rigid_warp``,
+``training.geometry``), so the exported math is the trained math.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+
+from training.geometry import l2_norm, pose_vec_to_mat
+from training.losses import LossWeights
+from training.model import GeoNet, rigid_warp
+
+GRAPH_NAMES = ("depthnet", "posenet", "rigidflow", "resflownet")
+RIGID_GRAPHS = ("depthnet", "posenet", "rigidflow")  # what a stage 'rigid' checkpoint can export
+FLOW_INPUT_CHANNELS = 12
+RIGID_FLOW_CHANNELS = slice(9, 11)  # channels of flownet_input holding the rigid flow (px)
+
+
+@dataclass(frozen=True)
+class IOSpec:
+    """Names, shapes ("B" = dynamic batch) and dtypes of one graph's inputs and outputs."""
+
+    inputs: tuple[tuple[str, tuple], ...]
+    outputs: tuple[tuple[str, tuple], ...]
+    dtype: str = "float32"
+
+
+def io_spec(graph: str, height: int, width: int, seq_length: int) -> IOSpec:
+    """The fixed I/O contract of ``graph`` at H x W (what the manifest records)."""
+    H, W, N = height, width, seq_length - 1
+    if graph == "depthnet":
+        return IOSpec(inputs=(("image", ("B", 3, H, W)),),
+                      outputs=(("disparity", ("B", 1, H, W)), ("depth", ("B", 1, H, W))))
+    if graph == "posenet":
+        return IOSpec(inputs=(("snippet", ("B", 3 * seq_length, H, W)),),
+                      outputs=(("pose", ("B", N, 6)), ("pose_matrix", ("B", N, 4, 4))))
+    if graph == "rigidflow":
+        return IOSpec(inputs=(("depth", ("B", 1, H, W)), ("pose", ("B", 6)), ("intrinsics", ("B", 3, 3)),
+                              ("target", ("B", 3, H, W)), ("source", ("B", 3, H, W))),
+                      outputs=(("rigid_flow", ("B", 2, H, W)), ("warped", ("B", 3, H, W)),
+                               ("error", ("B", 1, H, W))))
+    if graph == "resflownet":
+        return IOSpec(inputs=(("flow_input", ("B", FLOW_INPUT_CHANNELS, H, W)),),
+                      outputs=(("residual_flow", ("B", 2, H, W)), ("flow", ("B", 2, H, W))))
+    raise ValueError(f"unknown graph {graph!r}; expected one of {GRAPH_NAMES}")
+
+
+class DepthExport(nn.Module):
+    """image (B,3,H,W) normalised -> disparity, depth = 1 / disparity (B,1,H,W), scale 0.
+
+    The ``scale * sigmoid + 0.01`` head is part of DepthNet, so it is in the graph.
+    """
+
+    def __init__(self, depth_net: nn.Module):
+        super().__init__()
+        self.depth_net = depth_net
+
+    def forward(self, image: torch.Tensor):
+        disparity = self.depth_net(image)[0]
+        return disparity, 1.0 / disparity
+
+
+class PoseExport(nn.Module):
+    """snippet (B,3L,H,W) [target, sources in temporal order] -> pose (B,L-1,6), pose_matrix (B,L-1,4,4).
+
+    ``pose`` is [tx, ty, tz, rx, ry, rz] (the x0.01 is inside PoseNet);
+    ``pose_matrix`` maps target-camera points to source-camera points.
+    """
+
+    def __init__(self, pose_net: nn.Module, num_source: int):
+        super().__init__()
+        self.pose_net = pose_net
+        self.num_source = num_source
+
+    def forward(self, snippet: torch.Tensor):
+        pose = self.pose_net(snippet)
+        matrix = pose_vec_to_mat(pose.reshape(-1, 6)).reshape(-1, self.num_source, 4, 4)
+        return pose, matrix
+
+
+class RigidFlowExport(nn.Module):
+    """The rigid-flow op of training (``training.model.rigid_warp``) as a graph.
+
+    depth (B,1,H,W) of the target, pose (B,6) target -> source, intrinsics (B,3,3)
+    at H x W, target and source (B,3,H,W) normalised ->
+    rigid_flow (B,2,H,W) px, warped (B,3,H,W) = source warped onto the target
+    (network range, zero padding), error (B,1,H,W) = l2_norm(photometric error),
+    i.e. the 12th ResFlowNet input channel. K^-1 is closed-form (no Inverse op).
+    """
+
+    def __init__(self, alpha: float = LossWeights.alpha_recon):
+        super().__init__()
+        self.alpha = alpha
+
+    def forward(self, depth, pose, intrinsics, target, source):
+        T = pose_vec_to_mat(pose)
+        flow, warped, error = rigid_warp(depth, T, intrinsics, target, source, self.alpha)
+        return flow, warped, l2_norm(error)
+
+
+class ResFlowExport(nn.Module):
+    """flow_input (B,12,H,W) (``training.model.flownet_input`` order) ->
+    residual_flow (B,2,H,W) px and flow = residual + rigid flow (channels 9:11), scale 0."""
+
+    def __init__(self, flow_net: nn.Module):
+        super().__init__()
+        self.flow_net = flow_net
+
+    def forward(self, flow_input: torch.Tensor):
+        residual = self.flow_net(flow_input)[0]
+        return residual, residual + flow_input[:, RIGID_FLOW_CHANNELS]
+
+
+def build_wrapper(graph: str, model: GeoNet) -> nn.Module:
+    """The export module of ``graph`` around ``model``'s (eval-mode) networks."""
+    if graph == "depthnet":
+        wrapper = DepthExport(model.depth_net)
+    elif graph == "posenet":
+        wrapper = PoseExport(model.pose_net, model.num_source)
+    elif graph == "rigidflow":
+        wrapper = RigidFlowExport(model.weights.alpha_recon)
+    elif graph == "resflownet":
+        if model.flow_net is None:
+            raise ValueError("this GeoNet has no ResFlowNet (stage 'rigid')")
+        wrapper = ResFlowExport(model.flow_net)
+    else:
+        raise ValueError(f"unknown graph {graph!r}; expected one of {GRAPH_NAMES}")
+    return wrapper.eval()
+
+
+def example_inputs(graph: str, height: int, width: int, seq_length: int, batch: int = 1,
+                   generator: torch.Generator | None = None) -> tuple[torch.Tensor, ...]:
+    """Plausible example inputs (the export trace and smoke checks use them).
+
+    Images are uniform in [-1, 1]; depth in [1, 50]; small poses; a KITTI-like K.
+    """
+    g = generator if generator is not None else torch.Generator().manual_seed(0)
+    spec = io_spec(graph, height, width, seq_length)
+    shapes = {name: (batch,) + tuple(shape[1:]) for name, shape in spec.inputs}
+    if graph == "rigidflow":
+        depth = 1.0 + 49.0 * torch.rand(shapes["depth"], generator=g)
+        pose = 0.02 * (torch.rand(shapes["pose"], generator=g) - 0.5)
+        K = torch.tensor([[0.58 * width, 0.0, 0.5 * width], [0.0, 1.92 * height, 0.5 * height],
+                          [0.0, 0.0, 1.0]]).repeat(batch, 1, 1)
+        images = [torch.rand(shapes[n], generator=g) * 2 - 1 for n in ("target", "source")]
+        return (depth, pose, K, *images)
+    return tuple(torch.rand(shapes[name], generator=g) * 2 - 1 for name, _ in spec.inputs)
