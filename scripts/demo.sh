@@ -17,5 +17,6 @@ run .venv/bin/python -m training.train --stage rigid --arch small --data-dir dat
     --val-every 100 --save-every 100
 run .venv/bin/python -m training.evaluate --checkpoint runs/demo_rigid/last.pt --synth-dir data/synth \
     --prepared-dir data/prepared --task depth --out runs/demo_rigid/eval.json
-run .venv/bin/python -m export --checkpoint runs/demo_rigid/last.pt --out models/demo_rigid --force
+run .venv/bin/python -m export --checkpoint runs/demo_rigid/last.pt --out models/demo_rigid --force \
+    --graphs depthnet,posenet,rigidflow
 echo "done: checkpoint runs/demo_rigid/last.pt, metrics runs/demo_rigid/eval.json, ONNX models/demo_rigid"
