@@ -67,11 +67,11 @@ def _imwrite(path: Path, array: np.ndarray) -> None:
         raise GeoNetInputError(path, "OpenCV could not write this image", "check the suffix and that the folder is writable")
 
 
-def _imread_unchanged(path) -> np.ndarray:
+def _imread(path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "file not found", "check the path")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        raise GeoNetInputError(path, "image not found", "check the path")
+    img = cv2.imread(str(path), flags)
     if img is None:
         raise GeoNetInputError(path, "OpenCV could not decode this image", "is it a valid PNG/JPEG file?")
     return img
@@ -85,13 +85,7 @@ def read_image(path) -> np.ndarray:
         (H, W, 3) uint8, RGB order. Grey images are expanded to 3 channels,
         16-bit images are reduced to 8 bits by OpenCV, alpha is dropped.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise GeoNetInputError(path, "image not found", "check the path")
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise GeoNetInputError(path, "OpenCV could not decode this image", "is it a valid PNG/JPEG file?")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(_imread(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
 def write_image(path, rgb: np.ndarray) -> None:
@@ -115,7 +109,7 @@ def write_mask(path, mask: np.ndarray) -> None:
 
 def read_mask(path) -> np.ndarray:
     """Read an 8-bit mask PNG -> (H, W) bool (any non-zero value is True)."""
-    img = _imread_unchanged(path)
+    img = _imread(path)
     if img.ndim == 3:
         img = img[..., :3].max(axis=2)
     return img != 0
@@ -166,7 +160,7 @@ def write_flow_kitti(path, flow: np.ndarray, valid: np.ndarray | None = None) ->
 
 def read_flow_kitti(path) -> tuple[np.ndarray, np.ndarray]:
     """Read KITTI flow PNG -> (flow (H, W, 2) float32 px, valid (H, W) bool)."""
-    img = _imread_unchanged(path)
+    img = _imread(path)
     if img.dtype != np.uint16 or img.ndim != 3 or img.shape[2] != 3:
         raise GeoNetInputError(path, f"not a KITTI flow PNG (need 16-bit 3-channel, got {img.dtype} shape {img.shape})",
                                "KITTI flow is stored as 16-bit RGB PNG (flow_occ / flow_noc)")
@@ -196,7 +190,7 @@ def write_depth_kitti(path, depth: np.ndarray, too_far: str = "zero") -> None:
 
 def read_depth_kitti(path) -> np.ndarray:
     """Read KITTI depth PNG -> (H, W) float32 metres, 0 = no measurement."""
-    img = _imread_unchanged(path)
+    img = _imread(path)
     if img.dtype != np.uint16 or img.ndim != 2:
         raise GeoNetInputError(path, f"not a KITTI depth PNG (need 16-bit 1-channel, got {img.dtype} shape {img.shape})",
                                "KITTI depth is stored as 16-bit grey PNG of depth*256")

@@ -51,12 +51,13 @@ def _frames(sequence_dir: Path) -> list[Path]:
 
 
 def evaluate_depth(predict_depth: DepthFn, synth_dir: str | Path, sequences: list[str],
-                   stride: int = 1) -> dict:
+                   stride: int = 1, crop: str | None = None) -> dict:
     """Depth metrics of ``predict_depth`` and of a constant-depth baseline.
 
     Returns {"model": {abs_rel, ...}, "constant_baseline": {...}, "frames": n}.
     The baseline predicts one constant; after median scaling that constant is
-    the median ground-truth depth of each frame.
+    the median ground-truth depth of each frame. ``crop``: None (every pixel with
+    ground truth) or a KITTI crop name of :func:`geonet_infer.metrics.crop_mask`.
     """
     model_rows, baseline_rows = [], []
     for name in sequences:
@@ -64,8 +65,8 @@ def evaluate_depth(predict_depth: DepthFn, synth_dir: str | Path, sequences: lis
             gt = formats.read_depth_kitti(frame.parent.parent / "depth" / frame.name)
             pred = predict_depth(formats.read_image(frame))
             pred = metrics.resize_depth_to(pred, gt.shape)
-            model_rows.append(metrics.depth_metrics(gt, pred, max_depth=MAX_DEPTH, crop=None))
-            baseline_rows.append(metrics.depth_metrics(gt, np.ones_like(gt), max_depth=MAX_DEPTH, crop=None))
+            model_rows.append(metrics.depth_metrics(gt, pred, max_depth=MAX_DEPTH, crop=crop))
+            baseline_rows.append(metrics.depth_metrics(gt, np.ones_like(gt), max_depth=MAX_DEPTH, crop=crop))
     return {"model": metrics.aggregate(model_rows), "constant_baseline": metrics.aggregate(baseline_rows),
             "frames": len(model_rows)}
 
@@ -131,6 +132,8 @@ def main(argv=None) -> int:
     p.add_argument("--synth-dir", required=True, help="output of training.synth")
     p.add_argument("--prepared-dir", required=True, help="output of training.prepare (has heldout.txt)")
     p.add_argument("--task", choices=["depth", "flow", "all"], default="all")
+    p.add_argument("--crop", choices=["none", "garg", "eigen"], default="none",
+                   help="depth: pixels scored (none = all with ground truth; garg/eigen = KITTI crops)")
     p.add_argument("--stride", type=int, default=1, help="evaluate every n-th frame")
     p.add_argument("--out", help="write the JSON result here too")
     args = p.parse_args(argv)
@@ -143,7 +146,9 @@ def main(argv=None) -> int:
         result = {"checkpoint": str(args.checkpoint), "step": ckpt["step"], "sequences": sequences}
         if args.task in ("depth", "all"):
             result["depth"] = evaluate_depth(torch_depth_predictor(model, cfg["height"], cfg["width"]),
-                                             args.synth_dir, sequences, args.stride)
+                                             args.synth_dir, sequences, args.stride,
+                                             crop=None if args.crop == "none" else args.crop)
+            result["depth"]["crop"] = args.crop
         if args.task in ("flow", "all") and model.flow_net is not None:
             result["flow"] = evaluate_flow(torch_flow_predictor(model, cfg["height"], cfg["width"]),
                                            args.synth_dir, sequences, args.stride)
