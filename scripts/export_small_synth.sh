@@ -17,5 +17,5 @@ run $PY -m training.evaluate --checkpoint runs/small_flow/last.pt --synth-dir da
     --prepared-dir data/synth40_prepared --task flow --stride 2 --out runs/small_flow/eval_flow.json
 # calibrate INT8 on a training sequence (never a held-out one)
 run $PY -m export --checkpoint runs/small_flow/last.pt --out models/small_synth --force \
-    --precision fp32,int8 --calib-data data/synth40/seq_0000/image \
+    --precision fp32,int8 --calib-data data/synth40/seq_0000/image --calib-method percentile --calib-frames 40 \
     --eval-synth-dir data/synth40 --eval-prepared-dir data/synth40_prepared --eval-stride 2
