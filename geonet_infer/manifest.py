@@ -43,6 +43,12 @@ def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def _from_known_fields(cls, d: dict):
+    """Build a dataclass from a dict, ignoring keys a newer writer may have added."""
+    known = {f.name for f in fields(cls)}
+    return cls(**{k: v for k, v in d.items() if k in known})
+
+
 @dataclass(frozen=True)
 class TensorSpec:
     """One graph input or output. ``shape`` holds ints and ``"B"`` for the batch axis."""
@@ -104,8 +110,7 @@ class Provenance:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Provenance":
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
+        return _from_known_fields(cls, d)
 
 
 @dataclass(frozen=True)
@@ -129,8 +134,7 @@ class Quantization:
     def from_dict(cls, d: dict) -> "Quantization":
         d = dict(d)
         d["fp32_graphs"] = tuple(d.get("fp32_graphs", ()))
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
+        return _from_known_fields(cls, d)
 
 
 @dataclass(frozen=True)
