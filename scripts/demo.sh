@@ -13,7 +13,7 @@ run() { echo "+ $*"; "$@"; }
 run .venv/bin/python -m training.synth --out data/synth --sequences 8 --frames 24 --seed 0 --workers 2
 run .venv/bin/python -m training.prepare --kind synth --src data/synth --out data/prepared --heldout 2
 run .venv/bin/python -m training.train --stage rigid --arch small --data-dir data/prepared \
-    --out-dir runs/demo_rigid --max-steps "$STEPS" --bn-momentum 0.01 --num-workers 1 \
+    --out-dir runs/demo_rigid --max-steps "$STEPS" --bn-momentum 0.01 --mask-out-of-view --automask --num-workers 1 \
     --val-every 100 --save-every 100
 run .venv/bin/python -m training.evaluate --checkpoint runs/demo_rigid/last.pt --synth-dir data/synth \
     --prepared-dir data/prepared --task depth --out runs/demo_rigid/eval.json

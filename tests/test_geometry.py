@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from training.geometry import (backproject, euler_to_rotation, flow_consistency, flow_warp,
-                               intrinsics_at_scale, invert_intrinsics, invert_rigid,
+                               in_view_mask, intrinsics_at_scale, invert_intrinsics, invert_rigid,
                                pose_vec_to_mat, rigid_flow)
 
 H, W = 24, 40
@@ -172,3 +172,25 @@ def test_consistency_mask_on_hand_built_pair():
     slight_bwd[:, 0] += 1.0
     assert flow_consistency(fwd, slight_bwd, scale=0)[1][interior].min().item() == 1.0
     assert flow_consistency(fwd, slight_bwd, scale=2)[1][interior].max().item() == 0.0
+
+
+def test_in_view_mask_for_constant_shifts():
+    flow = torch.zeros(1, 2, 5, 8)
+    flow[:, 0] = 2.0  # u + 2 <= 7 keeps columns 0..5 (the bound is inclusive)
+    flow[:, 1] = -1.5  # v - 1.5 >= 0 keeps rows 2..4
+    expected = np.zeros((5, 8))
+    expected[2:, :6] = 1.0
+    np.testing.assert_array_equal(in_view_mask(flow)[0, 0].numpy(), expected)
+
+
+def test_in_view_mask_of_forward_motion_matches_closed_form():
+    """Camera moves forward by d at constant depth Z: u' = cx + (u - cx) * Z / (Z - d)."""
+    Z, d = 5.0, 1.5
+    T = pose_vec_to_mat(torch.tensor([[0.0, 0.0, -d, 0.0, 0.0, 0.0]]))
+    flow = rigid_flow(torch.full((1, 1, H, W), Z), T, K_t())
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    cx, cy = K_NP[0, 2], K_NP[1, 2]
+    u2, v2 = cx + (u - cx) * Z / (Z - d), cy + (v - cy) * Z / (Z - d)
+    expected = (u2 >= 0) & (u2 <= W - 1) & (v2 >= 0) & (v2 <= H - 1)
+    assert 0 < expected.sum() < H * W  # the border band really leaves the view
+    np.testing.assert_array_equal(in_view_mask(flow)[0, 0].numpy().astype(bool), expected)

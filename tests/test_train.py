@@ -7,8 +7,8 @@ import torch
 
 from geonet_infer.errors import GeoNetInputError
 from training import prepare
-from training.config import TrainConfig
-from training.train import load_checkpoint, main, model_from_checkpoint, train
+from training.config import TrainConfig, config_from_args
+from training.train import build_model, load_checkpoint, main, model_from_checkpoint, train
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 KITTI_RAW = REALDATA / "kitti_raw_2011_09_26_sfnd"
@@ -113,3 +113,24 @@ def test_corrupt_image_is_named(kitti_prepared, tmp_path):
     with pytest.raises(GeoNetInputError) as err:
         train(config(data, tmp_path / "run", max_steps=1), progress=False)
     assert str(victim) in str(err.value)
+
+
+def test_mask_out_of_view_drops_border_errors_from_the_rigid_loss():
+    """--mask-out-of-view reaches the model, which then ignores pixels warped from outside."""
+    flow = torch.zeros(1, 2, 4, 6)
+    flow[:, 0] = 1.0  # the last column samples past the right edge
+    error = torch.ones(1, 3, 4, 6)
+    error[..., -1] = 100.0
+    masked = build_model(config_from_args(["--arch", "small", "--mask-out-of-view"]))
+    official = build_model(config_from_args(["--arch", "small"]))
+    assert masked._photometric_mean(error, flow).item() == pytest.approx(1.0)
+    assert official._photometric_mean(error, flow).item() == pytest.approx((5 + 100) / 6)
+
+
+def test_automask_drops_pixels_the_unwarped_source_explains_better():
+    flow = torch.zeros(1, 2, 4, 6)
+    error = torch.ones(1, 3, 4, 6)
+    error[..., 0] = 5.0  # the warp is worse than no warp in column 0 (e.g. a car moving with us)
+    identity_error = torch.full((1, 3, 4, 6), 3.0)
+    model = build_model(config_from_args(["--arch", "small", "--automask"]))
+    assert model._photometric_mean(error, flow, identity_error).item() == pytest.approx(1.0)

@@ -32,6 +32,8 @@ class TrainConfig:
     augment: bool = True
     share_color_gain: bool = False
     bn_momentum: float = 1e-3
+    mask_out_of_view: bool = False  # deviation: rigid loss ignores pixels warped from outside the source
+    automask: bool = False  # deviation: rigid loss ignores pixels the unwarped source already explains
     channels_last: bool = True  # NHWC convolutions: ~2x faster on CPU for the small nets
     log_every: int = 10
     save_every: int = 500
@@ -88,6 +90,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one colour gain for all frames of a sample (the official code draws one per frame)")
     p.add_argument("--bn-momentum", type=float, default=d.bn_momentum,
                    help="PyTorch BN momentum; 1e-3 = official TF decay 0.999 (slow for short runs)")
+    p.add_argument("--mask-out-of-view", action="store_true",
+                   help="leave pixels whose rigid flow lands outside the source frame out of the rigid "
+                        "photometric loss (not in the official code; stops far-depth artefacts at the "
+                        "image border on forward-moving sequences)")
+    p.add_argument("--automask", action="store_true",
+                   help="monodepth2's auto-mask: leave out pixels where the unwarped source matches the "
+                        "target better than the rigid warp (objects moving with the camera, sky); "
+                        "not in the official code")
     p.add_argument("--nchw", dest="channels_last", action="store_false",
                    help="keep NCHW memory format (default: channels_last, faster on CPU)")
     p.add_argument("--log-every", type=int, default=d.log_every)

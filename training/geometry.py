@@ -205,6 +205,21 @@ def flow_warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
                          padding_mode=SAMPLER.padding, align_corners=SAMPLER.align_corners)
 
 
+def in_view_mask(flow: torch.Tensor) -> torch.Tensor:
+    """Pixels whose flow lands inside the sampled frame: ``0 <= u+fx <= W-1``, same for v.
+
+    Args:
+        flow: (B, 2, H, W) pixels.
+    Returns:
+        (B, 1, H, W) float 0/1, no gradient.
+    """
+    _, _, H, W = flow.shape
+    coords = pixel_grid(H, W, flow)[:, :2] + flow.detach()
+    inside = ((coords[:, 0] >= 0) & (coords[:, 0] <= W - 1)
+              & (coords[:, 1] >= 0) & (coords[:, 1] <= H - 1))
+    return inside.unsqueeze(1).to(flow.dtype)
+
+
 def l2_norm(x: torch.Tensor) -> torch.Tensor:
     """Official ``L2_norm``: ``|| |x| + 1e-10 ||_2`` over channels.
 

@@ -13,8 +13,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from geonet_infer.conventions import IMAGE_NORM, NUM_SCALES
-from training.geometry import (flow_consistency, flow_warp, intrinsics_at_scale, invert_intrinsics,
-                               invert_rigid, l2_norm, pose_vec_to_mat, rigid_flow)
+from training.geometry import (flow_consistency, flow_warp, in_view_mask, intrinsics_at_scale,
+                               invert_intrinsics, invert_rigid, l2_norm, pose_vec_to_mat, rigid_flow)
 from training.losses import (LossWeights, edge_aware_smoothness, masked_mean,
                              photometric_error)
 from training.networks import DepthNet, PoseNet, ResFlowNet
@@ -92,11 +92,20 @@ class GeoNet(nn.Module):
     """
 
     def __init__(self, arch: str = "resnet50", num_source: int = 2, with_flow: bool = False,
-                 bn_momentum: float = 1e-3, weights: LossWeights = LossWeights()):
+                 bn_momentum: float = 1e-3, weights: LossWeights = LossWeights(),
+                 mask_out_of_view: bool = False, automask: bool = False):
         super().__init__()
         self.arch = arch
         self.num_source = num_source
         self.weights = weights
+        # Deviation (off by default = official): drop pixels whose rigid flow leaves the source
+        # frame from the rigid photometric loss. Without it, zero-padded samples at the image
+        # border reward far depth there (forward motion pushes border pixels out of view).
+        self.mask_out_of_view = mask_out_of_view
+        # Deviation (off by default): monodepth2's auto-mask. A pixel whose unwarped source already
+        # matches the target better than the rigid warp does (an object moving with the camera,
+        # flat sky) is left out, so such objects do not teach infinite depth.
+        self.automask = automask
         self.depth_net = DepthNet(arch, bn_momentum=bn_momentum)
         pose_arch = "small" if arch == "small" else "standard"
         self.pose_net = PoseNet(num_source, arch=pose_arch, bn_momentum=bn_momentum)
@@ -147,14 +156,37 @@ class GeoNet(nn.Module):
         B = target.shape[0]
         rigid_warp_loss = disp_smooth_loss = 0.0
         for s in range(NUM_SCALES):
+            # Symmetric in its two images, so one map serves both directions.
+            identity_error = (photometric_error(source_pyr[s], target_pyr[s], w.alpha_recon)
+                              if self.automask else None)
             rigid_warp_loss = rigid_warp_loss + w.rigid_warp * N / 2 * (
-                out.fwd_error[s].mean() + out.bwd_error[s].mean())
+                self._photometric_mean(out.fwd_error[s], out.fwd_flow[s], identity_error)
+                + self._photometric_mean(out.bwd_error[s], out.bwd_flow[s], identity_error))
             images_s = torch.cat([target_pyr[s][:B], source_pyr[s]], dim=0)
             disp_smooth_loss = disp_smooth_loss + w.disp_smooth / 2 ** s * edge_aware_smoothness(
                 out.disp[s], images_s)
         total = rigid_warp_loss + disp_smooth_loss
         return StageLoss(total, _as_floats(rigid_warp=rigid_warp_loss, disp_smooth=disp_smooth_loss,
                                            total=total))
+
+    def _photometric_mean(self, error: torch.Tensor, flow: torch.Tensor,
+                          identity_error: torch.Tensor | None = None) -> torch.Tensor:
+        """Mean rigid photometric error over the pixels the enabled masks keep.
+
+        Args:
+            error: (B, 3, H, W) error of the rigid warp.
+            flow: (B, 2, H, W) the rigid flow that made it.
+            identity_error: (B, 3, H, W) error of the unwarped pair (needed with ``automask``).
+        """
+        if not (self.mask_out_of_view or self.automask):
+            return error.mean()
+        keep = torch.ones_like(error[:, :1])
+        if self.mask_out_of_view:
+            keep = keep * in_view_mask(flow)
+        if self.automask:
+            warped_better = error.mean(1, keepdim=True) < identity_error.mean(1, keepdim=True)
+            keep = keep * warped_better.detach().to(error.dtype)
+        return masked_mean(error, keep)
 
     # ------------------------------------------------------------------ flow
     def flow_forward(self, target, sources, K):

@@ -80,7 +80,8 @@ def seed_everything(seed: int) -> None:
 
 def build_model(cfg: TrainConfig) -> GeoNet:
     return GeoNet(cfg.arch, cfg.num_source, with_flow=cfg.stage == "flow",
-                  bn_momentum=cfg.bn_momentum, weights=cfg.weights)
+                  bn_momentum=cfg.bn_momentum, weights=cfg.weights,
+                  mask_out_of_view=cfg.mask_out_of_view, automask=cfg.automask)
 
 
 def model_from_checkpoint(ckpt: dict) -> GeoNet:
