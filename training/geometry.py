@@ -176,6 +176,18 @@ def rigid_flow(depth: torch.Tensor, T: torch.Tensor, K: torch.Tensor,
     return project(points, K, T) - pixel_grid(H, W, depth)[:, :2]
 
 
+def sample_points(flow: torch.Tensor) -> torch.Tensor:
+    """Where ``flow`` samples the other frame: ``(u + flow_x, v + flow_y)`` per pixel.
+
+    Args:
+        flow: (B, 2, H, W) pixels.
+    Returns:
+        (B, 2, H, W) pixel coordinates in the sampled frame.
+    """
+    _, _, H, W = flow.shape
+    return pixel_grid(H, W, flow)[:, :2] + flow
+
+
 def flow_warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Sample ``image`` at ``grid + flow`` with bilinear interpolation.
 
@@ -196,7 +208,7 @@ def flow_warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
         warped: (B, C, H, W).
     """
     _, _, H, W = flow.shape
-    coords = pixel_grid(H, W, flow)[:, :2] + flow
+    coords = sample_points(flow)
     # Normalise each axis to [-1, 1]; max(., 1) guards a 1-pixel-wide axis.
     norm_x = coords[:, 0] * (2.0 / max(W - 1, 1)) - 1.0
     norm_y = coords[:, 1] * (2.0 / max(H - 1, 1)) - 1.0
@@ -214,7 +226,7 @@ def in_view_mask(flow: torch.Tensor) -> torch.Tensor:
         (B, 1, H, W) float 0/1, no gradient.
     """
     _, _, H, W = flow.shape
-    coords = pixel_grid(H, W, flow)[:, :2] + flow.detach()
+    coords = sample_points(flow)
     inside = ((coords[:, 0] >= 0) & (coords[:, 0] <= W - 1)
               & (coords[:, 1] >= 0) & (coords[:, 1] <= H - 1))
     return inside.unsqueeze(1).to(flow.dtype)

@@ -185,7 +185,7 @@ class GeoNet(nn.Module):
             keep = keep * in_view_mask(flow)
         if self.automask:
             warped_better = error.mean(1, keepdim=True) < identity_error.mean(1, keepdim=True)
-            keep = keep * warped_better.detach().to(error.dtype)
+            keep = keep * warped_better.to(error.dtype)
         return masked_mean(error, keep)
 
     # ------------------------------------------------------------------ flow
