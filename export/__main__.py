@@ -226,7 +226,8 @@ def _export_fp32(args, src: Source, graphs: list[str], tmp: Path) -> tuple[dict,
 
 
 def _export_int8(args, src: Source, fp32: dict, tmp: Path):
-    from export.verify import OrtCascade
+    from geonet_infer.predictor import Predictor
+    from geonet_infer.preprocess import InputSpec
 
     settings = qz.QuantSettings(per_channel=args.per_channel, reduce_range=args.reduce_range,
                                 calibrate_method=args.calib_method, max_frames=args.calib_frames)
@@ -238,17 +239,18 @@ def _export_int8(args, src: Source, fp32: dict, tmp: Path):
                                 random_init=src.random_init, graphs={"fp32": fp32},
                                 prov=mf.provenance(src.arch, src.random_init, ""), metrics={}, quantization=None)
     write_manifest(interim, tmp)
-    cascade = OrtCascade(tmp, "fp32", graphs=[g for g in fp32 if g != "resflownet"])
-    feeds = {"depthnet": qz.depth_feeds(frames), "posenet": qz.pose_feeds(frames, src.seq_length)}
+    spec = InputSpec.from_conventions(src.height, src.width, src.seq_length)
+    feeds = {"depthnet": qz.depth_feeds(frames, spec), "posenet": qz.pose_feeds(frames, spec)}
     if "resflownet" in fp32:
-        feeds["resflownet"] = qz.resflow_feeds(cascade, frames, K, src.seq_length)
+        feeds["resflownet"] = qz.resflow_feeds(Predictor(tmp, "fp32"), frames, K)
     entries = {}
     for graph in fp32:
         if graph in qz.FP32_ONLY_GRAPHS:
             entries[graph] = fp32[graph]  # same file: the int8 set reuses fp32 rigidflow.onnx
             continue
         started = time.perf_counter()
-        qz.quantize_graph(tmp / fp32[graph].file, tmp / "int8" / f"{graph}.onnx", feeds[graph], settings)
+        qz.quantize_graph(tmp / fp32[graph].file, tmp / "int8" / f"{graph}.onnx", feeds[graph], settings,
+                          float_after=qz.FLOAT_AFTER.get(graph, ()))
         entries[graph] = mf.graph_entry(tmp, f"int8/{graph}.onnx", graph, src.height, src.width, src.seq_length,
                                         OPSET, "int8", f"onnxruntime quantize_static QDQ of {fp32[graph].file}")
         size = (tmp / "int8" / f"{graph}.onnx").stat().st_size / 2 ** 20
@@ -261,8 +263,8 @@ def _export_int8(args, src: Source, fp32: dict, tmp: Path):
 def _accuracy_delta(args, src: Source, graphs: dict, tmp: Path) -> tuple[dict | None, str | None]:
     if not args.eval_synth_dir:
         return None, "not measured: pass --eval-synth-dir and --eval-prepared-dir (held-out synthetic set)"
-    from training.evaluate import evaluate_depth, evaluate_flow, heldout_sequences
-    from export.verify import OrtCascade, ort_depth_predictor, ort_flow_predictor
+    from geonet_infer.predictor import Predictor
+    from training.evaluate import evaluate_depth, evaluate_flow, heldout_sequences, onnx_depth_fn, onnx_flow_fn
 
     interim = mf.build_manifest(height=src.height, width=src.width, seq_length=src.seq_length, arch=src.arch,
                                 random_init=src.random_init, graphs=graphs,
@@ -270,15 +272,15 @@ def _accuracy_delta(args, src: Source, graphs: dict, tmp: Path) -> tuple[dict | 
     write_manifest(interim, tmp)
     sequences = heldout_sequences(args.eval_prepared_dir)
     result: dict = {"synth_dir": str(args.eval_synth_dir), "sequences": sequences, "stride": args.eval_stride}
-    cascades = {p: OrtCascade(tmp, p) for p in ("fp32", "int8")}
-    depth = {p: evaluate_depth(ort_depth_predictor(c), args.eval_synth_dir, sequences, args.eval_stride)
-             for p, c in cascades.items()}
+    predictors = {p: Predictor(tmp, p) for p in ("fp32", "int8")}
+    depth = {p: evaluate_depth(onnx_depth_fn(c), args.eval_synth_dir, sequences, args.eval_stride)
+             for p, c in predictors.items()}
     result["depth_abs_rel"] = _delta(depth, "model", "abs_rel")
     result["depth_frames"] = depth["fp32"]["frames"]
     reason = None
     if "resflownet" in graphs["fp32"] and src.seq_length == 3:
-        flow = {p: evaluate_flow(ort_flow_predictor(c), args.eval_synth_dir, sequences, args.eval_stride)
-                for p, c in cascades.items()}
+        flow = {p: evaluate_flow(onnx_flow_fn(c), args.eval_synth_dir, sequences, args.eval_stride)
+                for p, c in predictors.items()}
         result["flow_epe_noc"] = _delta(flow, "noc", "epe")
         result["flow_epe_occ"] = _delta(flow, "occ", "epe")
         result["flow_pairs"] = flow["fp32"]["pairs"]

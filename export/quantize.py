@@ -31,13 +31,17 @@ import cv2
 import numpy as np
 import onnx
 
-from geonet_infer import formats
 from geonet_infer.conventions import scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
+from geonet_infer.preprocess import InputSpec, snippet_indices
+from geonet_infer.io import IMAGE_SUFFIXES, read_calib_K, read_image
+from geonet_infer.io import list_images as _list_images
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm")
 QUANTIZED_GRAPHS = ("depthnet", "posenet", "resflownet")
 FP32_ONLY_GRAPHS = ("rigidflow",)
+# Tensors whose consumers stay fp32 in the int8 graph: PoseNet's 4x4 matrices are built from
+# the pose vector with Sin/Cos/Concat; quantised, they collapsed to ~identity (no motion).
+FLOAT_AFTER = {"posenet": ("pose",)}
 # Fallback intrinsics for a calibration folder without calibration: KITTI's rectified
 # camera 02 (fx = fy = 721.5377, cx = 609.5593, cy = 172.854 at 1242 x 375), used as
 # fractions of the image size. Only ResFlowNet's calibration inputs depend on it.
@@ -59,15 +63,16 @@ class QuantSettings:
 
 # ----------------------------------------------------------------------------- frames
 def list_images(folder: str | Path) -> list[Path]:
-    """Sorted image files of a folder; GeoNetInputError naming the folder if there are none."""
+    """Sorted image files of a folder (:func:`geonet_infer.io.list_images`); GeoNetInputError naming
+    the folder, worded for ``--calib-data``, if it is missing or holds no image."""
     folder = Path(folder)
     if not folder.is_dir():
         raise GeoNetInputError(folder, "calibration folder not found", "pass --calib-data DIR, a folder of frames")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-    if not files:
+    try:
+        return _list_images(folder)
+    except GeoNetInputError:
         raise GeoNetInputError(folder, "no images in the calibration folder",
-                               f"it needs consecutive frames ({', '.join(IMAGE_SUFFIXES)}), e.g. a KITTI image_02/data folder")
-    return files
+                               f"it needs consecutive frames ({', '.join(IMAGE_SUFFIXES)}), e.g. a KITTI image_02/data folder") from None
 
 
 def load_frames(folder: str | Path, height: int, width: int, max_frames: int,
@@ -82,7 +87,7 @@ def load_frames(folder: str | Path, height: int, width: int, max_frames: int,
                                "add consecutive frames")
     frames, original = [], None
     for f in files:
-        rgb = formats.read_image(f)
+        rgb = read_image(f)
         original = original or rgb.shape[:2]
         frames.append(cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA))
     return frames, original
@@ -105,7 +110,7 @@ def calibration_intrinsics(folder: str | Path, original_hw: tuple[int, int], hei
     for path, key in candidates:
         if path.is_file():
             try:
-                K = formats.read_calib_K(path, key)
+                K = read_calib_K(path, key)
             except GeoNetInputError:
                 continue
             return scale_intrinsics(K, sx, sy).astype(np.float32), f"{path} ({key})"
@@ -115,9 +120,8 @@ def calibration_intrinsics(folder: str | Path, original_hw: tuple[int, int], hei
 
 
 # ----------------------------------------------------------------------------- feeds
-def depth_feeds(frames: Sequence[np.ndarray]) -> list[dict]:
-    from export.verify import to_network
-    return [{"image": to_network(f)} for f in frames]
+def depth_feeds(frames: Sequence[np.ndarray], spec: InputSpec) -> list[dict]:
+    return [{"image": spec.to_network(f)[None]} for f in frames]
 
 
 def snippets(frames: Sequence[np.ndarray], seq_length: int) -> list[list[np.ndarray]]:
@@ -125,26 +129,19 @@ def snippets(frames: Sequence[np.ndarray], seq_length: int) -> list[list[np.ndar
     return [list(frames[i:i + seq_length]) for i in range(len(frames) - seq_length + 1)]
 
 
-def pose_feeds(frames: Sequence[np.ndarray], seq_length: int) -> list[dict]:
-    from export.verify import to_network
-    feeds = []
-    mid = seq_length // 2
-    for window in snippets(frames, seq_length):
-        norm = [to_network(f) for f in window]
-        feeds.append({"snippet": np.concatenate([norm[mid]] + norm[:mid] + norm[mid + 1:], axis=1)})
-    return feeds
+def pose_feeds(frames: Sequence[np.ndarray], spec: InputSpec) -> list[dict]:
+    """PoseNet inputs [target] + sources (``preprocess.snippet_indices`` order) for every window."""
+    L = spec.seq_length
+    order = snippet_indices(L // 2, L, L)
+    return [{"snippet": np.concatenate([spec.to_network(window[i]) for i in order])[None]}
+            for window in snippets(frames, L)]
 
 
-def resflow_feeds(cascade, frames: Sequence[np.ndarray], K: np.ndarray, seq_length: int) -> list[dict]:
-    """12-channel inputs target -> every source from the fp32 depth/pose/rigidflow graphs."""
-    feeds = []
-    for window in snippets(frames, seq_length):
-        depth = cascade.depth(window[seq_length // 2])
-        poses = cascade.poses(window)
-        for src in range(seq_length - 1):
-            x, _ = cascade.flow_input(window, K, source_index=src, depth=depth, poses=poses)
-            feeds.append({"flow_input": x})
-    return feeds
+def resflow_feeds(predictor, frames: Sequence[np.ndarray], K: np.ndarray) -> list[dict]:
+    """12-channel inputs target -> every source, from the fp32 runtime cascade (``Predictor``)."""
+    L = predictor.seq_length
+    return [{"flow_input": predictor.resflow_input(window, K, source_index=src)}
+            for window in snippets(frames, L) for src in range(L - 1)]
 
 
 class _ListReader:
@@ -162,8 +159,18 @@ class _ListReader:
 
 
 # ----------------------------------------------------------------------------- quantise
+def downstream_nodes(model: onnx.ModelProto, tensors: Sequence[str]) -> list[str]:
+    """Names of every node that (transitively) consumes one of ``tensors``."""
+    reached, names = set(tensors), []
+    for node in model.graph.node:  # ONNX graphs are topologically sorted
+        if reached.intersection(node.input):
+            names.append(node.name)
+            reached.update(node.output)
+    return names
+
+
 def quantize_graph(fp32_path: str | Path, out_path: str | Path, feeds: Sequence[dict],
-                   settings: QuantSettings = QuantSettings()) -> None:
+                   settings: QuantSettings = QuantSettings(), float_after: Sequence[str] = ()) -> None:
     """Pre-process + quantize_static (QDQ) one graph; keeps the fp32 file's metadata_props."""
     from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
@@ -189,11 +196,14 @@ def quantize_graph(fp32_path: str | Path, out_path: str | Path, feeds: Sequence[
         # transformers) does not complete on these graphs, and on failure it dumps
         # sym_shape_infer_temp.onnx plus external-data files into the current directory.
         quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
+        exclude = downstream_nodes(onnx.load(str(pre)), float_after) if float_after else []
+        if float_after and not exclude:
+            raise GeoNetInputError(fp32_path, f"no nodes consume {list(float_after)}", "re-export the fp32 graph")
         quantize_static(
             str(pre), str(work / "q.onnx"), Reader(feeds), quant_format=QuantFormat.QDQ,
             per_channel=settings.per_channel, reduce_range=settings.reduce_range,
             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-            calibrate_method=methods[settings.calibrate_method],
+            calibrate_method=methods[settings.calibrate_method], nodes_to_exclude=exclude,
             extra_options={"CalibTensorRangeSymmetric": False})
         model = onnx.load(str(work / "q.onnx"))
         source_meta = {p.key: p.value for p in onnx.load(str(fp32_path), load_external_data=False).metadata_props}

@@ -122,6 +122,38 @@ def _strip_debug_info(model: onnx.ModelProto) -> None:
     model.doc_string = ""
 
 
+def _dedupe_initializers(model: onnx.ModelProto) -> int:
+    """Merge initializers with identical dtype, shape and bytes; returns how many were dropped.
+
+    The dynamo exporter folds the pixel grid of each ``geometry`` call into its own
+    constant, so the rigid-flow graph stored the same 128x416 grids three times (1.9 MiB
+    instead of 0.6). ORT would merge them at load; this keeps the files small.
+    """
+    first: dict[tuple, str] = {}
+    rename: dict[str, str] = {}
+    keep = []
+    for init in model.graph.initializer:
+        key = (init.data_type, tuple(init.dims), init.raw_data) if init.raw_data else None
+        if key is not None and key in first:
+            rename[init.name] = first[key]
+        else:
+            if key is not None:
+                first[key] = init.name
+            keep.append(init)
+    if not rename:
+        return 0
+    del model.graph.initializer[:]
+    model.graph.initializer.extend(keep)
+    for node in _all_nodes(model.graph):
+        for i, name in enumerate(node.input):
+            if name in rename:
+                node.input[i] = rename[name]
+    graph_outputs = {o.name for o in model.graph.output}
+    if graph_outputs & set(rename):
+        raise ExportCheckError("a deduplicated initializer is a graph output")
+    return len(rename)
+
+
 def set_metadata(model: onnx.ModelProto, metadata: dict[str, str]) -> None:
     """Replace the model's ``metadata_props`` by ``metadata`` (sorted, string values)."""
     del model.metadata_props[:]
@@ -156,6 +188,7 @@ def export_graph(module: torch.nn.Module, example: tuple[torch.Tensor, ...], spe
                                        f"torchscript: {legacy_error!r}") from legacy_error
     _name_batch_axis(model)
     _strip_debug_info(model)
+    _dedupe_initializers(model)
     if metadata:
         set_metadata(model, metadata)
     model.producer_name = "geonet export"

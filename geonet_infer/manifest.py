@@ -24,7 +24,7 @@ from typing import Any
 
 from geonet_infer import conventions
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.formats import atomic_write
+from geonet_infer.io.atomic import atomic_write
 
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = "geonet-onnx-models"

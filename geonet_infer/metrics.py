@@ -208,8 +208,10 @@ def _align_first_and_scale(gt_xyz, pred_xyz):
                                f"pred {pred_xyz.shape}", "pass matched (N, 3) positions with N >= 2")
     pred_xyz = pred_xyz + (gt_xyz[0] - pred_xyz[0])[None, :]
     denom = np.sum(pred_xyz ** 2)
-    # A trajectory standing still at the origin has no scale to fit: keep 1.
-    scale = np.sum(gt_xyz * pred_xyz) / denom if denom > 0 else 1.0
+    # A trajectory standing still at the origin has no scale to fit: keep 1. "At the origin"
+    # is relative to the GT's extent: GT files store the first position to ~1e-9, and fitting
+    # a scale to that rounding noise would make a zero-motion prediction look good.
+    scale = np.sum(gt_xyz * pred_xyz) / denom if denom > 1e-12 * np.sum(gt_xyz ** 2) else 1.0
     return pred_xyz * scale - gt_xyz
 
 

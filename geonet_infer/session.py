@@ -1,6 +1,6 @@
 """The one onnxruntime session factory of the package (export checks, tests and the runtime use it).
 
-CPU facts behind the defaults (``/work/shared/reference/onnx_notes.md`` section 2):
+CPU facts behind the defaults (``../shared/reference/onnx_notes.md`` section 2):
 
 * ``intra_op_num_threads=0`` (ORT default) sizes the pool to the host's physical
   cores and pins threads; setting a number disables pinning. GeoNet runs several
@@ -12,6 +12,7 @@ CPU facts behind the defaults (``/work/shared/reference/onnx_notes.md`` section 
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Sequence
 
@@ -25,6 +26,37 @@ OPT_LEVELS = {
     "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
     "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
 }
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on: its affinity mask, capped by a cgroup v2/v1 CPU quota.
+
+    ``os.cpu_count()`` reports the host's CPUs, which oversubscribes a container
+    limited by a quota or a cpuset (onnxruntime issues #29510, #10273).
+    """
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    quota = _cgroup_quota()
+    return max(1, min(cpus, quota)) if quota else max(1, cpus)
+
+
+def _cgroup_quota() -> int | None:
+    """CPUs allowed by the cgroup CPU quota (rounded up), or None if unlimited/unknown."""
+    try:  # cgroup v2: "max 100000" or "150000 100000"
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        if quota != "max":
+            return -(-int(quota) // int(period))
+        return None
+    except (OSError, ValueError):
+        pass
+    try:  # cgroup v1
+        quota = int(Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us").read_text())
+        period = int(Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us").read_text())
+        return -(-quota // period) if quota > 0 and period > 0 else None
+    except (OSError, ValueError):
+        return None
 
 
 def make_session_options(threads: int | None = None, spinning: bool = False,

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.formats import write_calib_K, write_depth_kitti
+from geonet_infer.io import write_calib_K, write_depth_kitti
 from training import data as D
 from training import prepare as P
 

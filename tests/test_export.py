@@ -19,10 +19,14 @@ import torch
 
 from export.__main__ import main as export_main
 from export.to_onnx import ExportCheckError, check_graph, op_types
-from export.verify import OrtCascade, compare_graph, ort_cascade, ort_depth_predictor, to_network
+from export.verify import compare_graph
+from geonet_infer.predictor import Predictor
+from geonet_infer.preprocess import InputSpec
+from training.evaluate import onnx_depth_fn
 from export.wrappers import GRAPH_NAMES, build_wrapper, io_spec
-from geonet_infer import conventions, formats
+from geonet_infer import conventions
 from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io import list_images, read_calib_K, read_image
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest, write_manifest
 from geonet_infer.session import make_session
 
@@ -76,12 +80,12 @@ def save_small_checkpoint(path: Path, stage: str, height: int = H, width: int = 
 
 
 def kitti_frames(n: int = 3, start: int = 0) -> list[np.ndarray]:
-    files = sorted(KITTI_FRAMES.glob("*.png"))[start:start + n]
-    return [cv2.resize(formats.read_image(f), (W, H), interpolation=cv2.INTER_AREA) for f in files]
+    files = list_images(KITTI_FRAMES)[start:start + n]
+    return [cv2.resize(read_image(f), (W, H), interpolation=cv2.INTER_AREA) for f in files]
 
 
 def kitti_K() -> np.ndarray:
-    K = formats.read_calib_K(KITTI / "calib_cam_to_cam.txt", "P_rect_02")
+    K = read_calib_K(KITTI / "calib_cam_to_cam.txt", "P_rect_02")
     return conventions.scale_intrinsics(K, W / 1242, H / 375).astype(np.float32)
 
 
@@ -169,12 +173,13 @@ def test_per_graph_parity_on_real_frames(model_dir, torch_model):
     K = kitti_K()
     report = {}
     # depthnet: a batch of 3 real frames (the graph was exported from a batch-1 example)
-    images = to_network(np.stack(frames))
+    spec = InputSpec.from_conventions(H, W, 3)
+    norm = [spec.to_network(f)[None] for f in frames]
+    images = np.concatenate(norm)
     d = compare_graph(build_wrapper("depthnet", torch_model), model_dir / "depthnet.onnx", [images])
     report["depth_rel"], report["disp_rel"] = d["depth"]["relative"], d["disparity"]["relative"]
     assert d["depth"]["relative"] <= DEPTH_REL_TOL and d["disparity"]["relative"] <= DEPTH_REL_TOL
 
-    norm = [to_network(f) for f in frames]
     snippet = np.concatenate([norm[1], norm[0], norm[2]], axis=1)
     p = compare_graph(build_wrapper("posenet", torch_model), model_dir / "posenet.onnx", [snippet])
     report["pose_abs"], report["pose_matrix_abs"] = p["pose"]["max_abs"], p["pose_matrix"]["max_abs"]
@@ -206,7 +211,10 @@ def test_cascade_matches_torch_flow_forward(model_dir, torch_model):
     """depth -> pose -> rigid op -> ResFlowNet in ORT vs GeoNet.flow_forward, scale 0, t -> t+1."""
     frames = kitti_frames(3, start=10)
     K = kitti_K()
-    out = ort_cascade(model_dir, frames, K)
+    predictor = Predictor(model_dir)
+    flow = predictor.flow(frames, K)
+    out = {"flow": flow.flow, "rigid_flow": flow.rigid_flow, "depth": flow.depth,
+           "pose": predictor.pose(frames).vectors[1]}
     target = to01(frames[1])
     sources = torch.stack([to01(frames[0])[0], to01(frames[2])[0]]).unsqueeze(0)
     with torch.no_grad():
@@ -322,9 +330,17 @@ def test_int8_graphs_load_run_and_report_delta(model_dir):
     rng = np.random.default_rng(0)
     frames = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(3)]
     K = np.array([[200.0, 0, W / 2], [0, 200.0, H / 2], [0, 0, 1]], np.float32)
-    fp32, int8 = OrtCascade(model_dir, "fp32")(frames, K), OrtCascade(model_dir, "int8")(frames, K)
-    assert np.isfinite(int8["flow"]).all() and int8["flow"].shape == (H, W, 2)
-    assert np.abs(int8["depth"] - fp32["depth"]).mean() < 0.2 * np.abs(fp32["depth"]).mean()
+    fp32, int8 = Predictor(model_dir, "fp32").flow(frames, K), Predictor(model_dir, "int8").flow(frames, K)
+    assert np.isfinite(int8.flow).all() and int8.flow.shape == (H, W, 2)
+    assert np.abs(int8.depth - fp32.depth).mean() < 0.2 * np.abs(fp32.depth).mean()
+    # int8 PoseNet still returns rigid transforms built from its own vectors ([R | t], t = tx ty tz):
+    # quantising the Sin/Cos/Concat tail once collapsed them to ~identity.
+    pose8 = Predictor(model_dir, "int8").pose(frames)
+    R = pose8.matrices[:, :3, :3]
+    assert np.abs(pose8.vectors[:, :3]).max() > 1e-4
+    np.testing.assert_allclose(pose8.matrices[:, :3, 3], pose8.vectors[:, :3], atol=1e-6)
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-5)
+    np.testing.assert_allclose(pose8.matrices[:, 3], np.broadcast_to([0, 0, 0, 1], (2, 4)), atol=1e-7)
 
 
 # --------------------------------------------------------------------------- CLI
@@ -341,10 +357,10 @@ def test_cli_random_init_small(tmp_path):
     assert manifest.random_init and manifest.provenance.random_init and manifest.arch == "small"
     assert manifest.graph_names() == GRAPH_NAMES and manifest.quantization is None
     with pytest.raises(GeoNetInputError, match="random-init"):
-        ort_depth_predictor(OrtCascade(out, graphs=["depthnet"]))
+        onnx_depth_fn(Predictor(out))
     frames = [np.full((64, 208, 3), 100 + 10 * i, np.uint8) for i in range(3)]
-    res = ort_cascade(out, frames, np.array([[100.0, 0, 104], [0, 100, 32], [0, 0, 1]], np.float32))
-    assert res["flow"].shape == (64, 208, 2) and np.isfinite(res["flow"]).all()
+    res = Predictor(out).flow(frames, np.array([[100.0, 0, 104], [0, 100, 32], [0, 0, 1]], np.float32))
+    assert res.flow.shape == (64, 208, 2) and np.isfinite(res.flow).all()
 
 
 def test_cli_wrong_stage_checkpoint(tmp_path, capsys):

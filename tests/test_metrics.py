@@ -246,3 +246,12 @@ def test_snippet_poses_to_global_with_rotation_matches_general_inverse():
     G = snippet_poses_to_global(Ts)
     expected = np.stack([Ts[0] @ np.linalg.inv(T) for T in Ts])
     np.testing.assert_allclose(G, expected, atol=1e-12)
+
+
+def test_ate_zero_motion_prediction_is_not_fitted_to_gt_rounding_noise():
+    # GT whose first position is 1e-9 (text rounding), a prediction standing still:
+    # the scale stays 1, so the error is the GT path itself (hand-computed).
+    gt = np.array([[1e-9, 0, 0], [0, 0, 1.0], [0, 0, 2.0]])
+    pred = np.zeros((3, 3))
+    expected = math.sqrt(1.0 + 4.0) / 3  # errors (0,0,-1) and (0,0,-2) after the shift by gt[0]
+    assert ate_snippet(gt, pred) == pytest.approx(expected, rel=1e-6)

@@ -1,7 +1,7 @@
 """DepthNet / PoseNet / ResFlowNet: shapes, official sizes, heads, BN, padding.
 
 Parameter and MAC anchors come from an INDEPENDENT implementation
-(/work/shared/reference/cpu_latency_anchors.md, "Networks" table; BN folded into
+(../shared/reference/cpu_latency_anchors.md, "Networks" table; BN folded into
 conv + bias there, which counts the same as conv + BN beta here).
 """
 from __future__ import annotations

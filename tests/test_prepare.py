@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.formats import write_calib_K, write_depth_kitti
+from geonet_infer.io import write_calib_K, write_depth_kitti
 from training import prepare as P
 
 REALDATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
@@ -25,7 +25,7 @@ needs_odom = pytest.mark.skipif(not ODOM00.is_dir(), reason="realdata KITTI odom
 
 
 def calib_values(path: Path, key: str) -> np.ndarray:
-    """Plain-text parse of 'key: v1 v2 ...' (independent of geonet_infer.formats)."""
+    """Plain-text parse of 'key: v1 v2 ...' (independent of geonet_infer.io)."""
     for line in path.read_text().splitlines():
         if line.startswith(key + ":"):
             return np.array([float(v) for v in line.split(":", 1)[1].split()])

@@ -18,9 +18,11 @@ import pytest
 import torch
 
 from export.to_onnx import OPSET, check_graph, export_graph, op_types
-from export.verify import compare_graph, to_network
+from export.verify import compare_graph
+from geonet_infer.preprocess import InputSpec
 from export.wrappers import RigidFlowExport, example_inputs, io_spec
-from geonet_infer import conventions, formats
+from geonet_infer import conventions
+from geonet_infer.io import list_images, read_calib_K, read_image
 from geonet_infer.session import make_session
 
 H, W = 48, 64
@@ -127,14 +129,15 @@ def test_general_pose_batch_matches_numpy_projection(graph):
 
 @pytest.mark.skipif(not (KITTI / "image_02" / "data").is_dir(), reason="KITTI sample frames not available")
 def test_parity_with_torch_on_real_frames(graph):
-    files = sorted((KITTI / "image_02" / "data").glob("*.png"))[:2]
-    frames = [cv2.resize(formats.read_image(f), (W, H), interpolation=cv2.INTER_AREA) for f in files]
-    K = formats.read_calib_K(KITTI / "calib_cam_to_cam.txt", "P_rect_02")
+    files = list_images(KITTI / "image_02" / "data")[:2]
+    frames = [cv2.resize(read_image(f), (W, H), interpolation=cv2.INTER_AREA) for f in files]
+    K = read_calib_K(KITTI / "calib_cam_to_cam.txt", "P_rect_02")
     K = conventions.scale_intrinsics(K, W / 1242, H / 375).astype(np.float32)[None]
     v = np.linspace(0, 1, H)[:, None]
     depth = (4.0 + 40.0 * (1 - v) * np.ones((1, W)))[None, None].astype(np.float32)  # far at the top
     pose = np.array([[0.01, -0.005, 0.9, 0.002, -0.004, 0.001]], np.float32)
-    inputs = [depth, pose, K, to_network(frames[1]), to_network(frames[0])]
+    spec = InputSpec.from_conventions(H, W)
+    inputs = [depth, pose, K, spec.to_network(frames[1])[None], spec.to_network(frames[0])[None]]
     diffs = compare_graph(RigidFlowExport().eval(), graph, inputs)
     assert diffs["rigid_flow"]["max_abs"] <= 1e-3
     assert diffs["warped"]["relative"] <= 1e-3 and diffs["error"]["relative"] <= 1e-3

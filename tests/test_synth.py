@@ -4,7 +4,7 @@
 * static pixels: GT flow == closed-form rigid flow from GT depth, GT poses and K
   (projected with cv2.projectPoints, not our code);
 * moving-object pixels: GT flow != rigid flow, and the motion mask marks exactly them;
-* the written folder reads back through geonet_infer.formats.
+* the written folder reads back through geonet_infer.io.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from geonet_infer import formats as F
+from geonet_infer import io as gio
 from training import synth
 
 H, W = 128, 416
@@ -137,24 +137,24 @@ def test_written_layout_reads_back_and_is_independent_of_workers(tmp_path):
     for name in ("seq_0000", "seq_0001"):
         assert set(_tree_digest(tmp_path / "a" / name)) == expected
 
-    # Everything reads back through formats.py and matches the in-memory generator.
+    # Everything reads back through geonet_infer.io and matches the in-memory generator.
     ref = synth.generate_sequence(3, 1, frames, h, w)
     d = tmp_path / "a" / "seq_0001"
     for t in range(frames):
-        np.testing.assert_array_equal(F.read_image(d / "image" / stems[t]), ref["image"][t])
-        depth = F.read_depth_kitti(d / "depth" / stems[t])
+        np.testing.assert_array_equal(gio.read_image(d / "image" / stems[t]), ref["image"][t])
+        depth = gio.read_depth_kitti(d / "depth" / stems[t])
         in_range = ref["depth"][t] < 255
         np.testing.assert_allclose(depth[in_range], ref["depth"][t][in_range], atol=1 / 512 + 1e-6)
         assert (depth[~in_range] == 0).all()  # sky / far: no measurement, as in KITTI
-        np.testing.assert_array_equal(F.read_mask(d / "motion_mask" / stems[t]), ref["motion_mask"][t])
+        np.testing.assert_array_equal(gio.read_mask(d / "motion_mask" / stems[t]), ref["motion_mask"][t])
     for t in range(frames - 1):
         for kind in ("occ", "noc"):
-            flow, valid = F.read_flow_kitti(d / f"flow_{kind}" / stems[t])
+            flow, valid = gio.read_flow_kitti(d / f"flow_{kind}" / stems[t])
             np.testing.assert_array_equal(valid, ref[f"flow_{kind}"][t])
             np.testing.assert_allclose(flow[valid], ref["flow"][t][valid], atol=1 / 128 + 1e-6)
-    np.testing.assert_allclose(F.read_kitti_poses(d / "poses.txt"), ref["poses"], atol=1e-8)
-    np.testing.assert_allclose(F.read_calib_K(d / "calib.txt"), ref["K"], rtol=1e-8)
-    assert F.read_calib_K(d / "calib.txt")[0, 0] == pytest.approx(0.581 * w, rel=0.01)
+    np.testing.assert_allclose(gio.read_kitti_poses(d / "poses.txt"), ref["poses"], atol=1e-8)
+    np.testing.assert_allclose(gio.read_calib_K(d / "calib.txt"), ref["K"], rtol=1e-8)
+    assert gio.read_calib_K(d / "calib.txt")[0, 0] == pytest.approx(0.581 * w, rel=0.01)
 
     # Same files with one worker; a rerun skips complete sequences and redoes a half-written one.
     assert synth.main(["--out", str(tmp_path / "b"), "--workers", "1", *args]) == 0

@@ -16,7 +16,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.formats import read_depth_kitti, read_image
+from geonet_infer.io import read_cam_txt, read_depth_kitti, read_image
 
 SPLITS = ("train", "val", "heldout")
 PREPARE_CMD = "run python -m training.prepare --kind synth|kitti_raw|kitti_odom --src DIR --out ROOT first"
@@ -111,16 +111,11 @@ def read_list(path: Path) -> list[str]:
 
 
 def read_cam(path: Path) -> np.ndarray:
-    """<frame>_cam.txt "fx,0.,cx,0.,fy,cy,0.,0.,1." -> (3, 3) float64."""
-    if not path.is_file():
-        raise GeoNetInputError(path, "intrinsics file not found", PREPARE_CMD)
+    """<frame>_cam.txt "fx,0.,cx,0.,fy,cy,0.,0.,1." -> (3, 3) float64 (:func:`geonet_infer.io.read_cam_txt`)."""
     try:
-        vals = [float(v) for v in path.read_text().replace(",", " ").split()]
-    except ValueError:
-        vals = []
-    if len(vals) != 9:
-        raise GeoNetInputError(path, "expected 9 comma-separated numbers 'fx,0.,cx,0.,fy,cy,0.,0.,1.'", PREPARE_CMD)
-    return np.array(vals, dtype=np.float64).reshape(3, 3)
+        return read_cam_txt(path)
+    except GeoNetInputError as err:
+        raise GeoNetInputError(err.path, err.problem, PREPARE_CMD) from None
 
 
 class SequenceDataset(Dataset):

@@ -24,9 +24,10 @@ from typing import Callable
 import numpy as np
 import torch
 
-from geonet_infer import formats, metrics
+from geonet_infer import metrics
 from geonet_infer.conventions import IMAGE_NORM
 from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io import list_images, read_calib_K, read_depth_kitti, read_flow_kitti, read_image
 from training.model import GeoNet
 
 DepthFn = Callable[[np.ndarray], np.ndarray]
@@ -44,10 +45,11 @@ def heldout_sequences(prepared_dir: str | Path) -> list[str]:
 
 
 def _frames(sequence_dir: Path) -> list[Path]:
-    frames = sorted((sequence_dir / "image").glob("*.png"))
-    if not frames:
-        raise GeoNetInputError(sequence_dir / "image", "no frames", "is this a training.synth sequence?")
-    return frames
+    image_dir = sequence_dir / "image"
+    try:
+        return list_images(image_dir)
+    except GeoNetInputError as err:
+        raise GeoNetInputError(image_dir, err.problem, "is this a training.synth sequence?") from None
 
 
 def evaluate_depth(predict_depth: DepthFn, synth_dir: str | Path, sequences: list[str],
@@ -62,8 +64,8 @@ def evaluate_depth(predict_depth: DepthFn, synth_dir: str | Path, sequences: lis
     model_rows, baseline_rows = [], []
     for name in sequences:
         for frame in _frames(Path(synth_dir) / name)[::stride]:
-            gt = formats.read_depth_kitti(frame.parent.parent / "depth" / frame.name)
-            pred = predict_depth(formats.read_image(frame))
+            gt = read_depth_kitti(frame.parent.parent / "depth" / frame.name)
+            pred = predict_depth(read_image(frame))
             pred = metrics.resize_depth_to(pred, gt.shape)
             model_rows.append(metrics.depth_metrics(gt, pred, max_depth=MAX_DEPTH, crop=crop))
             baseline_rows.append(metrics.depth_metrics(gt, np.ones_like(gt), max_depth=MAX_DEPTH, crop=crop))
@@ -78,12 +80,12 @@ def evaluate_flow(predict_flow: FlowFn, synth_dir: str | Path, sequences: list[s
     for name in sequences:
         seq = Path(synth_dir) / name
         frames = _frames(seq)
-        K = formats.read_calib_K(seq / "calib.txt")
+        K = read_calib_K(seq / "calib.txt")
         for t in range(1, len(frames) - 1, stride):
-            triplet = [formats.read_image(frames[i]) for i in (t - 1, t, t + 1)]
+            triplet = [read_image(frames[i]) for i in (t - 1, t, t + 1)]
             pred = predict_flow(triplet, K)
-            gt_noc, valid_noc = formats.read_flow_kitti(seq / "flow_noc" / frames[t].name)
-            gt_occ, valid_occ = formats.read_flow_kitti(seq / "flow_occ" / frames[t].name)
+            gt_noc, valid_noc = read_flow_kitti(seq / "flow_noc" / frames[t].name)
+            gt_occ, valid_occ = read_flow_kitti(seq / "flow_occ" / frames[t].name)
             rows_noc.append(metrics.flow_epe(gt_noc, valid_noc, pred))
             rows_occ.append(metrics.flow_epe(gt_occ, valid_occ, pred))
             zero_noc.append(metrics.flow_epe(gt_noc, valid_noc, np.zeros_like(pred)))
@@ -123,6 +125,25 @@ def torch_flow_predictor(model: GeoNet, height: int, width: int) -> FlowFn:
         fwd_full, _, _, _ = model.flow_forward(target, sources, K_t)
         return fwd_full[0][1].permute(1, 2, 0).numpy()  # rows i-major: row 1 = source t+1
     return predict
+
+
+# -------------------------------------------------------------- ONNX predictors (the runtime)
+def _refuse_random_init(predictor) -> None:
+    if predictor.manifest.random_init:
+        raise GeoNetInputError(predictor.model_dir, "this model directory holds random-init (timing-only) graphs",
+                               "accuracy needs graphs exported from a trained --checkpoint")
+
+
+def onnx_depth_fn(predictor) -> DepthFn:
+    """``predict_depth`` of a :class:`geonet_infer.predictor.Predictor` (refuses random-init models)."""
+    _refuse_random_init(predictor)
+    return lambda rgb: predictor.depth(rgb).depth
+
+
+def onnx_flow_fn(predictor) -> FlowFn:
+    """``predict_flow(frames [t-1, t, t+1], K)`` of a Predictor: full flow t -> t+1."""
+    _refuse_random_init(predictor)
+    return lambda triplet, K: predictor.flow(triplet, K).flow
 
 
 def main(argv=None) -> int:

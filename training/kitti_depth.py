@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.formats import read_calib_file
+from geonet_infer.io.calib import read_calib_file
 
 
 def load_velodyne_points(bin_path):

@@ -13,7 +13,7 @@ Output under ``--out DIR`` (read back by :class:`training.data.SequenceDataset`)
 ``<folder>`` is ``<drive>_02`` / ``<drive>_03`` for KITTI raw, the sequence name for odometry and
 synthetic data; ``<frame>`` is the target frame's file stem.
 
-Every file goes through :func:`geonet_infer.formats.atomic_write`, so an interrupted run never
+Every file goes through :func:`geonet_infer.io.atomic_write`, so an interrupted run never
 leaves half a sample; a re-run skips samples whose files all exist (resumable).
 """
 from __future__ import annotations
@@ -32,8 +32,8 @@ from tqdm import tqdm
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.formats import (atomic_write, read_calib_K, read_calib_file, read_depth_kitti,
-                                  read_image, require_key, write_depth_kitti)
+from geonet_infer.io import (atomic_write, read_calib_K, read_calib_file, read_depth_kitti, read_image,
+                             require_key, write_cam_txt, write_depth_kitti)
 
 log = logging.getLogger(__name__)
 
@@ -181,12 +181,6 @@ def resize(img: np.ndarray, height: int, width: int) -> np.ndarray:
     """
     shrink = height <= img.shape[0] and width <= img.shape[1]
     return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-
-
-def cam_line(K: np.ndarray) -> str:
-    """Official _cam.txt line "fx,0.,cx,0.,fy,cy,0.,0.,1." (full float precision)."""
-    fx, cx, fy, cy = (float(v) for v in (K[0, 0], K[0, 2], K[1, 1], K[1, 2]))
-    return f"{fx!r},0.,{cx!r},0.,{fy!r},{cy!r},0.,0.,1."
 
 
 # --------------------------------------------------------------------------- finding sequences
@@ -432,8 +426,7 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
         depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
     with atomic_write(paths["jpg"]) as tmp:
         tmp.write_bytes(jpg.tobytes())
-    with atomic_write(paths["cam"]) as tmp:
-        tmp.write_text(cam_line(K) + "\n")
+    write_cam_txt(paths["cam"], K)
     if depth is not None:
         write_depth_kitti(paths["depth"], depth)
     return "written", None, None

@@ -43,8 +43,9 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from geonet_infer import formats
 from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io import (atomic_write, write_calib_K, write_depth_kitti, write_flow_kitti, write_image,
+                             write_kitti_poses, write_mask)
 
 GENERATOR_VERSION = 1
 
@@ -906,17 +907,17 @@ def write_sequence(out_dir, seed: int, index: int, frames: int, height: int, wid
     K = None
     for t, fr in enumerate(iter_frames(seed, index, frames, height, width)):
         stem = f"{t:06d}.png"
-        formats.write_image(tmp / "image" / stem, fr["image"])
+        write_image(tmp / "image" / stem, fr["image"])
         depth = np.where(fr["depth"] <= MAX_PNG_DEPTH, fr["depth"], 0.0)  # sky / far: no measurement
-        formats.write_depth_kitti(tmp / "depth" / stem, depth)
-        formats.write_mask(tmp / "motion_mask" / stem, fr["motion_mask"])
+        write_depth_kitti(tmp / "depth" / stem, depth)
+        write_mask(tmp / "motion_mask" / stem, fr["motion_mask"])
         if "flow" in fr:
-            formats.write_flow_kitti(tmp / "flow_occ" / stem, fr["flow"], fr["flow_occ"])
-            formats.write_flow_kitti(tmp / "flow_noc" / stem, fr["flow"], fr["flow_noc"])
+            write_flow_kitti(tmp / "flow_occ" / stem, fr["flow"], fr["flow_occ"])
+            write_flow_kitti(tmp / "flow_noc" / stem, fr["flow"], fr["flow_noc"])
         poses.append(fr["pose"])
         K = fr["K"]
-    formats.write_kitti_poses(tmp / "poses.txt", np.stack(poses))
-    formats.write_calib_K(tmp / "calib.txt", K)
+    write_kitti_poses(tmp / "poses.txt", np.stack(poses))
+    write_calib_K(tmp / "calib.txt", K)
     os.replace(tmp, final)
     return "done"
 
@@ -938,7 +939,7 @@ def _check_config(out_dir: Path, config: dict) -> None:
             raise GeoNetInputError(path, f"folder was generated with {', '.join(f'{k}={old.get(k)}' for k in keys)}",
                                    "Use a new --out folder, or the same settings to resume")
         config = {**config, "sequences": max(config["sequences"], old.get("sequences", 0))}
-    with formats.atomic_write(path) as tmp:
+    with atomic_write(path) as tmp:
         tmp.write_text(json.dumps(config, indent=1) + "\n")
 
 

@@ -1,6 +1,6 @@
 """GeoNet networks (PyTorch): DepthNet, PoseNet, ResFlowNet and their variants.
 
-Layer details: docs/networks.md and /work/shared/reference/geonet_spec.md (1-3).
+Layer details: docs/networks.md and ../shared/reference/geonet_spec.md (1-3).
 """
 from __future__ import annotations
 

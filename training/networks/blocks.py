@@ -1,7 +1,7 @@
 """Building blocks shared by DepthNet, PoseNet and ResFlowNet.
 
 Layer conventions follow the official TF code (yzcjtr/GeoNet ``geonet_nets.py``,
-slim defaults), see ``/work/shared/reference/geonet_spec.md`` sections 0-3:
+slim defaults), see ``../shared/reference/geonet_spec.md`` sections 0-3:
 
 * every non-head conv is conv (no bias) -> BatchNorm (eps 1e-3, beta only) -> ReLU;
 * the ResNet path pads symmetrically with (k - 1) // 2 (GeoNet's ``conv`` helper);

@@ -1,0 +1,50 @@
+"""``geonet-infer``: depth, optical flow and camera pose from video on CPU.
+
+One module per subcommand; each has ``add_parser(subparsers)`` and ``run(args) -> int``.
+Exit codes, for every subcommand: 0 all good, 1 some items failed (recorded in the
+output), 2 bad usage or input (one line on stderr naming the item).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from geonet_infer import __version__
+from geonet_infer.cli import demo, info, predict
+from geonet_infer.errors import GeoNetInputError
+
+SUBCOMMANDS = (predict, demo, info)
+EXIT_OK, EXIT_PARTIAL, EXIT_USAGE = 0, 1, 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="geonet-infer",
+        description="GeoNet (CVPR 2018) monocular depth, optical flow and camera pose on CPU with onnxruntime. "
+                    "Start with `geonet-infer demo`; run `geonet-infer COMMAND --help` for each command.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="exit codes: 0 all good, 1 some frames failed (see summary.json), 2 bad usage or input")
+    parser.add_argument("--version", action="version", version=f"geonet-infer {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for module in SUBCOMMANDS:
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse exits 2 on bad usage and 0 on --help/--version
+        return int(exc.code or 0)
+    if args.command is None:
+        parser.print_help()
+        return EXIT_USAGE
+    try:
+        return args.run(args)
+    except GeoNetInputError as exc:
+        print(f"geonet-infer {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"geonet-infer {args.command}: interrupted", file=sys.stderr)
+        return 130

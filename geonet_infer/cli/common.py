@@ -1,0 +1,73 @@
+"""Options and helpers shared by the subcommands."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io.calib import Camera, read_camera
+from geonet_infer.manifest import PRECISIONS
+from geonet_infer.models import DEFAULT_MODEL
+from geonet_infer.predictor import STAGES, Predictor, load
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def add_model_args(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("model")
+    group.add_argument("--model", default=None,
+                       help=f"bundled model name or a model directory from `python -m export` "
+                            f"(default: the bundled {DEFAULT_MODEL!r})")
+    group.add_argument("--precision", default="fp32", choices=PRECISIONS,
+                       help="fp32, or int8 (quantised ConvNets, faster on CPUs with VNNI) (default: fp32)")
+    group.add_argument("--threads", type=positive_int, default=None,
+                       help="onnxruntime threads per graph (default: the CPUs this process may use)")
+
+
+def load_predictor(args: argparse.Namespace) -> Predictor:
+    return load(args.model, precision=args.precision, threads=args.threads)
+
+
+def add_camera_args(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("camera (needed for flow)").add_mutually_exclusive_group()
+    group.add_argument("--calib", type=Path, default=None,
+                       help="calibration file: KITTI calib_cam_to_cam.txt (P_rect_02), KITTI odometry calib.txt "
+                            "(P2), a 3x3 text matrix, `K: ...` files, key/value files with K and dist, or an "
+                            "EuRoC sensor.yaml; lens distortion, where given, is removed before inference "
+                            "(default: the KITTI drive's own calibration, if INPUT is one)")
+    group.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY",
+                       help="pinhole intrinsics in pixels at the input frames' resolution")
+
+
+def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None) -> Camera | None:
+    """The Camera from --calib / --intrinsics / a default calibration file, or None."""
+    if args.intrinsics is not None:
+        try:
+            fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
+        except ValueError:
+            raise GeoNetInputError(None, f"--intrinsics {args.intrinsics!r} is not four numbers",
+                                   "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9") from None
+        return Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None, None, "--intrinsics").validate("--intrinsics")
+    path = args.calib if args.calib is not None else default_calib
+    if path is None:
+        return None
+    return read_camera(path).validate(path)
+
+
+def stage_table(per_frame_ms: dict[str, float], frames: int) -> str:
+    """A plain-text table of the mean ms per frame of each stage that ran."""
+    rows = [(s, per_frame_ms[s]) for s in (*STAGES, "total") if per_frame_ms.get(s)]
+    width = max([len(s) for s, _ in rows] + [5])
+    lines = [f"per-frame latency (mean over {frames} frames)", f"  {'stage':<{width}}  {'ms':>8}"]
+    lines += [f"  {s:<{width}}  {ms:8.2f}" for s, ms in rows]
+    return "\n".join(lines)

@@ -1,0 +1,47 @@
+"""Atomic writes: a crash never leaves a half-written file where a reader would trust it."""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+__all__ = ["atomic_write", "save_npy_atomic"]
+
+
+@contextlib.contextmanager
+def atomic_write(path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
+
+    The temp file lives in the same directory (so the rename is atomic on POSIX)
+    and keeps the same suffix (so cv2.imwrite picks the right encoder). If the
+    body raises, the temp file is deleted and ``path`` is left untouched.
+    Parent directories are created.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix or ".tmp")
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def save_npy_atomic(path, array) -> None:
+    """Write ``array`` as a ``.npy`` file at exactly ``path``, atomically.
+
+    ``np.save`` writes to an open file handle, so no ``.npy`` suffix is appended
+    to the name. Object arrays are refused (``allow_pickle=False``): a ``.npy``
+    holding pickles can run code when loaded.
+    """
+    arr = np.asarray(array)
+    with atomic_write(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, arr, allow_pickle=False)

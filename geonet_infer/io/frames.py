@@ -1,0 +1,204 @@
+"""Frame sources for the command line: a video file, a KITTI raw drive or a folder of images.
+
+:func:`open_frames` picks the source from the path; iterating it yields :class:`Frame` objects
+lazily (one decoded frame in memory at a time), in temporal order.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io.images import IMAGE_SUFFIXES, list_images, read_image
+
+__all__ = ["VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames"]
+
+log = logging.getLogger(__name__)
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")  # compared lower-case
+# FFmpeg (inside OpenCV) prints its own errors on stderr for a broken video ("moov atom not found"),
+# which :func:`open_frames` reports as a GeoNetInputError naming the file anyway. Its log is quiet
+# unless the user set OPENCV_FFMPEG_LOGLEVEL (e.g. 32 to see it). OpenCV reads the variable when it
+# first opens a video in the process, hence at import; cv2.utils.logging.setLogLevel does not reach it.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+KITTI_CALIB_NAME = "calib_cam_to_cam.txt"
+_KITTI_IMAGES = Path("image_02") / "data"  # KITTI raw: left colour camera, rectified
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One frame of a :class:`FrameSource`: exactly one of ``rgb`` and ``error`` is set.
+
+    Attributes:
+        name: frame name (file stem, or the zero-padded index ``000000`` for videos).
+        rgb: (H, W, 3) uint8 RGB, or None if the frame could not be decoded.
+        error: GeoNetInputError naming the file, or None.
+    """
+
+    name: str
+    rgb: np.ndarray | None = None
+    error: GeoNetInputError | None = None
+
+    def __post_init__(self):
+        if (self.rgb is None) == (self.error is None):
+            raise ValueError("a Frame holds exactly one of rgb and error")
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+class FrameSource:
+    """Frames of one sequence, read lazily.
+
+    Attributes:
+        path: the path given to :func:`open_frames`.
+        name: sequence name (folder name, KITTI drive folder name or video file stem).
+        kind: ``"folder"``, ``"video"`` or ``"kitti_drive"``.
+        frame_names: frame names in order; None for a video until it was read to the end.
+        fps: frames per second of a video (None for folders or when the container does not say).
+        default_calib: calibration file that belongs to these frames (KITTI raw
+            ``calib_cam_to_cam.txt``), or None.
+    """
+
+    def __init__(self, path: Path, name: str, kind: str, frame_names: list[str] | None = None,
+                 fps: float | None = None, default_calib: Path | None = None):
+        self.path = path
+        self.name = name
+        self.kind = kind
+        self.frame_names = frame_names
+        self.fps = fps
+        self.default_calib = default_calib
+
+    def __iter__(self) -> Iterator[Frame]:
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(kind={self.kind!r}, name={self.name!r}, path={str(self.path)!r})"
+
+
+class _ImageFolderSource(FrameSource):
+    """A folder of image files (also a KITTI drive's ``image_02/data``), in file-name order."""
+
+    def __init__(self, path: Path, folder: Path, name: str, kind: str, default_calib: Path | None = None):
+        self.files = list_images(folder)
+        stems = [p.stem for p in self.files]
+        if len(set(stems)) != len(stems):
+            dup = sorted({s for s in stems if stems.count(s) > 1})
+            raise GeoNetInputError(folder, f"several images share the frame name '{dup[0]}'",
+                                   "keep one file per frame (outputs are named after the frame)")
+        super().__init__(path, name, kind, stems, None, default_calib)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for p in self.files:
+            try:
+                yield Frame(p.stem, rgb=read_image(p))
+            except GeoNetInputError as err:
+                yield Frame(p.stem, error=err)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+
+class _VideoSource(FrameSource):
+    """A video file decoded with cv2.VideoCapture; frames are named 000000, 000001, ..."""
+
+    def __init__(self, path: Path):
+        cap = cv2.VideoCapture(str(path))
+        try:
+            ok = cap.isOpened()
+            first = cap.read()[1] if ok else None
+            fps = float(cap.get(cv2.CAP_PROP_FPS)) if ok else 0.0
+            count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if ok else 0
+        finally:
+            cap.release()
+        if first is None:
+            why = "OpenCV decoded no frame" if ok else "OpenCV could not open it"
+            raise GeoNetInputError(path, f"cannot open this video ({why})",
+                                   f"is it a valid video file ({' '.join(VIDEO_SUFFIXES)})?")
+        self._count = max(count, 1)
+        super().__init__(path, path.stem, "video", None, fps if fps > 0 else None, None)
+
+    def __iter__(self) -> Iterator[Frame]:
+        cap = cv2.VideoCapture(str(self.path))
+        names = []
+        try:
+            while True:
+                ok, bgr = cap.read()
+                if not ok or bgr is None:
+                    break
+                name = f"{len(names):06d}"
+                names.append(name)
+                yield Frame(name, rgb=cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+        finally:
+            cap.release()
+        # Only reached when read to the end (not when the caller stopped early).
+        if not names:
+            raise GeoNetInputError(self.path, "cannot open this video (OpenCV decoded no frame)",
+                                   "the file changed since it was opened?")
+        if len(names) < self._count:
+            log.warning("%s: decoded %d frames, the container lists %d (truncated or partly unreadable)",
+                        self.path, len(names), self._count)
+        self.frame_names = names
+
+    def __len__(self) -> int:
+        """Frame count: exact once read to the end, before that the container's (may be inexact)."""
+        return len(self.frame_names) if self.frame_names is not None else self._count
+
+
+def _find_kitti_calib(drive: Path) -> Path | None:
+    """``calib_cam_to_cam.txt`` in the drive folder or up to two levels up (KITTI: ``<date>/``)."""
+    for folder in (drive, drive.parent, drive.parent.parent):
+        candidate = folder / KITTI_CALIB_NAME
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def open_frames(path) -> FrameSource:
+    """Open a video file, a KITTI raw drive or a folder of images as a :class:`FrameSource`.
+
+    * A file with suffix .mp4 .avi .mov .mkv .webm: a video (OpenCV; BGR converted to RGB).
+    * A folder holding ``image_02/data`` (a KITTI raw drive, e.g.
+      ``2011_09_26/2011_09_26_drive_0001_sync``) or a folder that *is* ``.../image_02/data``
+      (or ``.../image_02``):
+      a ``"kitti_drive"``; frames from ``image_02/data``; ``default_calib`` is the
+      ``calib_cam_to_cam.txt`` in the drive folder or up to two levels above it.
+    * Any other folder: its images (:func:`~geonet_infer.io.images.list_images`), sorted by name.
+
+    Iterating yields :class:`Frame`; a frame that cannot be decoded is yielded with its
+    ``error`` set (naming the file), so callers can report it and go on.
+
+    Raises:
+        GeoNetInputError naming the path if it does not exist, is an unsupported file,
+        a folder without images, or a video OpenCV cannot open or decode a frame from.
+    """
+    given = Path(path)
+    if not given.exists():
+        raise GeoNetInputError(given, "not found", "pass a video file, a folder of images or a KITTI raw drive folder")
+    p = Path(os.path.abspath(given))  # lexical: keeps a symlinked image_02/data inside its drive layout
+    if p.is_file():
+        if p.suffix.lower() in VIDEO_SUFFIXES:
+            return _VideoSource(given)
+        what = "a single image" if p.suffix.lower() in IMAGE_SUFFIXES else "not a video"
+        raise GeoNetInputError(given, f"{what}: expected a video ({' '.join(VIDEO_SUFFIXES)}) or a folder of frames",
+                               "put the frames in a folder and pass the folder")
+    if (p / _KITTI_IMAGES).is_dir():
+        drive = p
+    elif p.name == _KITTI_IMAGES.name and p.parent.name == _KITTI_IMAGES.parent.name:
+        drive = p.parent.parent
+    elif p.name == _KITTI_IMAGES.parent.name and (p / _KITTI_IMAGES.name).is_dir():
+        drive = p.parent
+    else:
+        return _ImageFolderSource(given, given, p.name, "folder")
+    images = drive / _KITTI_IMAGES
+    return _ImageFolderSource(given, images, drive.name, "kitti_drive", _find_kitti_calib(drive))

@@ -1,0 +1,487 @@
+"""The GeoNet cascade on onnxruntime: :func:`load` -> :class:`Predictor`.
+
+One cascade for the whole project (export's INT8 calibration and accuracy checks
+use it too), per frame t of a sequence:
+
+1. ``depthnet``  frame t -> disparity and depth (relative scale);
+2. ``posenet``   snippet [t, t-k .. t-1, t+1 .. t+k] -> poses t -> each source;
+3. ``rigidflow`` depth of t, pose t -> t+1, K -> rigid flow t -> t+1, frame t+1
+   warped onto t, photometric error;
+4. ``resflownet`` [t, t+1, warped, rigid flow, error] -> full flow t -> t+1
+   (= rigid + residual).
+
+Frames of any size go in; they are undistorted (if the camera has lens
+distortion), resized to the graphs' size, normalised, and outputs are mapped back
+to the input size, all inside. Every result carries per-stage timings in ms.
+A Predictor holds no per-call state, so one instance can serve many threads.
+"""
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence, Union
+
+import cv2
+import numpy as np
+
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io.calib import Camera
+from geonet_infer.io.images import read_image
+from geonet_infer.manifest import PRECISIONS, Manifest, load_manifest
+from geonet_infer.metrics import rigid_inverse
+from geonet_infer.models import resolve_model
+from geonet_infer.preprocess import (InputSpec, check_image, check_intrinsics, disparity_to_input, flow_to_input,
+                                     graph_intrinsics, next_source_position, snippet_indices)
+from geonet_infer.session import make_session, make_session_options, usable_cpus
+
+ImageLike = Union[np.ndarray, str, Path]
+Intrinsics = Union[np.ndarray, Sequence[Sequence[float]], Camera]
+# "write" is filled in by pipeline.predict_to_dir (saving outputs), not by the Predictor.
+STAGES = ("read", "preprocess", "depthnet", "posenet", "rigidflow", "resflownet", "postprocess", "write")
+
+
+# ----------------------------------------------------------------------------- results
+@dataclass
+class DepthResult:
+    """depth and disparity (H, W) float32 at the input resolution; depth = 1 / disparity, relative scale."""
+
+    depth: np.ndarray
+    disparity: np.ndarray
+    undistorted: bool
+    timings_ms: dict[str, float]
+
+
+@dataclass
+class PoseResult:
+    """Poses from the target (middle frame) to each source, sources in temporal order.
+
+    matrices: (L-1, 4, 4) rigid transforms mapping target-camera points to source-camera points.
+    vectors: (L-1, 6) [tx, ty, tz, rx, ry, rz] (Euler radians, R = Rx Ry Rz); translation in
+    the depth's relative units.
+    """
+
+    matrices: np.ndarray
+    vectors: np.ndarray
+    timings_ms: dict[str, float]
+
+
+@dataclass
+class FlowResult:
+    """Flow target -> next frame, (H, W, 2) float32 (u, v) in input pixels.
+
+    ``flow`` = ``rigid_flow`` + ``residual_flow``; for a model without ResFlowNet
+    (a stage 'rigid' export) ``flow`` is the rigid flow and ``residual_flow`` is None.
+    ``depth`` is the target's depth, ``pose`` its (4, 4) transform target -> next frame.
+    """
+
+    flow: np.ndarray
+    rigid_flow: np.ndarray
+    residual_flow: np.ndarray | None
+    depth: np.ndarray
+    pose: np.ndarray
+    undistorted: bool
+    timings_ms: dict[str, float]
+
+
+@dataclass
+class FrameResult:
+    """One frame of :meth:`Predictor.iter_sequence`.
+
+    depth, disparity: (H, W) float32 at the input resolution.
+    camera_to_world: (4, 4) this frame's pose in the first frame's camera coordinates
+    (first frame = identity; translation up to the model's unknown scale).
+    pose_to_next: (4, 4) target -> next-frame transform (None for the last frame).
+    flow, rigid_flow, residual_flow: (H, W, 2) flow to the next frame (None for the last
+    frame; residual None for a model without ResFlowNet).
+    timings_ms: this frame's share of each stage (batched stages divided evenly).
+    """
+
+    index: int
+    name: str
+    depth: np.ndarray
+    disparity: np.ndarray
+    camera_to_world: np.ndarray
+    pose_to_next: np.ndarray | None
+    pose_vector_to_next: np.ndarray | None
+    flow: np.ndarray | None
+    rigid_flow: np.ndarray | None
+    residual_flow: np.ndarray | None
+    undistorted: bool
+    timings_ms: dict[str, float]
+
+
+@dataclass
+class SequenceResult:
+    """All frames of a sequence (:meth:`Predictor.predict_sequence`)."""
+
+    frames: list[FrameResult]
+    timings_ms: dict[str, float] = field(default_factory=dict)  # stage totals over the sequence
+
+    @property
+    def depth(self) -> np.ndarray:
+        """(N, H, W) depth of every frame."""
+        return np.stack([f.depth for f in self.frames])
+
+    @property
+    def trajectory(self) -> np.ndarray:
+        """(N, 4, 4) camera-to-world poses, first frame = identity."""
+        return np.stack([f.camera_to_world for f in self.frames])
+
+    @property
+    def flow(self) -> np.ndarray:
+        """(N-1, H, W, 2) flow t -> t+1."""
+        if any(f.flow is None for f in self.frames[:-1]):
+            raise ValueError("this sequence was predicted without flow (with_flow=False)")
+        return np.stack([f.flow for f in self.frames[:-1]])
+
+
+class _Timer:
+    """Accumulates wall time per stage in ms."""
+
+    def __init__(self):
+        self.ms: dict[str, float] = defaultdict(float)
+
+    def stage(self, name: str):
+        timer = self
+
+        class _Stage:
+            def __enter__(self):
+                self.t0 = time.perf_counter()
+
+            def __exit__(self, *exc):
+                timer.ms[name] += (time.perf_counter() - self.t0) * 1e3
+        return _Stage()
+
+    def result(self, share: float = 1.0) -> dict[str, float]:
+        out = {k: v * share for k, v in self.ms.items()}
+        out["total"] = sum(out.values())
+        return out
+
+
+# ----------------------------------------------------------------------------- predictor
+def load(model: str | Path | None = None, *, precision: str = "fp32", threads: int | None = None) -> "Predictor":
+    """Load a model: None = the bundled default, a bundled name, or a model directory.
+
+    Args:
+        model: see above (``geonet_infer.models.bundled_models()`` lists the names).
+        precision: "fp32" or "int8" (quantised ConvNets; the rigid-flow op stays fp32).
+        threads: intra-op threads per session; None = the CPUs this process may use.
+    """
+    return Predictor(resolve_model(model), precision=precision, threads=threads)
+
+
+class Predictor:
+    """GeoNet depth, pose and flow on onnxruntime for one model directory.
+
+    Sessions are created once here (file hashes checked against the manifest).
+    Methods take uint8 RGB (H, W, 3) arrays of any size or image paths.
+    """
+
+    def __init__(self, model_dir: str | Path, precision: str = "fp32", threads: int | None = None,
+                 manifest: Manifest | None = None):
+        if precision not in PRECISIONS:
+            raise GeoNetInputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISIONS)}")
+        self.manifest = manifest or load_manifest(model_dir)
+        self.model_dir = Path(self.manifest.root or model_dir)
+        self.precision = precision
+        self.spec = InputSpec.from_manifest(self.manifest)
+        self.threads = usable_cpus() if threads is None else threads
+        options = make_session_options(threads=self.threads)
+        self.graphs = self.manifest.graph_names(precision)
+        self._sessions = {name: make_session(self.manifest.path(name, precision), options) for name in self.graphs}
+
+    def __repr__(self) -> str:
+        return (f"Predictor({str(self.model_dir)!r}, precision={self.precision!r}, threads={self.threads}, "
+                f"arch={self.manifest.arch!r}, size={self.spec.height}x{self.spec.width})")
+
+    @property
+    def has_flow(self) -> bool:
+        """Whether the model has ResFlowNet (else flow = rigid flow)."""
+        return "resflownet" in self._sessions
+
+    @property
+    def seq_length(self) -> int:
+        return self.spec.seq_length
+
+    # ------------------------------------------------------------------ graph calls
+    def _run(self, name: str, **feeds: np.ndarray) -> dict[str, np.ndarray]:
+        session = self._sessions[name]
+        out = session.run(None, {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in feeds.items()})
+        return dict(zip([o.name for o in session.get_outputs()], out))
+
+    # ------------------------------------------------------------------ inputs
+    def _read(self, image: ImageLike, timer: _Timer, index: int = 0) -> tuple[np.ndarray, str]:
+        """A checked frame and its label (the path, or "image <index>" for arrays)."""
+        if isinstance(image, (str, Path)):
+            with timer.stage("read"):
+                return check_image(read_image(image), image), str(image)
+        label = f"image {index}"
+        return check_image(image, label), label
+
+    def _camera(self, K: Intrinsics | None, size: tuple[int, int]) -> Camera | None:
+        """K or a Camera at the input size (H, W); a Camera with another size is rescaled to it."""
+        if K is None:
+            return None
+        if isinstance(K, Camera):
+            return K.scaled_to(size[1], size[0]).validate(K.source or None)
+        return Camera(K=check_intrinsics(K), dist=None, size=(size[1], size[0]))
+
+    def _to_network(self, rgb: np.ndarray, camera: Camera | None, timer: _Timer) -> np.ndarray:
+        with timer.stage("preprocess"):
+            if camera is not None and camera.has_distortion:
+                rgb = cv2.undistort(rgb, camera.K, camera.dist)
+            return self.spec.to_network(rgb)
+
+    def _load_frames(self, frames: Sequence[ImageLike], camera_or_K, timer: _Timer, what: str):
+        """Read and check frames of one snippet (same size) -> (rgbs, camera, size)."""
+        rgbs, names = zip(*[self._read(f, timer, i) for i, f in enumerate(frames)])
+        sizes = {r.shape[:2] for r in rgbs}
+        if len(sizes) > 1:
+            detail = ", ".join(f"{n}: {r.shape[1]}x{r.shape[0]}" for n, r in zip(names, rgbs))
+            raise GeoNetInputError(None, f"frames of one {what} differ in size ({detail})",
+                                   "pass consecutive frames of one camera")
+        size = rgbs[0].shape[:2]
+        return list(rgbs), self._camera(camera_or_K, size), size
+
+    def _snippet_frames(self, frames: Sequence[ImageLike]) -> list[ImageLike]:
+        """A full snippet (L frames, target in the middle) or a pair [t, t+1] padded per snippet_indices."""
+        L = self.seq_length
+        if isinstance(frames, np.ndarray) and frames.ndim == 4:
+            frames = list(frames)
+        if not isinstance(frames, (list, tuple)):
+            raise GeoNetInputError(None, f"expected a list of frames, got {type(frames).__name__}",
+                                   f"pass {L} consecutive frames (target in the middle) or a pair [t, t+1]")
+        if len(frames) == L:
+            return list(frames)
+        if len(frames) == 2:
+            return [frames[i] for i in sorted(snippet_indices(0, 2, L))]
+        raise GeoNetInputError(None, f"got {len(frames)} frames; this model takes snippets of {L} "
+                               "(target in the middle) or a pair [t, t+1]",
+                               "pass consecutive frames of one video")
+
+    # ------------------------------------------------------------------ depth
+    def depth(self, image: ImageLike | Sequence[ImageLike], camera: Intrinsics | None = None
+              ) -> DepthResult | list[DepthResult]:
+        """Depth of one image, or of a list of images run as one batch.
+
+        Args:
+            image: uint8 RGB (H, W, 3) array or path; or a list of them (sizes may differ).
+            camera: optional Camera (or K); a camera with lens distortion undistorts first.
+        Returns:
+            DepthResult (a list for a list input) at each image's own resolution.
+        """
+        single = not isinstance(image, (list, tuple))
+        images = [image] if single else list(image)
+        if not images:
+            return []
+        timer = _Timer()
+        rgbs = [self._read(img, timer, i)[0] for i, img in enumerate(images)]
+        cameras = [self._camera(camera, r.shape[:2]) for r in rgbs]
+        x = np.stack([self._to_network(r, c, timer) for r, c in zip(rgbs, cameras)])
+        with timer.stage("depthnet"):
+            disparity = self._run("depthnet", image=x)["disparity"][:, 0]
+        results = []
+        with timer.stage("postprocess"):
+            for d, r, c in zip(disparity, rgbs, cameras):
+                depth, disp = disparity_to_input(d, r.shape[:2])
+                results.append((depth, disp, bool(c and c.has_distortion)))
+        timings = timer.result(1.0 / len(images))
+        out = [DepthResult(depth=d, disparity=p, undistorted=u, timings_ms=dict(timings)) for d, p, u in results]
+        return out[0] if single else out
+
+    # ------------------------------------------------------------------ pose
+    def pose(self, frames: Sequence[ImageLike], camera: Intrinsics | None = None) -> PoseResult:
+        """Poses of one snippet: ``seq_length`` consecutive frames in temporal order, target in the middle.
+
+        A pair [t, t+1] is padded to a snippet as at a sequence start (see
+        ``preprocess.snippet_indices``). ``camera`` only matters for undistortion.
+        """
+        timer = _Timer()
+        frames = self._snippet_frames(frames)
+        rgbs, cam, _ = self._load_frames(frames, camera, timer, "snippet")
+        x = [self._to_network(r, cam, timer) for r in rgbs]
+        order = snippet_indices(len(x) // 2, len(x), len(x))
+        with timer.stage("posenet"):
+            out = self._run("posenet", snippet=np.concatenate([x[i] for i in order])[None])
+        return PoseResult(matrices=out["pose_matrix"][0].astype(np.float64), vectors=out["pose"][0],
+                          timings_ms=timer.result())
+
+    # ------------------------------------------------------------------ flow
+    def flow(self, frames: Sequence[ImageLike], K: Intrinsics) -> FlowResult:
+        """Flow from the target (middle frame of the snippet) to the frame after it.
+
+        Args:
+            frames: ``seq_length`` consecutive frames (target in the middle), or a
+                pair [t, t+1] (padded as at a sequence start).
+            K: (3, 3) intrinsics at the frames' resolution, or a Camera.
+        """
+        timer = _Timer()
+        frames = self._snippet_frames(frames)
+        rgbs, cam, size = self._load_frames(frames, K, timer, "snippet")
+        if cam is None:
+            raise GeoNetInputError(None, "flow needs the camera intrinsics K", "pass K (3x3) or a Camera")
+        x = np.stack([self._to_network(r, cam, timer) for r in rgbs])
+        mid = len(rgbs) // 2
+        parts = self._cascade(x[None], [mid], cam.K, size, timer)
+        with timer.stage("postprocess"):
+            depth, _ = disparity_to_input(parts["disparity"][0], size)
+            flows = self._flows_to_input(parts, 0, size)
+        return FlowResult(depth=depth, pose=parts["pose_matrix"][0].astype(np.float64),
+                          undistorted=cam.has_distortion, timings_ms=timer.result(), **flows)
+
+    def resflow_input(self, frames: Sequence[np.ndarray], K: np.ndarray, source_index: int | None = None
+                      ) -> np.ndarray:
+        """The (1, 12, h, w) ResFlowNet input for target -> source ``source_index`` (INT8 calibration).
+
+        ``frames``: a snippet (any size; resized like every other call); ``source_index`` counts
+        sources in temporal order without the target (None = the frame after the target).
+        """
+        frames = self._snippet_frames(frames)
+        timer = _Timer()
+        rgbs, cam, size = self._load_frames(frames, K, timer, "snippet")
+        x = np.stack([self._to_network(r, cam, timer) for r in rgbs])
+        mid = len(rgbs) // 2
+        source = next_source_position(self.seq_length) if source_index is None else source_index
+        parts = self._cascade(x[None], [mid], cam.K, size, timer, source_position=source, run_resflow=False)
+        return parts["flow_input"]
+
+    def _cascade(self, snippets: np.ndarray, targets: list[int], K: np.ndarray | None, size: tuple[int, int],
+                 timer: _Timer, disparity: np.ndarray | None = None, source_position: int | None = None,
+                 run_resflow: bool = True, with_flow: bool = True) -> dict[str, np.ndarray]:
+        """Batched cascade on normalised snippets (B, L, 3, h, w) in temporal order.
+
+        ``targets[b]`` is the target's index in snippet b; the source is the frame after it
+        unless ``source_position`` (index among the sources) is given. ``disparity``
+        (B, h, w) of the targets can be passed to reuse depth computed elsewhere.
+        ``with_flow=False`` stops after PoseNet.
+        """
+        B, L = snippets.shape[:2]
+        rows = np.arange(B)
+        target = snippets[rows, targets]
+        order = [[t] + [i for i in range(L) if i != t] for t in targets]
+        src_pos = next_source_position(L) if source_position is None else source_position
+        source = snippets[rows, [o[1 + src_pos] for o in order]]
+        if disparity is None:
+            with timer.stage("depthnet"):
+                disparity = self._run("depthnet", image=target)["disparity"][:, 0]
+        with timer.stage("posenet"):
+            stacked = np.stack([np.concatenate(list(snippets[b, o])) for b, o in enumerate(order)])
+            pose = self._run("posenet", snippet=stacked)
+        out = {"disparity": disparity, "pose": pose["pose"][:, src_pos], "pose_matrix": pose["pose_matrix"][:, src_pos]}
+        if not with_flow:
+            return out
+        K_graph = np.repeat(graph_intrinsics(K, size, self.spec)[None], B, axis=0)
+        with timer.stage("rigidflow"):
+            rigid = self._run("rigidflow", depth=1.0 / disparity[:, None], pose=pose["pose"][:, src_pos],
+                              intrinsics=K_graph, target=target, source=source)
+        flow_input = np.concatenate([target, source, rigid["warped"], rigid["rigid_flow"], rigid["error"]], axis=1)
+        out.update(rigid_flow=rigid["rigid_flow"], flow_input=flow_input)
+        if run_resflow and self.has_flow:
+            with timer.stage("resflownet"):
+                out.update(self._run("resflownet", flow_input=flow_input))
+        return out
+
+    def _flows_to_input(self, parts: dict, b: int, size: tuple[int, int]) -> dict[str, np.ndarray | None]:
+        rigid = flow_to_input(parts["rigid_flow"][b], size)
+        if "flow" not in parts:
+            return {"flow": rigid, "rigid_flow": rigid, "residual_flow": None}
+        return {"flow": flow_to_input(parts["flow"][b], size), "rigid_flow": rigid,
+                "residual_flow": flow_to_input(parts["residual_flow"][b], size)}
+
+    # ------------------------------------------------------------------ sequences
+    def iter_sequence(self, frames: Iterable[ImageLike], K: Intrinsics | None, *, batch_size: int = 4,
+                      names: Sequence[str] | None = None, with_flow: bool = True) -> Iterator[FrameResult]:
+        """Stream a whole sequence: yields one :class:`FrameResult` per frame, in order.
+
+        Each frame's depth is computed once (one DepthNet batch per ``batch_size``
+        frames) and reused by the rigid-flow op of the pair it is the target of.
+        Pose and flow of frame t come from the snippet centred on t (ends
+        replicated, see ``preprocess.snippet_indices``) towards t + 1; the last
+        frame has depth and a pose but no flow. Poses are chained into one
+        trajectory: camera_to_world[t + 1] = camera_to_world[t] @ inv(T_t->t+1).
+        Frames are read lazily (an iterator of frames or paths is fine).
+        ``with_flow=False`` skips the rigid-flow op and ResFlowNet (depth and poses
+        only; K may then be None, or a Camera used only to undistort).
+        """
+        if batch_size < 1:
+            raise GeoNetInputError(None, f"batch_size must be >= 1, got {batch_size}")
+        L = self.seq_length
+        k = L // 2
+        source = iter(frames)
+        prepared: dict[int, np.ndarray] = {}
+        frame_names: dict[int, str] = {}
+        camera: Camera | None = None
+        size: tuple[int, int] | None = None
+        n_read, exhausted = 0, False
+        pose_world = np.eye(4)
+        t0 = 0
+        while True:
+            timer = _Timer()
+            while not exhausted and n_read < t0 + batch_size + k:
+                try:
+                    item = next(source)
+                except StopIteration:
+                    exhausted = True
+                    break
+                rgb, label = self._read(item, timer, n_read)
+                if size is None:
+                    size = rgb.shape[:2]
+                    camera = self._camera(K, size)
+                    if camera is None and with_flow:
+                        raise GeoNetInputError(None, "a sequence needs the camera intrinsics K",
+                                               "pass K (3x3) or a Camera")
+                elif rgb.shape[:2] != size:
+                    raise GeoNetInputError(label, f"frame {n_read} is {rgb.shape[1]}x{rgb.shape[0]}, the sequence started "
+                                           f"at {size[1]}x{size[0]}", "all frames of a sequence must have one size")
+                prepared[n_read] = self._to_network(rgb, camera, timer)
+                frame_names[n_read] = (names[n_read] if names is not None else
+                                       Path(label).stem if isinstance(item, (str, Path)) else f"{n_read:06d}")
+                n_read += 1
+            if t0 == 0 and exhausted and n_read < 2:
+                raise GeoNetInputError(None, f"a sequence needs at least 2 frames, got {n_read}",
+                                       "pass consecutive frames of one video")
+            if t0 >= n_read:
+                return
+            last = n_read - 1 if exhausted else n_read - 1 - k
+            batch = list(range(t0, min(t0 + batch_size, last + 1)))
+            # Frames with a next frame get pose + flow; every frame gets depth.
+            paired = [t for t in batch if t + 1 < n_read]
+            with timer.stage("depthnet"):
+                disparity = self._run("depthnet", image=np.stack([prepared[t] for t in batch]))["disparity"][:, 0]
+            parts = {}
+            if paired:
+                windows = [[min(max(i, 0), n_read - 1) for i in range(t - k, t + k + 1)] for t in paired]
+                snippets = np.stack([np.stack([prepared[i] for i in w]) for w in windows])
+                parts = self._cascade(snippets, [k] * len(paired), camera.K if camera else None, size, timer,
+                                      disparity=disparity[:len(paired)], with_flow=with_flow)
+            results = []
+            with timer.stage("postprocess"):
+                for j, t in enumerate(batch):
+                    depth, disp = disparity_to_input(disparity[j], size)
+                    flows = (self._flows_to_input(parts, j, size) if t in paired and with_flow else
+                             {"flow": None, "rigid_flow": None, "residual_flow": None})
+                    pose_next = parts["pose_matrix"][j].astype(np.float64) if t in paired else None
+                    results.append((t, depth, disp, pose_next, parts["pose"][j] if t in paired else None, flows))
+            share = timer.result(1.0 / len(batch))
+            for t, depth, disp, pose_next, vector, flows in results:
+                yield FrameResult(index=t, name=frame_names.pop(t), depth=depth, disparity=disp,
+                                  camera_to_world=pose_world.copy(), pose_to_next=pose_next,
+                                  pose_vector_to_next=vector, undistorted=bool(camera and camera.has_distortion),
+                                  timings_ms=dict(share), **flows)
+                if pose_next is not None:
+                    pose_world = pose_world @ rigid_inverse(pose_next)
+            t0 = batch[-1] + 1
+            for i in [i for i in prepared if i < t0 - k]:
+                del prepared[i]
+
+    def predict_sequence(self, frames: Iterable[ImageLike], K: Intrinsics, *, batch_size: int = 4
+                         ) -> SequenceResult:
+        """All of :meth:`iter_sequence` in memory (mind the size of flow for long videos)."""
+        results = list(self.iter_sequence(frames, K, batch_size=batch_size))
+        totals: dict[str, float] = defaultdict(float)
+        for r in results:
+            for stage, ms in r.timings_ms.items():
+                totals[stage] += ms
+        return SequenceResult(frames=results, timings_ms=dict(totals))

@@ -1,0 +1,149 @@
+"""Visualisation: Middlebury flow colours, depth colour maps and side-by-side panels (uint8 RGB)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = ["flow_to_color", "depth_to_color", "side_by_side"]
+
+
+def _make_color_wheel() -> np.ndarray:
+    """Middlebury colour wheel (Baker et al. 2011): (55, 3) float RGB in [0, 255]."""
+    RY, YG, GC, CB, BM, MR = 15, 6, 4, 11, 13, 6
+    segments = []
+    for n, start, ch_up, ch_down in ((RY, (255, 0, 0), 1, None), (YG, (255, 255, 0), None, 0),
+                                     (GC, (0, 255, 0), 2, None), (CB, (0, 255, 255), None, 1),
+                                     (BM, (0, 0, 255), 0, None), (MR, (255, 0, 255), None, 2)):
+        seg = np.tile(np.array(start, dtype=np.float64), (n, 1))
+        ramp = np.floor(255 * np.arange(n) / n)
+        if ch_up is not None:
+            seg[:, ch_up] = ramp
+        else:
+            seg[:, ch_down] = 255 - ramp
+        segments.append(seg)
+    return np.concatenate(segments)
+
+
+_COLOR_WHEEL = _make_color_wheel()
+
+
+def flow_to_color(flow: np.ndarray, max_flow: float | None = None, valid: np.ndarray | None = None) -> np.ndarray:
+    """Middlebury colour coding of flow: hue = direction, saturation = magnitude.
+
+    Same wheel as the Middlebury/KITTI visualisations (Baker et al., ``flowToColor``):
+    +x (right) is red, -x cyan, +y (down) orange-yellow, -y blue-violet.
+
+    Args:
+        flow: (H, W, 2) float px.
+        max_flow: magnitude shown at full saturation; None = max over valid pixels.
+        valid: (H, W) bool; invalid pixels are drawn black.
+    Returns:
+        (H, W, 3) uint8 RGB.
+    """
+    flow = np.asarray(flow, dtype=np.float64)
+    u, v = flow[..., 0], flow[..., 1]
+    ok = np.isfinite(u) & np.isfinite(v)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
+    u = np.where(ok, u, 0.0)
+    v = np.where(ok, v, 0.0)
+    mag = np.hypot(u, v)
+    if max_flow is None:
+        max_flow = float(mag[ok].max()) if ok.any() else 0.0
+    max_flow = max(max_flow, 1e-9)
+    u, v = u / max_flow, v / max_flow
+    rad = np.hypot(u, v)
+    ncols = len(_COLOR_WHEEL)
+    a = np.arctan2(-v, -u) / np.pi  # in [-1, 1]
+    fk = (a + 1) / 2 * (ncols - 1)
+    k0 = np.floor(fk).astype(int)
+    k1 = (k0 + 1) % ncols
+    f = (fk - k0)[..., None]
+    col = (1 - f) * _COLOR_WHEEL[k0] / 255 + f * _COLOR_WHEEL[k1] / 255
+    r = rad[..., None]
+    inside = r <= 1
+    # Saturation grows with magnitude; beyond max_flow the colour darkens.
+    col = np.where(inside, 1 - r * (1 - col), col * 0.75)
+    img = np.floor(255 * col).astype(np.uint8)
+    img[~ok] = 0
+    return img
+
+
+def depth_to_color(depth_or_disp: np.ndarray, is_disparity: bool = False, vmax: float | None = None,
+                   colormap: int = cv2.COLORMAP_MAGMA) -> np.ndarray:
+    """Colour a depth (or disparity) map like monodepth/GeoNet figures: near = bright.
+
+    Depth is converted to inverse depth, normalised by its 95th percentile (or
+    ``vmax`` in inverse-depth units) and mapped with an OpenCV colormap (magma).
+
+    Args:
+        depth_or_disp: (H, W) float; depth in metres (0/non-finite = none) or disparity.
+        is_disparity: True if the input already is inverse depth / disparity.
+        vmax: value (inverse depth) at the top of the colormap; None = 95th percentile.
+    Returns:
+        (H, W, 3) uint8 RGB; pixels without depth are black.
+    """
+    x = np.asarray(depth_or_disp, dtype=np.float64)
+    ok = np.isfinite(x) & (x > 0)
+    inv = np.zeros_like(x)
+    inv[ok] = x[ok] if is_disparity else 1.0 / x[ok]
+    if vmax is None:
+        vmax = float(np.percentile(inv[ok], 95)) if ok.any() else 1.0
+    norm = np.clip(inv / max(vmax, 1e-12), 0, 1)
+    bgr = cv2.applyColorMap((norm * 255).astype(np.uint8), colormap)
+    bgr[~ok] = 0
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def side_by_side(panels: list[np.ndarray], labels: list[str] | None = None, height: int | None = None,
+                 gap: int = 4) -> np.ndarray:
+    """Panels resized to one height and placed left to right, optionally labelled.
+
+    Args:
+        panels: (H_i, W_i, 3) uint8 RGB images (an (H, W) grey panel is expanded to 3 channels).
+        labels: one caption per panel, drawn in white on a dark strip above it; None = no strip.
+        height: common panel height in px; None = the height of the first panel. Each panel keeps
+            its aspect ratio (cv2.INTER_AREA).
+        gap: dark columns between panels.
+    Returns:
+        (strip + height, sum of widths + gaps, 3) uint8 RGB.
+    """
+    if not panels:
+        raise ValueError("side_by_side needs at least one panel")
+    if labels is not None and len(labels) != len(panels):
+        raise ValueError(f"{len(labels)} labels for {len(panels)} panels")
+    imgs = []
+    for i, p in enumerate(panels):
+        p = np.asarray(p)
+        if p.dtype != np.uint8:
+            raise ValueError(f"panel {i} must be uint8, got {p.dtype}")
+        if p.ndim == 2:
+            p = np.repeat(p[..., None], 3, axis=2)
+        if p.ndim != 3 or p.shape[2] != 3:
+            raise ValueError(f"panel {i} must be (H, W, 3) RGB, got shape {p.shape}")
+        imgs.append(p)
+    h = int(height) if height is not None else imgs[0].shape[0]
+    if h <= 0:
+        raise ValueError(f"height must be positive, got {h}")
+    resized = []
+    for p in imgs:
+        w = max(1, round(p.shape[1] * h / p.shape[0]))
+        resized.append(p if p.shape[:2] == (h, w) else cv2.resize(p, (w, h), interpolation=cv2.INTER_AREA))
+    strip_h = 0
+    font, thickness = cv2.FONT_HERSHEY_SIMPLEX, 1
+    scale = max(0.35, min(1.0, h / 400))
+    if labels is not None:
+        (_, text_h), baseline = cv2.getTextSize("Ag", font, scale, thickness)
+        strip_h = text_h + baseline + 8
+    total_w = sum(p.shape[1] for p in resized) + gap * (len(resized) - 1)
+    out = np.full((strip_h + h, total_w, 3), 24, np.uint8)  # dark strip and gaps
+    x = 0
+    for i, p in enumerate(resized):
+        out[strip_h:, x:x + p.shape[1]] = p
+        if labels is not None and labels[i]:
+            canvas = np.ascontiguousarray(out[:strip_h, x:x + p.shape[1]])
+            cv2.putText(canvas, str(labels[i]), (4, strip_h - baseline - 4), font, scale, (255, 255, 255),
+                        thickness, cv2.LINE_AA)
+            out[:strip_h, x:x + p.shape[1]] = canvas
+        x += p.shape[1] + gap
+    return out

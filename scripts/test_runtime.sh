@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# The runtime alone, as users get it: a fresh venv with `pip install .` (no train extra, so
+# no torch) and the runtime tests run against the INSTALLED package (bundled models and
+# sample included as package data), not the source tree.
+#   bash scripts/test_runtime.sh          # extra args go to pytest
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+VENV=${RUNTIME_VENV:-.venv-runtime}
+rm -rf "$VENV" build
+"$PY" -m venv "$VENV"
+"$VENV/bin/python" -m pip install --quiet --upgrade pip >/dev/null
+"$VENV/bin/python" -m pip install --quiet . pytest
+rm -rf build
+"$VENV/bin/python" -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)" \
+    || { echo "torch is installed in the runtime venv: the runtime must not need it"; exit 1; }
+# `pytest` (not `python -m pytest`) and an empty pythonpath keep the repo root off sys.path.
+exec env GEONET_RUNTIME_ONLY=1 "$VENV/bin/pytest" -q -o pythonpath= -p no:cacheprovider \
+    tests/test_runtime_install.py tests/test_predictor.py tests/test_cli.py tests/test_io.py tests/test_viz.py "$@"

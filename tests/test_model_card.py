@@ -1,0 +1,324 @@
+"""``python -m training.model_card`` on tiny inputs (a few seconds).
+
+The model directories here are built with ``onnx.helper``: stand-in graphs with the
+exact I/O contract of the exported ones (``export.wrappers.io_spec``), a valid
+manifest (``random_init: true``) and, for one of them, an INT8 set. A real
+``python -m export --random-init`` takes ~35 s even at 64x208, too slow for this
+file; the stand-ins make the numbers predictable instead (the "pose network" drives
+straight ahead, the "depth network" follows image brightness). The synthetic data is
+one 6-frame sequence from ``python -m training.synth`` at 64x208, the real data
+2 KITTI frames with Velodyne scans from ``../shared/realdata``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from export.wrappers import io_spec
+from geonet_infer import conventions
+from geonet_infer.io import read_kitti_poses
+from geonet_infer.manifest import (GraphEntry, Manifest, Provenance, Quantization, TensorSpec, file_sha256,
+                                   write_manifest)
+from training import kitti_depth
+from training.model_card import ate_rows, chain_snippet, gt_snippet, main, sig3
+
+ROOT = Path(__file__).resolve().parents[1]
+H, W = 32, 96  # graph size of the stand-in models
+OPSET = 18
+STEP = 0.1  # forward motion per frame of the stand-in pose network (relative units)
+
+
+# ----------------------------------------------------------------------------- stand-in graphs
+def _const(name: str, value) -> onnx.NodeProto:
+    return helper.make_node("Constant", [], [name], value=numpy_helper.from_array(np.asarray(value), name))
+
+
+def _graph(name: str, seq_length: int, nodes: list) -> onnx.ModelProto:
+    spec = io_spec(name, H, W, seq_length)
+    vi = lambda n, s: helper.make_tensor_value_info(n, TensorProto.FLOAT, [d if isinstance(d, int) else "B" for d in s])
+    graph = helper.make_graph(nodes, name, [vi(n, s) for n, s in spec.inputs], [vi(n, s) for n, s in spec.outputs])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    onnx.checker.check_model(model)
+    return model
+
+
+def depthnet(seq_length: int, extra: float) -> onnx.ModelProto:
+    """disparity = 0.05 + extra + 0.1 * sigmoid(mean over RGB): depth follows brightness."""
+    nodes = [_const("ax", np.array([1], np.int64)), _const("k", np.float32(0.1)),
+             _const("c", np.float32(0.05 + extra)),
+             helper.make_node("ReduceMean", ["image", "ax"], ["m"], keepdims=1),
+             helper.make_node("Sigmoid", ["m"], ["s"]), helper.make_node("Mul", ["s", "k"], ["a"]),
+             helper.make_node("Add", ["a", "c"], ["disparity"]),
+             helper.make_node("Reciprocal", ["disparity"], ["depth"])]
+    return _graph("depthnet", seq_length, nodes)
+
+
+def posenet(seq_length: int, extra: float) -> onnx.ModelProto:
+    """Straight ahead at STEP per frame: target -> source at temporal offset o is t = (0, 0, -STEP * o).
+
+    ``extra`` < 0 imitates a broken INT8 PoseNet (seen on a real export): the vector
+    is right but ``pose_matrix`` is the identity (no motion)."""
+    k = seq_length // 2
+    offsets = [o for o in range(-k, k + 1) if o != 0]  # sources in temporal order
+    step = STEP * (1 + extra)
+    vec = np.zeros((len(offsets), 6), np.float32)
+    mat = np.tile(np.eye(4, dtype=np.float32), (len(offsets), 1, 1))
+    for i, o in enumerate(offsets):
+        vec[i, 2] = -step * o
+        if extra >= 0:
+            mat[i, 2, 3] = -step * o
+    nodes = [_const("ax", np.array([1, 2, 3], np.int64)), _const("zero", np.float32(0.0)),
+             _const("u3", np.array([1, 2], np.int64)), _const("u4", np.array([1, 2, 3], np.int64)),
+             _const("vec", vec), _const("mat", mat),
+             helper.make_node("ReduceMean", ["snippet", "ax"], ["m"], keepdims=0),
+             helper.make_node("Mul", ["m", "zero"], ["z"]),
+             helper.make_node("Unsqueeze", ["z", "u3"], ["z3"]), helper.make_node("Unsqueeze", ["z", "u4"], ["z4"]),
+             helper.make_node("Add", ["z3", "vec"], ["pose"]), helper.make_node("Add", ["z4", "mat"], ["pose_matrix"])]
+    return _graph("posenet", seq_length, nodes)
+
+
+def rigidflow(seq_length: int, extra: float) -> onnx.ModelProto:
+    """rigid flow (0.5, 0) px, warped = source, error = mean |target - source|."""
+    nodes = [_const("zero", np.float32(0.0)), _const("half", np.float32(0.5)),
+             _const("ax", np.array([1], np.int64)),
+             helper.make_node("Mul", ["depth", "zero"], ["d0"]), helper.make_node("Add", ["d0", "half"], ["u"]),
+             helper.make_node("Concat", ["u", "d0"], ["rigid_flow"], axis=1),
+             helper.make_node("Identity", ["source"], ["warped"]),
+             helper.make_node("Sub", ["target", "source"], ["diff"]), helper.make_node("Abs", ["diff"], ["ad"]),
+             helper.make_node("ReduceMean", ["ad", "ax"], ["error"], keepdims=1)]
+    return _graph("rigidflow", seq_length, nodes)
+
+
+def resflownet(seq_length: int, extra: float) -> onnx.ModelProto:
+    """residual = (0.25 + extra) px on both axes; flow = rigid flow (channels 9:11) + residual."""
+    nodes = [_const("s", np.array([9], np.int64)), _const("e", np.array([11], np.int64)),
+             _const("ax", np.array([1], np.int64)), _const("zero", np.float32(0.0)),
+             _const("r", np.float32(0.25 + extra)),
+             helper.make_node("Slice", ["flow_input", "s", "e", "ax"], ["rigid"]),
+             helper.make_node("Mul", ["rigid", "zero"], ["r0"]),
+             helper.make_node("Add", ["r0", "r"], ["residual_flow"]),
+             helper.make_node("Add", ["rigid", "residual_flow"], ["flow"])]
+    return _graph("resflownet", seq_length, nodes)
+
+
+BUILDERS = {"depthnet": depthnet, "posenet": posenet, "rigidflow": rigidflow, "resflownet": resflownet}
+
+
+def make_model_dir(out: Path, seq_length: int = 3, int8: bool = True, int8_static_pose: bool = False) -> Path:
+    """A model directory the runtime accepts (manifest checked by load_manifest on use)."""
+    out.mkdir(parents=True)
+    graphs = {"fp32": {}}
+    if int8:
+        graphs["int8"] = {}
+        (out / "int8").mkdir()
+    for name, build in BUILDERS.items():
+        spec = io_spec(name, H, W, seq_length)
+
+        def entry(file: str, precision: str, extra: float) -> GraphEntry:
+            onnx.save(build(seq_length, extra), str(out / file))
+            return GraphEntry(file=file, sha256=file_sha256(out / file), opset=OPSET, precision=precision,
+                              inputs=tuple(TensorSpec(n, tuple(s)) for n, s in spec.inputs),
+                              outputs=tuple(TensorSpec(n, tuple(s)) for n, s in spec.outputs),
+                              exporter="tests/test_model_card.py onnx.helper stand-in")
+        graphs["fp32"][name] = entry(f"{name}.onnx", "fp32", 0.0)
+        if int8:
+            # The INT8 set's rigidflow is the fp32 file, as in a real export.
+            graphs["int8"][name] = (graphs["fp32"][name] if name == "rigidflow"
+                                    else entry(f"int8/{name}.onnx", "int8",
+                                               -0.01 if name == "posenet" and int8_static_pose else 0.01))
+    manifest = Manifest(
+        schema_version=conventions.SCHEMA_VERSION, height=H, width=W, seq_length=seq_length, arch="standin",
+        random_init=True, precisions=tuple(graphs), graphs=graphs,
+        conventions=json.loads(json.dumps(conventions.as_dict())),
+        provenance=Provenance(architecture="standin", random_init=True, export_date="2000-01-01T00:00:00+00:00",
+                              exporter="onnx.helper"),
+        metrics={"val_total": 1.5, "best_step": 10},
+        quantization=Quantization(
+            method="stand-in", activation_type="uint8", weight_type="int8", per_channel=True, reduce_range=False,
+            calibrate_method="minmax", calibration_data="none", calibration_samples={"depthnet": 1},
+            calibration_intrinsics="none", fp32_graphs=("rigidflow",),
+            accuracy_delta={"synth_dir": "x", "sequences": ["seq_0000"], "stride": 2,
+                            "depth_abs_rel": {"fp32": 0.25, "int8": 0.375, "delta": 0.125}, "depth_frames": 3})
+        if int8 else None)
+    write_manifest(manifest, out)
+    return out
+
+
+# ----------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory) -> tuple[Path, Path]:
+    """One 6-frame synthetic sequence at 64x208 and a prepared dir whose heldout.txt lists it."""
+    root = tmp_path_factory.mktemp("synth")
+    synth_dir = root / "synth"
+    subprocess.run([sys.executable, "-m", "training.synth", "--out", str(synth_dir), "--sequences", "1",
+                    "--frames", "6", "--height", "64", "--width", "208", "--seed", "3"],
+                   cwd=ROOT, check=True, capture_output=True)
+    prepared = root / "prepared"
+    prepared.mkdir()
+    (prepared / "heldout.txt").write_text("".join(f"seq_0000 {i:06d}\n" for i in range(1, 5)))
+    return synth_dir, prepared
+
+
+@pytest.fixture(scope="module")
+def kitti(realdata) -> Path:
+    return realdata / "kitti_raw_2011_09_26_sfnd"
+
+
+def _args(model: Path, synth: tuple[Path, Path], kitti: Path, out: Path, *extra: str) -> list[str]:
+    return ["--model", str(model), "--synth-dir", str(synth[0]), "--prepared-dir", str(synth[1]),
+            "--kitti", str(kitti), "--out", str(out / "models.md"), "--json", str(out / "card.json"),
+            "--kitti-frames", "2", "--threads", "1", "--quiet", *extra]
+
+
+@pytest.fixture(scope="module")
+def card3(tmp_path_factory, synth, kitti):
+    """The card of a 3-frame stand-in with FP32 and INT8 graphs (INT8 pose matrices without motion)."""
+    out = tmp_path_factory.mktemp("card3")
+    model = make_model_dir(out / "model", int8_static_pose=True)
+    assert main(_args(model, synth, kitti, out, "--allow-random-init")) == 0
+    return (out / "models.md").read_text(), json.loads((out / "card.json").read_text())
+
+
+def _numbers(obj, where=""):
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _numbers(v, f"{where}.{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _numbers(v, f"{where}[{i}]")
+    elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
+        yield where, obj
+
+
+# ----------------------------------------------------------------------------- tests
+def test_card_has_every_table_and_finite_numbers(card3):
+    md, result = card3
+    assert md.startswith("# Model card")
+    assert "```bash\n.venv/bin/python -m training.model_card --model " in md
+    assert "WARNING: RANDOM-INIT MODEL" in md
+    for heading in ("## The model", "## Files", "## What was measured", "## Depth",
+                    "### Synthetic held-out sequences", "### Real KITTI (Velodyne ground truth)",
+                    "## Optical flow (synthetic held-out sequences)",
+                    "## Camera pose (synthetic held-out sequences, 5-frame snippets)",
+                    "## INT8 versus FP32", "## Limitations"):
+        assert heading in md, heading
+    for row in ("| model, FP32 |", "| model, INT8 |", "| constant depth (baseline) |", "| zero flow (baseline) |",
+                "| identity pose / no motion (baseline) |"):
+        assert row in md, row
+    assert md.count("| constant depth (baseline) |") == 2  # synthetic and KITTI
+    assert "| `depth_abs_rel` | 0.250 | 0.375 | +0.125 |" in md  # the export's own check, from the manifest
+    assert "| `val_total` | 1.50 |" in md  # checkpoint metrics from the manifest
+    assert "frames 0–1 (2, 1242×375)" in md  # each row names its data
+    assert "`synth` held-out (1 seq, 64×208)" in md
+    # every graph file with its sha256 prefix
+    for f in result["model"]["files"]:
+        assert f"`{f['sha256'][:12]}`" in md
+    numbers = list(_numbers({k: v for k, v in result.items() if k != "model"}))
+    assert numbers and all(math.isfinite(v) for _, v in numbers), [w for w, v in numbers if not math.isfinite(v)]
+    syn = result["synthetic"]
+    assert syn["depth"]["frames"] == 6 and syn["flow"]["pairs"] == 4 and syn["pose"]["snippets"] == 2
+    assert result["kitti"]["frames"] == ["0000000000", "0000000001"]
+    assert {r["data"] for r in result["int8_delta"]} == {"synthetic", "kitti"}
+    # the stand-in INT8 differs from FP32 (depth head +0.01, residual flow +0.01 px)
+    delta = {(r["data"], r["metric"]): r["delta"] for r in result["int8_delta"]}
+    assert delta[("synthetic", "abs_rel")] != 0 and delta[("synthetic", "noc.epe")] != 0
+
+
+def test_numbers_in_card_come_from_the_run(card3):
+    md, result = card3
+    d = result["synthetic"]["depth"]
+    assert f"| {sig3(d['fp32']['abs_rel'])} | {sig3(d['fp32']['sq_rel'])} |" in md
+    f = result["synthetic"]["flow"]["zero_flow_baseline"]
+    assert f"| {sig3(f['noc']['epe'])} | {sig3(f['occ']['epe'])} |" in md
+    p = result["synthetic"]["pose"]["fp32"]["ate_snippet"]
+    assert f"{sig3(p['mean'])} ± {sig3(p['std'])}" in md
+
+
+def test_kitti_constant_baseline_equals_numpy(card3, kitti):
+    """Constant-depth baseline abs_rel = that of the median GT depth as prediction (Garg crop, < 80 m)."""
+    _, result = card3
+    ours = []
+    for stem in ("0000000000", "0000000001"):
+        gt = kitti_depth.velodyne_to_depth_map(kitti, kitti / "velodyne_points" / "data" / f"{stem}.bin", (375, 1242))
+        h, w = gt.shape
+        crop = np.zeros_like(gt, dtype=bool)
+        crop[int(0.40810811 * h):int(0.99189189 * h), int(0.03594771 * w):int(0.96405229 * w)] = True
+        g = gt[(gt > 1e-3) & (gt < 80) & crop].astype(np.float64)
+        ours.append(np.mean(np.abs(g - np.median(g)) / g))
+    per_frame = result["kitti"]["depth"]["per_frame"]
+    assert per_frame[0]["constant_baseline"]["abs_rel"] == pytest.approx(ours[0], rel=1e-12)
+    assert per_frame[1]["constant_baseline"]["abs_rel"] == pytest.approx(ours[1], rel=1e-12)
+    assert result["kitti"]["depth"]["constant_baseline"]["abs_rel"] == pytest.approx(np.mean(ours), rel=1e-12)
+    assert result["kitti"]["depth"]["constant_baseline"]["count"] == 2
+
+
+def test_pose_straight_ahead_model_beats_identity(card3):
+    """The stand-in drives straight ahead like the synthetic car: far below the no-motion ATE."""
+    md, result = card3
+    pose = result["synthetic"]["pose"]
+    for key in ("ate_snippet", "ate_rmse_true"):
+        assert pose["fp32"][key]["mean"] < 0.2 * pose["identity_baseline"][key]["mean"]
+    assert "predict_sequence" in pose["method"]
+    # The stand-in INT8 PoseNet's matrices carry no motion: flagged, and its ATE is the baseline's.
+    assert pose["fp32"]["static_snippets"] == 0 and pose["int8"]["static_snippets"] == 2
+    assert pose["int8"]["ate_snippet"] == pose["identity_baseline"]["ate_snippet"]
+    assert "**model, INT8: in 2 of 2 snippets the predicted camera does not move at all**" in md
+
+
+def test_pose_helpers_with_ground_truth(synth):
+    """GT frame-to-next poses chained = GT snippet (ATE 0); identity = ||gt|| / N (paper) and RMS (true)."""
+    poses = read_kitti_poses(synth[0] / "seq_0000" / "poses.txt")[1:6]  # a snippet not starting at identity
+    to_next = [np.linalg.inv(poses[i + 1]) @ poses[i] for i in range(4)]
+    gt = gt_snippet(poses)[:, :3, 3]
+    assert ate_rows(gt, chain_snippet(to_next)[:, :3, 3])["ate_snippet"] < 1e-6
+    gt0 = gt - gt[0]
+    base = ate_rows(gt, np.zeros_like(gt))
+    assert base["ate_snippet"] == pytest.approx(np.sqrt(np.sum(gt0 ** 2)) / 5, rel=1e-12)
+    assert base["ate_rmse_true"] == pytest.approx(np.sqrt(np.mean(np.sum(gt0 ** 2, axis=1))), rel=1e-12)
+
+
+def test_five_frame_model_without_int8(tmp_path, synth, kitti):
+    """seq_length 5: PoseNet on each snippet (paper protocol); no INT8 set -> no INT8 rows."""
+    model = make_model_dir(tmp_path / "model5", seq_length=5, int8=False)
+    assert main(_args(model, synth, kitti, tmp_path, "--allow-random-init")) == 0
+    md = (tmp_path / "models.md").read_text()
+    result = json.loads((tmp_path / "card.json").read_text())
+    assert "| model, INT8 |" not in md and "has no INT8 graphs" in md and result["int8_delta"] == []
+    pose = result["synthetic"]["pose"]
+    assert "paper's protocol" in pose["method"]
+    assert pose["fp32"]["ate_snippet"]["mean"] < 0.2 * pose["identity_baseline"]["ate_snippet"]["mean"]
+
+
+def test_random_init_refused_without_flag(tmp_path, synth, kitti, capsys):
+    model = make_model_dir(tmp_path / "model")
+    assert main(_args(model, synth, kitti, tmp_path)) == 2
+    err = capsys.readouterr().err
+    assert "random-init" in err and str(model) in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "models.md").exists()
+
+
+@pytest.mark.parametrize("which", ["model", "synth", "prepared", "kitti"])
+def test_missing_input_exits_2_naming_the_path(tmp_path, synth, kitti, capsys, which):
+    model = tmp_path / "no_such_model"
+    paths = {"model": model, "synth": synth[0], "prepared": synth[1], "kitti": kitti}
+    if which != "model":
+        model = paths["model"] = make_model_dir(tmp_path / "model")
+        paths[which] = tmp_path / f"no_such_{which}"
+    args = _args(paths["model"], (paths["synth"], paths["prepared"]), paths["kitti"], tmp_path, "--allow-random-init")
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert str(paths[which]) in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "models.md").exists()
+
+
+def test_sig3():
+    assert [sig3(x) for x in (0.123456, 12.3456, 12345.6, 0.000123456, 9.9951, -1.5, 0.0, 3)] == \
+        ["0.123", "12.3", "12300", "0.000123", "10.0", "-1.50", "0", "3"]

@@ -1,0 +1,710 @@
+"""Write the model card (``docs/models.md``) of an exported model directory.
+
+``python -m training.model_card --model geonet_infer/models/small_synth --synth-dir data/synth40
+--prepared-dir data/synth40_prepared --kitti ../shared/realdata/kitti_raw_2011_09_26_sfnd
+--out docs/models.md [--json OUT.json] [--stride N] [--kitti-frames N]``
+
+Every number in the card comes from this run: the ONNX graphs are run through the
+runtime (:class:`geonet_infer.predictor.Predictor`), in fp32 and, when the manifest
+has them, INT8, and scored with the project's evaluation code:
+
+* held-out synthetic sequences (``heldout.txt`` of the prepared dir, never trained
+  on): depth (:func:`training.evaluate.evaluate_depth`; Eigen errors, per-image
+  median scaling, 80 m cap, every pixel with ground truth) against the
+  constant-depth baseline; flow EPE / Fl on noc and occ pixels
+  (:func:`training.evaluate.evaluate_flow`) against zero flow; pose ATE on
+  5-frame snippets (``metrics.ate_snippet``, the paper's divide-by-N value, and
+  ``metrics.ate_rmse_true``) against the identity pose (no motion);
+* real KITTI raw frames with Velodyne scans (never trained on): depth against the
+  projected Velodyne ground truth (:mod:`training.kitti_depth`), Eigen protocol
+  with the Garg crop, 80 m cap and median scaling, at the frames' own resolution.
+
+Random-init (timing-only) model directories are refused unless
+``--allow-random-init`` is given (development only; the card then carries a
+warning at the top). Bad input: a one-line message naming the path, exit 2.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as _dt
+import json
+import math
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from geonet_infer import metrics
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io import list_images, read_calib_K, read_image, read_kitti_poses
+from geonet_infer.io.atomic import atomic_write
+from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest
+from geonet_infer.predictor import Predictor
+from training import kitti_depth
+from training.evaluate import MAX_DEPTH, evaluate_depth, evaluate_flow, heldout_sequences
+
+SNIPPET = 5  # frames per pose snippet (the paper's protocol)
+KITTI_CROP = "garg"
+MIN_DEPTH = 1e-3
+DEPTH_COLUMNS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+DEPTH_HEADERS = ("AbsRel", "SqRel", "RMSE", "RMSElog", "δ<1.25", "δ<1.25²", "δ<1.25³")
+PRECISION_LABEL = {"fp32": "model, FP32", "int8": "model, INT8"}
+Progress = Callable[[str], None]
+
+
+# ----------------------------------------------------------------------------- formatting
+def sig3(x) -> str:
+    """A number to 3 significant digits, without exponent for ordinary magnitudes."""
+    if x is None:
+        return "n/a"
+    if isinstance(x, (bool, np.bool_)):
+        return str(bool(x))
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    x = float(x)
+    if not math.isfinite(x):
+        return str(x)
+    if x == 0:
+        return "0"
+    r = float(f"{x:.3g}")
+    if not 1e-4 <= abs(r) < 1e6:
+        return f"{r:.3g}"
+    decimals = max(0, 2 - int(math.floor(math.log10(abs(r)))))
+    return f"{r:.{decimals}f}"
+
+
+def signed3(x: float) -> str:
+    """A difference to 3 significant digits with its sign."""
+    s = sig3(x)
+    return s if s.startswith("-") or s in ("0", "nan", "n/a") else "+" + s
+
+
+def _mib(n_bytes: int) -> str:
+    """A file size in MiB, KiB or bytes."""
+    if n_bytes >= 2**20:
+        return f"{sig3(n_bytes / 2**20)} MiB"
+    return f"{sig3(n_bytes / 2**10)} KiB" if n_bytes >= 2**10 else f"{n_bytes} B"
+
+
+def _table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    out = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    out += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return out
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in d.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+# ----------------------------------------------------------------------------- inputs
+def _require_dir(path: str | Path, what: str, hint: str = "") -> Path:
+    path = Path(path)
+    if not path.is_dir():
+        raise GeoNetInputError(path, f"{what} not found", hint)
+    return path
+
+
+def kitti_frames(kitti_dir: str | Path, n_frames: int) -> list[tuple[Path, Path]]:
+    """The first ``n_frames`` (image_02 PNG, Velodyne .bin) pairs of a KITTI raw drive folder."""
+    root = _require_dir(kitti_dir, "KITTI raw folder", "expected image_02/, velodyne_points/ and the calibration")
+    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
+        if not (root / name).is_file():
+            raise GeoNetInputError(root / name, "KITTI calibration file not found",
+                                   "the drive folder must hold the date's calibration files")
+    images = list_images(_require_dir(root / "image_02" / "data", "KITTI image folder"))
+    velo_dir = _require_dir(root / "velodyne_points" / "data", "KITTI Velodyne folder")
+    pairs = [(img, velo_dir / f"{img.stem}.bin") for img in images if (velo_dir / f"{img.stem}.bin").is_file()]
+    if len(pairs) < n_frames:
+        raise GeoNetInputError(velo_dir, f"only {len(pairs)} frames have a Velodyne scan, {n_frames} requested",
+                               "lower --kitti-frames")
+    return pairs[:n_frames]
+
+
+# ----------------------------------------------------------------------------- predictors
+def depth_predictor(predictor: Predictor) -> Callable[[np.ndarray], np.ndarray]:
+    """``predict_depth(rgb) -> depth (H, W)`` at the input resolution (for evaluate_depth)."""
+    return lambda rgb: predictor.depth(rgb).depth
+
+
+def flow_predictor(predictor: Predictor) -> Callable[[list, np.ndarray], np.ndarray]:
+    """``predict_flow([t-1, t, t+1], K) -> flow t -> t+1`` (for evaluate_flow).
+
+    A 3-frame model gets the triplet as its snippet. evaluate_flow hands over
+    triplets only, so a model with longer snippets gets the pair [t, t+1]
+    (padded by the runtime as at a sequence start).
+    """
+    if predictor.seq_length == 3:
+        return lambda triplet, K: predictor.flow(list(triplet), K).flow
+    return lambda triplet, K: predictor.flow([triplet[1], triplet[2]], K).flow
+
+
+def zero_flow(triplet: list, K: np.ndarray) -> np.ndarray:
+    """The zero-flow baseline."""
+    return np.zeros(triplet[1].shape[:2] + (2,), np.float32)
+
+
+def pose_method(seq_length: int) -> str:
+    """How the model's 5-frame snippet trajectories are obtained (sentence for the card)."""
+    if seq_length == SNIPPET:
+        return ("PoseNet run once on each 5-frame snippet (target = middle frame), its 4 target→source "
+                "poses turned into first-frame coordinates with `metrics.snippet_poses_to_global` "
+                "(the paper's protocol)")
+    return (f"the model takes {seq_length}-frame snippets, so each held-out sequence is run once through "
+            "`Predictor.predict_sequence` (each frame's pose to the next one from the snippet centred on "
+            "it, with its real neighbours; only a sequence's first and last frames see replicated "
+            "ends) and, for every 5-frame snippet, the 4 consecutive frame-to-next poses inside it are "
+            "chained from the snippet's first frame (G₀ = I, Gᵢ₊₁ = Gᵢ · T⁻¹ᵢ→ᵢ₊₁)")
+
+
+def chain_snippet(pose_to_next: Sequence[np.ndarray]) -> np.ndarray:
+    """(n-1) frame→next transforms (target→source, mapping camera-i points to camera-(i+1))
+    -> (n, 4, 4) poses of each frame in the first frame's coordinates (first = identity)."""
+    poses = [np.eye(4)]
+    for T in pose_to_next:
+        poses.append(poses[-1] @ metrics.rigid_inverse(T))
+    return np.stack(poses)
+
+
+def gt_snippet(camera_to_world: np.ndarray) -> np.ndarray:
+    """GT camera-to-world poses of a snippet -> poses in its first frame's coordinates,
+    through the official path (world→camera, then ``snippet_poses_to_global``)."""
+    return metrics.snippet_poses_to_global(metrics.rigid_inverse(camera_to_world))
+
+
+def snippet_starts(n_frames: int, stride: int) -> list[int]:
+    """First frames of the 5-frame snippets (targets 2 .. N-3, every ``stride``-th)."""
+    return list(range(0, n_frames - SNIPPET + 1, stride))
+
+
+def ate_rows(gt_xyz: np.ndarray, pred_xyz: np.ndarray) -> dict:
+    """Both ATEs of one snippet. Both trajectories start at the origin in theory; the first
+    positions are subtracted here so that they are exactly 0 (``inv(C_s) @ C_s`` leaves ~1e-16,
+    and ``metrics``' alignment would then fit a huge scale to that rounding noise when the
+    prediction stands still, as the identity baseline does)."""
+    gt_xyz = gt_xyz - gt_xyz[0]
+    pred_xyz = pred_xyz - pred_xyz[0]
+    return {"ate_snippet": metrics.ate_snippet(gt_xyz, pred_xyz),
+            "ate_rmse_true": metrics.ate_rmse_true(gt_xyz, pred_xyz)}
+
+
+def _summary(rows: list[dict]) -> dict:
+    mean, std = metrics.aggregate(rows), metrics.aggregate_std(rows)
+    return {key: {"mean": mean[key], "std": std[key]} for key in rows[0]} | {"count": len(rows)}
+
+
+def evaluate_pose(predictors: dict[str, Predictor], synth_dir: Path, sequences: list[str], stride: int,
+                  progress: Progress) -> dict:
+    """ATE of each predictor and of the identity pose on the 5-frame snippets of the held-out sequences."""
+    rows: dict[str, list] = {p: [] for p in predictors}
+    rows["identity_baseline"] = []
+    static = {p: 0 for p in predictors}  # snippets where the model predicts no motion at all
+    for name in sequences:
+        seq = synth_dir / name
+        frames = list_images(seq / "image")
+        gt_c2w = read_kitti_poses(seq / "poses.txt")
+        if len(gt_c2w) != len(frames):
+            raise GeoNetInputError(seq / "poses.txt", f"{len(gt_c2w)} poses for {len(frames)} frames",
+                                   "regenerate the sequence with training.synth")
+        starts = snippet_starts(len(frames), stride)
+        if not starts:
+            continue
+        K = read_calib_K(seq / "calib.txt")
+        model_traj = {}
+        for precision, predictor in predictors.items():
+            progress(f"{precision}: pose, {name}")
+            if predictor.seq_length == SNIPPET:
+                model_traj[precision] = None  # per snippet below
+            else:
+                result = predictor.predict_sequence(frames, K)
+                model_traj[precision] = [f.pose_to_next for f in result.frames]
+        for s in starts:
+            gt_xyz = gt_snippet(gt_c2w[s:s + SNIPPET])[:, :3, 3]
+            for precision, predictor in predictors.items():
+                if model_traj[precision] is None:
+                    mats = predictor.pose(frames[s:s + SNIPPET]).matrices
+                    pred = metrics.snippet_poses_to_global(mats, target_index=SNIPPET // 2)
+                else:
+                    pred = chain_snippet(model_traj[precision][s:s + SNIPPET - 1])
+                rows[precision].append(ate_rows(gt_xyz, pred[:, :3, 3]))
+                static[precision] += int(not np.any(pred[:, :3, 3] - pred[0, :3, 3]))
+            rows["identity_baseline"].append(ate_rows(gt_xyz, np.zeros_like(gt_xyz)))
+    if not rows["identity_baseline"]:
+        raise GeoNetInputError(synth_dir, f"no held-out sequence has {SNIPPET} frames", "generate longer sequences")
+    out = {key: _summary(r) for key, r in rows.items()}
+    for p, n in static.items():
+        out[p]["static_snippets"] = n
+    return out | {"snippets": len(rows["identity_baseline"])}
+
+
+def evaluate_kitti_depth(predictors: dict[str, Predictor], pairs: list[tuple[Path, Path]], calib_dir: Path,
+                         progress: Progress) -> dict:
+    """Eigen-protocol depth (Garg crop, 80 m, median scaling) on KITTI frames with Velodyne GT."""
+    per_frame = []
+    model_rows: dict[str, list] = {p: [] for p in predictors}
+    baseline_rows = []
+    for image_path, velo_path in pairs:
+        rgb = read_image(image_path)
+        gt = kitti_depth.velodyne_to_depth_map(calib_dir, velo_path, rgb.shape[:2], cam=2, vel_depth=True)
+        frame = {"frame": image_path.stem, "height": rgb.shape[0], "width": rgb.shape[1]}
+        for precision, predictor in predictors.items():
+            progress(f"{precision}: KITTI depth, frame {image_path.stem}")
+            pred = metrics.resize_depth_to(predictor.depth(rgb).depth, gt.shape)
+            row = metrics.depth_metrics(gt, pred, MIN_DEPTH, MAX_DEPTH, crop=KITTI_CROP)
+            model_rows[precision].append(row)
+            frame[precision] = row
+        # The constant-depth baseline: any constant, after median scaling = the frame's GT median.
+        row = metrics.depth_metrics(gt, np.ones_like(gt), MIN_DEPTH, MAX_DEPTH, crop=KITTI_CROP)
+        baseline_rows.append(row)
+        frame["constant_baseline"] = row
+        per_frame.append(frame)
+    out = {p: metrics.aggregate(r) for p, r in model_rows.items()}
+    out["constant_baseline"] = metrics.aggregate(baseline_rows)
+    out["frames"] = len(per_frame)
+    out["per_frame"] = per_frame
+    return out
+
+
+# ----------------------------------------------------------------------------- run
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10,
+                             cwd=Path(__file__).resolve().parents[1])
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
+def model_info(manifest: Manifest, model_dir: Path) -> dict:
+    files = []
+    for precision in manifest.precisions:
+        for name in manifest.graph_names(precision):
+            entry = manifest.graph(name, precision)
+            files.append({"precision": precision, "graph": name, "file": entry.file,
+                          "bytes": (model_dir / entry.file).stat().st_size, "sha256": entry.sha256,
+                          "file_precision": entry.precision, "opset": entry.opset})
+    quant = manifest.quantization
+    return {
+        "dir": str(model_dir), "arch": manifest.arch, "height": manifest.height, "width": manifest.width,
+        "seq_length": manifest.seq_length, "random_init": manifest.random_init,
+        "precisions": list(manifest.precisions), "graphs": list(manifest.graph_names("fp32")),
+        "provenance": dataclasses.asdict(manifest.provenance),
+        "metrics": manifest.metrics, "files": files,
+        "quantization": None if quant is None else json.loads(json.dumps(dataclasses.asdict(quant), default=list)),
+    }
+
+
+def run(args, command: str, progress: Progress) -> dict:
+    """Measure everything; returns the JSON-able result (raises GeoNetInputError on bad input)."""
+    model_dir = _require_dir(args.model, "model directory", "pass a directory written by `python -m export`")
+    manifest = load_manifest(model_dir)
+    if manifest.random_init and not args.allow_random_init:
+        raise GeoNetInputError(model_dir / MANIFEST_NAME, "this model directory holds random-init (timing-only) "
+                               "graphs", "export a trained --checkpoint (--allow-random-init is for development)")
+    synth_dir = _require_dir(args.synth_dir, "synthetic data folder", "generate it with `python -m training.synth`")
+    _require_dir(args.prepared_dir, "prepared data folder", "prepare it with `python -m training.prepare`")
+    sequences = heldout_sequences(args.prepared_dir)
+    for name in sequences:
+        _require_dir(synth_dir / name, "held-out sequence folder", "--synth-dir and --prepared-dir must match")
+    kitti_dir = Path(args.kitti)
+    pairs = kitti_frames(kitti_dir, args.kitti_frames)
+
+    precisions = [p for p in ("fp32", "int8") if p in manifest.precisions]
+    predictors = {p: Predictor(model_dir, precision=p, threads=args.threads, manifest=manifest)
+                  for p in precisions}
+
+    depth, flow = {}, {}
+    for p, predictor in predictors.items():
+        progress(f"{p}: synthetic depth")
+        r = evaluate_depth(depth_predictor(predictor), synth_dir, sequences, args.stride)
+        depth[p] = r["model"]
+        depth["constant_baseline"], depth["frames"] = r["constant_baseline"], r["frames"]
+        progress(f"{p}: synthetic flow")
+        r = evaluate_flow(flow_predictor(predictor), synth_dir, sequences, args.stride)
+        flow[p] = {"noc": r["noc"], "occ": r["occ"]}
+        flow["pairs"] = r["pairs"]
+    progress("zero-flow baseline")
+    r = evaluate_flow(zero_flow, synth_dir, sequences, args.stride)
+    flow["zero_flow_baseline"] = {"noc": r["noc"], "occ": r["occ"]}
+    pose = evaluate_pose(predictors, synth_dir, sequences, args.stride, progress)
+    pose["method"] = pose_method(manifest.seq_length)
+    kitti = evaluate_kitti_depth(predictors, pairs, kitti_dir, progress)
+
+    result = {
+        "command": command,
+        "generated_utc": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
+        "git_commit": _git_commit(),
+        "allow_random_init": bool(args.allow_random_init),
+        "model": model_info(manifest, model_dir),
+        "synthetic": {"synth_dir": str(args.synth_dir), "prepared_dir": str(args.prepared_dir),
+                      "sequences": sequences, "stride": args.stride,
+                      "synth_config": _synth_config(synth_dir),
+                      "depth": depth, "flow": flow, "pose": pose},
+        "kitti": {"dir": str(args.kitti), "frames": [img.stem for img, _ in pairs], "crop": KITTI_CROP,
+                  "min_depth": MIN_DEPTH, "max_depth": MAX_DEPTH, "depth": kitti},
+        "settings": {"max_depth": MAX_DEPTH, "snippet_length": SNIPPET, "flow_seq_length": manifest.seq_length,
+                     "threads": args.threads},
+    }
+    result["int8_delta"] = int8_deltas(result) if "int8" in predictors else []
+    return result
+
+
+def _synth_config(synth_dir: Path) -> dict | None:
+    path = synth_dir / "synth_config.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+DELTA_METRICS = (
+    ("synthetic", "depth", ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1")),
+    ("synthetic", "flow", ("noc.epe", "occ.epe", "noc.fl", "occ.fl")),
+    ("synthetic", "pose", ("ate_snippet.mean", "ate_rmse_true.mean")),
+    ("kitti", "depth", ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1")),
+)
+
+
+def int8_deltas(result: dict) -> list[dict]:
+    rows = []
+    for where, task, keys in DELTA_METRICS:
+        block = result[where][task]
+        fp32, int8 = _flatten(block["fp32"]), _flatten(block["int8"])
+        for key in keys:
+            delta = int8[key] - fp32[key]
+            rows.append({"data": where, "task": task, "metric": key, "fp32": fp32[key], "int8": int8[key],
+                         "delta": delta, "relative": delta / fp32[key] if fp32[key] else None})
+    return rows
+
+
+# ----------------------------------------------------------------------------- card
+def _data_synth(result: dict) -> str:
+    s = result["synthetic"]
+    cfg = s.get("synth_config") or {}
+    size = f", {cfg['height']}×{cfg['width']}" if "height" in cfg and "width" in cfg else ""
+    return f"`{Path(s['synth_dir']).name}` held-out ({len(s['sequences'])} seq{size})"
+
+
+def _data_kitti(result: dict) -> str:
+    k = result["kitti"]
+    frames = k["frames"]
+    span = frames[0] if len(frames) == 1 else f"{int(frames[0])}–{int(frames[-1])}" if all(
+        f.isdigit() for f in frames) else f"{frames[0]}…{frames[-1]}"
+    pf = k["depth"]["per_frame"][0]
+    return f"KITTI raw `{Path(k['dir']).name}`, frames {span} ({len(frames)}, {pf['width']}×{pf['height']})"
+
+
+def _depth_table(block: dict, data: str, count_key: str) -> list[str]:
+    rows = []
+    for key in ("fp32", "int8", "constant_baseline"):
+        if key not in block:
+            continue
+        label = PRECISION_LABEL.get(key, "constant depth (baseline)")
+        rows.append([label, data] + [sig3(block[key][c]) for c in DEPTH_COLUMNS] + [sig3(block[key]["count"])])
+    return _table(["predictor", "data"] + list(DEPTH_HEADERS) + [count_key], rows)
+
+
+def _flow_table(block: dict, data: str) -> list[str]:
+    rows = []
+    for key in ("fp32", "int8", "zero_flow_baseline"):
+        if key not in block:
+            continue
+        label = PRECISION_LABEL.get(key, "zero flow (baseline)")
+        b = block[key]
+        rows.append([label, data, sig3(b["noc"]["epe"]), sig3(b["occ"]["epe"]), sig3(b["noc"]["fl"]),
+                     sig3(b["occ"]["fl"]), sig3(b["noc"]["count"])])
+    return _table(["predictor", "data", "EPE noc (px)", "EPE occ (px)", "Fl noc", "Fl occ", "pairs"], rows)
+
+
+def _pose_table(block: dict, data: str) -> list[str]:
+    rows = []
+    for key in ("fp32", "int8", "identity_baseline"):
+        if key not in block:
+            continue
+        label = PRECISION_LABEL.get(key, "identity pose / no motion (baseline)")
+        b = block[key]
+        rows.append([label, data, f"{sig3(b['ate_snippet']['mean'])} ± {sig3(b['ate_snippet']['std'])}",
+                     f"{sig3(b['ate_rmse_true']['mean'])} ± {sig3(b['ate_rmse_true']['std'])}", sig3(b["count"])])
+    return _table(["predictor", "data", "ATE, paper (÷N) mean ± std", "ATE, true RMSE mean ± std", "snippets"],
+                  rows)
+
+
+def _compare(model: float, baseline: float, lower_is_better: bool = True) -> str:
+    better = model < baseline if lower_is_better else model > baseline
+    return "better than" if better else ("equal to" if model == baseline else "worse than")
+
+
+def _init_checkpoint(command: str | None) -> str | None:
+    if not command:
+        return None
+    m = re.search(r"--init-checkpoint[ =](\S+)", command)
+    return m.group(1) if m else None
+
+
+def render_card(result: dict) -> str:
+    m = result["model"]
+    prov = m["provenance"]
+    s, k = result["synthetic"], result["kitti"]
+    synth_data, kitti_data = _data_synth(result), _data_kitti(result)
+    name = Path(m["dir"]).name
+    L: list[str] = [f"# Model card: `{name}`", ""]
+    L += ["Regenerate this file (from the repository root; every number below comes from that run, "
+          "none is typed by hand):", "", "```bash", result["command"], "```", "",
+          f"Generated {result['generated_utc']} at git commit `{(result['git_commit'] or 'unknown')[:12]}` "
+          "by `training/model_card.py`. All models run through the pip runtime "
+          "(`geonet_infer.predictor.Predictor` on onnxruntime), exactly as users run them.", ""]
+    if m["random_init"]:
+        L += ["> **⚠️ WARNING: RANDOM-INIT MODEL. This card was generated with `--allow-random-init` for a "
+              "model directory whose graphs hold random, untrained weights (`random_init: true` in the "
+              "manifest). Its accuracy numbers measure noise and say nothing about GeoNet. Do not publish "
+              "or compare them; regenerate the card from a trained export.**", ""]
+
+    # ------------------------------------------------------------ what
+    L += ["## The model", ""]
+    init = _init_checkpoint(prov.get("training_command"))
+    stage = prov.get("checkpoint_stage")
+    stages = (f"`{stage}`, initialised from `{init}`" if init else f"`{stage}`") if stage else "n/a"
+    rows = [
+        ["architecture", f"`{m['arch']}` (DepthNet, PoseNet" + (", ResFlowNet" if "resflownet" in m["graphs"]
+                                                               else "; no ResFlowNet: flow = rigid flow") + ")"],
+        ["graphs", ", ".join(f"`{g}`" for g in m["graphs"])],
+        ["input size", f"{m['height']}×{m['width']}, snippets of {m['seq_length']} frames (target in the middle)"],
+        ["precisions", ", ".join(m["precisions"])],
+        ["random init", str(m["random_init"])],
+        ["training data", f"`{prov['data_dir']}`" if prov.get("data_dir") else "n/a"],
+        ["training stage", stages],
+        ["training steps (this stage)", sig3(prov["checkpoint_step"]) if prov.get("checkpoint_step") is not None
+         else "n/a"],
+        ["training command", f"`{prov['training_command']}`" if prov.get("training_command") else "n/a"],
+        ["checkpoint", (f"`{prov['checkpoint']}` (sha256 `{prov['checkpoint_sha256'][:12]}…`)"
+                        if prov.get("checkpoint") and prov.get("checkpoint_sha256") else "n/a")],
+        ["exported", f"{prov.get('export_date')} at git commit `{(prov.get('git_commit') or 'unknown')[:12]}`"],
+        ["exporter", prov.get("exporter") or "n/a"],
+        ["versions", ", ".join(f"{k_} {v}" for k_, v in sorted(prov.get("versions", {}).items())) or "n/a"],
+    ]
+    L += _table(["", ""], rows) + [""]
+    if m["metrics"]:
+        L += ["Checkpoint metrics recorded by training (from the manifest; validation split of the "
+              "training data, not the held-out sequences):", ""]
+        L += _table(["metric", "value"], [[f"`{k_}`", sig3(v) if isinstance(v, (int, float)) else str(v)]
+                                          for k_, v in _flatten(m["metrics"]).items()]) + [""]
+    q = m["quantization"]
+    if q:
+        L += ["INT8 quantisation (from the manifest): "
+              f"{q.get('method')}, activations {q.get('activation_type')}, weights {q.get('weight_type')}, "
+              f"per-channel {q.get('per_channel')}, reduce-range {q.get('reduce_range')}, calibration "
+              f"`{q.get('calibrate_method')}` on `{q.get('calibration_data')}` "
+              f"({', '.join(f'{g}: {n}' for g, n in (q.get('calibration_samples') or {}).items())} inputs); "
+              f"graphs kept in FP32: {', '.join(q.get('fp32_graphs') or []) or 'none'}.", ""]
+
+    # ------------------------------------------------------------ files
+    L += ["## Files", "", f"Model directory `{m['dir']}`; sha256 from `manifest.json` (checked against the "
+          "files when the model was loaded).", ""]
+    L += _table(["precision", "graph", "file", "size", "sha256 (prefix)"],
+                [[f["precision"], f["graph"], f"`{f['file']}`" + (" (FP32)" if f["file_precision"] != f["precision"]
+                                                                 else ""), _mib(f["bytes"]), f"`{f['sha256'][:12]}`"]
+                 for f in m["files"]]) + [""]
+    totals = {}
+    for f in m["files"]:
+        totals.setdefault(f["precision"], 0)
+        totals[f["precision"]] += f["bytes"]
+    L += ["Total per precision (a precision's set includes the shared FP32 `rigidflow`): "
+          + ", ".join(f"{p} {_mib(b)}" for p, b in totals.items()) + ".", ""]
+
+    # ------------------------------------------------------------ data and protocol
+    seqs = s["sequences"]
+    L += ["## What was measured", "",
+          f"* **Synthetic held-out**: {synth_data}: sequences {', '.join(f'`{x}`' for x in seqs)} listed in "
+          f"`{s['prepared_dir']}/heldout.txt`, generated by `training.synth` and never trained on"
+          + (f"; one frame / pair / snippet in {s['stride']} (`--stride {s['stride']}`)" if s["stride"] > 1 else "")
+          + ". Depth: every pixel with ground truth (no crop), per-image median scaling, clamp to "
+          f"[{MIN_DEPTH:g}, {result['settings']['max_depth']:g}] m "
+          "(`training.evaluate.evaluate_depth`). Flow t→t+1 from the snippet "
+          + ("[t−1, t, t+1]" if result["settings"]["flow_seq_length"] == 3 else
+             "pair [t, t+1] (padded by the runtime; `evaluate_flow` passes triplets only)")
+          + ", EPE and Fl (EPE > 3 px and > 5 %) on non-occluded (noc) and all in-view (occ) pixels "
+          "(`training.evaluate.evaluate_flow`).",
+          f"* **Pose**: ATE on {SNIPPET}-frame snippets (every target t = 2 … N−3"
+          + (f", stride {s['stride']}" if s["stride"] > 1 else "") + ") against the synthetic ground-truth "
+          "poses (`poses.txt`, camera-to-world, inverted to world→camera and put in the snippet's first-frame "
+          f"coordinates with `metrics.snippet_poses_to_global`). Model trajectory: {s['pose']['method']}. "
+          "`ATE, paper` is `metrics.ate_snippet`, the SfMLearner/GeoNet value with its quirk kept: "
+          "√(Σ‖e‖²)/N, i.e. the true RMSE ÷ √5, with only a scale (no rotation) fitted per snippet. "
+          "`ATE, true RMSE` is `metrics.ate_rmse_true` after the same alignment. Units are the synthetic "
+          "world's metres.",
+          f"* **Real KITTI**: {kitti_data} with Velodyne scans, never trained on. Ground truth: the scans "
+          "projected by `training.kitti_depth.velodyne_to_depth_map` (camera 2, Velodyne forward distance). "
+          f"Eigen protocol: {KITTI_CROP.capitalize()} crop, {k['min_depth']:g} < GT < {k['max_depth']:g} m, "
+          "per-image median scaling, then clamp; the runtime returns depth at the input resolution.",
+          "* **Baselines**: *constant depth* predicts one value per image; after median scaling that is the "
+          "image's median GT depth. *Zero flow* predicts no motion. *Identity pose* predicts no camera "
+          "motion; its ATE is the snippet's own extent. The per-snippet least-squares scale can shrink any "
+          "prediction to zero, so a model's ATE can never exceed the identity baseline's on the same snippet: "
+          "the baseline is an upper bound, and the gap to it is what the pose network contributes.", ""]
+
+    # ------------------------------------------------------------ tables
+    d = s["depth"]
+    L += ["## Depth", "", "### Synthetic held-out sequences", ""]
+    L += _depth_table(d, synth_data, "frames") + [""]
+    L += ["### Real KITTI (Velodyne ground truth)", ""]
+    L += _depth_table(k["depth"], kitti_data, "frames") + [""]
+    L += ["Per KITTI frame (AbsRel):", ""]
+    keys = [p for p in ("fp32", "int8") if p in k["depth"]] + ["constant_baseline"]
+    L += _table(["frame"] + [PRECISION_LABEL.get(p, "constant depth") for p in keys] + ["GT pixels"],
+                [[f["frame"]] + [sig3(f[p]["abs_rel"]) for p in keys] + [sig3(f["constant_baseline"]["n_valid"])]
+                 for f in k["depth"]["per_frame"]]) + [""]
+    L += ["## Optical flow (synthetic held-out sequences)", ""]
+    L += _flow_table(s["flow"], synth_data) + [""]
+    L += ["## Camera pose (synthetic held-out sequences, 5-frame snippets)", ""]
+    L += _pose_table(s["pose"], synth_data) + [""]
+    for p in ("fp32", "int8"):
+        n = s["pose"].get(p, {}).get("static_snippets", 0)
+        if n:
+            L += [f"**{PRECISION_LABEL[p]}: in {n} of {s['pose']['snippets']} snippets the predicted camera "
+                  "does not move at all** (every chained position exactly 0), so there its ATE is the identity "
+                  "baseline's. The pose matrices this precision returns carry no motion there; check its "
+                  "PoseNet graph.", ""]
+
+    # ------------------------------------------------------------ int8
+    L += ["## INT8 versus FP32", ""]
+    if result["int8_delta"]:
+        L += ["Difference INT8 − FP32 on the same frames (positive = INT8 larger; for δ<1.25 larger is "
+              "better, for the errors smaller is better):", ""]
+        names = {"abs_rel": "AbsRel", "sq_rel": "SqRel", "rmse": "RMSE", "rmse_log": "RMSElog", "a1": "δ<1.25",
+                 "noc.epe": "EPE noc", "occ.epe": "EPE occ", "noc.fl": "Fl noc", "occ.fl": "Fl occ",
+                 "ate_snippet.mean": "ATE paper (mean)", "ate_rmse_true.mean": "ATE true RMSE (mean)"}
+        L += _table(["data", "task", "metric", "FP32", "INT8", "INT8 − FP32", "relative"],
+                    [[synth_data if r["data"] == "synthetic" else kitti_data, r["task"], names[r["metric"]],
+                      sig3(r["fp32"]), sig3(r["int8"]), signed3(r["delta"]),
+                      "n/a" if r["relative"] is None else signed3(100 * r["relative"]) + " %"]
+                     for r in result["int8_delta"]]) + [""]
+    else:
+        L += ["This model directory has no INT8 graphs (the manifest lists only "
+              f"{', '.join(m['precisions'])}).", ""]
+    if q and isinstance(q.get("accuracy_delta"), dict):
+        acc = q["accuracy_delta"]
+        rows = [[f"`{k_}`", sig3(v["fp32"]), sig3(v["int8"]), signed3(v["delta"])] for k_, v in acc.items()
+                if isinstance(v, dict) and {"fp32", "int8", "delta"} <= set(v)]
+        if rows:
+            L += ["For comparison, the INT8 check the export itself recorded in the manifest "
+                  "(`quantization.accuracy_delta`; `export.verify.OrtCascade`, not the runtime's Predictor; "
+                  f"data `{acc.get('synth_dir')}`, stride {acc.get('stride')}):", ""]
+            L += _table(["metric", "FP32", "INT8", "INT8 − FP32"], rows) + [""]
+    if q and q.get("accuracy_delta_reason"):
+        L += [f"Export note on the INT8 check: {q['accuracy_delta_reason']}.", ""]
+
+    # ------------------------------------------------------------ limitations
+    best = "fp32"
+    kd, sd = k["depth"], s["depth"]
+    L += ["## Limitations", ""]
+    if m["random_init"]:
+        L += ["* **The weights are random (development card).** Nothing below describes a trained model."]
+    trained_on = f" (`{prov['data_dir']}`)" if prov.get("data_dir") else ""
+    L += [f"* **Synthetic training data.** The model is trained only on procedurally generated driving "
+          f"sequences{trained_on} (`training.synth`: boxes on a flat road, Lambertian shading, no sensor noise; see "
+          "`docs/synthetic_data.md`). The held-out synthetic numbers come from the same generator and "
+          "overstate what to expect on real video.",
+          f"* **Real-data depth is measured on {kd['frames']} KITTI frames only** (one drive, consecutive "
+          "frames, so they are far from independent). On them the FP32 model's AbsRel "
+          f"({sig3(kd[best]['abs_rel'])}) is {_compare(kd[best]['abs_rel'], kd['constant_baseline']['abs_rel'])} "
+          f"the constant-depth baseline ({sig3(kd['constant_baseline']['abs_rel'])}); on the synthetic held-out "
+          f"set it is {sig3(sd[best]['abs_rel'])} vs {sig3(sd['constant_baseline']['abs_rel'])} "
+          f"({_compare(sd[best]['abs_rel'], sd['constant_baseline']['abs_rel'])} the baseline). This is no "
+          "substitute for the 697-image Eigen split.",
+          "* **Relative scale.** Depth and camera translation are known only up to an unknown scale. Every "
+          "depth number uses per-image median scaling with the ground truth and every ATE a per-snippet "
+          "scale fit, so none of them measures metric scale; a user without ground truth gets depth in "
+          "arbitrary units.",
+          "* **Pose ATE on 5-frame snippets** hides drift and most rotation error, and the paper's value "
+          "divides by N (it is the true RMSE ÷ √5). There is no real-data pose or flow evaluation here "
+          "(the KITTI frames have no poses and no flow ground truth).",
+          f"* **Flow** was compared with zero flow only "
+          f"(FP32 EPE noc {sig3(s['flow'][best]['noc']['epe'])} px vs "
+          f"{sig3(s['flow']['zero_flow_baseline']['noc']['epe'])} px), on synthetic data only.", ""]
+    return "\n".join(L) + "\n"
+
+
+# ----------------------------------------------------------------------------- CLI
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m training.model_card", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", required=True, help="model directory written by `python -m export`")
+    p.add_argument("--synth-dir", required=True, help="output of training.synth")
+    p.add_argument("--prepared-dir", required=True, help="output of training.prepare (has heldout.txt)")
+    p.add_argument("--kitti", required=True, help="KITTI raw drive folder (image_02/, velodyne_points/, calib)")
+    p.add_argument("--out", required=True, help="the Markdown card to write (docs/models.md)")
+    p.add_argument("--json", help="also write every number as JSON here")
+    p.add_argument("--stride", type=int, default=1, help="synthetic: every n-th frame / pair / snippet")
+    p.add_argument("--kitti-frames", type=int, default=10, help="KITTI frames with Velodyne scans to use (first N)")
+    p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all usable)")
+    p.add_argument("--allow-random-init", action="store_true",
+                   help="accept a random-init model directory (development only; the card says so loudly)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    return p
+
+
+def _check_finite(obj, where: str = "") -> None:
+    if isinstance(obj, dict):
+        for key, value in obj.items():
+            _check_finite(value, f"{where}.{key}" if where else str(key))
+    elif isinstance(obj, list):
+        for i, value in enumerate(obj):
+            _check_finite(value, f"{where}[{i}]")
+    elif isinstance(obj, float) and not math.isfinite(obj):
+        raise GeoNetInputError(None, f"non-finite result at {where}", "the model produced NaN/inf")
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    command = ".venv/bin/python -m training.model_card " + shlex.join(argv)
+    progress = (lambda msg: None) if args.quiet else (lambda msg: print(f"[model_card] {msg}", file=sys.stderr))
+    try:
+        if args.stride < 1:
+            raise GeoNetInputError(None, f"--stride must be >= 1, got {args.stride}")
+        if args.kitti_frames < 1:
+            raise GeoNetInputError(None, f"--kitti-frames must be >= 1, got {args.kitti_frames}")
+        if args.threads is not None and args.threads < 1:
+            raise GeoNetInputError(None, f"--threads must be >= 1, got {args.threads}")
+        for out in (args.out, args.json):
+            if out and not Path(out).parent.is_dir():
+                raise GeoNetInputError(Path(out).parent, "output folder not found", "create it first")
+        result = run(args, command, progress)
+        _check_finite({k: v for k, v in result.items() if k != "model"})
+    except GeoNetInputError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if result["model"]["random_init"]:
+        print("WARNING: random-init model: the card's numbers measure untrained weights", file=sys.stderr)
+    with atomic_write(args.out) as tmp:
+        tmp.write_text(render_card(result))
+    if args.json:
+        with atomic_write(args.json) as tmp:
+            tmp.write_text(json.dumps(result, indent=2, default=_json_default) + "\n")
+    progress(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
+    return 0
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    if isinstance(obj, (tuple, Path)):
+        return list(obj) if isinstance(obj, tuple) else str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
