@@ -6,7 +6,12 @@
 """
 from geonet_infer.errors import GeoNetInputError
 
-__version__ = "0.1.0"
+try:  # one version, in pyproject.toml
+    from importlib.metadata import PackageNotFoundError, version
+
+    __version__ = version("geonet-infer")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0+unknown"
 
 from geonet_infer.predictor import (DepthResult, FlowResult, FrameResult, PoseResult, Predictor,  # noqa: E402
                                     SequenceResult, load)

@@ -29,7 +29,7 @@ import numpy as np
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.images import read_image
-from geonet_infer.manifest import PRECISIONS, Manifest, load_manifest
+from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, Manifest, load_manifest
 from geonet_infer.metrics import rigid_inverse
 from geonet_infer.models import resolve_model
 from geonet_infer.preprocess import (InputSpec, check_image, check_intrinsics, disparity_to_input, flow_to_input,
@@ -204,6 +204,13 @@ class Predictor:
     @property
     def seq_length(self) -> int:
         return self.spec.seq_length
+
+    def session(self, name: str):
+        """The onnxruntime session of graph ``name`` (benchmarks, profiling)."""
+        if name not in self._sessions:
+            raise GeoNetInputError(self.model_dir / MANIFEST_NAME, f"no '{name}' graph in the {self.precision} set",
+                                   f"graphs present: {', '.join(self._sessions)}")
+        return self._sessions[name]
 
     # ------------------------------------------------------------------ graph calls
     def _run(self, name: str, **feeds: np.ndarray) -> dict[str, np.ndarray]:

@@ -16,4 +16,5 @@ rm -rf build
     || { echo "torch is installed in the runtime venv: the runtime must not need it"; exit 1; }
 # `pytest` (not `python -m pytest`) and an empty pythonpath keep the repo root off sys.path.
 exec env GEONET_RUNTIME_ONLY=1 "$VENV/bin/pytest" -q -o pythonpath= -p no:cacheprovider \
-    tests/test_runtime_install.py tests/test_predictor.py tests/test_cli.py tests/test_io.py tests/test_viz.py "$@"
+    tests/test_runtime_install.py tests/test_predictor.py tests/test_cli.py tests/test_bench.py \
+    tests/test_io.py tests/test_viz.py "$@"

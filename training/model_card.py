@@ -598,7 +598,7 @@ def render_card(result: dict) -> str:
                 if isinstance(v, dict) and {"fp32", "int8", "delta"} <= set(v)]
         if rows:
             L += ["For comparison, the INT8 check the export itself recorded in the manifest "
-                  "(`quantization.accuracy_delta`; `export.verify.OrtCascade`, not the runtime's Predictor; "
+                  "(`quantization.accuracy_delta`, also through the runtime's Predictor; "
                   f"data `{acc.get('synth_dir')}`, stride {acc.get('stride')}):", ""]
             L += _table(["metric", "FP32", "INT8", "INT8 − FP32"], rows) + [""]
     if q and q.get("accuracy_delta_reason"):

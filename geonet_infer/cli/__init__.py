@@ -10,10 +10,10 @@ import argparse
 import sys
 
 from geonet_infer import __version__
-from geonet_infer.cli import demo, info, predict
+from geonet_infer.cli import bench, demo, info, predict
 from geonet_infer.errors import GeoNetInputError
 
-SUBCOMMANDS = (predict, demo, info)
+SUBCOMMANDS = (predict, demo, info, bench)
 EXIT_OK, EXIT_PARTIAL, EXIT_USAGE = 0, 1, 2
 
 
