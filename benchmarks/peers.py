@@ -496,34 +496,25 @@ def markdown(data: dict) -> str:
     for k in ("numpy_sgemm_fp32_gflops", "torch_sgemm_fp32_gflops", "torch_int_mm_s8s8s32_gops"):
         if f"{k}_best" in roof:
             lines.append(f"| {k} | {roof[k + '_best']:.1f} | {roof[k + '_median']:.1f} |")
-    lines += ["", "## Latency, ms p50 / p90 (GFLOP/s at p50)", "",
-              "| net | B | " + " | ".join(LABELS[b] for b in backends) + " |",
-              "|---|---|" + "---|" * len(backends)]
-    for net, batch in keys:
-        row = []
-        for b in backends:
-            r = cell.get((net, batch, b))
-            if r is None:
-                row.append("—")
-                continue
-            g = f" ({r['gflops_at_p50']:.0f})" if r["gflops_at_p50"] else ""
-            row.append(f"{_fmt(r['p50_ms'])} / {_fmt(r['p90_ms'])}{g}")
-        lines.append(f"| {net} | {batch} | " + " | ".join(row) + " |")
-    lines += ["", "## Speedup vs ORT fp32 (p50) and fraction of the GEMM roofline "
-              "(fp32 engines vs torch sgemm, int8 vs torch._int_mm)", "",
-              "| net | B | " + " | ".join(LABELS[b] for b in backends) + " |",
-              "|---|---|" + "---|" * len(backends)]
-    for net, batch in keys:
-        row = []
-        for b in backends:
-            r = cell.get((net, batch, b))
-            if r is None:
-                row.append("—")
-                continue
-            sp = f"{r['speedup_vs_ort_fp32']:.2f}×" if r["speedup_vs_ort_fp32"] else "—"
-            fr = f", {100 * r['roofline_fraction']:.0f} %" if r["roofline_fraction"] else ""
-            row.append(sp + fr)
-        lines.append(f"| {net} | {batch} | " + " | ".join(row) + " |")
+    def backend_table(title: str, fmt) -> list[str]:
+        out = ["", title, "", "| net | B | " + " | ".join(LABELS[b] for b in backends) + " |",
+               "|---|---|" + "---|" * len(backends)]
+        for net, batch in keys:
+            row = [fmt(cell[(net, batch, b)]) if (net, batch, b) in cell else "—" for b in backends]
+            out.append(f"| {net} | {batch} | " + " | ".join(row) + " |")
+        return out
+
+    def latency(r) -> str:
+        g = f" ({r['gflops_at_p50']:.0f})" if r["gflops_at_p50"] else ""
+        return f"{_fmt(r['p50_ms'])} / {_fmt(r['p90_ms'])}{g}"
+
+    def speedup(r) -> str:
+        sp = f"{r['speedup_vs_ort_fp32']:.2f}×" if r["speedup_vs_ort_fp32"] else "—"
+        return sp + (f", {100 * r['roofline_fraction']:.0f} %" if r["roofline_fraction"] else "")
+
+    lines += backend_table("## Latency, ms p50 / p90 (GFLOP/s at p50)", latency)
+    lines += backend_table("## Speedup vs ORT fp32 (p50) and fraction of the GEMM roofline "
+                           "(fp32 engines vs torch sgemm, int8 vs torch._int_mm)", speedup)
     lines += ["", "## max |Δ| vs torch eager, per output", "",
               "| net | B | max\\|ref\\| | " + " | ".join(LABELS[b] for b in backends if b != "eager") + " |",
               "|---|---|---|" + "---|" * len([b for b in backends if b != "eager"])]

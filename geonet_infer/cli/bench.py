@@ -227,27 +227,11 @@ def bench_frames(input_size: tuple[int, int] | None, graph_size: tuple[int, int]
 
 
 # ----------------------------------------------------------------------------- graphs
-def graph_session(predictor: Predictor, name: str):
-    """The onnxruntime session of one graph of ``predictor``.
-
-    Uses ``Predictor.session(name)`` when the Predictor has that public accessor;
-    until then its session table.
-    """
-    accessor = getattr(predictor, "session", None)
-    if callable(accessor):
-        return accessor(name)
-    sessions = predictor._sessions  # noqa: SLF001 -- see the docstring
-    if name not in sessions:
-        raise GeoNetInputError(predictor.model_dir / MANIFEST_NAME, f"no '{name}' graph in the "
-                               f"{predictor.precision} set", f"graphs present: {', '.join(sessions)}")
-    return sessions[name]
-
-
 class Graphs:
     """Calls the predictor's sessions directly: feeds must be C-contiguous float32."""
 
     def __init__(self, predictor: Predictor):
-        self.sessions = {n: graph_session(predictor, n) for n in predictor.graphs}
+        self.sessions = {n: predictor.session(n) for n in predictor.graphs}
         self.outputs = {n: [o.name for o in s.get_outputs()] for n, s in self.sessions.items()}
 
     def __contains__(self, name: str) -> bool:
@@ -499,7 +483,7 @@ def run(args: argparse.Namespace) -> int:
             rss_loaded = current_rss_mib()
             graphs_mib = _graph_files_mib(manifest, precision)
             env.setdefault("threads", predictor.threads)
-            env.setdefault("session_options", session_options(graph_session(predictor, "depthnet")))
+            env.setdefault("session_options", session_options(predictor.session("depthnet")))
             for batch in plan["batches"]:
                 cases, skip = build_cases(predictor, plan["tasks"], plan["modes"], batch, frames, camera,
                                           args.seq_frames)
