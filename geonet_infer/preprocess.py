@@ -77,6 +77,15 @@ class InputSpec:
         for key in ("pose", "intrinsics", "sampler"):
             if conv.get(key) != implemented[key]:
                 raise refuse(f"{key} {conv.get(key)!r} (implemented: {implemented[key]!r})")
+        # The disparity head (scale * sigmoid + offset) is inside depthnet.onnx; mapping depth back
+        # as 1 / resized disparity needs a head that keeps disparity > 0 (offset > 0).
+        head = (conv.get("disp_heads") or {}).get(manifest.arch)
+        try:
+            head_ok = float(head["scale"]) > 0 and float(head["offset"]) > 0
+        except (KeyError, TypeError, ValueError):
+            head_ok = False
+        if not head_ok:
+            raise refuse(f"disparity head for arch {manifest.arch!r}: {head!r} (need scale > 0 and offset > 0)")
         norm = conv.get("image_norm") or {}
         try:
             scale, offset = float(norm["scale"]), float(norm["offset"])

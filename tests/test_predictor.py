@@ -345,7 +345,11 @@ def test_corrupt_graph_file_is_named_with_sha256(tmp_path):
 @pytest.mark.parametrize("edit, needles", [
     (lambda m: m.update(schema_version=m["schema_version"] + 1), ("manifest.json", "schema_version")),
     (lambda m: m["conventions"].update(channel_order="XYZ"), ("manifest.json", "unsupported convention", "XYZ")),
-], ids=["schema_version", "channel_order"])
+    (lambda m: m["conventions"]["intrinsics"].update(half_pixel_correction=True),
+     ("manifest.json", "unsupported convention", "intrinsics")),
+    (lambda m: m["conventions"]["disp_heads"].pop(m["arch"]), ("manifest.json", "disparity head")),
+    (lambda m: m["graphs"]["fp32"]["depthnet"]["outputs"].reverse(), ("manifest.json", "depthnet", "outputs")),
+], ids=["schema_version", "channel_order", "half_pixel", "disp_head", "graph_io"])
 def test_manifest_that_this_runtime_cannot_drive_is_refused(tmp_path, edit, needles):
     model = _model_copy(tmp_path)
     manifest = json.loads((model / "manifest.json").read_text())
