@@ -7,7 +7,8 @@
 #   4. ONNX export fp32 + INT8 (calibrated on training sequence seq_0000, never a held-out one),
 #      with the INT8 accuracy delta on the held-out sequences written into the manifest;
 #   5. copy into the package, take 12 frames of held-out seq_0038 as the demo sample,
-#      write the model card (synthetic held-out + real KITTI frames 0-9 against Velodyne).
+#      write the model card (synthetic held-out + real KITTI frames 0-9 against Velodyne) and
+#      the README's demo picture.
 # Environment: RIGID_MINUTES (45), FLOW_MINUTES (15) cap the two training stages (wall clock);
 # THREADS (1) torch threads: one thread per training process keeps OpenMP from stalling
 # when anything else runs on the machine.
@@ -38,4 +39,7 @@ cp $DATA/seq_0038/calib.txt geonet_infer/samples/synth_seq/calib.txt
 for i in $(seq -w 0 11); do cp $DATA/seq_0038/image/0000$i.png geonet_infer/samples/synth_seq/image/; done
 run $PY -m training.model_card --model geonet_infer/models/small_synth --synth-dir $DATA --prepared-dir $PREP \
     --kitti ../shared/realdata/kitti_raw_2011_09_26_sfnd --out docs/models.md --json docs/models.json
-echo "done: geonet_infer/models/small_synth, docs/models.md"
+.venv/bin/python -m pip install --quiet -e .
+run .venv/bin/geonet-infer demo --out runs/demo --no-progress
+mkdir -p docs/img && cp runs/demo/demo.png docs/img/demo.png
+echo "done: geonet_infer/models/small_synth, docs/models.md, docs/img/demo.png"

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -43,7 +44,8 @@ def save_checkpoint(path: Path, model: GeoNet, optimizer, step: int, cfg: TrainC
         "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
                 "python": random.getstate()},
         "metrics": metrics,
-        "command": " ".join(sys.argv),
+        # module form, not argv[0]: argv[0] is this machine's absolute path to train.py
+        "command": "python -m training.train " + shlex.join(sys.argv[1:]),
     }
     tmp = path.with_suffix(".tmp")
     torch.save(state, tmp)

@@ -10,10 +10,10 @@ import argparse
 import sys
 
 from geonet_infer import __version__
-from geonet_infer.cli import bench, demo, info, predict
+from geonet_infer.cli import batch, bench, demo, info, predict
 from geonet_infer.errors import GeoNetInputError
 
-SUBCOMMANDS = (predict, demo, info, bench)
+SUBCOMMANDS = (predict, batch, demo, info, bench)
 EXIT_OK, EXIT_PARTIAL, EXIT_USAGE = 0, 1, 2
 
 
@@ -45,6 +45,9 @@ def main(argv: list[str] | None = None) -> int:
     except GeoNetInputError as exc:
         print(f"geonet-infer {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:  # `geonet-infer info | head`: the reader left, nothing to report
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print(f"geonet-infer {args.command}: interrupted", file=sys.stderr)
         return 130

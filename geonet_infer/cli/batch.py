@@ -1,0 +1,124 @@
+"""``geonet-infer batch``: many sequences into one folder, on a process pool or Ray Data."""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from geonet_infer.batch import ENGINES, FAILURES_NAME, MARKER_NAME, needs_own_calib, run_batch
+from geonet_infer.cli.common import add_camera_args, camera_from_args, positive_int
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.manifest import PRECISIONS
+from geonet_infer.models import DEFAULT_MODEL
+from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks
+from geonet_infer.session import usable_cpus
+
+HELP = f"""\
+Predict depth, optical flow and camera poses for many sequences.
+
+INPUTS are sequence folders (frames sorted by name), videos (.mp4 .avi .mov .mkv
+.webm), KITTI raw drives, or .txt files listing them (one a line, # comments;
+relative paths are relative to the list file's folder). Each sequence gets
+`geonet-infer predict`'s layout in OUT/<sequence>/ (sequence = folder name, video
+stem or drive name; inputs sharing a name become <name>__<parent folder>).
+
+Next to the sequences:
+  {'OUT/<sequence>/' + MARKER_NAME:<22} written last: the sequence is complete
+  {'OUT/' + FAILURES_NAME:<22} one JSON object a line: sequence, input, frame (null = whole
+  {'':<22} sequence), reason; a failure never stops the job
+  {'OUT/' + SUMMARY_NAME:<22} sequences done/failed/skipped, frames, frames/s, engine, workers
+
+Every file is written to a temporary name and renamed. After a crash, Ctrl-C or a
+kill, run the same command with --resume: complete sequences are skipped, the
+others are redone. Exit codes: 0 all good, 1 something failed (see {FAILURES_NAME}),
+2 bad usage (one line on stderr), 130 interrupted.
+
+Engines:
+  local  a process pool on this machine; each worker loads the models once. By
+         default workers x threads-per-worker = the usable CPUs ({usable_cpus()} here):
+         one worker per CPU, at most one per sequence.
+  ray    Ray Data (pip install 'geonet-infer[ray]'): an actor pool, one predictor per
+         actor (num_cpus = threads per worker), sized so that actors never ask for more
+         CPUs than the cluster has. Starts a local cluster, or joins --ray-address
+         (outputs must then be on storage every node sees under the same path).
+
+examples:
+  geonet-infer batch runs/a runs/b runs/c --out out/batch --calib calib.txt
+  geonet-infer batch sequences.txt --out out/batch --workers 2 --threads-per-worker 1
+  geonet-infer batch ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/batch --resume
+  geonet-infer batch videos.txt --out out/batch --engine ray --ray-address auto --tasks depth
+"""
+
+
+def add_parser(sub) -> None:
+    parser = sub.add_parser("batch", help="many sequences (folders, videos, KITTI drives, lists) on many CPUs",
+                            description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("inputs", type=Path, nargs="+", metavar="INPUTS",
+                        help="sequence folders, videos, KITTI drives, or .txt files listing them")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    run = parser.add_argument_group("workers")
+    run.add_argument("--engine", choices=ENGINES, default="local", help="local process pool or Ray Data (default: local)")
+    run.add_argument("--workers", type=positive_int, default=None,
+                     help="worker processes / Ray actors (default: usable CPUs / threads, at most one per sequence)")
+    run.add_argument("--threads-per-worker", type=positive_int, default=None, metavar="T",
+                     help="onnxruntime threads of each worker (default: usable CPUs / workers)")
+    run.add_argument("--ray-address", default=None, metavar="ADDR",
+                     help="join this Ray cluster (e.g. auto, HOST:6379, ray://HOST:10001); default: start a local one")
+    run.add_argument("--resume", action="store_true",
+                     help="skip the sequences OUT already has complete; redo the others")
+    group = parser.add_argument_group("model")
+    group.add_argument("--model", default=None,
+                       help=f"bundled model name or a model directory from `python -m export` "
+                            f"(default: the bundled {DEFAULT_MODEL!r})")
+    group.add_argument("--precision", default="fp32", choices=PRECISIONS,
+                       help="fp32, or int8 (quantised ConvNets, faster on CPUs with VNNI) (default: fp32)")
+    add_camera_args(parser)
+    parser.add_argument("--tasks", default=",".join(TASKS),
+                        help="comma list of depth,pose,flow (default: all; flow needs intrinsics: --calib, "
+                             "--intrinsics, or a KITTI drive's own calibration)")
+    parser.add_argument("--batch-size", type=positive_int, default=4,
+                        help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.set_defaults(run=run_command)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def run_command(args: argparse.Namespace) -> int:
+    tasks = parse_tasks(args.tasks)
+    if args.ray_address and args.engine != "ray":
+        raise GeoNetInputError(None, "--ray-address needs --engine ray")
+    camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own
+    if "flow" in tasks and camera is None:
+        from geonet_infer.batch import expand_inputs
+        lacking = [p for p in expand_inputs(args.inputs) if needs_own_calib(p)]
+        if lacking:
+            more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
+            raise GeoNetInputError(lacking[0], f"flow needs camera intrinsics and this input has none{more}",
+                                   "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)")
+    # SIGTERM (a scheduler stopping the job) is handled like Ctrl-C: workers stopped, summary written.
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
+    try:
+        summary = run_batch(args.inputs, args.out, engine=args.engine, workers=args.workers,
+                            threads=args.threads_per_worker, model=args.model, precision=args.precision,
+                            tasks=tasks, batch_size=args.batch_size, camera=camera, resume=args.resume,
+                            ray_address=args.ray_address, progress=not args.no_progress)
+    finally:
+        if main_thread:
+            with contextlib.suppress(Exception):
+                signal.signal(signal.SIGTERM, previous)
+    seqs = summary["sequences"]
+    print(f"{seqs['done']} sequences done, {seqs['failed']} failed, {seqs['skipped']} skipped (complete already); "
+          f"{summary['frames']} frames, {summary['frames_per_s']:.1f} frames/s "
+          f"({summary['engine']}: {summary['workers']} workers x {summary['threads_per_worker']} threads) "
+          f"-> {args.out}; details in {args.out / SUMMARY_NAME}")
+    if summary["failures"]:
+        print(f"{summary['failures']} failures (sequences or frames) listed in {args.out / FAILURES_NAME}",
+              file=sys.stderr)
+    return summary["exit_code"]
