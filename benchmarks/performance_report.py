@@ -13,6 +13,7 @@ import json
 import sys
 from pathlib import Path
 
+KEPT_SECTIONS = ("## Batch throughput",)
 TASK_LABELS = {"depth": "depth", "pose": "pose", "rigid_flow": "rigid_flow", "resflow": "resflow",
                "flow": "flow (one pair)", "sequence": "sequence, per frame"}
 # (label, bench file key, task, mode, precision, field, target ms) -- issue 9's targets.
@@ -157,6 +158,12 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     text = report(json.loads(args.bench_small.read_text()), json.loads(args.bench_r50.read_text()),
                   [p.read_text() for p in args.peers])
+    # Sections written by other benchmarks (batch_throughput.py) are kept as they are.
+    old = args.out.read_text() if args.out.is_file() else ""
+    for heading in KEPT_SECTIONS:
+        if heading in old:
+            text = text.rstrip() + "\n\n" + old[old.index(heading):].rstrip() + "\n"
+            break
     args.out.write_text(text)
     print(f"wrote {args.out}")
     return 0

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -212,7 +211,6 @@ def write_manifest(manifest: Manifest, directory: str | Path) -> Path:
     path = Path(directory) / MANIFEST_NAME
     with atomic_write(path) as tmp:
         tmp.write_text(json.dumps(manifest.to_dict(), indent=2, sort_keys=False) + "\n")
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a model directory is meant to be shared
     return path
 
 

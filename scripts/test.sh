@@ -6,5 +6,5 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install --quiet --upgrade pip >/dev/null
-.venv/bin/python -m pip install --quiet -e '.[train,dev]'
+.venv/bin/python -m pip install --quiet -e '.[train,dev,ray]'
 exec .venv/bin/python -m pytest -q "$@"

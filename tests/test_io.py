@@ -489,3 +489,12 @@ def test_open_frames_truncated_video_counts_what_decodes_and_warns(realdata, cap
         n = sum(1 for f in src if f.rgb is not None)
     assert n == 201 and len(src) == 201 and src.frame_names[-1] == "000200"
     assert any("project_video_clip_a.mp4" in r.getMessage() and "210" in r.getMessage() for r in caplog.records)
+
+
+def test_atomic_write_gives_the_mode_of_a_plain_open(tmp_path):
+    from geonet_infer.io import atomic_write
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    with atomic_write(tmp_path / "atomic.txt") as tmp:
+        tmp.write_text("x")
+    assert (tmp_path / "atomic.txt").stat().st_mode & 0o777 == plain.stat().st_mode & 0o777
