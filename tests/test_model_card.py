@@ -134,8 +134,9 @@ def make_model_dir(out: Path, seq_length: int = 3, int8: bool = True, int8_stati
             graphs["int8"][name] = (graphs["fp32"][name] if name == "rigidflow"
                                     else entry(f"int8/{name}.onnx", "int8",
                                                -0.01 if name == "posenet" and int8_static_pose else 0.01))
+    # arch "small": a real arch, so the manifest declares its disparity head (the runtime checks it).
     manifest = Manifest(
-        schema_version=conventions.SCHEMA_VERSION, height=H, width=W, seq_length=seq_length, arch="standin",
+        schema_version=conventions.SCHEMA_VERSION, height=H, width=W, seq_length=seq_length, arch="small",
         random_init=True, precisions=tuple(graphs), graphs=graphs,
         conventions=json.loads(json.dumps(conventions.as_dict())),
         provenance=Provenance(architecture="standin", random_init=True, export_date="2000-01-01T00:00:00+00:00",

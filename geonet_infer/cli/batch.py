@@ -9,10 +9,8 @@ import threading
 from pathlib import Path
 
 from geonet_infer.batch import ENGINES, FAILURES_NAME, MARKER_NAME, needs_own_calib, run_batch
-from geonet_infer.cli.common import add_camera_args, camera_from_args, positive_int
+from geonet_infer.cli.common import add_camera_args, add_model_args, camera_from_args, positive_int
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.manifest import PRECISIONS
-from geonet_infer.models import DEFAULT_MODEL
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks
 from geonet_infer.session import usable_cpus
 
@@ -69,12 +67,7 @@ def add_parser(sub) -> None:
                      help="join this Ray cluster (e.g. auto, HOST:6379, ray://HOST:10001); default: start a local one")
     run.add_argument("--resume", action="store_true",
                      help="skip the sequences OUT already has complete; redo the others")
-    group = parser.add_argument_group("model")
-    group.add_argument("--model", default=None,
-                       help=f"bundled model name or a model directory from `python -m export` "
-                            f"(default: the bundled {DEFAULT_MODEL!r})")
-    group.add_argument("--precision", default="fp32", choices=PRECISIONS,
-                       help="fp32, or int8 (quantised ConvNets, faster on CPUs with VNNI) (default: fp32)")
+    add_model_args(parser, threads=False)
     add_camera_args(parser)
     parser.add_argument("--tasks", default=",".join(TASKS),
                         help="comma list of depth,pose,flow (default: all; flow needs intrinsics: --calib, "

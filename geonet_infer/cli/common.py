@@ -23,15 +23,17 @@ def positive_int(text: str) -> int:
     return value
 
 
-def add_model_args(parser: argparse.ArgumentParser) -> None:
+def add_model_args(parser: argparse.ArgumentParser, threads: bool = True) -> None:
+    """--model, --precision and (unless ``threads=False``: batch has per-worker threads) --threads."""
     group = parser.add_argument_group("model")
     group.add_argument("--model", default=None,
                        help=f"bundled model name or a model directory from `python -m export` "
                             f"(default: the bundled {DEFAULT_MODEL!r})")
     group.add_argument("--precision", default="fp32", choices=PRECISIONS,
                        help="fp32, or int8 (quantised ConvNets, faster on CPUs with VNNI) (default: fp32)")
-    group.add_argument("--threads", type=positive_int, default=None,
-                       help="onnxruntime threads per graph (default: the CPUs this process may use)")
+    if threads:
+        group.add_argument("--threads", type=positive_int, default=None,
+                           help="onnxruntime threads per graph (default: the CPUs this process may use)")
 
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
