@@ -21,8 +21,9 @@ pytestmark = pytest.mark.skipif(os.environ.get("GEONET_RUNTIME_ONLY") != "1",
 
 
 def test_imported_from_the_installed_package_not_the_source_tree():
-    assert ROOT not in Path(geonet_infer.__file__).resolve().parents
-    assert "site-packages" in geonet_infer.__file__
+    installed = Path(geonet_infer.__file__).resolve().parent
+    assert installed != (ROOT / "geonet_infer").resolve()
+    assert installed.parent.name == "site-packages"
 
 
 def test_no_torch_in_this_environment():
