@@ -32,7 +32,7 @@ from geonet_infer.io.images import read_image
 from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, Manifest, load_manifest
 from geonet_infer.metrics import rigid_inverse
 from geonet_infer.models import resolve_model
-from geonet_infer.preprocess import (InputSpec, check_image, check_intrinsics, disparity_to_input, flow_to_input,
+from geonet_infer.preprocess import (InputSpec, check_image, disparity_to_input, flow_to_input,
                                      graph_intrinsics, next_source_position, snippet_indices)
 from geonet_infer.session import make_session, make_session_options, usable_cpus
 
@@ -233,7 +233,11 @@ class Predictor:
             return None
         if isinstance(K, Camera):
             return K.scaled_to(size[1], size[0]).validate(K.source or None)
-        return Camera(K=check_intrinsics(K), dist=None, size=(size[1], size[0]))
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3):  # Camera() itself raises a plain ValueError for this
+            raise GeoNetInputError(None, f"intrinsics must be a 3x3 matrix, got shape {K.shape}",
+                                   "pass K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] at the input resolution")
+        return Camera(K=K, dist=None, size=(size[1], size[0])).validate()
 
     def _to_network(self, rgb: np.ndarray, camera: Camera | None, timer: _Timer) -> np.ndarray:
         with timer.stage("preprocess"):

@@ -152,20 +152,6 @@ def check_image(image, name: str | Path | None = None) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def check_intrinsics(K, name: str | Path | None = None) -> np.ndarray:
-    """Validate a pinhole K: (3, 3), finite, fx and fy > 0. Returns float64 (3, 3)."""
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise GeoNetInputError(name, f"intrinsics must be a 3x3 matrix, got shape {K.shape}",
-                               "pass K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] at the input resolution")
-    if not np.all(np.isfinite(K)):
-        raise GeoNetInputError(name, "intrinsics contain NaN or infinity", "check the calibration")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise GeoNetInputError(name, f"focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}",
-                               "check the calibration")
-    return K
-
-
 def graph_intrinsics(K: np.ndarray, input_size: tuple[int, int], spec: InputSpec) -> np.ndarray:
     """K at the input size (H, W) -> float32 K at the graph size (conventions.scale_intrinsics)."""
     h, w = input_size

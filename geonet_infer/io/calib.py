@@ -101,10 +101,10 @@ class Camera:
         K = self.K
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         if not np.isfinite(K).all():
-            raise GeoNetInputError(path, f"intrinsics are not finite (fx={fx}, fy={fy}, cx={cx}, cy={cy})",
+            raise GeoNetInputError(path, f"intrinsics contain NaN or infinity (fx={fx}, fy={fy}, cx={cx}, cy={cy})",
                                    "check the calibration values")
         if not (fx > 0 and fy > 0):
-            raise GeoNetInputError(path, f"focal lengths must be > 0, got fx={fx}, fy={fy}", "check the calibration values")
+            raise GeoNetInputError(path, f"focal lengths must be positive, got fx={fx:g}, fy={fy:g}", "check the calibration values")
         if not (np.isfinite(cx) and np.isfinite(cy)):
             raise GeoNetInputError(path, f"principal point is not finite (cx={cx}, cy={cy})", "check the calibration values")
         if not np.allclose(K[2], (0.0, 0.0, 1.0), rtol=0, atol=1e-9) or abs(K[1, 0]) > 1e-9:
