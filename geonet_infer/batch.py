@@ -77,6 +77,7 @@ class BatchConfig:
     out_dir: str
     model: str | None = None
     precision: str = "fp32"
+    backend: str = "onnxruntime"
     threads: int = 1
     tasks: tuple[str, ...] = TASKS
     batch_size: int = 4
@@ -89,6 +90,7 @@ class BatchConfig:
             "K": self.camera.K.tolist(), "dist": None if self.camera.dist is None else self.camera.dist.tolist(),
             "size": None if self.camera.size is None else list(self.camera.size)}
         return {"model": str(resolve_model(self.model).resolve()), "precision": self.precision,
+                "backend": self.backend,
                 "tasks": list(self.tasks), "batch_size": self.batch_size, "camera": cam}
 
 
@@ -354,7 +356,8 @@ def _init_worker(config: BatchConfig, options: dict, frames, started, parent_pid
     from geonet_infer.predictor import load
     _WORKER.update(config=config, options=options, frames=frames, started=started, busy=None)
     try:
-        _WORKER["predictor"] = load(config.model, precision=config.precision, threads=config.threads)
+        _WORKER["predictor"] = load(config.model, precision=config.precision, threads=config.threads,
+                                    backend=config.backend)
     except Exception as exc:  # noqa: BLE001 - reported per sequence by _work
         _WORKER["predictor"], _WORKER["load_error"] = None, exc
 
@@ -562,7 +565,8 @@ class _Progress:
 
 
 def run_batch(inputs, out_dir, *, engine: str = "local", workers: int | None = None, threads: int | None = None,
-              model: str | None = None, precision: str = "fp32", tasks: tuple[str, ...] = TASKS,
+              model: str | None = None, precision: str = "fp32", backend: str = "onnxruntime",
+              tasks: tuple[str, ...] = TASKS,
               batch_size: int = 4, camera: Camera | None = None, resume: bool = False,
               ray_address: str | None = None, progress: bool = True, log=None) -> dict:
     """Run a batch job (see the module docstring); returns the summary (also OUT/summary.json).
@@ -588,7 +592,7 @@ def run_batch(inputs, out_dir, *, engine: str = "local", workers: int | None = N
         raise GeoNetInputError(out_dir, "exists and is not a folder", "pass a folder for --out")
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    probe = BatchConfig(out_dir=str(out_dir), model=model, precision=precision, tasks=tasks,
+    probe = BatchConfig(out_dir=str(out_dir), model=model, precision=precision, backend=backend, tasks=tasks,
                         batch_size=batch_size, camera=camera)
     options = probe.options()
     with _job_lock(out_dir):
@@ -670,6 +674,7 @@ def run_batch(inputs, out_dir, *, engine: str = "local", workers: int | None = N
             "failures": len(records), "failures_file": FAILURES_NAME,
             "wall_s": wall, "frames_per_s": frames / wall if wall > 0 and frames else 0.0,
             "tasks": list(tasks), "batch_size": batch_size, "model": options["model"], "precision": precision,
+            "backend": backend,
             "camera": "per input (its own calibration, if any)" if camera is None else camera.source,
             "per_sequence": [{"sequence": r["sequence"], "input": r["input"], "status": r["status"],
                               "frames": r["frames"], "failures": len(r["failures"]), "wall_s": round(r["wall_s"], 3)}

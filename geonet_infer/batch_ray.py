@@ -61,7 +61,8 @@ class _SequenceActor:
         config = self.config
         self.predictor, self.error = None, None
         try:
-            self.predictor = load(config.model, precision=config.precision, threads=config.threads)
+            self.predictor = load(config.model, precision=config.precision, threads=config.threads,
+                                  backend=config.backend)
         except Exception as exc:  # noqa: BLE001 - reported per sequence
             self.error = exc
 

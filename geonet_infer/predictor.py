@@ -34,7 +34,8 @@ from geonet_infer.metrics import rigid_inverse
 from geonet_infer.models import resolve_model
 from geonet_infer.preprocess import (InputSpec, check_image, disparity_to_input, flow_to_input,
                                      graph_intrinsics, next_source_position, snippet_indices)
-from geonet_infer.session import make_session, make_session_options, usable_cpus
+from geonet_infer.engines import BACKENDS, Engine, make_engine, pick_fastest
+from geonet_infer.session import usable_cpus
 
 ImageLike = Union[np.ndarray, str, Path]
 Intrinsics = Union[np.ndarray, Sequence[Sequence[float]], Camera]
@@ -161,15 +162,18 @@ class _Timer:
 
 
 # ----------------------------------------------------------------------------- predictor
-def load(model: str | Path | None = None, *, precision: str = "fp32", threads: int | None = None) -> "Predictor":
+def load(model: str | Path | None = None, *, precision: str = "fp32", threads: int | None = None,
+         backend: str = "onnxruntime") -> "Predictor":
     """Load a model: None = the bundled default, a bundled name, or a model directory.
 
     Args:
         model: see above (``geonet_infer.models.bundled_models()`` lists the names).
         precision: "fp32" or "int8" (quantised ConvNets; the rigid-flow op stays fp32).
-        threads: intra-op threads per session; None = the CPUs this process may use.
+        threads: intra-op threads per graph; None = the CPUs this process may use.
+        backend: "onnxruntime", "openvino" (extra ``geonet-infer[openvino]``) or "auto"
+            (times both on each graph at load, keeps the faster; see :mod:`geonet_infer.engines`).
     """
-    return Predictor(resolve_model(model), precision=precision, threads=threads)
+    return Predictor(resolve_model(model), precision=precision, threads=threads, backend=backend)
 
 
 class Predictor:
@@ -180,43 +184,55 @@ class Predictor:
     """
 
     def __init__(self, model_dir: str | Path, precision: str = "fp32", threads: int | None = None,
-                 manifest: Manifest | None = None):
+                 manifest: Manifest | None = None, backend: str = "onnxruntime"):
         if precision not in PRECISIONS:
             raise GeoNetInputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISIONS)}")
+        if backend not in BACKENDS:
+            raise GeoNetInputError(None, f"unknown backend {backend!r}", f"choose one of {', '.join(BACKENDS)}")
         self.manifest = manifest or load_manifest(model_dir)
         self.model_dir = Path(self.manifest.root or model_dir)
         self.precision = precision
         self.spec = InputSpec.from_manifest(self.manifest)
         self.threads = usable_cpus() if threads is None else threads
-        options = make_session_options(threads=self.threads)
         self.graphs = self.manifest.graph_names(precision)
-        self._sessions = {name: make_session(self.manifest.path(name, precision), options) for name in self.graphs}
+        self.backend = backend
+        self.backend_choice: dict[str, dict] = {}  # backend="auto": per graph, the timings behind the choice
+        self._engines: dict[str, Engine] = {}
+        for name in self.graphs:
+            path = self.manifest.path(name, precision)
+            if backend == "auto":
+                self._engines[name], self.backend_choice[name] = pick_fastest(path, self.threads)
+            else:
+                self._engines[name] = make_engine(path, backend, self.threads)
+
+    @property
+    def engines(self) -> dict[str, str]:
+        """Graph name -> the engine running it ("onnxruntime" or "openvino")."""
+        return {name: engine.backend for name, engine in self._engines.items()}
 
     def __repr__(self) -> str:
         return (f"Predictor({str(self.model_dir)!r}, precision={self.precision!r}, threads={self.threads}, "
-                f"arch={self.manifest.arch!r}, size={self.spec.height}x{self.spec.width})")
+                f"backend={self.backend!r}, arch={self.manifest.arch!r}, size={self.spec.height}x{self.spec.width})")
 
     @property
     def has_flow(self) -> bool:
         """Whether the model has ResFlowNet (else flow = rigid flow)."""
-        return "resflownet" in self._sessions
+        return "resflownet" in self._engines
 
     @property
     def seq_length(self) -> int:
         return self.spec.seq_length
 
-    def session(self, name: str):
-        """The onnxruntime session of graph ``name`` (benchmarks, profiling)."""
-        if name not in self._sessions:
+    def engine(self, name: str) -> Engine:
+        """The engine of graph ``name``: ``run(feeds) -> {output: array}`` (benchmarks, profiling)."""
+        if name not in self._engines:
             raise GeoNetInputError(self.model_dir / MANIFEST_NAME, f"no '{name}' graph in the {self.precision} set",
-                                   f"graphs present: {', '.join(self._sessions)}")
-        return self._sessions[name]
+                                   f"graphs present: {', '.join(self._engines)}")
+        return self._engines[name]
 
     # ------------------------------------------------------------------ graph calls
     def _run(self, name: str, **feeds: np.ndarray) -> dict[str, np.ndarray]:
-        session = self._sessions[name]
-        out = session.run(None, {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in feeds.items()})
-        return dict(zip([o.name for o in session.get_outputs()], out))
+        return self._engines[name].run({k: np.ascontiguousarray(v, dtype=np.float32) for k, v in feeds.items()})
 
     # ------------------------------------------------------------------ inputs
     def _read(self, image: ImageLike, timer: _Timer, index: int = 0) -> tuple[np.ndarray, str]:

@@ -99,7 +99,7 @@ def run_command(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
     try:
         summary = run_batch(args.inputs, args.out, engine=args.engine, workers=args.workers,
-                            threads=args.threads_per_worker, model=args.model, precision=args.precision,
+                            threads=args.threads_per_worker, model=args.model, precision=args.precision, backend=args.backend,
                             tasks=tasks, batch_size=args.batch_size, camera=camera, resume=args.resume,
                             ray_address=args.ray_address, progress=not args.no_progress)
     finally:

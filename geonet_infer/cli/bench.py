@@ -14,7 +14,7 @@ sequence       per-frame cost of ``Predictor.iter_sequence`` (depth computed onc
 
 Modes (``--modes``):
 
-* ``graph``: the onnxruntime sessions only, on prepared inputs (normalised, graph size);
+* ``graph``: the engines only (onnxruntime sessions or OpenVINO compiled models), on prepared inputs (normalised, graph size);
   the chained tasks (flow, sequence) pass each graph's outputs to the next one.
 * ``e2e``: from uint8 frames at ``--input-size`` (default 1242x375, KITTI raw) to outputs
   at that size, through the runtime: ``Predictor.depth`` / ``pose`` / ``flow`` /
@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import collections
 import gc
-import inspect
 import json
 import os
 import subprocess
@@ -47,6 +46,7 @@ import numpy as np
 from geonet_infer.cli.common import add_model_args
 from geonet_infer.cli.info import environment, model_summary
 from geonet_infer.conventions import scale_intrinsics
+from geonet_infer.engines import BACKENDS, openvino_available
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
@@ -60,7 +60,6 @@ from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mi
 
 TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
 MODES = ("graph", "e2e")
-BACKENDS = ("onnxruntime",)  # what this runtime's Predictor runs on today
 DEFAULT_INPUT_SIZE = (1242, 375)  # (W, H) of KITTI raw frames
 # Graphs each task needs; flow and sequence also use resflownet when the model has it.
 TASK_GRAPHS = {"depth": ("depthnet",), "pose": ("posenet",), "rigid_flow": ("rigidflow",),
@@ -95,7 +94,8 @@ def add_parser(sub) -> None:
     group.add_argument("--modes", default=",".join(MODES), metavar="LIST",
                        help="graph (network only), e2e (with pre/post-processing) or both (default)")
     group.add_argument("--backend", default=BACKENDS[0], metavar="LIST",
-                       help=f"comma list of inference backends (default: {BACKENDS[0]})")
+                       help=f"comma list of inference backends: {', '.join(BACKENDS)} (default: {BACKENDS[0]}; "
+                            "openvino needs the [openvino] extra; auto keeps the faster engine per graph)")
     group.add_argument("--warmup", type=int, default=3, help="untimed calls per case before timing (default: 3)")
     group.add_argument("--iters", type=int, default=20, help="timed calls per case (default: 20)")
     group.add_argument("--block", type=int, default=4,
@@ -147,10 +147,6 @@ def _parse_size(text: str) -> tuple[int, int] | None:
     return w, h
 
 
-def _load_supports_backend() -> bool:
-    return "backend" in inspect.signature(load).parameters
-
-
 def _check_args(args) -> dict:
     if args.iters < 1:
         raise GeoNetInputError(None, f"--iters must be >= 1, got {args.iters}")
@@ -162,11 +158,10 @@ def _check_args(args) -> dict:
         raise GeoNetInputError(None, f"--rewarm-ms must be >= 0, got {args.rewarm_ms}")
     if args.seq_frames < 2:
         raise GeoNetInputError(None, f"--seq-frames must be >= 2, got {args.seq_frames}", "a sequence needs a pair")
-    backends = [b.strip() for b in str(args.backend).split(",") if b.strip()]
-    if not _load_supports_backend():
-        _parse_list(args.backend, BACKENDS, "backend")
-    elif not backends:
-        raise GeoNetInputError(None, "--backend is empty", f"e.g. --backend {BACKENDS[0]}")
+    backends = _parse_list(args.backend, BACKENDS, "backend")
+    if "openvino" in backends and not openvino_available():
+        raise GeoNetInputError(None, "--backend openvino needs the OpenVINO runtime, which is not installed",
+                               "pip install 'geonet-infer[openvino]'")
     model_dir = resolve_model(args.model)
     manifest = load_manifest(model_dir)
     where = Path(manifest.root or model_dir) / MANIFEST_NAME
@@ -228,17 +223,16 @@ def bench_frames(input_size: tuple[int, int] | None, graph_size: tuple[int, int]
 
 # ----------------------------------------------------------------------------- graphs
 class Graphs:
-    """Calls the predictor's sessions directly: feeds must be C-contiguous float32."""
+    """Calls the predictor's engines directly: feeds must be C-contiguous float32."""
 
     def __init__(self, predictor: Predictor):
-        self.sessions = {n: predictor.session(n) for n in predictor.graphs}
-        self.outputs = {n: [o.name for o in s.get_outputs()] for n, s in self.sessions.items()}
+        self.engines = {n: predictor.engine(n) for n in predictor.graphs}
 
     def __contains__(self, name: str) -> bool:
-        return name in self.sessions
+        return name in self.engines
 
     def __call__(self, name: str, **feeds: np.ndarray) -> dict[str, np.ndarray]:
-        return dict(zip(self.outputs[name], self.sessions[name].run(None, feeds)))
+        return self.engines[name].run(feeds)
 
 
 def _c(a: np.ndarray) -> np.ndarray:
@@ -380,23 +374,6 @@ def _git_commit() -> str | None:
         return None
 
 
-def session_options(session) -> dict:
-    """What the session was created with (read back from onnxruntime; {} for another engine)."""
-    if not hasattr(session, "get_session_options"):
-        return {"engine": type(session).__name__}
-    so = session.get_session_options()
-    out = {"providers": session.get_providers(), "intra_op_num_threads": so.intra_op_num_threads,
-           "inter_op_num_threads": so.inter_op_num_threads, "execution_mode": str(so.execution_mode),
-           "graph_optimization_level": str(so.graph_optimization_level),
-           "enable_cpu_mem_arena": so.enable_cpu_mem_arena, "enable_mem_pattern": so.enable_mem_pattern}
-    for key in ("session.intra_op.allow_spinning", "session.inter_op.allow_spinning"):
-        try:
-            out[key] = so.get_session_config_entry(key)
-        except Exception:  # noqa: BLE001 -- unset keys raise in some versions
-            out[key] = None
-    return out
-
-
 def _graph_files_mib(manifest, precision: str) -> float:
     files = {g.file for g in manifest.graphs[precision].values()}
     return sum((manifest.root / f).stat().st_size for f in files) / 2 ** 20
@@ -476,14 +453,15 @@ def run(args: argparse.Namespace) -> int:
         for precision in plan["precisions"]:
             gc.collect()
             rss_before = current_rss_mib()
-            kwargs = {"backend": backend} if _load_supports_backend() else {}
             t0 = time.perf_counter()
-            predictor = load(plan["model_dir"], precision=precision, threads=args.threads, **kwargs)
+            predictor = load(plan["model_dir"], precision=precision, threads=args.threads, backend=backend)
             load_s = time.perf_counter() - t0
             rss_loaded = current_rss_mib()
             graphs_mib = _graph_files_mib(manifest, precision)
             env.setdefault("threads", predictor.threads)
-            env.setdefault("session_options", session_options(predictor.session("depthnet")))
+            ort_engines = [predictor.engine(n) for n, e in predictor.engines.items() if e == "onnxruntime"]
+            if ort_engines:
+                env.setdefault("session_options", ort_engines[0].describe())
             for batch in plan["batches"]:
                 cases, skip = build_cases(predictor, plan["tasks"], plan["modes"], batch, frames, camera,
                                           args.seq_frames)
@@ -493,6 +471,10 @@ def run(args: argparse.Namespace) -> int:
                 time_interleaved([c for _, _, c, _ in cases], warmup=args.warmup, iters=args.iters,
                                  block=args.block, rewarm_ms=args.rewarm_ms)
                 results += [_row(t, m, precision, backend, batch, c, x) for t, m, c, x in cases]
+            env.setdefault("engines", {})[f"{backend}/{precision}"] = {
+                name: {**predictor.engine(name).describe(), **({"auto": predictor.backend_choice[name]}
+                                                               if name in predictor.backend_choice else {})}
+                for name in predictor.graphs}
             peak = peak_rss_mib()
             env["memory"][f"{backend}/{precision}"] = {
                 "load_s": round(load_s, 3), "graph_files_mib": round(graphs_mib, 2),
