@@ -35,6 +35,7 @@ from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.images import write_image
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.predictor import FrameResult, Predictor
+from geonet_infer.scale import SequenceScaler, check_camera_height
 from geonet_infer.viz import depth_to_color, flow_to_color
 
 TASKS = ("depth", "pose", "flow")
@@ -93,7 +94,8 @@ class _Frames:
 
 
 def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Path, camera: Camera | None = None,
-                   tasks: tuple[str, ...] = TASKS, batch_size: int = 4, progress: bool = True) -> dict:
+                   tasks: tuple[str, ...] = TASKS, batch_size: int = 4, progress: bool = True,
+                   camera_height: float | None = None) -> dict:
     """Predict every frame of ``source`` into ``out_dir`` (layout in the module docstring).
 
     Args:
@@ -101,6 +103,8 @@ def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Pat
         source: frames from :func:`geonet_infer.io.frames.open_frames`.
         camera: intrinsics (and distortion) of the frames; required for "flow".
         tasks: any of "depth", "pose", "flow".
+        camera_height: metres above a flat road: metric depth and pose translations
+            (:mod:`geonet_infer.scale`; needs ``camera``).
     Returns:
         The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad frames.
     Raises:
@@ -114,24 +118,32 @@ def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Pat
     if "flow" in tasks and camera is None:
         raise GeoNetInputError(source.path, "flow needs camera intrinsics and none were found",
                                "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)")
+    if camera_height is not None:
+        check_camera_height(camera_height)
+        if camera is None:
+            raise GeoNetInputError(source.path, "--camera-height needs camera intrinsics and none were found",
+                                   "pass --calib FILE or --intrinsics FX,FY,CX,CY")
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     totals: dict[str, float] = defaultdict(float)
     poses: list[np.ndarray] = []
     done = 0
+    scales: list[float] = []
     bar = tqdm(total=len(source) or None, unit="frame", desc=source.name, disable=not progress, leave=False)
     frames = _Frames(source, bar)
     try:
         if tasks == ("depth",):
-            results = _depth_only(predictor, frames, camera, batch_size)
+            results = _depth_only(predictor, frames, camera, batch_size, camera_height)
         else:
             results = predictor.iter_sequence(frames, camera, batch_size=batch_size, names=frames.names,
-                                              with_flow="flow" in tasks)
+                                              with_flow="flow" in tasks, camera_height=camera_height)
         for result in results:
             t0 = time.perf_counter()
             _write_frame(out_dir, result, tasks)
             totals["write"] += (time.perf_counter() - t0) * 1e3
             poses.append(result.camera_to_world)
+            if result.metric_scale is not None:
+                scales.append(result.metric_scale)
             for stage, ms in result.timings_ms.items():
                 totals[stage] += ms
             done += 1
@@ -166,6 +178,9 @@ def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Pat
             "dist": None if camera.dist is None else camera.dist.tolist(),
             "source": camera.source, "undistorted": camera.has_distortion},
         "image_size": None if frames.size is None else [frames.size[1], frames.size[0]],
+        "metric_scale": None if camera_height is None else {
+            "camera_height_m": camera_height, "per_frame_median": float(np.median(scales)) if scales else None,
+            "per_frame_min": min(scales, default=None), "per_frame_max": max(scales, default=None)},
         "timings_ms_per_frame": {k: v / max(done, 1) for k, v in totals.items()},
         "wall_s": elapsed, "frames_per_s": done / elapsed if elapsed > 0 else None,
         "versions": {"geonet_infer": __version__, "python": platform.python_version()},
@@ -186,19 +201,26 @@ def _outputs(tasks: tuple[str, ...]) -> list[str]:
     return out
 
 
-def _depth_only(predictor: Predictor, frames: _Frames, camera: Camera | None, batch_size: int
-                ) -> Iterator[FrameResult]:
+def _depth_only(predictor: Predictor, frames: _Frames, camera: Camera | None, batch_size: int,
+                camera_height: float | None = None) -> Iterator[FrameResult]:
     """Depth in batches of ``batch_size`` frames; works on a single image too."""
     batch: list[np.ndarray] = []
     index = 0
+    scaler = SequenceScaler(camera_height) if camera_height is not None else None
 
     def flush():
         nonlocal index
-        for rgb_result in predictor.depth(batch, camera=camera):
-            yield FrameResult(index=index, name=frames.names[index], depth=rgb_result.depth,
-                              disparity=rgb_result.disparity, camera_to_world=np.eye(4), pose_to_next=None,
+        for rgb, rgb_result in zip(batch, predictor.depth(batch, camera=camera)):
+            depth, disparity, scale = rgb_result.depth, rgb_result.disparity, None
+            if scaler is not None:
+                K = camera.scaled_to(rgb.shape[1], rgb.shape[0]).K
+                scale = scaler(depth, K, frames.names[index])
+                depth, disparity = depth * scale, disparity / scale
+            yield FrameResult(index=index, name=frames.names[index], depth=depth,
+                              disparity=disparity, camera_to_world=np.eye(4), pose_to_next=None,
                               pose_vector_to_next=None, flow=None, rigid_flow=None, residual_flow=None,
-                              undistorted=rgb_result.undistorted, timings_ms=rgb_result.timings_ms)
+                              undistorted=rgb_result.undistorted, timings_ms=rgb_result.timings_ms,
+                              metric_scale=scale)
             index += 1
 
     for rgb in frames:

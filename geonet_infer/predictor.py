@@ -35,6 +35,7 @@ from geonet_infer.models import resolve_model
 from geonet_infer.preprocess import (InputSpec, check_image, disparity_to_input, flow_to_input,
                                      graph_intrinsics, next_source_position, snippet_indices)
 from geonet_infer.engines import BACKENDS, Engine, make_engine, pick_fastest
+from geonet_infer.scale import SequenceScaler, check_camera_height
 from geonet_infer.session import usable_cpus
 
 ImageLike = Union[np.ndarray, str, Path]
@@ -46,12 +47,17 @@ STAGES = ("read", "preprocess", "depthnet", "posenet", "rigidflow", "resflownet"
 # ----------------------------------------------------------------------------- results
 @dataclass
 class DepthResult:
-    """depth and disparity (H, W) float32 at the input resolution; depth = 1 / disparity, relative scale."""
+    """depth and disparity (H, W) float32 at the input resolution; depth = 1 / disparity.
+
+    Relative scale, unless a camera height was given: then ``metric_scale`` is the factor
+    applied (see :mod:`geonet_infer.scale`) and depth is in metres.
+    """
 
     depth: np.ndarray
     disparity: np.ndarray
     undistorted: bool
     timings_ms: dict[str, float]
+    metric_scale: float | None = None
 
 
 @dataclass
@@ -92,7 +98,8 @@ class FrameResult:
 
     depth, disparity: (H, W) float32 at the input resolution.
     camera_to_world: (4, 4) this frame's pose in the first frame's camera coordinates
-    (first frame = identity; translation up to the model's unknown scale).
+    (first frame = identity; translation up to the model's unknown scale, or metres with
+    ``camera_height``: each pair's translation takes its target frame's ``metric_scale``).
     pose_to_next: (4, 4) target -> next-frame transform (None for the last frame).
     flow, rigid_flow, residual_flow: (H, W, 2) flow to the next frame (None for the last
     frame; residual None for a model without ResFlowNet).
@@ -111,6 +118,7 @@ class FrameResult:
     residual_flow: np.ndarray | None
     undistorted: bool
     timings_ms: dict[str, float]
+    metric_scale: float | None = None  # with camera_height: depth and translations are in metres
 
 
 @dataclass
@@ -159,6 +167,16 @@ class _Timer:
         out = {k: v * share for k, v in self.ms.items()}
         out["total"] = sum(out.values())
         return out
+
+
+# ----------------------------------------------------------------------------- metric scale
+def _check_camera_height(camera_height: float | None, camera) -> None:
+    if camera_height is None:
+        return
+    check_camera_height(camera_height)
+    if camera is None:
+        raise GeoNetInputError(None, "camera_height needs the camera intrinsics",
+                               "pass camera= / K= (a Camera, a 3x3 K, or --calib / --intrinsics)")
 
 
 # ----------------------------------------------------------------------------- predictor
@@ -289,13 +307,15 @@ class Predictor:
                                "pass consecutive frames of one video")
 
     # ------------------------------------------------------------------ depth
-    def depth(self, image: ImageLike | Sequence[ImageLike], camera: Intrinsics | None = None
-              ) -> DepthResult | list[DepthResult]:
+    def depth(self, image: ImageLike | Sequence[ImageLike], camera: Intrinsics | None = None, *,
+              camera_height: float | None = None) -> DepthResult | list[DepthResult]:
         """Depth of one image, or of a list of images run as one batch.
 
         Args:
             image: uint8 RGB (H, W, 3) array or path; or a list of them (sizes may differ).
             camera: optional Camera (or K); a camera with lens distortion undistorts first.
+            camera_height: metres between the camera and a flat road: depth is scaled so the
+                ground plane fitted to it lies that far below (needs ``camera``).
         Returns:
             DepthResult (a list for a list input) at each image's own resolution.
         """
@@ -303,6 +323,7 @@ class Predictor:
         images = [image] if single else list(image)
         if not images:
             return []
+        _check_camera_height(camera_height, camera)
         timer = _Timer()
         rgbs = [self._read(img, timer, i)[0] for i, img in enumerate(images)]
         cameras = [self._camera(camera, r.shape[:2]) for r in rgbs]
@@ -311,11 +332,16 @@ class Predictor:
             disparity = self._run("depthnet", image=x)["disparity"][:, 0]
         results = []
         with timer.stage("postprocess"):
-            for d, r, c in zip(disparity, rgbs, cameras):
+            for i, (d, r, c) in enumerate(zip(disparity, rgbs, cameras)):
                 depth, disp = disparity_to_input(d, r.shape[:2])
-                results.append((depth, disp, bool(c and c.has_distortion)))
+                scale = None
+                if camera_height is not None:
+                    scale = SequenceScaler(camera_height)(depth, c.K, f"image {i}")
+                    depth, disp = depth * scale, disp / scale
+                results.append((depth, disp, bool(c and c.has_distortion), scale))
         timings = timer.result(1.0 / len(images))
-        out = [DepthResult(depth=d, disparity=p, undistorted=u, timings_ms=dict(timings)) for d, p, u in results]
+        out = [DepthResult(depth=d, disparity=p, undistorted=u, timings_ms=dict(timings), metric_scale=m)
+               for d, p, u, m in results]
         return out[0] if single else out
 
     # ------------------------------------------------------------------ pose
@@ -419,7 +445,8 @@ class Predictor:
 
     # ------------------------------------------------------------------ sequences
     def iter_sequence(self, frames: Iterable[ImageLike], K: Intrinsics | None, *, batch_size: int = 4,
-                      names: Sequence[str] | None = None, with_flow: bool = True) -> Iterator[FrameResult]:
+                      names: Sequence[str] | None = None, with_flow: bool = True,
+                      camera_height: float | None = None) -> Iterator[FrameResult]:
         """Stream a whole sequence: yields one :class:`FrameResult` per frame, in order.
 
         Each frame's depth is computed once (one DepthNet batch per ``batch_size``
@@ -431,6 +458,9 @@ class Predictor:
         Frames are read lazily (an iterator of frames or paths is fine).
         ``with_flow=False`` skips the rigid-flow op and ResFlowNet (depth and poses
         only; K may then be None, or a Camera used only to undistort).
+        ``camera_height`` (metres, needs K) makes each frame's depth and its pose
+        translation metric (:mod:`geonet_infer.scale`); a frame whose ground plane is
+        hidden keeps the previous frame's scale.
         """
         if batch_size < 1:
             raise GeoNetInputError(None, f"batch_size must be >= 1, got {batch_size}")
@@ -443,6 +473,8 @@ class Predictor:
         size: tuple[int, int] | None = None
         n_read, exhausted = 0, False
         pose_world = np.eye(4)
+        _check_camera_height(camera_height, K)
+        scaler = SequenceScaler(camera_height) if camera_height is not None else None
         t0 = 0
         while True:
             timer = _Timer()
@@ -490,23 +522,33 @@ class Predictor:
                     flows = (self._flows_to_input(parts, j, size) if t in paired and with_flow else
                              {"flow": None, "rigid_flow": None, "residual_flow": None})
                     pose_next = parts["pose_matrix"][j].astype(np.float64) if t in paired else None
-                    results.append((t, depth, disp, pose_next, parts["pose"][j] if t in paired else None, flows))
+                    vector = parts["pose"][j] if t in paired else None
+                    scale = None
+                    if scaler is not None:
+                        scale = scaler(depth, camera.K, frame_names[t])
+                        depth, disp = depth * scale, disp / scale
+                        if pose_next is not None:
+                            pose_next = pose_next.copy()
+                            pose_next[:3, 3] *= scale
+                            vector = vector.copy()
+                            vector[:3] *= scale
+                    results.append((t, depth, disp, pose_next, vector, flows, scale))
             share = timer.result(1.0 / len(batch))
-            for t, depth, disp, pose_next, vector, flows in results:
+            for t, depth, disp, pose_next, vector, flows, scale in results:
                 yield FrameResult(index=t, name=frame_names.pop(t), depth=depth, disparity=disp,
                                   camera_to_world=pose_world.copy(), pose_to_next=pose_next,
                                   pose_vector_to_next=vector, undistorted=bool(camera and camera.has_distortion),
-                                  timings_ms=dict(share), **flows)
+                                  timings_ms=dict(share), metric_scale=scale, **flows)
                 if pose_next is not None:
                     pose_world = pose_world @ rigid_inverse(pose_next)
             t0 = batch[-1] + 1
             for i in [i for i in prepared if i < t0 - k]:
                 del prepared[i]
 
-    def predict_sequence(self, frames: Iterable[ImageLike], K: Intrinsics, *, batch_size: int = 4
-                         ) -> SequenceResult:
+    def predict_sequence(self, frames: Iterable[ImageLike], K: Intrinsics, *, batch_size: int = 4,
+                         camera_height: float | None = None) -> SequenceResult:
         """All of :meth:`iter_sequence` in memory (mind the size of flow for long videos)."""
-        results = list(self.iter_sequence(frames, K, batch_size=batch_size))
+        results = list(self.iter_sequence(frames, K, batch_size=batch_size, camera_height=camera_height))
         totals: dict[str, float] = defaultdict(float)
         for r in results:
             for stage, ms in r.timings_ms.items():

@@ -18,7 +18,8 @@ name), or a KITTI raw drive folder (frames from image_02/data; calibration
 calib_cam_to_cam.txt found in the folder or up to two levels up).
 
 Outputs in --out (written atomically; a bad frame is recorded in summary.json and skipped):
-  depth/<frame>.npy      float32 depth at the input resolution (relative scale)
+  depth/<frame>.npy      float32 depth at the input resolution (relative scale; metres
+                         with --camera-height)
   depth/<frame>.png      colour map (near = bright)
   flow/<frame>.png       KITTI 16-bit flow PNG, frame -> next frame
   flow_vis/<frame>.png   flow colour wheel
@@ -31,6 +32,7 @@ examples:
   geonet-infer predict ../shared/realdata/udacity_dashcam/test_video.mp4 --out out/dashcam \\
       --calib ../shared/realdata/udacity_dashcam/calib_advanced_lane_lines.txt
   geonet-infer predict frames/ --out out/frames --intrinsics 721.5,721.5,609.6,172.9 --precision int8
+  geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_m --camera-height 1.65
 """
 
 
@@ -45,6 +47,9 @@ def add_parser(sub) -> None:
                         help="comma list of depth,pose,flow (default: all; flow needs intrinsics)")
     parser.add_argument("--batch-size", type=positive_int, default=4,
                         help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)")
+    parser.add_argument("--camera-height", type=float, default=None, metavar="METRES",
+                        help="camera height above a flat road: depth and pose translations in metres, from a "
+                             "ground plane fitted to each frame's depth (needs intrinsics; e.g. 1.65 for KITTI)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(run=run)
 
@@ -55,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     camera = camera_from_args(args, source.default_calib)
     predictor = load_predictor(args)
     summary = predict_to_dir(predictor, source, args.out, camera=camera, tasks=tasks,
-                             batch_size=args.batch_size, progress=not args.no_progress)
+                             batch_size=args.batch_size, progress=not args.no_progress,
+                             camera_height=args.camera_height)
     print(f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
           f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}")
     print(stage_table(summary["timings_ms_per_frame"], summary["frames"]))

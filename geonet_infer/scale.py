@@ -1,0 +1,137 @@
+"""Metric scale for monocular depth from a known camera height above a flat road.
+
+Monocular depth is known up to one factor per image. If the camera sits ``h`` metres
+above a locally flat ground, the ground plane fitted to the predicted depth lies
+``h_pred`` units below the camera, and ``depth * h / h_pred`` is metric.
+
+Conventions: camera coordinates x right, y down, z forward (OpenCV); K at the
+depth map's resolution. The plane is fitted with RANSAC over the lower part of the
+image (where the road is), its normal required to be within ``max_tilt_deg`` of the
+camera's y axis, then refined by least squares on the inliers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from geonet_infer.errors import GeoNetInputError
+
+
+@dataclass
+class GroundFit:
+    """A ground plane n . X = d (|n| = 1, n pointing down, d > 0 = camera height in depth units)."""
+
+    normal: np.ndarray  # (3,)
+    height: float  # camera height above the plane, in the depth map's units
+    inlier_fraction: float
+    n_points: int
+
+    def scale_for(self, camera_height_m: float) -> float:
+        """The factor that makes the depth map metric."""
+        return camera_height_m / self.height
+
+
+def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W) depth -> (H, W, 3) camera points ``depth * K^-1 [u, v, 1]`` (pixel centres at integers)."""
+    h, w = depth.shape
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = depth.astype(np.float64)
+    return np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1)
+
+
+def _plane_through(p: np.ndarray) -> tuple[np.ndarray, float] | None:
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    norm = np.linalg.norm(n)
+    if norm < 1e-12:
+        return None
+    n = n / norm
+    if n[1] < 0:  # point down (+y), so d = n . X > 0 for ground below the camera
+        n = -n
+    return n, float(n @ p[0])
+
+
+def fit_ground_plane(depth: np.ndarray, K: np.ndarray, *, rows_from: float | None = None,
+                     max_tilt_deg: float = 20.0, inlier_rel: float = 0.02, iterations: int = 200,
+                     max_points: int = 20000, seed: int = 0) -> GroundFit:
+    """RANSAC ground plane of a depth map.
+
+    Args:
+        depth: (H, W) positive depth (any scale); non-finite or <= 0 pixels are ignored.
+        K: (3, 3) intrinsics at (H, W).
+        rows_from: first image row searched, as a fraction of H; default: 5 % of H below
+            the principal point (the horizon of a level camera).
+        max_tilt_deg: largest angle between the plane normal and the camera's y axis.
+        inlier_rel: inlier distance as a fraction of the candidate plane's camera height.
+    Raises:
+        GeoNetInputError if no plausible ground plane is found.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise GeoNetInputError(None, f"depth must be (H, W), got shape {depth.shape}")
+    h, _ = depth.shape
+    start = int(np.clip((K[1, 2] / h + 0.05) if rows_from is None else rows_from, 0.0, 0.95) * h)
+    points = backproject(depth, K)[start:].reshape(-1, 3)
+    points = points[np.isfinite(points).all(axis=1) & (points[:, 2] > 0)]
+    if len(points) < 50:
+        raise GeoNetInputError(None, f"only {len(points)} valid depth pixels below row {start}",
+                               "the ground plane needs the road in the lower part of the image")
+    rng = np.random.default_rng(seed)
+    if len(points) > max_points:
+        points = points[rng.choice(len(points), max_points, replace=False)]
+    cos_tilt = np.cos(np.deg2rad(max_tilt_deg))
+    best, best_count = None, 0
+    for _ in range(iterations):
+        plane = _plane_through(points[rng.choice(len(points), 3, replace=False)])
+        if plane is None or plane[0][1] < cos_tilt or plane[1] <= 0:
+            continue
+        n, d = plane
+        count = int((np.abs(points @ n - d) < inlier_rel * d).sum())
+        if count > best_count:
+            best, best_count = plane, count
+    if best is None or best_count < 0.1 * len(points):
+        raise GeoNetInputError(None, "no ground plane found in the depth map "
+                               f"({best_count} of {len(points)} points on the best candidate)",
+                               "metric scale from camera height needs a visible, roughly flat road")
+    n, d = best
+    inliers = points[np.abs(points @ n - d) < inlier_rel * d]
+    centroid = inliers.mean(axis=0)
+    normal = np.linalg.svd(inliers - centroid, full_matrices=False)[2][-1]
+    if normal[1] < 0:
+        normal = -normal
+    return GroundFit(normal=normal, height=float(normal @ centroid), inlier_fraction=len(inliers) / len(points),
+                     n_points=len(points))
+
+
+def metric_depth(depth: np.ndarray, K: np.ndarray, camera_height_m: float, **fit_options
+                 ) -> tuple[np.ndarray, GroundFit]:
+    """Depth scaled so the fitted ground plane lies ``camera_height_m`` below the camera."""
+    check_camera_height(camera_height_m)
+    fit = fit_ground_plane(depth, K, **fit_options)
+    return (depth * fit.scale_for(camera_height_m)).astype(np.float32), fit
+
+
+class SequenceScaler:
+    """Per-frame metric scale along a video: a frame whose ground is hidden (a truck ahead)
+    keeps the previous frame's scale; the first frames must show the road."""
+
+    def __init__(self, camera_height_m: float):
+        check_camera_height(camera_height_m)
+        self.camera_height_m = camera_height_m
+        self.last: float | None = None
+
+    def __call__(self, depth: np.ndarray, K: np.ndarray, label: str) -> float:
+        try:
+            self.last = fit_ground_plane(depth, K).scale_for(self.camera_height_m)
+        except GeoNetInputError as err:
+            if self.last is None:
+                raise GeoNetInputError(label, err.problem, err.hint) from None
+        return self.last
+
+
+def check_camera_height(camera_height_m) -> None:
+    if (not isinstance(camera_height_m, (int, float)) or not np.isfinite(camera_height_m)
+            or camera_height_m <= 0):
+        raise GeoNetInputError(None, f"camera height must be a positive number of metres, got {camera_height_m!r}",
+                               "e.g. 1.65 for KITTI's colour cameras")
