@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from geonet_infer.errors import GeoNetInputError
-from training.kitti_depth import (
+from geonet_infer.velodyne import (
     load_velodyne_points,
     project_velodyne,
     velodyne_to_depth_map,

@@ -1,22 +1,20 @@
-"""Evaluate depth and flow on the held-out synthetic sequences.
+"""Score a PyTorch checkpoint with the runtime's evaluation code (same datasets, metrics, tables).
 
-``python -m training.evaluate --checkpoint runs/rigid/last.pt --synth-dir data/synth
---prepared-dir data/prepared``
+``python -m training.evaluate --checkpoint runs/small_flow/last.pt --data data/synth40
+--heldout data/synth40_prepared/heldout.txt --task all``
 
-The loops take plain numpy predictors, so the same code scores a torch
-checkpoint, an exported ONNX fp32 model and its INT8 twin:
+This module only turns a checkpoint into the numpy callables that
+:mod:`geonet_infer.evaluation` scores (so a checkpoint, its ONNX fp32 export and the
+INT8 twin are measured by one code path). Frames go through the runtime's own pre- and
+post-processing (:mod:`geonet_infer.preprocess`: area resize to the training size,
+normalisation, outputs mapped back to the input size), so any layout works, KITTI included.
 
-* ``predict_depth(rgb uint8 (H, W, 3)) -> depth (H, W)``
-* ``predict_flow(frames [t-1, t, t+1] uint8, K (3, 3)) -> flow t->t+1 (H, W, 2)``
-
-Depth follows the Eigen protocol (median scaling, clamp to [1e-3, 80] m) on
-every pixel with ground truth (no Garg crop: synthetic frames have no car bonnet
-or sky-less band to crop). Flow is EPE on noc and occ pixels (KITTI 2015 style).
+``evaluate_depth`` / ``evaluate_flow`` keep the summary format that ``export`` and
+``training.model_card`` read (held-out synthetic sequences, with the trivial baselines).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Callable
@@ -24,15 +22,17 @@ from typing import Callable
 import numpy as np
 import torch
 
-from geonet_infer import metrics
-from geonet_infer.conventions import IMAGE_NORM
+from geonet_infer import baselines, evaluation, metrics
+from geonet_infer.datasets import LAYOUTS, depth_dataset, flow_dataset, load_dataset, read_heldout
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import list_images, read_calib_K, read_depth_kitti, read_flow_kitti, read_image
+from geonet_infer.preprocess import InputSpec, disparity_to_input, flow_to_input, graph_intrinsics
+from training.checkpoint import load_checkpoint, model_from_checkpoint
+from training.geometry import pose_vec_to_mat
 from training.model import GeoNet
 
 DepthFn = Callable[[np.ndarray], np.ndarray]
 FlowFn = Callable[[list, np.ndarray], np.ndarray]
-MAX_DEPTH = 80.0
+MAX_DEPTH = evaluation.MAX_DEPTH
 
 
 def heldout_sequences(prepared_dir: str | Path) -> list[str]:
@@ -41,146 +41,174 @@ def heldout_sequences(prepared_dir: str | Path) -> list[str]:
     if not path.is_file():
         raise GeoNetInputError(path, "no held-out list",
                                "prepare synthetic data with `python -m training.prepare --kind synth`")
-    return sorted({line.split()[0] for line in path.read_text().splitlines() if line.strip()})
+    return read_heldout(path)
 
 
-def _frames(sequence_dir: Path) -> list[Path]:
-    image_dir = sequence_dir / "image"
-    try:
-        return list_images(image_dir)
-    except GeoNetInputError as err:
-        raise GeoNetInputError(image_dir, err.problem, "is this a training.synth sequence?") from None
+# -------------------------------------------------------------- summaries for export / model card
+def _mean(rows: list[dict], keys) -> dict:
+    return metrics.aggregate([{k: r.get(k, np.nan) for k in keys} for r in rows])
 
 
 def evaluate_depth(predict_depth: DepthFn, synth_dir: str | Path, sequences: list[str],
                    stride: int = 1, crop: str | None = None) -> dict:
-    """Depth metrics of ``predict_depth`` and of a constant-depth baseline.
+    """{"model": means, "constant_baseline": means, "frames": n} on held-out synthetic sequences.
 
-    Returns {"model": {abs_rel, ...}, "constant_baseline": {...}, "frames": n}.
-    The baseline predicts one constant; after median scaling that constant is
-    the median ground-truth depth of each frame. ``crop``: None (every pixel with
-    ground truth) or a KITTI crop name of :func:`geonet_infer.metrics.crop_mask`.
+    ``crop``: None (every pixel with ground truth) or a crop name of :func:`geonet_infer.metrics.crop_mask`.
     """
-    model_rows, baseline_rows = [], []
-    for name in sequences:
-        for frame in _frames(Path(synth_dir) / name)[::stride]:
-            gt = read_depth_kitti(frame.parent.parent / "depth" / frame.name)
-            pred = predict_depth(read_image(frame))
-            pred = metrics.resize_depth_to(pred, gt.shape)
-            model_rows.append(metrics.depth_metrics(gt, pred, max_depth=MAX_DEPTH, crop=crop))
-            baseline_rows.append(metrics.depth_metrics(gt, np.ones_like(gt), max_depth=MAX_DEPTH, crop=crop))
-    return {"model": metrics.aggregate(model_rows), "constant_baseline": metrics.aggregate(baseline_rows),
-            "frames": len(model_rows)}
+    data = depth_dataset(synth_dir, "synth", sequences, stride)
+    keys = (*metrics.DEPTH_KEYS, "scale", "n_valid")
+    out = {}
+    for name, fn in (("model", predict_depth), ("constant_baseline", baselines.constant_depth)):
+        out[name] = _mean(evaluation.evaluate_depth(fn, data, crop=crop)["items"], keys)
+    return out | {"frames": len(data.items)}
 
 
-def evaluate_flow(predict_flow: FlowFn, synth_dir: str | Path, sequences: list[str],
-                  stride: int = 1) -> dict:
-    """EPE (noc and occ) of flow t -> t+1 predicted from the triplet [t-1, t, t+1]."""
-    rows_noc, rows_occ, zero_noc = [], [], []
-    for name in sequences:
-        seq = Path(synth_dir) / name
-        frames = _frames(seq)
-        K = read_calib_K(seq / "calib.txt")
-        for t in range(1, len(frames) - 1, stride):
-            triplet = [read_image(frames[i]) for i in (t - 1, t, t + 1)]
-            pred = predict_flow(triplet, K)
-            gt_noc, valid_noc = read_flow_kitti(seq / "flow_noc" / frames[t].name)
-            gt_occ, valid_occ = read_flow_kitti(seq / "flow_occ" / frames[t].name)
-            rows_noc.append(metrics.flow_epe(gt_noc, valid_noc, pred))
-            rows_occ.append(metrics.flow_epe(gt_occ, valid_occ, pred))
-            zero_noc.append(metrics.flow_epe(gt_noc, valid_noc, np.zeros_like(pred)))
-    return {"noc": metrics.aggregate(rows_noc), "occ": metrics.aggregate(rows_occ),
-            "zero_flow_baseline_noc": metrics.aggregate(zero_noc), "pairs": len(rows_noc)}
+def _flow_summary(rows: list[dict], which: str) -> dict:
+    return _mean([{"epe": r[f"epe_{which}"], "fl": r[f"fl_{which}"], "acc": 1.0 - r[f"fl_{which}"],
+                   "n_valid": r.get(f"n_valid_{which}", np.nan)} for r in rows], ("epe", "fl", "acc", "n_valid"))
+
+
+def evaluate_flow(predict_flow: FlowFn, synth_dir: str | Path, sequences: list[str], stride: int = 1) -> dict:
+    """EPE/Fl (noc and occ) of flow t -> t+1 from the triplet [t-1, t, t+1], and the zero-flow baseline."""
+    data = flow_dataset(synth_dir, "synth", sequences, stride)
+    if not getattr(predict_flow, "needs_intrinsics", False):
+        predict_flow = _needs_K(predict_flow)
+    model = evaluation.evaluate_flow(predict_flow, data)["items"]
+    zero = evaluation.evaluate_flow(baselines.zero_flow, data)["items"]
+    return {"noc": _flow_summary(model, "noc"), "occ": _flow_summary(model, "all"),
+            "zero_flow_baseline_noc": _flow_summary(zero, "noc"), "pairs": len(model)}
+
+
+def _needs_K(fn):
+    def predict(frames, K):
+        return fn(frames, K)
+    predict.needs_intrinsics = True
+    return predict
 
 
 # -------------------------------------------------------------- torch predictors
-def _to_tensor(rgb: np.ndarray) -> torch.Tensor:
-    """uint8 (H, W, 3) -> (1, 3, H, W) in [0, 1]."""
-    return torch.from_numpy(rgb).permute(2, 0, 1).float().div(255.0).unsqueeze(0)
+class _TorchModel:
+    """A checkpoint's GeoNet behind the runtime's pre/post-processing."""
 
+    def __init__(self, model: GeoNet, height: int, width: int):
+        self.model = model
+        self.seq_length = model.num_source + 1
+        self.spec = InputSpec.from_conventions(height, width, self.seq_length)
 
-def _check_size(model_hw: tuple[int, int], rgb: np.ndarray, what: str) -> None:
-    if rgb.shape[:2] != model_hw:
-        raise GeoNetInputError(None, f"{what} is {rgb.shape[0]}x{rgb.shape[1]}, the model was trained at "
-                               f"{model_hw[0]}x{model_hw[1]}", "generate or prepare data at that size")
+    def normalised(self, rgb: np.ndarray) -> torch.Tensor:
+        """(1, 3, h, w) network-range tensor, resized like the runtime."""
+        return torch.from_numpy(self.spec.to_network(rgb)).unsqueeze(0)
+
+    def unit(self, rgb: np.ndarray) -> torch.Tensor:
+        """(1, 3, h, w) in [0, 1] (flow_forward normalises itself)."""
+        return (self.normalised(rgb) - self.spec.norm_offset) / self.spec.norm_scale
 
 
 def torch_depth_predictor(model: GeoNet, height: int, width: int) -> DepthFn:
+    tm = _TorchModel(model, height, width)
+
     @torch.no_grad()
     def predict(rgb: np.ndarray) -> np.ndarray:
-        _check_size((height, width), rgb, "frame")
-        disp = model.depth_net(IMAGE_NORM.apply(_to_tensor(rgb)))[0]
-        return (1.0 / disp)[0, 0].numpy()
+        disp = model.depth_net(tm.normalised(rgb))[0][0, 0].numpy()
+        return disparity_to_input(disp, rgb.shape[:2])[0]
     return predict
 
 
 def torch_flow_predictor(model: GeoNet, height: int, width: int) -> FlowFn:
-    """Full flow from the target (middle frame) to the last source (t+1), scale 0."""
+    """Full flow from the target to the frame after it, scale 0; a pair [t, t+1] is padded to
+    [t, t, t+1] like the runtime does at a sequence start."""
+    tm = _TorchModel(model, height, width)
+
     @torch.no_grad()
-    def predict(triplet: list, K: np.ndarray) -> np.ndarray:
-        _check_size((height, width), triplet[1], "frame")
-        target = _to_tensor(triplet[1])
-        sources = torch.stack([_to_tensor(triplet[0])[0], _to_tensor(triplet[2])[0]]).unsqueeze(0)
-        K_t = torch.from_numpy(np.asarray(K, np.float32)).unsqueeze(0)
+    def predict(frames: list, K: np.ndarray) -> np.ndarray:
+        frames = list(frames) if len(frames) == 3 else [frames[-2], frames[-2], frames[-1]]
+        target = tm.unit(frames[1])
+        sources = torch.stack([tm.unit(frames[0])[0], tm.unit(frames[2])[0]]).unsqueeze(0)
+        K_t = torch.from_numpy(graph_intrinsics(K, frames[1].shape[:2], tm.spec)).unsqueeze(0)
         fwd_full, _, _, _ = model.flow_forward(target, sources, K_t)
-        return fwd_full[0][1].permute(1, 2, 0).numpy()  # rows i-major: row 1 = source t+1
+        return flow_to_input(fwd_full[0][1].numpy(), frames[1].shape[:2])  # row 1 = source t+1
+    predict.needs_intrinsics = True
     return predict
 
 
-# -------------------------------------------------------------- ONNX predictors (the runtime)
-def _refuse_random_init(predictor) -> None:
-    if predictor.manifest.random_init:
-        raise GeoNetInputError(predictor.model_dir, "this model directory holds random-init (timing-only) graphs",
-                               "accuracy needs graphs exported from a trained --checkpoint")
+def torch_pose_predictor(model: GeoNet, height: int, width: int) -> Callable:
+    """5-frame snippet poses in the first frame's coordinates (:func:`evaluation.snippet_from_pose_calls`)."""
+    tm = _TorchModel(model, height, width)
+
+    @torch.no_grad()
+    def pose_call(frames: list) -> np.ndarray:
+        mid = len(frames) // 2
+        order = [mid] + [i for i in range(len(frames)) if i != mid]  # target, then sources in time order
+        stacked = torch.cat([tm.normalised(frames[i]) for i in order], dim=1)
+        vectors = model.pose_net(stacked)[0]  # (N, 6)
+        return pose_vec_to_mat(vectors).double().numpy()
+
+    return lambda frames, K: evaluation.snippet_from_pose_calls(pose_call, frames, tm.seq_length)
 
 
+# -------------------------------------------------------------- ONNX predictors (export's accuracy delta)
 def onnx_depth_fn(predictor) -> DepthFn:
     """``predict_depth`` of a :class:`geonet_infer.predictor.Predictor` (refuses random-init models)."""
-    _refuse_random_init(predictor)
-    return lambda rgb: predictor.depth(rgb).depth
+    return evaluation.model_depth_fn(predictor)
 
 
 def onnx_flow_fn(predictor) -> FlowFn:
     """``predict_flow(frames [t-1, t, t+1], K)`` of a Predictor: full flow t -> t+1."""
-    _refuse_random_init(predictor)
-    return lambda triplet, K: predictor.flow(triplet, K).flow
+    return evaluation.model_flow_fn(predictor)
+
+
+# -------------------------------------------------------------- command line
+def checkpoint_methods(model: GeoNet, cfg: dict, tasks: list[str], label: str) -> dict[str, tuple[str, Callable]]:
+    """{task: (row label, fn)} of a loaded checkpoint; flow only if it has ResFlowNet."""
+    makers = {"depth": torch_depth_predictor, "flow": torch_flow_predictor, "pose": torch_pose_predictor}
+    return {t: (label, makers[t](model, cfg["height"], cfg["width"])) for t in tasks
+            if t != "flow" or model.flow_net is not None}
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", required=True, help="a last.pt / best.pt from training.train")
-    p.add_argument("--synth-dir", required=True, help="output of training.synth")
-    p.add_argument("--prepared-dir", required=True, help="output of training.prepare (has heldout.txt)")
-    p.add_argument("--task", choices=["depth", "flow", "all"], default="all")
-    p.add_argument("--crop", choices=["none", "garg", "eigen"], default="none",
-                   help="depth: pixels scored (none = all with ground truth; garg/eigen = KITTI crops)")
-    p.add_argument("--stride", type=int, default=1, help="evaluate every n-th frame")
-    p.add_argument("--out", help="write the JSON result here too")
+    p.add_argument("--data", type=Path, help="dataset folder, any layout of `geonet-infer eval --help`")
+    p.add_argument("--layout", default="auto", choices=["auto"] + sorted({n for v in LAYOUTS.values() for n in v}))
+    p.add_argument("--heldout", type=Path, help="synth layout: only the sequences of this heldout.txt")
+    p.add_argument("--synth-dir", type=Path, help="older form: output of training.synth (= --data)")
+    p.add_argument("--prepared-dir", type=Path, help="older form: output of training.prepare (its heldout.txt)")
+    p.add_argument("--task", choices=["depth", "flow", "pose", "all"], default="all")
+    p.add_argument("--crop", choices=["auto", "none", "garg", "eigen"], default="auto",
+                   help="depth crop (auto: Garg on KITTI, every GT pixel on synthetic)")
+    p.add_argument("--max-depth", type=float, default=MAX_DEPTH, help="depth cap in metres (default 80)")
+    p.add_argument("--stride", type=int, default=1, help="evaluate every n-th item")
+    p.add_argument("--out", "--json", dest="out", help="write the JSON result here too")
     args = p.parse_args(argv)
-    from training.train import load_checkpoint, model_from_checkpoint  # avoid an import cycle
     try:
+        data = args.data or args.synth_dir
+        if data is None:
+            raise GeoNetInputError(None, "no data", "pass --data DIR (or --synth-dir with --prepared-dir)")
+        sequences = (read_heldout(args.heldout) if args.heldout else
+                     heldout_sequences(args.prepared_dir) if args.prepared_dir else None)
         ckpt = load_checkpoint(args.checkpoint)
         model = model_from_checkpoint(ckpt)
-        cfg = ckpt["config"]
-        sequences = heldout_sequences(args.prepared_dir)
-        result = {"checkpoint": str(args.checkpoint), "step": ckpt["step"], "sequences": sequences}
-        if args.task in ("depth", "all"):
-            result["depth"] = evaluate_depth(torch_depth_predictor(model, cfg["height"], cfg["width"]),
-                                             args.synth_dir, sequences, args.stride,
-                                             crop=None if args.crop == "none" else args.crop)
-            result["depth"]["crop"] = args.crop
-        if args.task in ("flow", "all") and model.flow_net is not None:
-            result["flow"] = evaluate_flow(torch_flow_predictor(model, cfg["height"], cfg["width"]),
-                                           args.synth_dir, sequences, args.stride)
+        tasks = ["depth", "flow", "pose"] if args.task == "all" else [args.task]
+        label = f"checkpoint {Path(args.checkpoint).name} (step {ckpt['step']})"
+        results = []
+        for task, (row, fn) in checkpoint_methods(model, ckpt["config"], tasks, label).items():
+            dataset = load_dataset(task, data, args.layout, sequences=sequences, stride=args.stride)
+            kwargs = ({"crop": None if args.crop == "none" else args.crop, "max_depth": args.max_depth}
+                      if task == "depth" else {})
+            results.append((row, evaluation.EVALUATORS[task](fn, dataset, method=row, **kwargs)))
     except GeoNetInputError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    text = json.dumps(result, indent=2)
-    print(text)
+    for _, result in results:
+        print(evaluation.format_table([(result["method"], result)]))
     if args.out:
-        Path(args.out).write_text(text + "\n")
-    return 0
+        evaluation.write_json(args.out, {"checkpoint": str(args.checkpoint), "step": ckpt["step"],
+                                         "results": [r for _, r in results]})
+    errors = [e for _, r in results for e in r["errors"]]
+    for e in errors:
+        print(f"error: {e['item']}: {e['problem']}", file=sys.stderr)
+    return 1 if errors else 0
 
 
 if __name__ == "__main__":

@@ -10,10 +10,10 @@ import argparse
 import sys
 
 from geonet_infer import __version__
-from geonet_infer.cli import batch, bench, demo, info, predict
+from geonet_infer.cli import batch, bench, demo, eval, info, predict
 from geonet_infer.errors import GeoNetInputError
 
-SUBCOMMANDS = (predict, batch, demo, info, bench)
+SUBCOMMANDS = (predict, batch, demo, info, bench, eval)
 EXIT_OK, EXIT_PARTIAL, EXIT_USAGE = 0, 1, 2
 
 

@@ -1,0 +1,149 @@
+"""``geonet-infer eval``: score a model (ONNX) or a classical baseline in the paper's terms."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from geonet_infer import evaluation
+from geonet_infer.cli.common import add_model_args, load_predictor, positive_int
+from geonet_infer.datasets import LAYOUTS, TASKS, load_dataset, read_heldout
+from geonet_infer.errors import GeoNetInputError
+
+HELP = """\
+Score depth, optical flow or camera pose against ground truth, with the GeoNet paper's
+protocols, and print a table in the paper's column order (JSON with every item via --json).
+
+  depth  Eigen metrics AbsRel SqRel RMSE RMSElog δ<1.25 δ<1.25² δ<1.25³; per-image median
+         scaling, then clamp to [0.001, --max-depth]; Garg crop on KITTI, every GT pixel on
+         synthetic frames (--crop to change).
+  flow   average end-point error on non-occluded (Noc) and all (All) GT pixels, and Fl
+         (outliers: EPE > 3 px and > 5 %); predictions resized to the GT size (nearest,
+         vectors scaled).
+  pose   ATE on 5-frame snippets with the paper's alignment (first positions matched, one
+         least-squares scale): the paper's value divides by N, not √N (a quirk kept for
+         comparability: it is NOT an RMSE), so the true RMSE is printed beside it.
+
+--method: model (the ONNX model, --model/--precision) or a baseline that needs no model:
+  depth: constant            flow: dis (DIS medium + ultrafast), dis-medium, dis-ultrafast, zero
+  pose:  orb-vo (ORB + essential matrix + recoverPose per pair, unit steps, scale-aligned), identity
+Comma-separate several to get one table (--method model,dis,zero).
+
+Layouts (--layout, default auto):
+  depth  synth       training.synth folders: seq_NNNN/image + depth/ (KITTI depth PNG)
+         kitti-raw   drive folder: image_02/data + proj_depth/groundtruth/image_02 (uint16/256 PNG)
+                     or velodyne_points/data + calib_cam_to_cam.txt, calib_velo_to_cam.txt
+                     (here or up to two levels up), projected on the fly
+  flow   synth       seq_NNNN/image, flow_noc/, flow_occ/, calib.txt
+         kitti       KITTI 2015 (image_2/, calib_cam_to_cam/) or 2012 (colored_0/, calib/):
+                     NNNNNN_10.png -> _11.png, flow_noc/, flow_occ/; the model's 3-frame snippet
+                     takes NNNNNN_09.png (multi-view extension: same folder or --multiview DIR);
+                     without it the pair is padded [_10, _10, _11] as at a video start
+         middlebury  other-data[-gray]/<Seq>/frame10.png, frame11.png + other-gt-flow/<Seq>/flow10.flo
+                     (no intrinsics: the model needs --intrinsics)
+  pose   synth       seq_NNNN/image + poses.txt + calib.txt
+         kitti-odometry  sequences/XX with image_2/ (or image_0/), calib.txt, and poses.txt
+                     there or poses/XX.txt two levels up; frames matched to poses by number
+
+exit codes: 0 done; 1 some predictions held NaN/inf (reported per item, means are NaN);
+2 bad usage or data (one line naming the file)
+
+examples:
+  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd
+  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --max-depth 50 --precision int8
+  geonet-infer eval flow --data ../shared/realdata/middlebury_flow --method dis,zero
+  geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 --method model,orb-vo,identity
+  geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --json flow.json
+"""
+
+
+def add_parser(sub) -> None:
+    parser = sub.add_parser("eval", help="accuracy against ground truth (model or baselines), paper's tables",
+                            description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("task", choices=TASKS, help="what to score")
+    parser.add_argument("--data", type=Path, required=True, help="dataset folder (see layouts above)")
+    parser.add_argument("--layout", default="auto",
+                        choices=["auto"] + sorted({name for names in LAYOUTS.values() for name in names}),
+                        help="data layout (default: detected from the folder)")
+    parser.add_argument("--method", default="model",
+                        help="comma list: model, or a baseline (see above) (default: model)")
+    add_model_args(parser)
+    group = parser.add_argument_group("selection")
+    group.add_argument("--heldout", type=Path, default=None,
+                       help="synth layout: score only the sequences listed in this heldout.txt")
+    group.add_argument("--stride", type=positive_int, default=1, help="score every n-th item (default: 1)")
+    group.add_argument("--limit", type=positive_int, default=None, help="score at most this many items")
+    group = parser.add_argument_group("protocol")
+    group.add_argument("--max-depth", type=float, default=evaluation.MAX_DEPTH,
+                       help="depth cap in metres, GT mask and clamp (default: 80; the paper also reports 50)")
+    group.add_argument("--crop", default="auto", choices=["auto", "garg", "eigen", "none"],
+                       help="depth crop (default auto: Garg on KITTI, none on synthetic)")
+    group.add_argument("--no-median-scaling", action="store_true",
+                       help="depth: score raw depths (metric or stereo-scaled models only)")
+    group.add_argument("--multiview", type=Path, default=None,
+                       help="kitti flow: folder of the multi-view extension holding NNNNNN_09.png")
+    group.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY",
+                       help="flow with a model on data without calibration (Middlebury): K at the frames' size")
+    parser.add_argument("--json", type=Path, default=None, help="also write every result and item here")
+    parser.set_defaults(run=run)
+
+
+def parse_intrinsics(text: str | None) -> np.ndarray | None:
+    if text is None:
+        return None
+    try:
+        fx, fy, cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise GeoNetInputError(None, f"--intrinsics {text!r} is not four numbers", "write FX,FY,CX,CY") from None
+    if not (fx > 0 and fy > 0):
+        raise GeoNetInputError(None, f"--intrinsics {text!r}: focal lengths must be positive")
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+
+
+def methods_for(task: str, text: str, args) -> list[tuple[str, object]]:
+    """[(row label, fn)] for the comma list ``text``; loads the model only if asked for."""
+    out = []
+    for method in [m.strip() for m in text.split(",") if m.strip()]:
+        if method == "model":
+            predictor = load_predictor(args)
+            label = f"{Path(predictor.model_dir).name} ONNX {predictor.precision}"
+            out.append((label, evaluation.model_fn(task, predictor)))
+        else:
+            out += list(evaluation.baseline_fns(task, method).items())
+    if not out:
+        raise GeoNetInputError(None, "--method is empty", "e.g. --method model or --method dis")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.max_depth <= evaluation.MIN_DEPTH:
+        raise GeoNetInputError(None, f"--max-depth {args.max_depth:g} must be above {evaluation.MIN_DEPTH:g} m")
+    sequences = read_heldout(args.heldout) if args.heldout else None
+    options = {"sequences": sequences, "stride": args.stride, "limit": args.limit}
+    if args.task == "flow":
+        options["multiview"] = args.multiview
+    dataset = load_dataset(args.task, args.data, args.layout, **options)
+    K = parse_intrinsics(args.intrinsics)
+    results = []
+    for label, fn in methods_for(args.task, args.method, args):
+        if args.task == "depth":
+            result = evaluation.evaluate_depth(fn, dataset, method=label, max_depth=args.max_depth,
+                                               crop=None if args.crop == "none" else args.crop,
+                                               median_scaling=not args.no_median_scaling)
+        elif args.task == "flow":
+            result = evaluation.evaluate_flow(fn, dataset, method=label, intrinsics=K)
+        else:
+            result = evaluation.evaluate_pose(fn, dataset, method=label)
+        results.append((label, result))
+    print(evaluation.format_table(results))
+    for note in dataset.notes:
+        print(f"note: {note}")
+    if args.json:
+        evaluation.write_json(args.json, {"task": args.task, "results": [r for _, r in results]})
+        print(f"details: {args.json}")
+    failed = [(label, e) for label, r in results for e in r["errors"]]
+    for label, error in failed:
+        print(f"geonet-infer eval: {label}: {error['item']}: {error['problem']}", file=sys.stderr)
+    return 1 if failed else 0

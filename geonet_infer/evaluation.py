@@ -1,0 +1,372 @@
+"""Scoring loops shared by ``geonet-infer eval`` (ONNX), ``python -m training.evaluate``
+(PyTorch checkpoints) and the results report: one metric code path for every method.
+
+A method is a plain numpy callable (model adapters below, baselines in
+:mod:`geonet_infer.baselines`, torch predictors in ``training.evaluate``):
+
+* depth ``fn(rgb uint8 (H, W, 3)) -> depth (h, w)``, resized to the GT size (bilinear, on depth);
+* flow ``fn(frames, K) -> flow (h, w, 2)`` from ``frames[-2]`` to ``frames[-1]`` (``frames`` =
+  [t-1, t, t+1] or the pair [t, t+1]), resized to the GT size with nearest neighbour and
+  vectors scaled per axis (the official test);
+* pose ``fn(frames (5), K) -> poses (5, 4, 4)`` of each frame in the first frame's coordinates.
+
+Any callable may return ``(array, info_dict)``; ``info`` is kept with the item. A
+prediction holding NaN or infinity is *reported*: the item's metrics become NaN, so
+every mean over it is NaN too (never dropped), and ``errors`` names the item.
+Broken data (missing file, size mismatch, no valid ground-truth pixel) raises
+:class:`~geonet_infer.errors.GeoNetInputError` naming the file.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from geonet_infer import metrics
+from geonet_infer.datasets import SNIPPET, Dataset
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io import read_image
+from geonet_infer.io.atomic import atomic_write
+
+MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
+# Paper column order (Tables 1-3), then our extra columns. (header, key, format)
+COLUMNS = {
+    "depth": [("AbsRel", "abs_rel", "{:.3f}"), ("SqRel", "sq_rel", "{:.3f}"), ("RMSE", "rmse", "{:.3f}"),
+              ("RMSElog", "rmse_log", "{:.3f}"), ("δ<1.25", "a1", "{:.3f}"), ("δ<1.25²", "a2", "{:.3f}"),
+              ("δ<1.25³", "a3", "{:.3f}")],
+    "flow": [("EPE Noc", "epe_noc", "{:.2f}"), ("EPE All", "epe_all", "{:.2f}"), ("Fl-noc", "fl_noc", "{:.1%}"),
+             ("Fl-all", "fl_all", "{:.1%}")],
+    "pose": [("ATE (paper, ÷N)", "ate_snippet", "{:.4f}"), ("ATE RMSE", "ate_rmse_true", "{:.4f}")],
+}
+COUNT_LABEL = {"depth": "frames", "flow": "pairs", "pose": "snippets"}
+
+
+# ----------------------------------------------------------------------------- calling methods
+def _call(fn, *args) -> tuple[np.ndarray, dict]:
+    out = fn(*args)
+    if isinstance(out, tuple):
+        return np.asarray(out[0]), dict(out[1])
+    return np.asarray(out), {}
+
+
+def _nonfinite(pred: np.ndarray) -> int:
+    return int(pred.size - np.count_nonzero(np.isfinite(pred)))
+
+
+def _nan_row(keys) -> dict:
+    return {k: math.nan for k in keys}
+
+
+def _intrinsics(item, fn, override: np.ndarray | None) -> np.ndarray | None:
+    """K for methods that need it: ``override`` (at the item's frame size) or the item's calibration."""
+    if not getattr(fn, "needs_intrinsics", False):
+        return None
+    if override is not None:
+        return np.asarray(override, dtype=np.float64)
+    K = item.intrinsics()
+    if K is None:
+        raise GeoNetInputError(item.frames[-1], "no camera intrinsics for this pair",
+                               "the model's rigid flow needs K: add the calibration file of this layout or pass "
+                               "--intrinsics FX,FY,CX,CY")
+    return K
+
+
+def _read_frames(paths: list[Path]) -> list[np.ndarray]:
+    frames = [read_image(p) for p in paths]
+    for p, f in zip(paths, frames):
+        if f.shape != frames[-1].shape:
+            raise GeoNetInputError(p, f"frame is {f.shape[1]}x{f.shape[0]}, {paths[-1].name} is "
+                                   f"{frames[-1].shape[1]}x{frames[-1].shape[0]}", "frames of one item must share a size")
+    return frames
+
+
+def _result(task: str, method: str, dataset: Dataset, settings: dict, rows: list[dict], errors: list[dict],
+            std: bool = False) -> dict:
+    keys = [k for _, k, _ in COLUMNS[task]]
+    values = [{k: r[k] for k in keys} for r in rows]
+    out = {"task": task, "method": method, "data": dataset.describe(), "settings": settings,
+           "metrics": metrics.aggregate(values), "items": rows, "errors": errors}
+    if std:
+        out["std"] = metrics.aggregate_std(values)
+    return out
+
+
+# ----------------------------------------------------------------------------- depth
+def evaluate_depth(fn: Callable, dataset: Dataset, *, method: str = "model", max_depth: float = MAX_DEPTH,
+                   min_depth: float = MIN_DEPTH, crop: str | None = "auto", median_scaling: bool = True,
+                   observe: Callable | None = None) -> dict:
+    """Eigen depth metrics of ``fn`` on every item, averaged per image.
+
+    crop: "garg", "eigen", None, or "auto" (Garg on KITTI, none on synthetic frames, which have
+    no bonnet or empty sky band to crop). ``observe(item, rgb, gt, pred, row)`` sees each scored
+    frame (figures). Returns the result dict (see module docstring).
+    """
+    if crop == "auto":
+        crop = "garg" if dataset.layout == "kitti-raw" else None
+    keys = [k for _, k, _ in COLUMNS["depth"]]
+    rows, errors = [], []
+    for item in dataset.items:
+        rgb = read_image(item.image)
+        gt = item.load_gt(rgb.shape[:2])
+        mask = (gt > min_depth) & (gt < max_depth) & metrics.crop_mask(gt.shape, crop)
+        if not mask.any():
+            raise GeoNetInputError(item.gt, f"no ground-truth pixel in ({min_depth:g}, {max_depth:g}) m inside the "
+                                   f"{crop or 'full-image'} crop", "check the ground truth of this frame")
+        pred, info = _call(fn, rgb)
+        if pred.ndim != 2:
+            raise GeoNetInputError(item.image, f"predicted depth has shape {pred.shape}, expected (H, W)",
+                                   "the depth method must return one 2-D map per image")
+        bad = _nonfinite(pred)
+        row = {"name": item.name}
+        if bad:
+            errors.append({"item": item.name, "problem": f"prediction has {bad} NaN/inf values"})
+            rows.append(row | _nan_row(keys) | info)
+            continue
+        pred = metrics.resize_depth_to(pred, gt.shape)
+        try:
+            scores = metrics.depth_metrics(gt, pred, min_depth, max_depth, crop=crop, median_scaling=median_scaling)
+        except GeoNetInputError as err:  # e.g. non-positive median prediction: the method's fault
+            errors.append({"item": item.name, "problem": err.problem})
+            scores = _nan_row(keys)
+        rows.append(row | scores | info)
+        if observe is not None:
+            observe(item, rgb, gt, pred, rows[-1])
+    settings = {"min_depth": min_depth, "max_depth": max_depth, "crop": crop, "median_scaling": median_scaling,
+                "resize": "prediction depth resized to GT size, cv2 bilinear"}
+    return _result("depth", method, dataset, settings, rows, errors)
+
+
+# ----------------------------------------------------------------------------- flow
+def evaluate_flow(fn: Callable, dataset: Dataset, *, method: str = "model", intrinsics: np.ndarray | None = None,
+                  observe: Callable | None = None) -> dict:
+    """EPE on non-occluded (Noc) and all (All = KITTI "occ") GT pixels, and the Fl outlier rates.
+
+    ``intrinsics``: K at the frames' size for items without a calibration file (Middlebury).
+    ``observe(item, frames, gt_all, valid_all, pred, row)`` sees each scored pair.
+    """
+    keys = [k for _, k, _ in COLUMNS["flow"]]
+    rows, errors = [], []
+    for item in dataset.items:
+        frames = _read_frames(item.frames)
+        gt_noc, valid_noc = item.load_gt("noc")
+        gt_all, valid_all = item.load_gt("occ")
+        height, width = frames[-1].shape[:2]
+        for path, gt in ((item.gt_noc, gt_noc), (item.gt_occ, gt_all)):
+            if gt.shape[:2] != (height, width):
+                raise GeoNetInputError(path, f"flow ground truth is {gt.shape[1]}x{gt.shape[0]}, the frames are "
+                                       f"{width}x{height}", "ground truth and frames must have the same size")
+        pred, info = _call(fn, frames, _intrinsics(item, fn, intrinsics))
+        if pred.ndim != 3 or pred.shape[2] != 2:
+            raise GeoNetInputError(item.frames[-2], f"predicted flow has shape {pred.shape}, expected (H, W, 2)",
+                                   "the flow method must return (u, v) per pixel")
+        row = {"name": item.name, "snippet": item.snippet}
+        bad = _nonfinite(pred)
+        if bad:
+            errors.append({"item": item.name, "problem": f"prediction has {bad} NaN/inf values"})
+            rows.append(row | _nan_row(keys) | info)
+            continue
+        if pred.shape[:2] != (height, width):
+            pred = metrics.resize_flow_nearest(pred, (height, width))
+        scored = {}
+        for which, gt, valid, path in (("noc", gt_noc, valid_noc, item.gt_noc), ("all", gt_all, valid_all, item.gt_occ)):
+            if not valid.any():
+                raise GeoNetInputError(path, "flow ground truth has no valid pixel", "check the GT's valid channel")
+            r = metrics.flow_epe(gt, valid, pred)
+            scored |= {f"epe_{which}": r["epe"], f"fl_{which}": r["fl"], f"n_valid_{which}": r["n_valid"]}
+        rows.append(row | scored | info)
+        if observe is not None:
+            observe(item, frames, gt_all, valid_all, pred, rows[-1])
+    settings = {"resize": "nearest to GT size, u *= W/w, v *= H/h (official test)",
+                "fl": f"EPE > {metrics.FLOW_OUTLIER_PX:g} px and > {metrics.FLOW_OUTLIER_REL:.0%} of |gt|"}
+    return _result("flow", method, dataset, settings, rows, errors)
+
+
+# ----------------------------------------------------------------------------- pose
+def gt_snippet(camera_to_world: np.ndarray) -> np.ndarray:
+    """GT camera-to-world poses -> poses in the snippet's first frame (official path: world->camera,
+    then :func:`~geonet_infer.metrics.snippet_poses_to_global`)."""
+    return metrics.snippet_poses_to_global(metrics.rigid_inverse(camera_to_world))
+
+
+def ate_rows(gt_xyz: np.ndarray, pred_xyz: np.ndarray) -> dict:
+    """Paper ATE (÷N quirk) and true RMSE of one snippet. First positions are subtracted so they are
+    exactly 0 (``inv(C) @ C`` leaves ~1e-16, to which the alignment would fit a huge scale)."""
+    gt_xyz = gt_xyz - gt_xyz[0]
+    pred_xyz = pred_xyz - pred_xyz[0]
+    return {"ate_snippet": metrics.ate_snippet(gt_xyz, pred_xyz),
+            "ate_rmse_true": metrics.ate_rmse_true(gt_xyz, pred_xyz)}
+
+
+def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", observe: Callable | None = None) -> dict:
+    """Snippet ATE (paper's alignment and ÷N) and true RMSE, mean and std over snippets.
+
+    ``observe(item, gt_poses, pred_poses, row)`` sees each snippet (both in first-frame coordinates).
+    """
+    keys = [k for _, k, _ in COLUMNS["pose"]]
+    rows, errors = [], []
+    for item in dataset.items:
+        frames = _read_frames(item.frames)
+        K = item.intrinsics() if getattr(fn, "needs_intrinsics", False) else None
+        pred, info = _call(fn, frames, K)
+        if pred.shape != (SNIPPET, 4, 4):
+            raise GeoNetInputError(item.frames[0], f"predicted snippet poses have shape {pred.shape}, "
+                                   f"expected ({SNIPPET}, 4, 4)", "one pose per snippet frame")
+        row = {"name": item.name}
+        bad = _nonfinite(pred)
+        if bad:
+            errors.append({"item": item.name, "problem": f"prediction has {bad} NaN/inf values"})
+            rows.append(row | _nan_row(keys) | info)
+            continue
+        gt = gt_snippet(item.gt_c2w)
+        rows.append(row | ate_rows(gt[:, :3, 3], pred[:, :3, 3]) | info)
+        if observe is not None:
+            observe(item, gt, pred, rows[-1])
+    settings = {"snippet": SNIPPET, "alignment": "first positions matched, scale s = Σ(gt·pred)/Σ(pred²), no rotation",
+                "ate_snippet": "sqrt(Σ|e|²)/N: the paper's value (divides by N, not sqrt(N): NOT an RMSE)",
+                "ate_rmse_true": "sqrt(Σ|e|²/N) after the same alignment"}
+    return _result("pose", method, dataset, settings, rows, errors, std=True)
+
+
+EVALUATORS = {"depth": evaluate_depth, "flow": evaluate_flow, "pose": evaluate_pose}
+
+
+# ----------------------------------------------------------------------------- model adapters
+def _needs_K(fn):
+    fn.needs_intrinsics = True
+    return fn
+
+
+def refuse_random_init(predictor) -> None:
+    if predictor.manifest.random_init:
+        raise GeoNetInputError(predictor.model_dir, "this model directory holds random-init (timing-only) graphs",
+                               "accuracy needs graphs exported from a trained --checkpoint")
+
+
+def model_depth_fn(predictor) -> Callable:
+    """Depth of a :class:`~geonet_infer.predictor.Predictor` at the input resolution."""
+    refuse_random_init(predictor)
+    return lambda rgb: predictor.depth(rgb).depth
+
+
+def model_flow_fn(predictor) -> Callable:
+    """Full flow t -> t+1; a 3-frame model gets [t-1, t, t+1] when the item has it, any other
+    case the pair [t, t+1] (the runtime pads it as at a video start)."""
+    refuse_random_init(predictor)
+
+    def predict(frames, K):
+        if len(frames) == predictor.seq_length:
+            return predictor.flow(list(frames), K).flow
+        return predictor.flow(list(frames[-2:]), K).flow
+    return _needs_K(predict)
+
+
+def snippet_from_pose_calls(pose_fn: Callable, frames: list, seq_length: int) -> np.ndarray:
+    """5-frame snippet poses (first-frame coordinates) from a PoseNet taking ``seq_length`` frames.
+
+    ``pose_fn(frames) -> (L-1, 4, 4)`` target->source transforms (target in the middle).
+    L = 5: one call, the paper's protocol. L = 3: the triplets [0, 1, 2] and [2, 3, 4], chained
+    through frame 2: G1 = T(1->0), G2 = G1 T(1->2)^-1, G3 = G2 T(3->2), G4 = G3 T(3->4)^-1.
+    """
+    if seq_length == SNIPPET:
+        return metrics.snippet_poses_to_global(pose_fn(frames), target_index=SNIPPET // 2)
+    if seq_length != 3:
+        raise GeoNetInputError(None, f"pose snippets need a PoseNet of 3 or 5 frames, this one takes {seq_length}",
+                               "export the model with --seq-length 3 or 5")
+    (T10, T12), (T32, T34) = pose_fn(frames[0:3]), pose_fn(frames[2:5])
+    G1 = np.asarray(T10, np.float64)
+    G2 = G1 @ metrics.rigid_inverse(T12)
+    G3 = G2 @ np.asarray(T32, np.float64)
+    return np.stack([np.eye(4), G1, G2, G3, G3 @ metrics.rigid_inverse(T34)])
+
+
+def model_pose_fn(predictor) -> Callable:
+    """Snippet poses from the runtime's PoseNet (:func:`snippet_from_pose_calls`)."""
+    refuse_random_init(predictor)
+    return lambda frames, K: snippet_from_pose_calls(lambda f: predictor.pose(list(f)).matrices, frames,
+                                                     predictor.seq_length)
+
+
+def model_fn(task: str, predictor) -> Callable:
+    return {"depth": model_depth_fn, "flow": model_flow_fn, "pose": model_pose_fn}[task](predictor)
+
+
+# ----------------------------------------------------------------------------- baselines
+def baseline_fns(task: str, method: str) -> dict[str, Callable]:
+    """{row label: fn} of a baseline ``method`` ("dis" gives both DIS presets)."""
+    from geonet_infer import baselines as b
+
+    table = {
+        "depth": {"constant": {"constant depth": b.constant_depth}},
+        "flow": {"zero": {"zero flow": b.zero_flow},
+                 "dis": {"DIS medium": b.dis_flow("medium"), "DIS ultrafast": b.dis_flow("ultrafast")},
+                 "dis-medium": {"DIS medium": b.dis_flow("medium")},
+                 "dis-ultrafast": {"DIS ultrafast": b.dis_flow("ultrafast")}},
+        "pose": {"identity": {"identity pose": b.identity_pose}, "orb-vo": {"ORB-VO": _needs_K(b.orb_vo)}},
+    }[task]
+    if method not in table:
+        raise GeoNetInputError(None, f"no {task} method {method!r}", f"{task} methods: model, {', '.join(table)}")
+    return table[method]
+
+
+BASELINES = {"depth": ("constant",), "flow": ("dis", "dis-medium", "dis-ultrafast", "zero"),
+             "pose": ("orb-vo", "identity")}
+
+
+# ----------------------------------------------------------------------------- output
+def _fmt(value, fmt: str) -> str:
+    if value is None:
+        return "–"
+    return "nan" if not math.isfinite(value) else fmt.format(value)
+
+
+def table_rows(result: dict, label: str, data_label: str | None = None) -> list[str]:
+    """One markdown row per result: label, data, the paper's columns (mean ± std for pose), count."""
+    task = result["task"]
+    cells = [label, data_label or result["data"]["description"]]
+    for _, key, fmt in COLUMNS[task]:
+        cell = _fmt(result["metrics"].get(key), fmt)
+        if "std" in result:
+            cell += " ± " + _fmt(result["std"].get(key), fmt)
+        cells.append(cell)
+    cells.append(str(result["metrics"]["count"]))
+    return ["| " + " | ".join(cells) + " |"]
+
+
+def table_header(task: str) -> list[str]:
+    headers = ["method", "data"] + [h for h, _, _ in COLUMNS[task]] + [COUNT_LABEL[task]]
+    return ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+
+
+def format_table(labelled: list[tuple[str, dict]]) -> str:
+    """A markdown table of ``[(label, result), ...]`` of one task."""
+    task = labelled[0][1]["task"]
+    lines = table_header(task)
+    for label, result in labelled:
+        lines += table_rows(result, label)
+    return "\n".join(lines)
+
+
+def _json_safe(obj):
+    """NaN / inf -> None (strict JSON); the ``errors`` list of a result says which item was not finite."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return _json_safe(obj.item())
+    if isinstance(obj, np.ndarray):
+        return _json_safe(obj.tolist())
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json(path, payload) -> None:
+    text = json.dumps(_json_safe(payload), indent=2, allow_nan=False)
+    with atomic_write(Path(path)) as tmp:
+        tmp.write_text(text + "\n")

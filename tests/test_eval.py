@@ -1,0 +1,353 @@
+"""geonet-infer eval / geonet_infer.evaluation: readers on real files, the DIS acceptance check against
+an independent EPE, hand-computed golden values on hand-built folders, and bad input."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from geonet_infer import baselines, evaluation, metrics
+from geonet_infer.cli import main as cli_main
+from geonet_infer.datasets import depth_dataset, flow_dataset, pose_dataset
+from geonet_infer.errors import GeoNetInputError
+from tests.conftest import require_realdata
+
+KITTI_RAW = "kitti_raw_2011_09_26_sfnd"
+ODOMETRY = "kitti_odometry_00"
+MIDDLEBURY = "middlebury_flow"
+
+
+# ----------------------------------------------------------------------------- independent helpers
+def read_flo_numpy(path: Path) -> np.ndarray:
+    """Middlebury .flo by hand: float32 magic, int32 w, h, then (u, v) interleaved."""
+    raw = np.fromfile(path, dtype="<f4")
+    assert raw[0] == np.float32(202021.25)
+    w, h = np.frombuffer(raw[1:3].tobytes(), dtype="<i4")
+    return raw[3:].reshape(h, w, 2)
+
+
+def write_kitti_flow_png(path: Path, flow: np.ndarray, valid: np.ndarray) -> None:
+    """KITTI flow PNG by hand (devkit): 16-bit, R = u*64 + 2^15, G = v*64 + 2^15, B = valid; cv2 is BGR."""
+    enc = np.zeros(flow.shape[:2] + (3,), np.uint16)
+    enc[..., 2] = np.where(valid, np.round(flow[..., 0] * 64 + 2 ** 15), 0)
+    enc[..., 1] = np.where(valid, np.round(flow[..., 1] * 64 + 2 ** 15), 0)
+    enc[..., 0] = valid
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), enc)
+
+
+def write_depth_png(path: Path, depth: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), np.round(depth * 256).astype(np.uint16))
+
+
+def texture(seed: int, h: int = 64, w: int = 208) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 255, (h // 8, w // 8, 3), dtype=np.uint8)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+
+
+def make_synth(root: Path, frames: int = 6, h: int = 64, w: int = 208) -> Path:
+    """A synth-layout sequence with hand-chosen GT: depth 10 m on the left half, 20 m on the right;
+    flow (3, 4) px everywhere (noc: top half only); camera moving 1 m forward per frame."""
+    seq = root / "seq_0000"
+    depth = np.full((h, w), 10.0)
+    depth[:, w // 2:] = 20.0
+    flow = np.zeros((h, w, 2))
+    flow[..., 0], flow[..., 1] = 3.0, 4.0
+    noc = np.zeros((h, w), bool)
+    noc[: h // 2] = True
+    lines = []
+    for t in range(frames):
+        (seq / "image").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(seq / "image" / f"{t:06d}.png"), texture(t, h, w))
+        write_depth_png(seq / "depth" / f"{t:06d}.png", depth)
+        if t < frames - 1:
+            write_kitti_flow_png(seq / "flow_noc" / f"{t:06d}.png", flow, noc)
+            write_kitti_flow_png(seq / "flow_occ" / f"{t:06d}.png", flow, np.ones((h, w), bool))
+        lines.append(f"1 0 0 0 0 1 0 0 0 0 1 {t}.0")
+    (seq / "poses.txt").write_text("\n".join(lines) + "\n")
+    (seq / "calib.txt").write_text(f"K: {w} 0 {w / 2} 0 {w} {h / 2} 0 0 1\n")
+    return seq
+
+
+# ----------------------------------------------------------------------------- readers on real files
+def test_kitti_odometry_reader_matches_poses_file():
+    seq = require_realdata(f"{ODOMETRY}/sequences/00")
+    data = pose_dataset(seq)
+    assert data.layout == "kitti-odometry"
+    # frames 000000-000005 -> snippets starting at 0 and 1
+    assert [i.name for i in data.items] == ["000000", "000001"]
+    raw = np.loadtxt(seq.parent.parent / "poses" / "00.txt")[:6].reshape(6, 3, 4)
+    np.testing.assert_array_equal(data.items[1].gt_c2w[:, :3, :], raw[1:6])
+    assert [p.name for p in data.items[1].frames] == [f"{i:06d}.png" for i in range(1, 6)]
+    # image_0 (grey, camera 0) -> P0; README: fx = fy = 718.856, cx = 607.1928, cy = 185.2157
+    K = data.items[0].intrinsics()
+    np.testing.assert_allclose(K, [[718.856, 0, 607.1928], [0, 718.856, 185.2157], [0, 0, 1]])
+    # README: the car drives straight ahead about 0.86 m per frame
+    gt = evaluation.gt_snippet(data.items[0].gt_c2w)
+    assert gt[4, 2, 3] == pytest.approx(4 * 0.86, abs=0.1)
+
+
+def test_middlebury_reader_matches_flo_by_hand():
+    root = require_realdata(MIDDLEBURY)
+    data = flow_dataset(root)
+    assert data.layout == "middlebury" and [i.name for i in data.items] == ["Grove3"]
+    flow, valid = data.items[0].load_gt("occ")
+    expected = read_flo_numpy(root / "other-gt-flow" / "Grove3" / "flow10.flo")
+    np.testing.assert_array_equal(flow, expected)
+    assert flow.shape == (480, 640, 2) and valid.all()  # README: 640x480, all pixels valid
+    assert np.sqrt((flow ** 2).sum(axis=2)).max() == pytest.approx(18.6, abs=0.05)  # README: max 18.6 px
+
+
+def test_kitti_raw_velodyne_reader():
+    root = require_realdata(KITTI_RAW)
+    data = depth_dataset(root)
+    assert data.layout == "kitti-raw" and len(data.items) == 10  # scans exist for frames 0-9 only
+    item = data.items[3]
+    assert item.name == "0000000003" and item.gt_kind == "velodyne"
+    gt = item.load_gt((375, 1242))
+    assert (gt > 0).sum() > 10_000 and gt.max() < 120
+
+
+def test_kitti_raw_sparse_png_layout(tmp_path):
+    """proj_depth/groundtruth PNGs (uint16 / 256) are read and scored; the constant baseline's
+    AbsRel on a two-valued GT is worked out by hand."""
+    drive = tmp_path / "drive"
+    (drive / "image_02" / "data").mkdir(parents=True)
+    h, w = 100, 300
+    cv2.imwrite(str(drive / "image_02" / "data" / "0000000000.png"), texture(0, h, w))
+    gt = np.zeros((h, w))
+    gt[60:90, 20:150] = 10.0  # inside the Garg crop (rows 40..98, cols 10..289)
+    gt[60:90, 150:280] = 20.0
+    write_depth_png(drive / "proj_depth" / "groundtruth" / "image_02" / "0000000000.png", gt)
+    data = depth_dataset(drive)
+    assert data.items[0].gt_kind == "png"
+    r = evaluation.evaluate_depth(baselines.constant_depth, data)
+    # median 15 -> prediction 15 everywhere: AbsRel = (5/10 + 5/20) / 2
+    assert r["metrics"]["abs_rel"] == pytest.approx(0.375)
+    assert r["settings"]["crop"] == "garg"
+
+
+# ----------------------------------------------------------------------------- DIS acceptance
+def _kitti2012_from_middlebury(root: Path, out: Path) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """A KITTI 2012 layout (colored_0/NNNNNN_10.png, _11.png, flow_noc/, flow_occ/) made from the Grove3 pair:
+    pair 0 the full frames, pair 1 a crop. noc marks a 40 px band at the left as occluded.
+    Returns per pair (frame10 grey, frame11 grey, GT flow, noc mask) for the independent EPE."""
+    f10 = cv2.imread(str(root / "other-data-gray" / "Grove3" / "frame10.png"), cv2.IMREAD_GRAYSCALE)
+    f11 = cv2.imread(str(root / "other-data-gray" / "Grove3" / "frame11.png"), cv2.IMREAD_GRAYSCALE)
+    flo = read_flo_numpy(root / "other-gt-flow" / "Grove3" / "flow10.flo")
+    crop = (slice(100, 400), slice(150, 550))
+    pairs = [(f10, f11, flo), tuple(np.ascontiguousarray(x[crop]) for x in (f10, f11, flo))]
+    out_pairs = []
+    for k, (a, b, flow) in enumerate(pairs):
+        (out / "colored_0").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(out / "colored_0" / f"{k:06d}_10.png"), a)
+        cv2.imwrite(str(out / "colored_0" / f"{k:06d}_11.png"), b)
+        noc = np.ones(a.shape, bool)
+        noc[:, :40] = False
+        write_kitti_flow_png(out / "flow_noc" / f"{k:06d}_10.png", flow, noc)
+        write_kitti_flow_png(out / "flow_occ" / f"{k:06d}_10.png", flow, np.ones(a.shape, bool))
+        out_pairs.append((a, b, flow, noc))
+    return out_pairs
+
+
+def test_dis_on_kitti2012_layout_agrees_with_independent_epe(tmp_path, capsys):
+    """Substitute for real KITTI 2012 pairs (none in ../shared): Middlebury Grove3 in the KITTI 2012 layout."""
+    root = require_realdata(MIDDLEBURY)
+    data_dir = tmp_path / "kitti2012"
+    pairs = _kitti2012_from_middlebury(root, data_dir)
+    out = tmp_path / "dis.json"
+    assert cli_main(["eval", "flow", "--data", str(data_dir), "--method", "dis", "--json", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "DIS medium" in table and "KITTI 2012 layout" in table
+    results = {r["method"]: r for r in json.loads(out.read_text())["results"]}
+    for label, preset in (("DIS medium", cv2.DISOPTICAL_FLOW_PRESET_MEDIUM),
+                          ("DIS ultrafast", cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST)):
+        noc, all_ = [], []
+        for a, b, flow, mask in pairs:
+            pred = cv2.DISOpticalFlow_create(preset).calc(a, b, None)
+            epe = np.sqrt(((pred - flow) ** 2).sum(axis=2))
+            noc.append(epe[mask].mean())
+            all_.append(epe.mean())
+        got = results[label]["metrics"]
+        # the only difference: the GT went through the PNG's 1/64 px grid (<= 1/128 px per component)
+        assert got["epe_noc"] == pytest.approx(np.mean(noc), abs=0.01)
+        assert got["epe_all"] == pytest.approx(np.mean(all_), abs=0.01)
+        assert got["count"] == 2
+    assert results["DIS medium"]["metrics"]["epe_all"] < results["DIS ultrafast"]["metrics"]["epe_all"]
+    # no _09 frames here: every pair records the documented fallback
+    assert all("no _09" in item["snippet"] for item in results["DIS medium"]["items"])
+
+
+def test_kitti_layout_uses_09_and_calibration_for_the_model(tmp_path):
+    root = require_realdata(MIDDLEBURY)
+    data_dir = tmp_path / "kitti2012"
+    _kitti2012_from_middlebury(root, data_dir)
+    cv2.imwrite(str(data_dir / "colored_0" / "000000_09.png"),
+                cv2.imread(str(root / "other-data-gray" / "Grove3" / "frame10.png")))
+    (data_dir / "calib").mkdir()
+    for k in range(2):
+        (data_dir / "calib" / f"{k:06d}.txt").write_text(
+            "".join(f"P{c}: 600 0 320 0 0 600 240 0 0 0 1 0\n" for c in range(4)))
+    data = flow_dataset(data_dir)
+    assert [len(i.frames) for i in data.items] == [3, 2]
+    assert data.items[0].frames[0].name == "000000_09.png"
+    np.testing.assert_allclose(data.items[0].intrinsics(), [[600, 0, 320], [0, 600, 240], [0, 0, 1]])
+    assert any("1 of 2 pairs have no _09" in n for n in data.notes)
+
+
+# ----------------------------------------------------------------------------- golden values, hand-built data
+def test_synth_baselines_hand_computed(tmp_path):
+    make_synth(tmp_path)
+    depth = evaluation.evaluate_depth(baselines.constant_depth, depth_dataset(tmp_path))
+    assert depth["metrics"]["abs_rel"] == pytest.approx(0.375)  # median 15: (5/10 + 5/20) / 2
+    assert depth["metrics"]["count"] == 6 and depth["settings"]["crop"] is None
+    flow = evaluation.evaluate_flow(baselines.zero_flow, flow_dataset(tmp_path))
+    assert flow["metrics"]["epe_noc"] == pytest.approx(5.0) and flow["metrics"]["epe_all"] == pytest.approx(5.0)
+    assert flow["metrics"]["fl_all"] == 1.0  # 5 px > 3 px and 5 / 5 > 5 %
+    assert flow["metrics"]["count"] == 4  # triplets [t-1, t, t+1] of 6 frames
+    pose = evaluation.evaluate_pose(baselines.identity_pose, pose_dataset(tmp_path))
+    # GT z = 0..4 m; a still camera cannot be scaled: |e|^2 sums to 30
+    assert pose["metrics"]["ate_snippet"] == pytest.approx(math.sqrt(30) / 5)
+    assert pose["metrics"]["ate_rmse_true"] == pytest.approx(math.sqrt(30 / 5))
+    assert pose["std"]["ate_snippet"] == pytest.approx(0.0, abs=1e-12) and pose["metrics"]["count"] == 2
+
+
+def test_snippet_from_three_frame_pose_calls_recovers_trajectory():
+    """A seq-3 PoseNet's two triplet calls chained through frame 2 give the true snippet poses."""
+    rng = np.random.default_rng(0)
+
+    def rigid(angle, t):
+        c, s = math.cos(angle), math.sin(angle)
+        T = np.eye(4)
+        T[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+        T[:3, 3] = t
+        return T
+    c2w = [rigid(0.05 * i, rng.normal(size=3) + [0, 0, i]) for i in range(5)]
+
+    def T(target, source):  # maps target-camera points to source-camera points
+        return np.linalg.inv(c2w[source]) @ c2w[target]
+
+    calls = iter([np.stack([T(1, 0), T(1, 2)]), np.stack([T(3, 2), T(3, 4)])])
+    got = evaluation.snippet_from_pose_calls(lambda frames: next(calls), list(range(5)), 3)
+    expected = np.stack([np.linalg.inv(c2w[0]) @ c for c in c2w])
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
+def test_orb_vo_recovers_direction_of_a_rendered_plane_motion():
+    """Frames of a textured plane rendered by homography for a camera moving along +x: ORB-VO's chained
+    trajectory points along +x (unit steps) — the geometry comes from cv2.warpPerspective, not from the code."""
+    h, w = 240, 320
+    K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    tex = cv2.resize(np.random.default_rng(3).integers(0, 255, (60, 80), np.uint8), (2 * w, 2 * h),
+                     interpolation=cv2.INTER_NEAREST)
+    frames = []
+    for i in range(5):
+        # plane z = 5 m (plus a tilt so it is not degenerate for the essential matrix), camera at x = 0.2 i
+        n, d = np.array([0.0, -0.3, 1.0]) / np.linalg.norm([0.0, -0.3, 1.0]), 5.0
+        t = np.array([-0.2 * i, 0, 0])  # world -> camera translation
+        H = K @ (np.eye(3) + np.outer(t, n) / d) @ np.linalg.inv(K)
+        S = np.diag([0.5, 0.5, 1.0])  # texture (2w x 2h) -> reference image (w x h)
+        rgb = cv2.cvtColor(cv2.warpPerspective(tex, H @ S, (w, h)), cv2.COLOR_GRAY2RGB)
+        frames.append(rgb)
+    poses, info = baselines.orb_vo(frames, K)
+    assert info["failed_pairs"] == 0
+    direction = poses[4, :3, 3] / np.linalg.norm(poses[4, :3, 3])
+    assert direction[0] > 0.95  # camera moved along +x
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_nan_prediction_is_reported_not_dropped(tmp_path, monkeypatch, capsys):
+    make_synth(tmp_path)
+    calls = {"n": 0}
+
+    def sometimes_nan(rgb):
+        calls["n"] += 1
+        out = np.ones(rgb.shape[:2], np.float32)
+        if calls["n"] == 3:
+            out[0, 0] = np.nan
+        return out
+    monkeypatch.setattr(baselines, "constant_depth", sometimes_nan)
+    out = tmp_path / "r.json"
+    assert cli_main(["eval", "depth", "--data", str(tmp_path), "--method", "constant", "--json", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "seq_0000/000002" in err and "NaN/inf" in err
+    result = json.loads(out.read_text())["results"][0]
+    assert result["metrics"]["abs_rel"] is None  # NaN mean, written as null
+    assert result["errors"][0]["item"] == "seq_0000/000002"
+    # in Python the mean is NaN, not the mean of the 5 finite frames
+    calls["n"] = 0
+    r = evaluation.evaluate_depth(sometimes_nan, depth_dataset(tmp_path))
+    assert math.isnan(r["metrics"]["abs_rel"])
+
+
+def test_missing_data_folder_exit_2(tmp_path, capsys):
+    missing = tmp_path / "nope"
+    assert cli_main(["eval", "depth", "--data", str(missing), "--method", "constant"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(missing) in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("task,breakage,named", [
+    ("depth", lambda s: (s / "depth" / "000003.png").unlink(), "depth/000003.png"),
+    ("depth", lambda s: write_depth_png(s / "depth" / "000001.png", np.ones((10, 10))), "depth/000001.png"),
+    ("depth", lambda s: write_depth_png(s / "depth" / "000002.png", np.zeros((64, 208))), "depth/000002.png"),
+    ("flow", lambda s: (s / "flow_occ" / "000002.png").unlink(), "flow_occ/000002.png"),
+    ("flow", lambda s: write_kitti_flow_png(s / "flow_noc" / "000001.png", np.zeros((64, 208, 2)),
+                                            np.zeros((64, 208), bool)), "flow_noc/000001.png"),
+    ("pose", lambda s: (s / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 4), "poses.txt"),
+])
+def test_bad_data_names_the_file(tmp_path, capsys, task, breakage, named):
+    seq = make_synth(tmp_path)
+    breakage(seq)
+    method = {"depth": "constant", "flow": "zero", "pose": "identity"}[task]
+    assert cli_main(["eval", task, "--data", str(tmp_path), "--method", method]) == 2
+    err = capsys.readouterr().err
+    assert named in err and len(err.strip().splitlines()) == 1
+
+
+def test_unknown_method_is_a_usage_error(tmp_path, capsys):
+    make_synth(tmp_path)
+    assert cli_main(["eval", "flow", "--data", str(tmp_path), "--method", "orb-vo"]) == 2
+    assert "no flow method 'orb-vo'" in capsys.readouterr().err
+
+
+def test_nonfinite_metric_means_propagate():
+    rows = [{"epe": 1.0}, {"epe": math.nan}]
+    assert math.isnan(metrics.aggregate(rows)["epe"])
+
+
+def test_intrinsics_needed_for_model_flow_without_calibration(tmp_path):
+    root = require_realdata(MIDDLEBURY)
+    fn = evaluation._needs_K(lambda frames, K: np.zeros(frames[-1].shape[:2] + (2,), np.float32))
+    with pytest.raises(GeoNetInputError, match="--intrinsics"):
+        evaluation.evaluate_flow(fn, flow_dataset(root))
+    r = evaluation.evaluate_flow(fn, flow_dataset(root), intrinsics=np.eye(3))
+    assert r["metrics"]["count"] == 1
+
+
+# ----------------------------------------------------------------------------- checkpoints, same code path
+def test_training_evaluate_scores_a_checkpoint_through_the_shared_loops(tmp_path):
+    torch = pytest.importorskip("torch")
+    from training.checkpoint import save_checkpoint
+    from training.config import TrainConfig
+    from training.evaluate import main as train_eval_main
+    from training.model import GeoNet
+
+    make_synth(tmp_path / "data")
+    torch.manual_seed(0)
+    model = GeoNet("small", 2, with_flow=True).eval()
+    cfg = TrainConfig(stage="flow", arch="small", height=64, width=208, data_dir="x", out_dir=str(tmp_path))
+    ckpt = tmp_path / "c.pt"
+    save_checkpoint(ckpt, model, torch.optim.Adam(model.parameters()), 7, cfg, {})
+    out = tmp_path / "r.json"
+    assert train_eval_main(["--checkpoint", str(ckpt), "--data", str(tmp_path / "data"), "--out", str(out)]) == 0
+    results = json.loads(out.read_text())["results"]
+    assert [r["task"] for r in results] == ["depth", "flow", "pose"]
+    assert [r["metrics"]["count"] for r in results] == [6, 4, 2]
+    assert all(r["method"] == "checkpoint c.pt (step 7)" for r in results)
