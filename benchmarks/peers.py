@@ -125,7 +125,8 @@ def _export_args(args, out: Path) -> list[str]:
 
 def load_weights_and_graphs(args, log) -> tuple[object, Path, dict]:
     """(training GeoNet in eval mode, model dir with fp32 + int8 graphs, provenance notes)."""
-    from export.__main__ import _load_source, build_parser as export_parser, run_export
+    from export.__main__ import build_parser as export_parser
+    from export.build import ExportConfig, _load_source, export_model
 
     temp = None
     if args.onnx_dir is None and args.keep_export is None:
@@ -133,12 +134,12 @@ def load_weights_and_graphs(args, log) -> tuple[object, Path, dict]:
         TEMP_DIRS.append(temp)
     out = args.onnx_dir or args.keep_export or temp / "model"
     eargv = _export_args(args, out)
-    eargs = export_parser().parse_args(eargv)
+    eargs = ExportConfig(**vars(export_parser().parse_args(eargv)))
     notes = {"export_argv": eargv}
     if args.onnx_dir is None:
         log(f"exporting {args.arch or args.checkpoint} (fp32 + int8) -> {out}")
         t0 = time.perf_counter()
-        run_export(eargs)
+        export_model(eargs)
         notes["export_s"] = round(time.perf_counter() - t0, 1)
     manifest = load_manifest(out)
     graphs = list(manifest.graphs["fp32"])

@@ -15,22 +15,33 @@ from export.wrappers import io_spec
 from geonet_infer import conventions
 from geonet_infer.manifest import (SCHEMA_VERSION, GraphEntry, Manifest, Provenance, Quantization,
                                    TensorSpec, file_sha256)
+from training.losses import LossWeights
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
-GRAPH_NOTES = {
-    "depthnet": "image (B,3,H,W) normalised RGB (x/255*2-1) -> disparity (B,1,H,W) = scale*sigmoid+0.01, "
-                "depth = 1/disparity; scale 0 only",
-    "posenet": "snippet (B,3L,H,W) normalised RGB, channels [target, sources in temporal order] -> "
-               "pose (B,L-1,6) [tx,ty,tz,rx,ry,rz] (x0.01 inside), pose_matrix (B,L-1,4,4) target->source, "
-               "R = Rx@Ry@Rz",
-    "rigidflow": "depth (B,1,H,W) of the target, pose (B,6) target->source, intrinsics (B,3,3) at HxW, "
-                 "target/source (B,3,H,W) normalised -> rigid_flow (B,2,H,W) px (x then y), warped (B,3,H,W) "
-                 "source sampled at grid+flow (bilinear, align_corners, zero padding), error (B,1,H,W) = "
-                 "||0.85*DSSIM+0.15*|warped-target| + 1e-10||_2 over channels",
-    "resflownet": "flow_input (B,12,H,W) = [target(3), source(3), warped(3), rigid_flow(2) px, error(1)] -> "
-                  "residual_flow (B,2,H,W) px, flow = residual_flow + rigid_flow, scale 0",
-}
+
+def graph_notes(graph: str) -> str:
+    """One-line I/O contract of ``graph`` for its ``geonet.io`` metadata, with the numbers taken from
+    :mod:`geonet_infer.conventions` (and the photometric weight from training's ``LossWeights``)."""
+    norm, pose, sampler = conventions.IMAGE_NORM, conventions.POSE, conventions.SAMPLER
+    offset = conventions.DispHead.offset
+    image = f"normalised RGB (x/255*{norm.scale:g}{norm.offset:+g})"
+    warp = f"bilinear, align_corners={sampler.align_corners}, {sampler.padding} padding"
+    alpha = LossWeights.alpha_recon
+    notes = {
+        "depthnet": f"image (B,3,H,W) {image} -> disparity (B,1,H,W) = scale*sigmoid+{offset:g}, "
+                    "depth = 1/disparity; scale 0 only",
+        "posenet": f"snippet (B,3L,H,W) {image}, channels [target, sources in temporal order] -> "
+                   f"pose (B,L-1,6) [{','.join(pose.vector)}] (x{pose.output_scale:g} inside), "
+                   f"pose_matrix (B,L-1,4,4) {pose.direction.replace('_', ' ')}, {pose.rotation}",
+        "rigidflow": f"depth (B,1,H,W) of the target, pose (B,6) {pose.direction.replace('_', ' ')}, "
+                     f"intrinsics (B,3,3) at HxW, target/source (B,3,H,W) {image} -> rigid_flow (B,2,H,W) px "
+                     f"(x then y), warped (B,3,H,W) source sampled at grid+flow ({warp}), error (B,1,H,W) = "
+                     f"||{alpha:g}*DSSIM+{1 - alpha:.2f}*|warped-target| + 1e-10||_2 over channels",
+        "resflownet": "flow_input (B,12,H,W) = [target(3), source(3), warped(3), rigid_flow(2) px, error(1)] -> "
+                      "residual_flow (B,2,H,W) px, flow = residual_flow + rigid_flow, scale 0",
+    }
+    return notes[graph]
 
 
 def git_commit() -> str | None:
@@ -84,7 +95,7 @@ def graph_metadata(graph: str, arch: str, height: int, width: int, seq_length: i
         "geonet.width": str(width),
         "geonet.seq_length": str(seq_length),
         "geonet.random_init": json.dumps(random_init),
-        "geonet.io": GRAPH_NOTES[graph],
+        "geonet.io": graph_notes(graph),
         "geonet.schema_version": str(SCHEMA_VERSION),
         "geonet.conventions": json.dumps(conv, sort_keys=True),
     }

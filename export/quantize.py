@@ -31,28 +31,23 @@ import cv2
 import numpy as np
 import onnx
 
-from geonet_infer.conventions import scale_intrinsics
+from geonet_infer.conventions import kitti_like_K, scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io import list_images, read_calib_K, read_image
 from geonet_infer.preprocess import InputSpec, snippet_indices
-from geonet_infer.io import IMAGE_SUFFIXES, read_calib_K, read_image
-from geonet_infer.io import list_images as _list_images
 
-QUANTIZED_GRAPHS = ("depthnet", "posenet", "resflownet")
 FP32_ONLY_GRAPHS = ("rigidflow",)
+CALIBRATION_METHODS = ("minmax", "entropy", "percentile")  # onnxruntime CalibrationMethod MinMax/Entropy/Percentile
 # Tensors whose consumers stay fp32 in the int8 graph: PoseNet's 4x4 matrices are built from
 # the pose vector with Sin/Cos/Concat; quantised, they collapsed to ~identity (no motion).
 FLOAT_AFTER = {"posenet": ("pose",)}
-# Fallback intrinsics for a calibration folder without calibration: KITTI's rectified
-# camera 02 (fx = fy = 721.5377, cx = 609.5593, cy = 172.854 at 1242 x 375), used as
-# fractions of the image size. Only ResFlowNet's calibration inputs depend on it.
-KITTI_K_FRACTIONS = (721.5377 / 1242, 609.5593 / 1242, 721.5377 / 375, 172.854 / 375)
 
 
 @dataclass(frozen=True)
 class QuantSettings:
     per_channel: bool = True
     reduce_range: bool = False
-    calibrate_method: str = "minmax"  # minmax | entropy | percentile
+    calibrate_method: str = "minmax"  # one of CALIBRATION_METHODS
     max_frames: int = 24  # calibration frames read from the folder
 
     def describe(self) -> dict:
@@ -62,19 +57,6 @@ class QuantSettings:
 
 
 # ----------------------------------------------------------------------------- frames
-def list_images(folder: str | Path) -> list[Path]:
-    """Sorted image files of a folder (:func:`geonet_infer.io.list_images`); GeoNetInputError naming
-    the folder, worded for ``--calib-data``, if it is missing or holds no image."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise GeoNetInputError(folder, "calibration folder not found", "pass --calib-data DIR, a folder of frames")
-    try:
-        return _list_images(folder)
-    except GeoNetInputError:
-        raise GeoNetInputError(folder, "no images in the calibration folder",
-                               f"it needs consecutive frames ({', '.join(IMAGE_SUFFIXES)}), e.g. a KITTI image_02/data folder") from None
-
-
 def load_frames(folder: str | Path, height: int, width: int, max_frames: int,
                 min_frames: int = 1) -> tuple[list[np.ndarray], tuple[int, int]]:
     """The first ``max_frames`` consecutive frames, resized (INTER_AREA) to H x W.
@@ -100,7 +82,8 @@ def calibration_intrinsics(folder: str | Path, original_hw: tuple[int, int], hei
     Looks for ``calib.txt`` (key ``K``) in the folder or its parent (synthetic
     layout ``<seq>/image/*.png`` + ``<seq>/calib.txt``), then for a KITTI raw
     ``calib_cam_to_cam.txt`` (key ``P_rect_02``) two levels up
-    (``<date>/image_02/data``); otherwise KITTI-like fractions of the image size.
+    (``<date>/image_02/data``); otherwise :func:`~geonet_infer.conventions.kitti_like_K`
+    (only ResFlowNet's calibration inputs depend on it).
     """
     folder = Path(folder)
     sx, sy = width / original_hw[1], height / original_hw[0]
@@ -114,9 +97,7 @@ def calibration_intrinsics(folder: str | Path, original_hw: tuple[int, int], hei
             except GeoNetInputError:
                 continue
             return scale_intrinsics(K, sx, sy).astype(np.float32), f"{path} ({key})"
-    fx, cx, fy, cy = KITTI_K_FRACTIONS
-    K = np.array([[fx * width, 0, cx * width], [0, fy * height, cy * height], [0, 0, 1]], np.float32)
-    return K, "assumed KITTI-like (no calib.txt / calib_cam_to_cam.txt found)"
+    return kitti_like_K(height, width).astype(np.float32), "assumed KITTI-like (no calib.txt / calib_cam_to_cam.txt found)"
 
 
 # ----------------------------------------------------------------------------- feeds
@@ -178,8 +159,8 @@ def quantize_graph(fp32_path: str | Path, out_path: str | Path, feeds: Sequence[
     if not feeds:
         raise GeoNetInputError(None, f"no calibration inputs for {Path(fp32_path).name}",
                                "the calibration folder needs at least seq_length consecutive frames")
-    methods = {"minmax": CalibrationMethod.MinMax, "entropy": CalibrationMethod.Entropy,
-               "percentile": CalibrationMethod.Percentile}
+    methods = dict(zip(CALIBRATION_METHODS, (CalibrationMethod.MinMax, CalibrationMethod.Entropy,
+                                             CalibrationMethod.Percentile)))
     if settings.calibrate_method not in methods:
         raise GeoNetInputError(None, f"unknown calibration method {settings.calibrate_method!r}",
                                f"choose one of {', '.join(methods)}")

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn as nn
 
-from geonet_infer.conventions import IMAGE_NORM
+from geonet_infer.conventions import IMAGE_NORM, kitti_like_K
 from training.geometry import l2_norm, pose_vec_to_mat
 from training.losses import LossWeights
 from training.model import GeoNet, rigid_warp
@@ -160,8 +160,7 @@ def example_inputs(graph: str, height: int, width: int, seq_length: int, batch: 
     if graph == "rigidflow":
         depth = 1.0 + 49.0 * torch.rand(shapes["depth"], generator=g)
         pose = 0.02 * (torch.rand(shapes["pose"], generator=g) - 0.5)
-        K = torch.tensor([[0.58 * width, 0.0, 0.5 * width], [0.0, 1.92 * height, 0.5 * height],
-                          [0.0, 0.0, 1.0]]).repeat(batch, 1, 1)
+        K = torch.tensor(kitti_like_K(height, width), dtype=torch.float32).repeat(batch, 1, 1)
         images = [IMAGE_NORM.apply(torch.rand(shapes[n], generator=g)) for n in ("target", "source")]
         return (depth, pose, K, *images)
     # Trace examples only: any values in [-1, 1] serve (resflownet mixes images and flow).

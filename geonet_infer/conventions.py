@@ -38,9 +38,6 @@ class ImageNorm:
         """[0, 1] floats (numpy array or torch tensor) -> network range."""
         return image01 * self.scale + self.offset
 
-    def invert(self, normalised):
-        return (normalised - self.offset) / self.scale
-
 
 @dataclass(frozen=True)
 class PoseConvention:
@@ -79,6 +76,9 @@ REFERENCE_WIDTH = 416
 NUM_SCALES = 4
 DISP_HEADS = {"resnet50": DispHead(5.0), "vgg": DispHead(10.0), "small": DispHead(5.0)}
 FLOW_SCALING = 0.1  # ResFlowNet heads output 0.1 * conv, in units of image size
+# The camera assumed where none is given (synthetic scenes, INT8 calibration frames without
+# calibration, export trace inputs): KITTI raw 2011_09_26 P_rect_02 at its 1242 x 375 images.
+KITTI_FX, KITTI_FY, KITTI_CX, KITTI_CY, KITTI_WIDTH, KITTI_HEIGHT = 721.5377, 721.5377, 609.5593, 172.854, 1242, 375
 
 
 def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
@@ -93,6 +93,12 @@ def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     K[..., 0, :] *= sx
     K[..., 1, :] *= sy
     return K
+
+
+def kitti_like_K(height: int, width: int) -> np.ndarray:
+    """KITTI's P_rect_02 intrinsics scaled to (height, width): (3, 3) float64, fx ~ 0.58 W."""
+    sx, sy = width / KITTI_WIDTH, height / KITTI_HEIGHT
+    return np.array([[KITTI_FX * sx, 0, KITTI_CX * sx], [0, KITTI_FY * sy, KITTI_CY * sy], [0, 0, 1]])
 
 
 def as_dict() -> dict:

@@ -22,7 +22,7 @@ PY=.venv/bin/python
 run() { echo "+ $*"; "$@"; }
 DATA=data/synth40 PREP=data/synth40_prepared RIGID=runs/small_rigid FLOW=runs/small_flow
 [ -f "$DATA/seq_0039/poses.txt" ] || run $PY -m training.synth --out $DATA --sequences 40 --frames 40 --seed 2026 --workers 2
-[ -f "$PREP/heldout.txt" ] || run $PY -m training.prepare --kind synth --src $DATA --out $PREP --heldout 4
+[ -f "$PREP/heldout.txt" ] || run $PY -m training.prepare --kind synth --src $DATA --out $PREP --heldout 4 --workers 2
 run $PY -m training.train --stage rigid --arch small --data-dir $PREP --out-dir $RIGID \
     --max-steps 6000 --max-minutes "$RIGID_MINUTES" --bn-momentum 0.01 --mask-out-of-view --automask \
     --num-workers 1 --val-every 500 --save-every 250 --log-every 25

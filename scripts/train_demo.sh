@@ -11,7 +11,7 @@ STEPS=${STEPS:-300}
 .venv/bin/python -m pip install --quiet -e '.[train,dev]'
 run() { echo "+ $*"; "$@"; }
 run .venv/bin/python -m training.synth --out data/synth --sequences 8 --frames 24 --seed 0 --workers 2
-run .venv/bin/python -m training.prepare --kind synth --src data/synth --out data/prepared --heldout 2
+run .venv/bin/python -m training.prepare --kind synth --src data/synth --out data/prepared --heldout 2 --workers 2
 run .venv/bin/python -m training.train --stage rigid --arch small --data-dir data/prepared \
     --out-dir runs/demo_rigid --max-steps "$STEPS" --bn-momentum 0.01 --mask-out-of-view --automask --num-workers 1 \
     --val-every 100 --save-every 100

@@ -13,7 +13,7 @@ PY=.venv/bin/python
 [ -x "$PY" ] || { python3 -m venv .venv && .venv/bin/python -m pip install --quiet -e '.[train,dev]'; }
 run() { echo "+ $*"; "$@"; }
 run $PY -m training.synth --out data/synth40 --sequences 40 --frames 40 --seed 2026 --workers 2
-run $PY -m training.prepare --kind synth --src data/synth40 --out data/synth40_prepared --heldout 4
+run $PY -m training.prepare --kind synth --src data/synth40 --out data/synth40_prepared --heldout 4 --workers 2
 run $PY -m training.train --stage rigid --arch small --data-dir data/synth40_prepared --out-dir "$OUT" \
     --max-steps "$STEPS" --max-minutes "$MINUTES" --bn-momentum 0.01 --mask-out-of-view --automask --num-workers 1 \
     --val-every 500 --save-every 500 --log-every 25

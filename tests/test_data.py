@@ -189,7 +189,7 @@ def test_heldout_split_and_refusal(tmp_path):
             write_depth_kitti(d / "depth" / f"{i:06d}.png", np.full((64, 96), 10.0 + i))
         write_calib_K(d / "calib.txt", np.array([[80.0, 0, 48], [0, 80, 32], [0, 0, 1]]))
     out = tmp_path / "out"
-    res = P.prepare("synth", src, out, height=32, width=48, heldout=1, val_fraction=0.3, seed=1)
+    res = P.prepare(P.PrepareConfig("synth", src, out, height=32, width=48, heldout=1, val_fraction=0.3, seed=1))
     held = D.SequenceDataset(out, "heldout", height=32, width=48)
     assert sorted(held.names) == ["seq_2 000001", "seq_2 000002"]
     item = held[1]

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -68,7 +70,7 @@ def perturb_model(model: torch.nn.Module, seed: int = 0) -> None:
 def save_small_checkpoint(path: Path, stage: str, height: int = H, width: int = W) -> None:
     from training.config import TrainConfig
     from training.model import GeoNet
-    from training.train import save_checkpoint
+    from training.checkpoint import save_checkpoint
 
     torch.manual_seed(1234)
     model = GeoNet("small", 2, with_flow=stage == "flow")
@@ -139,7 +141,7 @@ def model_dir(work, flow_ckpt, synth) -> Path:
 
 @pytest.fixture(scope="module")
 def torch_model(flow_ckpt):
-    from training.train import load_checkpoint, model_from_checkpoint
+    from training.checkpoint import load_checkpoint, model_from_checkpoint
     return model_from_checkpoint(load_checkpoint(flow_ckpt))
 
 
@@ -402,10 +404,10 @@ def test_cli_input_errors(tmp_path, capsys, flow_ckpt):
 
 
 def test_cli_failure_leaves_no_partial_directory(tmp_path, monkeypatch):
-    import export.__main__ as cli
+    import export.build as build
 
     calls = []
-    real = cli.export_graph
+    real = build.export_graph
 
     def fail_on_second(*args, **kwargs):
         calls.append(1)
@@ -413,11 +415,34 @@ def test_cli_failure_leaves_no_partial_directory(tmp_path, monkeypatch):
             raise ExportCheckError("simulated failure")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(cli, "export_graph", fail_on_second)
+    monkeypatch.setattr(build, "export_graph", fail_on_second)
     out = tmp_path / "m"
-    assert cli.main(["--arch", "small", "--random-init", "--out", str(out), "--height", "64", "--width", "208",
-                     "--graphs", "posenet,rigidflow", "--quiet"]) == 1
+    assert export_main(["--arch", "small", "--random-init", "--out", str(out), "--height", "64", "--width", "208",
+                        "--graphs", "posenet,rigidflow", "--quiet"]) == 1
     assert len(calls) == 2 and no_leftovers(out)
+
+
+def test_cli_and_library_write_the_same_model_directory(tmp_path):
+    """``python -m export`` only parses flags into an ExportConfig and calls export_model."""
+    from export import ExportConfig, export_model
+
+    cli, lib = tmp_path / "cli", tmp_path / "lib"
+    run = subprocess.run([sys.executable, "-m", "export", "--arch", "small", "--random-init", "--seed", "3",
+                          "--out", str(cli), "--height", "32", "--width", "64", "--graphs", "posenet,rigidflow",
+                          "--quiet"], cwd=REPO, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert export_model(ExportConfig(out=lib, arch="small", random_init=True, seed=3, height=32, width=64,
+                                      graphs=("posenet", "rigidflow"), quiet=True)) == lib
+
+    def manifest_without_date(d: Path) -> dict:
+        m = json.loads((d / MANIFEST_NAME).read_text())
+        del m["provenance"]["export_date"]
+        return m
+
+    assert manifest_without_date(cli) == manifest_without_date(lib)
+    assert sorted(p.name for p in cli.iterdir()) == sorted(p.name for p in lib.iterdir())
+    for graph in ("posenet.onnx", "rigidflow.onnx"):  # same files, not only the same manifest
+        assert (cli / graph).read_bytes() == (lib / graph).read_bytes()
 
 
 @pytest.mark.slow

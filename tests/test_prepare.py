@@ -6,7 +6,10 @@ snippet contents are compared with frames resized independently in the test.
 """
 from __future__ import annotations
 
+import hashlib
 import logging
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -16,8 +19,10 @@ import pytest
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io import write_calib_K, write_depth_kitti
 from training import prepare as P
+from training import synth
 
-REALDATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
+ROOT = Path(__file__).resolve().parents[1]
+REALDATA = ROOT / ".." / "shared" / "realdata"
 RAW = REALDATA / "kitti_raw_2011_09_26_sfnd"
 ODOM00 = REALDATA / "kitti_odometry_00"
 needs_raw = pytest.mark.skipif(not RAW.is_dir(), reason="realdata KITTI raw extract absent")
@@ -34,6 +39,10 @@ def calib_values(path: Path, key: str) -> np.ndarray:
 
 def read_cam_txt(path: Path) -> np.ndarray:
     return np.array([float(v) for v in path.read_text().strip().split(",")]).reshape(3, 3)
+
+
+def read_list(path: Path) -> list[str]:
+    return path.read_text().splitlines()
 
 
 def assert_no_partial_files(out: Path) -> None:
@@ -66,8 +75,9 @@ def make_synth_seq(folder: Path, n_frames: int, size=(64, 96), seed=0, K=None) -
 @needs_raw
 def test_kitti_raw_extract(tmp_path):
     out = tmp_path / "raw"
-    res = P.main(["--kind", "kitti_raw", "--src", str(RAW), "--out", str(out), "--max-frames", "12",
-                  "--workers", "2", "--split", "eigen"])
+    assert P.main(["--kind", "kitti_raw", "--src", str(RAW), "--out", str(out), "--max-frames", "12",
+                   "--workers", "2", "--split", "eigen"]) == 0
+    res = P.PrepareResult(out, train=read_list(out / "train.txt"), val=read_list(out / "val.txt"))
     folder = out / "kitti_raw_2011_09_26_sfnd_02"
     # 12 frames, seq 3 -> targets 1..10
     names = sorted(res.train + res.val)
@@ -96,7 +106,7 @@ def test_kitti_raw_extract(tmp_path):
 
     # resumable: a second run writes nothing; a missing _cam.txt is redone
     (folder / "0000000004_cam.txt").unlink()
-    res2 = P.main(["--kind", "kitti_raw", "--src", str(RAW), "--out", str(out), "--max-frames", "12", "--workers", "1"])
+    res2 = P.prepare(P.PrepareConfig("kitti_raw", RAW, out, max_frames=12))
     assert (res2.written, res2.existing) == (1, 9)
     np.testing.assert_allclose(read_cam_txt(folder / "0000000004_cam.txt"), K_expected, atol=1e-6)
 
@@ -113,9 +123,9 @@ def test_kitti_raw_root_layout_split_and_static(tmp_path):
         for i in range(5):
             (d / f"{i:010d}.png").symlink_to((RAW / "image_02" / "data" / f"{i:010d}.png").resolve())
     out = tmp_path / "out"
-    res = P.prepare("kitti_raw", tmp_path / "raw_root", out, split="eigen")
+    res = P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "raw_root", out, split="eigen"))
     assert sorted(res.train + res.val) == [f"2011_09_26_drive_0001_sync_02 {i:010d}" for i in (1, 2, 3)]
-    res = P.prepare("kitti_raw", tmp_path / "raw_root", tmp_path / "out_none", split="none")
+    res = P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "raw_root", tmp_path / "out_none", split="none"))
     assert len(res.train + res.val) == 6
 
     # --remove-static: neighbours skip removed frames. Drive 0009 frames 386, 387, 390, 391 are
@@ -124,13 +134,13 @@ def test_kitti_raw_root_layout_split_and_static(tmp_path):
     d.mkdir(parents=True)
     for i in range(384, 392):
         (d / f"{i:010d}.png").symlink_to((RAW / "image_02" / "data" / f"{i - 384:010d}.png").resolve())
-    res = P.prepare("kitti_raw", tmp_path / "raw_root", tmp_path / "out_static", split="stereo",
-                    remove_static=True, workers=1)
+    res = P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "raw_root", tmp_path / "out_static", split="stereo",
+                    remove_static=True, workers=1))
     names = sorted(res.train + res.val)
     # 0009 is a stereo test scene -> excluded; 0001 and 0002 stay
     assert not any("drive_0009" in n for n in names) and len(names) == 6
-    res = P.prepare("kitti_raw", tmp_path / "raw_root", tmp_path / "out_static2", split="none",
-                    remove_static=True, workers=1)
+    res = P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "raw_root", tmp_path / "out_static2", split="none",
+                    remove_static=True, workers=1))
     kept = sorted(n.split()[1] for n in res.train + res.val if "drive_0009" in n)
     # static: 386, 387, 390, 391 -> kept 384 385 388 389 -> targets 385 (384, 388) and 388 (385, 389)
     assert kept == [f"{i:010d}" for i in (385, 388)]
@@ -154,7 +164,7 @@ def test_scene_lists_are_official_sizes():
 def test_kitti_odom_grey_fallback(tmp_path, caplog):
     out = tmp_path / "odom"
     with caplog.at_level(logging.WARNING, logger="training.prepare"):
-        res = P.main(["--kind", "kitti_odom", "--src", str(ODOM00), "--out", str(out), "--workers", "1"])
+        res = P.prepare(P.PrepareConfig("kitti_odom", ODOM00, out))
     assert "greyscale" in caplog.text
     # 6 frames, seq 5 (odom default) -> targets 2, 3
     assert sorted(res.train + res.val) == ["00 000002", "00 000003"]
@@ -171,7 +181,7 @@ def test_kitti_odom_grey_fallback(tmp_path, caplog):
     (seq09 / "image_0").mkdir(parents=True)
     (seq09 / "calib.txt").write_text((ODOM00 / "sequences" / "00" / "calib.txt").read_text())
     with pytest.raises(GeoNetInputError, match="no sample"):
-        P.prepare("kitti_odom", tmp_path / "odom_root", tmp_path / "o2")
+        P.prepare(P.PrepareConfig("kitti_odom", tmp_path / "odom_root", tmp_path / "o2"))
 
 
 # --------------------------------------------------------------------------- synthetic
@@ -180,8 +190,7 @@ def test_synth_heldout(tmp_path):
     for s in range(3):
         make_synth_seq(src / f"seq_{s:02d}", 5, seed=s)
     out = tmp_path / "out"
-    res = P.main(["--kind", "synth", "--src", str(src), "--out", str(out), "--heldout", "1",
-                  "--height", "32", "--width", "48", "--workers", "1"])
+    res = P.prepare(P.PrepareConfig("synth", src, out, heldout=1, height=32, width=48))
     held = [l for l in (out / "heldout.txt").read_text().splitlines()]
     assert held == [f"seq_02 {i:06d}" for i in (1, 2, 3)] == res.heldout
     trained = set(res.train + res.val)
@@ -198,20 +207,17 @@ def test_synth_heldout(tmp_path):
         assert cv2.imread(str(out / "seq_02" / f"{i:06d}.jpg")).shape == (32, 144, 3)
     assert not (out / "seq_00" / "000001_depth.png").exists()  # GT only for held-out samples
     with pytest.raises(GeoNetInputError, match="--heldout"):
-        P.prepare("synth", src, tmp_path / "o2", heldout=3)
+        P.prepare(P.PrepareConfig("synth", src, tmp_path / "o2", heldout=3))
 
 
 def test_synth_generator_output(tmp_path):
-    """The real generator's tree (training.synth), if that module is there."""
-    synth = pytest.importorskip("training.synth")
-    if not hasattr(synth, "write_sequence"):
-        pytest.skip("training.synth.write_sequence not available")
+    """The real generator's tree (training.synth)."""
     src = tmp_path / "synth"
     for i in range(3):
         synth.write_sequence(src, 0, i, 4, 48, 144)
     (src / ".tmp_seq_0009" / "image").mkdir(parents=True)  # unfinished generator work is ignored
     out = tmp_path / "out"
-    res = P.prepare("synth", src, out, height=32, width=96, heldout=1)
+    res = P.prepare(P.PrepareConfig("synth", src, out, height=32, width=96, heldout=1))
     names = sorted(p.name for p in src.iterdir() if not p.name.startswith("."))
     assert res.heldout == [f"{names[-1]} {i:06d}" for i in (1, 2)]
     assert sorted(res.train + res.val) == [f"{n} {i:06d}" for n in names[:-1] for i in (1, 2)]
@@ -258,10 +264,11 @@ def test_bad_inputs_are_skipped_and_named(tmp_path, capsys):
     src = tmp_path / "src"
     files = _bad_tree(src)
     out = tmp_path / "out"
-    res = P.main(["--kind", "synth", "--src", str(src), "--out", str(out), "--heldout", "0",
-                  "--height", "32", "--width", "48", "--workers", "2"])
-    reasons = [str(s) for s in res.skipped]
+    assert P.main(["--kind", "synth", "--src", str(src), "--out", str(out), "--heldout", "0",
+                   "--height", "32", "--width", "48", "--workers", "2"]) == 1  # some inputs skipped
     text = capsys.readouterr().out  # the printed summary lists every skip
+    res = P.prepare(P.PrepareConfig("synth", src, out, heldout=0, height=32, width=48))  # resumes: same lists
+    reasons = [str(s) for s in res.skipped]
     for r in reasons:
         assert r in text
 
@@ -293,24 +300,62 @@ def test_strict_turns_skips_into_errors(tmp_path, case, fragment):
     make_synth_seq(src / "z_good", 4, seed=9)  # a good sequence does not hide the bad one
     out = tmp_path / "out"
     with pytest.raises(GeoNetInputError) as err:
-        P.prepare("synth", src, out, heldout=0, height=32, width=48, strict=True)
+        P.prepare(P.PrepareConfig("synth", src, out, heldout=0, height=32, width=48, strict=True))
     assert str(src / case) in str(err.value) and fragment in str(err.value)
     assert_no_partial_files(out)
 
 
 def test_clear_errors_and_help(tmp_path, capsys):
     with pytest.raises(GeoNetInputError, match="source folder not found"):
-        P.prepare("synth", tmp_path / "missing", tmp_path / "out")
+        P.prepare(P.PrepareConfig("synth", tmp_path / "missing", tmp_path / "out"))
     (tmp_path / "empty").mkdir()
     with pytest.raises(GeoNetInputError, match="no KITTI raw drive"):
-        P.prepare("kitti_raw", tmp_path / "empty", tmp_path / "out")
+        P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "empty", tmp_path / "out"))
     with pytest.raises(GeoNetInputError, match="seq-length"):
-        P.prepare("synth", tmp_path / "empty", tmp_path / "out", seq_length=4)
+        P.prepare(P.PrepareConfig("synth", tmp_path / "empty", tmp_path / "out", seq_length=4))
     with pytest.raises(GeoNetInputError, match="--split eigen does not apply"):
-        P.prepare("synth", tmp_path / "empty", tmp_path / "out", split="eigen")
+        P.prepare(P.PrepareConfig("synth", tmp_path / "empty", tmp_path / "out", split="eigen"))
     with pytest.raises(SystemExit) as ex:
         P.main(["--help"])
     assert ex.value.code == 0
     help_text = capsys.readouterr().out
     for kind in P.KINDS:
         assert f"python -m training.prepare --kind {kind}" in help_text
+
+
+# --------------------------------------------------------------------------- CLI = library
+def tree_digest(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_cli_and_library_write_identical_files(tmp_path):
+    """``python -m training.prepare`` only parses flags into a PrepareConfig and calls prepare()."""
+    src = tmp_path / "synth"
+    for s in range(3):
+        make_synth_seq(src / f"seq_{s:02d}", 5, seed=s)
+    cli, lib = tmp_path / "cli", tmp_path / "lib"
+    cmd = [sys.executable, "-m", "training.prepare", "--kind", "synth", "--src", str(src), "--out", str(cli),
+           "--heldout", "1", "--height", "32", "--width", "48", "--val-fraction", "0.5", "--seed", "3"]
+    run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    P.prepare(P.PrepareConfig("synth", src, lib, heldout=1, height=32, width=48, val_fraction=0.5, seed=3))
+    digest = tree_digest(cli)
+    assert {"train.txt", "val.txt", "heldout.txt", "seq_02/000001_depth.png", "seq_00/000001.jpg"} <= set(digest)
+    assert digest == tree_digest(lib)
+
+
+def test_unpadded_frame_numbers_are_cut_in_numeric_order(tmp_path):
+    """1.png .. 11.png: name order would put 10 and 11 before 2 and join them into one snippet."""
+    seq = tmp_path / "src" / "seq"
+    make_synth_seq(seq, 12)
+    for p in sorted((seq / "image").iterdir()):
+        p.rename(p.with_name(f"{int(p.stem)}.png"))
+    res = P.prepare(P.PrepareConfig("synth", tmp_path / "src", tmp_path / "out", heldout=0, height=32, width=48))
+    assert sorted(res.train + res.val, key=lambda n: int(n.split()[1])) == [f"seq {i}" for i in range(1, 11)]
+    strip = cv2.imread(str(tmp_path / "out" / "seq" / "10.jpg")).astype(float)  # frames 9, 10, 11
+    frames = {i: cv2.resize(cv2.imread(str(seq / "image" / f"{i}.png")), (48, 32), interpolation=cv2.INTER_AREA)
+              for i in range(12)}
+    for k, part in enumerate(np.split(strip, 3, axis=1)):
+        err = {i: np.abs(part - f).mean() for i, f in frames.items()}
+        assert min(err, key=err.get) == 9 + k

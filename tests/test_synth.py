@@ -124,7 +124,7 @@ def _tree_digest(root):
     return out
 
 
-def test_written_layout_reads_back_and_is_independent_of_workers(tmp_path):
+def test_written_layout_reads_back_and_is_independent_of_workers(tmp_path, capsys):
     h, w, frames = 64, 208, 3
     args = ["--sequences", "2", "--frames", str(frames), "--seed", "3", "--height", str(h), "--width", str(w)]
     assert synth.main(["--out", str(tmp_path / "a"), "--workers", "2", *args]) == 0
@@ -156,17 +156,21 @@ def test_written_layout_reads_back_and_is_independent_of_workers(tmp_path):
     np.testing.assert_allclose(gio.read_calib_K(d / "calib.txt"), ref["K"], rtol=1e-8)
     assert gio.read_calib_K(d / "calib.txt")[0, 0] == pytest.approx(0.581 * w, rel=0.01)
 
-    # Same files with one worker; a rerun skips complete sequences and redoes a half-written one.
-    assert synth.main(["--out", str(tmp_path / "b"), "--workers", "1", *args]) == 0
+    # Same files with one worker from the library call (the CLI only parses flags into SynthConfig);
+    # a rerun skips complete sequences and redoes a half-written one.
+    cfg = synth.SynthConfig(out=tmp_path / "b", sequences=2, frames=frames, seed=3, height=h, width=w, workers=1)
+    assert synth.generate(cfg) == {"done": 2, "skipped": 0}
     assert _tree_digest(tmp_path / "b") == digest_a
     (tmp_path / "b" / ".tmp_seq_0002" / "image").mkdir(parents=True)
     before = os.stat(tmp_path / "b" / "seq_0000" / "poses.txt").st_mtime_ns
     assert synth.main(["--out", str(tmp_path / "b"), *args[:1], "3", *args[2:]]) == 0
     assert os.stat(tmp_path / "b" / "seq_0000" / "poses.txt").st_mtime_ns == before
     assert sorted(p.name for p in (tmp_path / "b").iterdir()) == ["seq_0000", "seq_0001", "seq_0002", "synth_config.json"]
-    with pytest.raises(SystemExit, match="synth_config.json"):
-        synth.main(["--out", str(tmp_path / "b"), "--sequences", "2", "--frames", "5", "--seed", "3",
-                    "--height", str(h), "--width", str(w)])
+    capsys.readouterr()
+    assert synth.main(["--out", str(tmp_path / "b"), "--sequences", "2", "--frames", "5", "--seed", "3",
+                       "--height", str(h), "--width", str(w)]) == 2  # other settings than the folder's
+    err = capsys.readouterr().err.strip()
+    assert "synth_config.json" in err and "frames=3" in err and len(err.splitlines()) == 1
 
 
 def test_help_runs(capsys):

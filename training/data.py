@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, Dataset
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io import read_cam_txt, read_depth_kitti, read_image
+from geonet_infer.preprocess import snippet_indices
 
 SPLITS = ("train", "val", "heldout")
 PREPARE_CMD = "run python -m training.prepare --kind synth|kitti_raw|kitti_odom --src DIR --out ROOT first"
@@ -199,10 +200,10 @@ class SequenceDataset(Dataset):
             rng = np.random.default_rng([self.seed, self.epoch, index])
             frames, K = augment(frames, K, rng, self.share_color_gain)
         chw = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))  # (N, 3, H, W)
-        mid = self.seq_length // 2
+        order = snippet_indices(self.seq_length // 2, self.seq_length, self.seq_length)  # [target] + sources
         item = {
-            "target": chw[mid],
-            "sources": torch.cat([chw[:mid], chw[mid + 1:]]),
+            "target": chw[order[0]],
+            "sources": chw[order[1:]],
             "intrinsics": torch.from_numpy(K.astype(np.float32)),
             "name": name,
         }
@@ -230,12 +231,14 @@ def _seed_worker(worker_id: int) -> None:
 
 
 def make_loader(dataset: Dataset, batch_size: int, shuffle: bool, num_workers: int = 0, seed: int = 0,
-                drop_last: bool = False) -> DataLoader:
+                drop_last: bool = False, sampler=None) -> DataLoader:
     """DataLoader whose shuffling order is fixed by ``seed`` (seeded torch.Generator).
 
+    ``sampler`` (an iterable of indices, e.g. a DistributedSampler's) replaces shuffling; pass
+    ``shuffle=False`` with it. ``seed`` still fixes the workers' base seeds.
     Batches are dicts of the item keys with a leading batch dimension; "name" becomes a list.
     """
     generator = torch.Generator()
     generator.manual_seed(seed)
-    return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, num_workers=num_workers,
+    return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, sampler=sampler, num_workers=num_workers,
                       generator=generator, worker_init_fn=_seed_worker, drop_last=drop_last)

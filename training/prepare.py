@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -32,19 +31,42 @@ from tqdm import tqdm
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import (atomic_write, read_calib_K, read_calib_file, read_depth_kitti, read_image,
-                             require_key, write_cam_txt, write_depth_kitti)
+from geonet_infer.io import (IMAGE_SUFFIXES, atomic_write, list_images, read_calib_K, read_calib_file, read_depth_kitti,
+                             read_image, require_key, write_cam_txt, write_depth_kitti)
 
 log = logging.getLogger(__name__)
 
 KINDS = ("synth", "kitti_raw", "kitti_odom")
 SPLITS = ("eigen", "stereo", "odom", "none")
+DEFAULT_SPLIT = {"kitti_raw": "eigen", "kitti_odom": "odom", "synth": "none"}
+VALID_SPLITS = {"kitti_raw": ("eigen", "stereo", "none"), "kitti_odom": ("odom", "none"), "synth": ("none",)}
 LISTS_DIR = Path(__file__).with_name("kitti_lists")
 RAW_CAMS = ("02", "03")  # KITTI raw colour cameras: left, right
 ODOM_TEST_SEQS = ("09", "10")  # the pose benchmark sequences (spec §8), never trained on
 JPEG_QUALITY = 95
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 PREPARE_HINT = "see python -m training.prepare --help"
+
+
+# --------------------------------------------------------------------------- config
+@dataclass
+class PrepareConfig:
+    """What :func:`prepare` reads, how it cuts it and where it writes (see the module docstring)."""
+
+    kind: str  # one of KINDS
+    src: Path
+    out: Path
+    seq_length: int | None = None  # odd; None = 5 for kitti_odom, else 3
+    height: int = REFERENCE_HEIGHT
+    width: int = REFERENCE_WIDTH
+    split: str | None = None  # None = DEFAULT_SPLIT[kind]
+    remove_static: bool = False  # kitti_raw: drop the frames of static_frames.txt first
+    workers: int = 1  # processes writing samples
+    val_fraction: float = 0.1  # probability of a sample going to val.txt
+    seed: int = 8964  # train/val split seed of the official script
+    heldout: int = 2  # synth: the last N sequences go to heldout.txt
+    max_frames: int | None = None  # only the first N frames of each sequence (quick runs)
+    strict: bool = False  # the first bad input is an error instead of a skip
 
 
 # --------------------------------------------------------------------------- data records
@@ -129,11 +151,14 @@ def frame_number(path: Path) -> int | None:
     return int(path.stem) if path.stem.isdigit() else None
 
 
-def list_images(folder: Path) -> list[Path]:
-    """PNG/JPEG files of a folder, sorted by frame number (then name)."""
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".jpg", ".jpeg")
-             and not p.name.startswith(".")]
-    return sorted(files, key=lambda p: (frame_number(p) is None, frame_number(p) or 0, p.name))
+def list_frames(folder: Path, skips: Skips) -> list[Path]:
+    """Image files of a folder in frame order (:func:`geonet_infer.io.list_images`); [] and a skip
+    if it holds none."""
+    try:
+        return list_images(folder)
+    except GeoNetInputError as err:
+        skips.add(err.path or folder, err.problem, err.hint)
+        return []
 
 
 def png_size(path: Path) -> tuple[int, int] | None:
@@ -234,7 +259,7 @@ def collect_kitti_raw(src: Path, split: str, skips: Skips) -> list[Sequence]:
             except GeoNetInputError as err:
                 skips.add(calib_path, err.problem, f"camera {cam} of {drive.name} needs it")
                 continue
-            seqs.append(Sequence(folder=f"{drive.name}_{cam}", image_dir=image_dir, frames=list_images(image_dir),
+            seqs.append(Sequence(folder=f"{drive.name}_{cam}", image_dir=image_dir, frames=list_frames(image_dir, skips),
                                  K=np.asarray(P, dtype=np.float64).reshape(3, 4)[:, :3].copy(), scene=drive.name))
     return seqs
 
@@ -267,7 +292,7 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
             log.info("exclude sequence %s: pose test sequence (use --split none to include it)", d.name)
             continue
         colour = d / "image_2"
-        if colour.is_dir() and list_images(colour):
+        if colour.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in colour.iterdir()):
             image_dir, key = colour, "P2"
         else:
             # Only greyscale frames: read_image expands them to 3 identical channels.
@@ -280,7 +305,7 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
         except GeoNetInputError as err:
             skips.add(err.path or calib_path, err.problem, f"sequence {d.name} needs {key}")
             continue
-        seqs.append(Sequence(folder=d.name, image_dir=image_dir, frames=list_images(image_dir), K=K))
+        seqs.append(Sequence(folder=d.name, image_dir=image_dir, frames=list_frames(image_dir, skips), K=K))
     return seqs
 
 
@@ -306,7 +331,7 @@ def collect_synth(src: Path, heldout: int, skips: Skips) -> list[Sequence]:
         except GeoNetInputError as err:
             skips.add(err.path or d, err.problem, err.hint)
             continue
-        seqs.append(Sequence(folder=d.name, image_dir=d / "image", frames=list_images(d / "image"), K=K,
+        seqs.append(Sequence(folder=d.name, image_dir=d / "image", frames=list_frames(d / "image", skips), K=K,
                              heldout=d.name in held, depth_dir=d / "depth"))
     return seqs
 
@@ -459,87 +484,100 @@ def write_list(path: Path, names: list[str]) -> None:
         tmp.write_text("".join(n + "\n" for n in names))
 
 
-def prepare(kind: str, src, out, seq_length: int | None = None, height: int = REFERENCE_HEIGHT,
-            width: int = REFERENCE_WIDTH, split: str | None = None, remove_static: bool = False,
-            workers: int = 1, val_fraction: float = 0.1, seed: int = 8964, heldout: int = 2,
-            max_frames: int | None = None, strict: bool = False) -> PrepareResult:
-    """Prepare one dataset; see the module docstring for the output. Returns what was done."""
-    if kind not in KINDS:
-        raise GeoNetInputError(None, f"unknown --kind {kind!r}", f"choose one of {', '.join(KINDS)}")
-    src, out = Path(src), Path(out)
-    if not src.is_dir():
-        raise GeoNetInputError(src, "source folder not found", PREPARE_HINT)
-    seq_length = seq_length or (5 if kind == "kitti_odom" else 3)
+def _check(cfg: PrepareConfig) -> tuple[int, str]:
+    """Validate ``cfg``; returns (seq_length, split) with the per-kind defaults filled in."""
+    if cfg.kind not in KINDS:
+        raise GeoNetInputError(None, f"unknown --kind {cfg.kind!r}", f"choose one of {', '.join(KINDS)}")
+    if not Path(cfg.src).is_dir():
+        raise GeoNetInputError(cfg.src, "source folder not found", PREPARE_HINT)
+    seq_length = cfg.seq_length or (5 if cfg.kind == "kitti_odom" else 3)
     if seq_length < 3 or seq_length % 2 == 0:
         raise GeoNetInputError(None, f"--seq-length must be odd and >= 3, got {seq_length}", "use 3 (depth/flow) or 5 (pose)")
-    split = split or {"kitti_raw": "eigen", "kitti_odom": "odom", "synth": "none"}[kind]
-    valid_splits = {"kitti_raw": ("eigen", "stereo", "none"), "kitti_odom": ("odom", "none"), "synth": ("none",)}[kind]
-    if split not in valid_splits:
-        raise GeoNetInputError(None, f"--split {split} does not apply to --kind {kind}",
-                               f"choose one of {', '.join(valid_splits)}")
-    if remove_static and kind != "kitti_raw":
+    split = cfg.split or DEFAULT_SPLIT[cfg.kind]
+    if split not in VALID_SPLITS[cfg.kind]:
+        raise GeoNetInputError(None, f"--split {split} does not apply to --kind {cfg.kind}",
+                               f"choose one of {', '.join(VALID_SPLITS[cfg.kind])}")
+    if cfg.remove_static and cfg.kind != "kitti_raw":
         raise GeoNetInputError(None, "--remove-static only applies to --kind kitti_raw", "drop the flag")
+    if cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
+        raise GeoNetInputError(None, f"need --height/--width >= 8 and --workers >= 1 (got {cfg.height}, "
+                               f"{cfg.width}, {cfg.workers})", PREPARE_HINT)
+    return seq_length, split
 
-    skips = Skips(strict)
-    if kind == "kitti_raw":
+
+def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Skips) -> list[Snippet]:
+    """Every snippet of the source, in sequence order (frames limited, static frames removed)."""
+    src = Path(cfg.src)
+    if cfg.kind == "kitti_raw":
         seqs = collect_kitti_raw(src, split, skips)
-    elif kind == "kitti_odom":
+    elif cfg.kind == "kitti_odom":
         seqs = collect_kitti_odom(src, split, skips)
     else:
-        seqs = collect_synth(src, heldout, skips)
-
-    snippets: list[Snippet] = []
-    for seq in seqs:
-        if max_frames is not None:
-            seq.frames = seq.frames[:max_frames]
-    if remove_static:
+        seqs = collect_synth(src, cfg.heldout, skips)
+    if cfg.max_frames is not None:
+        for seq in seqs:
+            seq.frames = seq.frames[:cfg.max_frames]
+    if cfg.remove_static:
         remove_static_frames(seqs)
-    for seq in seqs:
-        if check_frames(seq, skips):
-            snippets += make_snippets(seq, seq_length, skips)
+    return [snip for seq in seqs if check_frames(seq, skips) for snip in make_snippets(seq, seq_length, skips)]
 
-    result = PrepareResult(out=out)
-    out.mkdir(parents=True, exist_ok=True)
-    jobs = [(s, out, height, width) for s in snippets]
-    done: list[Snippet] = []
-    bar = tqdm(total=len(jobs), desc=f"prepare {kind}", unit="sample", disable=None)
 
-    def record(snip: Snippet, status: str, where: Path | None, reason: str | None) -> None:
-        bar.update(1)
-        if status == "skipped":
-            skips.add(where or snip.paths[len(snip.paths) // 2], reason or "unknown error")
-            return
-        done.append(snip)
-        if status == "written":
-            result.written += 1
-        else:
-            result.existing += 1
-
+def write_snippets(jobs: list[tuple], workers: int, desc: str):
+    """Run :func:`write_snippet` over ``jobs``; yields (snippet, status, offending file, reason)."""
+    bar = tqdm(total=len(jobs), desc=desc, unit="sample", disable=None)
     try:
         if workers <= 1:
             for job in jobs:
-                record(job[0], *write_snippet(*job))
-        else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                futures = {pool.submit(_write_snippet_args, job): job[0] for job in jobs}
-                try:
-                    for fut in as_completed(futures):
-                        record(futures[fut], *fut.result())
-                except BaseException:
-                    pool.shutdown(wait=True, cancel_futures=True)
-                    raise
+                yield job[0], *write_snippet(*job)
+                bar.update(1)
+            return
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = {pool.submit(_write_snippet_args, job): job[0] for job in jobs}
+            try:
+                for fut in as_completed(futures):
+                    yield futures[fut], *fut.result()
+                    bar.update(1)
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
     finally:
         bar.close()
 
+
+def prepare(cfg: PrepareConfig) -> PrepareResult:
+    """Prepare one dataset; see the module docstring for the output. Returns what was done.
+
+    Raises GeoNetInputError on a bad config, a missing source or when no sample could be made;
+    inputs that are skipped (``cfg.strict`` off) are listed in the result.
+    """
+    seq_length, split = _check(cfg)
+    src, out = Path(cfg.src), Path(cfg.out)
+    skips = Skips(cfg.strict)
+    snippets = collect_snippets(cfg, seq_length, split, skips)
+    result = PrepareResult(out=out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise GeoNetInputError(out, f"cannot create the output folder ({exc.strerror or exc})",
+                               "choose a writable --out") from None
+    done: list[Snippet] = []
+    jobs = [(snip, out, cfg.height, cfg.width) for snip in snippets]
+    for snip, status, where, reason in write_snippets(jobs, cfg.workers, f"prepare {cfg.kind}"):
+        if status == "skipped":
+            skips.add(where or snip.paths[len(snip.paths) // 2], reason or "unknown error")
+            continue
+        done.append(snip)
+        result.written += status == "written"
+        result.existing += status == "exists"
     result.skipped = skips.items
     if not done:
         raise GeoNetInputError(src, f"no sample could be made ({len(skips.items)} skipped)",
                                "; ".join(str(s) for s in skips.items[:5]) or PREPARE_HINT)
     result.heldout = sorted(s.name for s in done if s.heldout)
-    result.train, result.val = split_train_val([s.name for s in done if not s.heldout], val_fraction, seed)
+    result.train, result.val = split_train_val([s.name for s in done if not s.heldout], cfg.val_fraction, cfg.seed)
     write_list(out / "train.txt", result.train)
     write_list(out / "val.txt", result.val)
-    if kind == "synth":
+    if cfg.kind == "synth":
         write_list(out / "heldout.txt", result.heldout)
     return result
 
@@ -570,6 +608,7 @@ sequences) are listed at the end; --strict makes the first one an error. Re-runn
 
 
 def build_parser() -> argparse.ArgumentParser:
+    D = PrepareConfig  # argparse defaults are the config's defaults
     p = argparse.ArgumentParser(
         prog="python -m training.prepare",
         description="Cut image sequences into GeoNet training samples: seq_length frames resized to "
@@ -577,38 +616,41 @@ def build_parser() -> argparse.ArgumentParser:
                     "train.txt / val.txt lists.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--kind", required=True, choices=KINDS, help="input layout (see below)")
-    p.add_argument("--src", required=True, help="input root (see below)")
-    p.add_argument("--out", required=True, help="output folder (created; re-running resumes)")
-    p.add_argument("--seq-length", type=int, default=None, help="frames per sample, odd: 3 (default) or 5 (kitti_odom default)")
-    p.add_argument("--height", type=int, default=REFERENCE_HEIGHT, help="frame height (default %(default)s)")
-    p.add_argument("--width", type=int, default=REFERENCE_WIDTH, help="frame width (default %(default)s)")
-    p.add_argument("--split", choices=SPLITS, default=None,
+    p.add_argument("--src", required=True, type=Path, help="input root (see below)")
+    p.add_argument("--out", required=True, type=Path, help="output folder (created; re-running resumes)")
+    p.add_argument("--seq-length", type=int, default=D.seq_length,
+                   help="frames per sample, odd: 3 (default) or 5 (kitti_odom default)")
+    p.add_argument("--height", type=int, default=D.height, help="frame height (default %(default)s)")
+    p.add_argument("--width", type=int, default=D.width, help="frame width (default %(default)s)")
+    p.add_argument("--split", choices=SPLITS, default=D.split,
                    help="test scenes to leave out: eigen|stereo (kitti_raw, default eigen), odom "
                         "(kitti_odom: sequences 09, 10; the default), none")
     p.add_argument("--remove-static", action="store_true", help="kitti_raw: drop static frames first")
-    p.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1), help="processes (default %(default)s)")
-    p.add_argument("--val-fraction", type=float, default=0.1, help="probability of a sample going to val.txt")
-    p.add_argument("--seed", type=int, default=8964, help="seed of the train/val split (official 8964)")
-    p.add_argument("--heldout", type=int, default=2, help="synth: last N sequences held out for evaluation")
-    p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames of each sequence (quick runs)")
+    p.add_argument("--workers", type=int, default=D.workers, help="processes (default %(default)s)")
+    p.add_argument("--val-fraction", type=float, default=D.val_fraction,
+                   help="probability of a sample going to val.txt (default %(default)s)")
+    p.add_argument("--seed", type=int, default=D.seed, help="seed of the train/val split (default: the official %(default)s)")
+    p.add_argument("--heldout", type=int, default=D.heldout,
+                   help="synth: last N sequences held out for evaluation (default %(default)s)")
+    p.add_argument("--max-frames", type=int, default=D.max_frames,
+                   help="use only the first N frames of each sequence (quick runs)")
     p.add_argument("--strict", action="store_true", help="stop at the first bad input instead of skipping it")
     return p
 
 
-def main(argv=None) -> PrepareResult:
+def main(argv=None) -> int:
+    """Exit codes: 0 every input used, 1 some inputs skipped (listed), 2 bad usage or input."""
     args = build_parser().parse_args(argv)
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    result = prepare(args.kind, args.src, args.out, seq_length=args.seq_length, height=args.height,
-                     width=args.width, split=args.split, remove_static=args.remove_static,
-                     workers=args.workers, val_fraction=args.val_fraction, seed=args.seed,
-                     heldout=args.heldout, max_frames=args.max_frames, strict=args.strict)
+    try:
+        result = prepare(PrepareConfig(**vars(args)))
+    except GeoNetInputError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     print(result.summary())
-    return result
+    return 1 if result.skipped else 0
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except GeoNetInputError as err:
-        sys.exit(f"error: {err}")
+    sys.exit(main())

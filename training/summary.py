@@ -11,7 +11,8 @@ equals the conv bias of a BN-folded (deploy) model.
 from __future__ import annotations
 
 import argparse
-from typing import Sequence
+import sys
+from collections.abc import Sequence
 
 import torch
 import torch.nn as nn
@@ -69,11 +70,15 @@ def network_table(height: int, width: int) -> list[tuple[str, str, tuple[int, ..
     return rows
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: Sequence[str] | None = None) -> int:
+    """Exit codes: 0 table printed, 2 bad size (one line naming it)."""
+    parser = argparse.ArgumentParser(prog="python -m training.summary", description=__doc__.splitlines()[0])
     parser.add_argument("--height", type=int, default=REFERENCE_HEIGHT)
     parser.add_argument("--width", type=int, default=REFERENCE_WIDTH)
     args = parser.parse_args(argv)
+    if min(args.height, args.width) < 1:
+        print(f"error: --height/--width {args.height}x{args.width}: need positive sizes", file=sys.stderr)
+        return 2
     rows = network_table(args.height, args.width)
     print("| network | variant | input (B,C,H,W) | params (M) | conv GMACs |")
     print("|---|---|---|---|---|")
@@ -82,7 +87,8 @@ def main(argv: Sequence[str] | None = None) -> None:
               f"| {macs / 1e9:.3f} |")
     print("conv MACs only (out_elems * in_ch/groups * kh * kw); elementwise, pooling, "
           "resize and mean ops are not counted.")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

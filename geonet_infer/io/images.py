@@ -1,6 +1,7 @@
 """8-bit RGB images, 0/255 masks and image folders (OpenCV's BGR order only inside this module)."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -31,8 +32,14 @@ def _imread(path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- folders
+def natural_key(name: str) -> tuple:
+    """Sort key comparing digit runs as numbers: frame2.png < frame10.png (then by name, so 01 != 1)."""
+    parts = re.split(r"(\d+)", name)  # even indices text, odd indices digits
+    return [int(t) if i % 2 else t for i, t in enumerate(parts)], name
+
+
 def list_images(folder) -> list[Path]:
-    """Image files of a folder, sorted by file name.
+    """Image files of a folder, sorted by file name with numbers in numeric order (:func:`natural_key`).
 
     Suffixes: .png .jpg .jpeg .bmp .ppm (any case). Hidden files (names starting
     with ``.``, e.g. the temp files of :func:`~geonet_infer.io.atomic.atomic_write`
@@ -47,7 +54,7 @@ def list_images(folder) -> list[Path]:
                                "pass a folder of frames")
     files = sorted((p for p in folder.iterdir()
                     if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()),
-                   key=lambda p: p.name)
+                   key=lambda p: natural_key(p.name))
     if not files:
         raise GeoNetInputError(folder, "no images in this folder", f"expected {' '.join(IMAGE_SUFFIXES)} files")
     return files

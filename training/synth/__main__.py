@@ -1,0 +1,5 @@
+import sys
+
+from training.synth.cli import main
+
+sys.exit(main())
