@@ -359,3 +359,70 @@ def test_unpadded_frame_numbers_are_cut_in_numeric_order(tmp_path):
     for k, part in enumerate(np.split(strip, 3, axis=1)):
         err = {i: np.abs(part - f).mean() for i, f in frames.items()}
         assert min(err, key=err.get) == 9 + k
+
+
+# ----------------------------------------------------------------------------- video / frames
+DASHCAM_CALIB_K = (1158.774754, 1154.076607, 669.642741, 388.079450)  # fx fy cx cy, typed from the calib file
+
+
+def test_video_of_a_real_dashcam_clip_scales_the_calibration(realdata, tmp_path):
+    clip = realdata / "udacity_dashcam" / "test_video.mp4"
+    calib = realdata / "udacity_dashcam" / "calib_advanced_lane_lines.txt"
+    out = tmp_path / "dash"
+    rc = P.main(["--kind", "video", "--src", str(clip), "--calib", str(calib), "--crop", "0,229,1280,394",
+                 "--out", str(out), "--static-threshold", "0"])
+    assert rc == 0
+    fx, fy, cx, cy = DASHCAM_CALIB_K
+    # by hand: crop moves the principal point up by 229 rows; 1280x394 -> 416x128 scales x and y
+    expected = [fx * 416 / 1280, 0.0, cx * 416 / 1280, 0.0, fy * 128 / 394, (cy - 229) * 128 / 394, 0.0, 0.0, 1.0]
+    samples = sorted((out / "test_video").glob("*_cam.txt"))
+    assert len(samples) == 38 - 2  # 38 decoded frames (the clip's README), none static, ends lack neighbours
+    for cam in samples:
+        values = [float(v) for v in cam.read_text().strip().split(",")]
+        np.testing.assert_allclose(values, expected, rtol=1e-5, atol=1e-4)
+    strip = cv2.imread(str(out / "test_video" / "000001.jpg"))
+    assert strip.shape == (128, 3 * 416, 3)
+    # the middle third is frame 1 undistorted (same K), cropped and resized, as OpenCV does it directly
+    cap = cv2.VideoCapture(str(clip))
+    for _ in range(2):
+        ok, bgr = cap.read()
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    dist = np.array([-0.25677908, 0.04338451, -0.00068745, 0.00012577, -0.11502545])
+    want = cv2.resize(cv2.undistort(bgr, K, dist)[229:623], (416, 128), interpolation=cv2.INTER_AREA)
+    diff = np.abs(strip[:, 416:832].astype(float) - want.astype(float))
+    assert diff.mean() < 2.0  # JPEG q95 of the same pixels
+    lines = (out / "train.txt").read_text().split() + (out / "val.txt").read_text().split()
+    assert len(lines) == 2 * 36
+
+
+def test_frames_drop_static_frames_and_keep_snippets_consecutive(tmp_path):
+    rng = np.random.default_rng(0)
+    src = tmp_path / "frames"
+    src.mkdir()
+    base = rng.integers(0, 255, (64, 208, 3), dtype=np.uint8)
+    moving = [np.roll(base, 4 * i, axis=1) for i in range(6)]
+    frames = [moving[0], moving[0], moving[1], moving[2], moving[2], moving[2], moving[3], moving[4], moving[5]]
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(src / f"{i:04d}.png"), f)
+    (tmp_path / "K.txt").write_text("100 0 104\n0 100 32\n0 0 1\n")
+    out = tmp_path / "out"
+    rc = P.main(["--kind", "frames", "--src", str(src), "--calib", str(tmp_path / "K.txt"), "--out", str(out),
+                 "--height", "64", "--width", "208"])
+    assert rc == 0
+    kept = sorted((out / P.FRAME_CACHE / "frames").glob("*.png"))
+    assert len(kept) == 6  # the three repeats are dropped
+    for i, path in enumerate(kept):
+        assert np.array_equal(cv2.imread(str(path)), moving[i])
+    assert len(list((out / "frames").glob("*.jpg"))) == 6 - 2
+
+
+def test_video_needs_a_calibration_and_a_crop_that_fits(realdata, tmp_path, capsys):
+    clip = realdata / "udacity_dashcam" / "test_video.mp4"
+    calib = realdata / "udacity_dashcam" / "calib_advanced_lane_lines.txt"
+    assert P.main(["--kind", "video", "--src", str(clip), "--out", str(tmp_path / "a")]) == 2
+    assert "--calib" in capsys.readouterr().err
+    assert P.main(["--kind", "video", "--src", str(clip), "--calib", str(calib), "--crop", "0,500,1280,394",
+                   "--out", str(tmp_path / "b")]) == 2
+    assert "does not fit" in capsys.readouterr().err
+    assert P.main(["--kind", "synth", "--src", str(tmp_path), "--calib", str(calib), "--out", str(tmp_path / "c")]) == 2
+    assert "only applies" in capsys.readouterr().err

@@ -31,15 +31,18 @@ from tqdm import tqdm
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import (IMAGE_SUFFIXES, atomic_write, list_images, read_calib_K, read_calib_file, read_depth_kitti,
-                             read_image, require_key, write_cam_txt, write_depth_kitti)
+from geonet_infer.io import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, atomic_write, list_images, open_frames, read_calib_K,
+                             read_calib_file, read_camera, read_depth_kitti, read_image, require_key, write_cam_txt,
+                             write_depth_kitti, write_image)
 
 log = logging.getLogger(__name__)
 
-KINDS = ("synth", "kitti_raw", "kitti_odom")
+KINDS = ("synth", "kitti_raw", "kitti_odom", "video", "frames")
 SPLITS = ("eigen", "stereo", "odom", "none")
-DEFAULT_SPLIT = {"kitti_raw": "eigen", "kitti_odom": "odom", "synth": "none"}
-VALID_SPLITS = {"kitti_raw": ("eigen", "stereo", "none"), "kitti_odom": ("odom", "none"), "synth": ("none",)}
+DEFAULT_SPLIT = {"kitti_raw": "eigen", "kitti_odom": "odom", "synth": "none", "video": "none", "frames": "none"}
+VALID_SPLITS = {"kitti_raw": ("eigen", "stereo", "none"), "kitti_odom": ("odom", "none"), "synth": ("none",),
+                "video": ("none",), "frames": ("none",)}
+FRAME_CACHE = ".frames"  # video/frames: the undistorted, cropped, resized, non-static frames
 LISTS_DIR = Path(__file__).with_name("kitti_lists")
 RAW_CAMS = ("02", "03")  # KITTI raw colour cameras: left, right
 ODOM_TEST_SEQS = ("09", "10")  # the pose benchmark sequences (spec §8), never trained on
@@ -67,6 +70,10 @@ class PrepareConfig:
     heldout: int = 2  # synth: the last N sequences go to heldout.txt
     max_frames: int | None = None  # only the first N frames of each sequence (quick runs)
     strict: bool = False  # the first bad input is an error instead of a skip
+    calib: Path | None = None  # video/frames: the camera (any format of geonet_infer.io.read_camera)
+    crop: tuple[int, int, int, int] | None = None  # video/frames: x, y, w, h kept after undistortion
+    static_threshold: float = 1.0  # video/frames: drop a frame whose mean |grey difference| to the
+    #                                last kept one is below this (0..255 levels, at H x W); 0 keeps all
 
 
 # --------------------------------------------------------------------------- data records
@@ -337,6 +344,86 @@ def collect_synth(src: Path, heldout: int, skips: Skips) -> list[Sequence]:
 
 
 # --------------------------------------------------------------------------- snippets
+# --------------------------------------------------------------------------- video / frames
+def _video_inputs(src: Path, kind: str) -> list[Path]:
+    """kind video: a video file or a folder of them; kind frames: one folder of frames."""
+    if kind == "frames":
+        return [src]
+    if src.is_file():
+        return [src]
+    videos = sorted(p for p in src.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
+    if not videos:
+        raise GeoNetInputError(src, f"no video ({', '.join(VIDEO_SUFFIXES)}) in this folder", PREPARE_HINT)
+    return videos
+
+
+def crop_camera(camera, crop: tuple[int, int, int, int] | None, frame_size: tuple[int, int]) -> np.ndarray:
+    """K of the cropped frames (cx, cy shift by the crop's corner); checks the crop fits."""
+    K = camera.scaled_to(*frame_size).K.copy()
+    if crop is None:
+        return K
+    x, y, w, h = crop
+    if x < 0 or y < 0 or w < 8 or h < 8 or x + w > frame_size[0] or y + h > frame_size[1]:
+        raise GeoNetInputError(None, f"--crop {x},{y},{w},{h} does not fit the {frame_size[0]}x{frame_size[1]} "
+                               "frames", "give X,Y,W,H inside the frame (after undistortion, same size)")
+    K[0, 2] -= x
+    K[1, 2] -= y
+    return K
+
+
+def collect_video(cfg: "PrepareConfig", skips: Skips) -> list[Sequence]:
+    """Decode each input, undistort, crop, resize to H x W and drop static frames into a cache.
+
+    The cache (``OUT/.frames/<name>/NNNNNN.png``, numbered consecutively over the kept
+    frames) becomes an ordinary sequence with K at H x W, so snippets are cut as for KITTI.
+    """
+    if cfg.calib is None:
+        raise GeoNetInputError(None, f"--kind {cfg.kind} needs --calib FILE",
+                               "a calibration with K (and distortion, if the lens has any)")
+    camera = read_camera(cfg.calib)
+    seqs = []
+    for path in _video_inputs(Path(cfg.src), cfg.kind):
+        source = open_frames(path)
+        cache = Path(cfg.out) / FRAME_CACHE / source.name
+        cache.mkdir(parents=True, exist_ok=True)
+        K_out, kept, last, size = None, [], None, None
+        for i, frame in enumerate(source):
+            if cfg.max_frames is not None and i >= cfg.max_frames:
+                break
+            if not frame.ok:
+                skips.add(path, f"frame {frame.name}: {frame.error.problem}")
+                continue
+            rgb = frame.rgb
+            if size is None:
+                size = (rgb.shape[1], rgb.shape[0])
+                K_crop = crop_camera(camera, cfg.crop, size)
+                crop_size = (cfg.crop[2], cfg.crop[3]) if cfg.crop else size
+                K_out = scale_intrinsics(K_crop, cfg.width / crop_size[0], cfg.height / crop_size[1])
+                cam_here = camera.scaled_to(*size)
+            elif (rgb.shape[1], rgb.shape[0]) != size:
+                skips.add(path, f"frame {frame.name} is {rgb.shape[1]}x{rgb.shape[0]}, the first {size[0]}x{size[1]}")
+                continue
+            if cam_here.has_distortion:  # same K after undistortion (what the runtime does too)
+                rgb = cv2.undistort(rgb, cam_here.K, cam_here.dist)
+            if cfg.crop:
+                x, y, w, h = cfg.crop
+                rgb = rgb[y:y + h, x:x + w]
+            small = resize(rgb, cfg.height, cfg.width)
+            grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
+            if last is not None and float(np.abs(grey - last).mean()) < cfg.static_threshold:
+                continue  # the car stands still: no parallax to learn from
+            last = grey
+            out_path = cache / f"{len(kept):06d}.png"
+            if not out_path.is_file():
+                write_image(out_path, small)
+            kept.append(out_path)
+        if not kept:
+            skips.add(path, "no decodable frame")
+            continue
+        seqs.append(Sequence(folder=source.name, image_dir=cache, frames=kept, K=K_out))
+    return seqs
+
+
 def check_frames(seq: Sequence, skips: Skips) -> bool:
     """Drop frames with an unreadable header; refuse a sequence with mixed resolutions.
 
@@ -488,8 +575,15 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
     """Validate ``cfg``; returns (seq_length, split) with the per-kind defaults filled in."""
     if cfg.kind not in KINDS:
         raise GeoNetInputError(None, f"unknown --kind {cfg.kind!r}", f"choose one of {', '.join(KINDS)}")
-    if not Path(cfg.src).is_dir():
-        raise GeoNetInputError(cfg.src, "source folder not found", PREPARE_HINT)
+    if cfg.kind == "video" and Path(cfg.src).is_file():
+        pass
+    elif not Path(cfg.src).is_dir():
+        raise GeoNetInputError(cfg.src, "source folder not found" if cfg.kind != "video" else
+                               "video file or folder not found", PREPARE_HINT)
+    video_only = {"calib": cfg.calib is not None, "crop": cfg.crop is not None}
+    if cfg.kind not in ("video", "frames") and any(video_only.values()):
+        raise GeoNetInputError(None, f"--{next(k for k, v in video_only.items() if v)} only applies to "
+                               "--kind video|frames", "the KITTI and synthetic layouts carry their calibration")
     seq_length = cfg.seq_length or (5 if cfg.kind == "kitti_odom" else 3)
     if seq_length < 3 or seq_length % 2 == 0:
         raise GeoNetInputError(None, f"--seq-length must be odd and >= 3, got {seq_length}", "use 3 (depth/flow) or 5 (pose)")
@@ -512,6 +606,8 @@ def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Ski
         seqs = collect_kitti_raw(src, split, skips)
     elif cfg.kind == "kitti_odom":
         seqs = collect_kitti_odom(src, split, skips)
+    elif cfg.kind in ("video", "frames"):
+        seqs = collect_video(cfg, skips)  # --max-frames applied while decoding
     else:
         seqs = collect_synth(src, cfg.heldout, skips)
     if cfg.max_frames is not None:
@@ -597,6 +693,17 @@ kinds:
               --split odom (default) leaves out the pose test sequences 09 and 10.
       python -m training.prepare --kind kitti_odom --src ../shared/realdata/kitti_odometry_00 \\
           --out data/prepared_odom
+  video       --src = a video file or a folder of videos; --calib FILE (any format of
+              geonet_infer.io.read_camera: K, distortion, image size). Frames are undistorted (same K)
+              when the calibration has distortion, cropped to --crop X,Y,W,H (e.g. to cut a car
+              bonnet), resized to HxW with K scaled, and a frame whose mean grey difference to the
+              last kept one is below --static-threshold is dropped (a standing car). One sequence per
+              video; the kept frames are cached in OUT/.frames/.
+      python -m training.prepare --kind video --src ../shared/realdata/udacity_dashcam/challenge.mp4 \
+          --calib ../shared/realdata/udacity_dashcam/calib_advanced_lane_lines.txt \
+          --crop 0,229,1280,394 --out data/prepared_dashcam
+  frames      the same for one folder of frames (sorted by name).
+      python -m training.prepare --kind frames --src FRAMES_DIR --calib calib.txt --out data/prepared_frames
   synth       --src = the synthetic generator's output root (<seq>/image/*.png, depth/, calib.txt
               with "K: fx 0 cx 0 fy cy 0 0 1"). The last --heldout sequences (sorted by name) go to
               heldout.txt, with the target depth copied as <frame>_depth.png, never to train/val.
@@ -635,7 +742,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frames", type=int, default=D.max_frames,
                    help="use only the first N frames of each sequence (quick runs)")
     p.add_argument("--strict", action="store_true", help="stop at the first bad input instead of skipping it")
+    p.add_argument("--calib", type=Path, default=D.calib, help="video/frames: the camera calibration file")
+    p.add_argument("--crop", type=_crop, default=D.crop, metavar="X,Y,W,H",
+                   help="video/frames: the region kept after undistortion, in input pixels")
+    p.add_argument("--static-threshold", type=float, default=D.static_threshold,
+                   help="video/frames: drop frames whose mean grey difference to the last kept one is "
+                        "below this, in levels of 255 at HxW (default %(default)s; 0 keeps every frame)")
     return p
+
+
+def _crop(text: str) -> tuple[int, int, int, int]:
+    try:
+        x, y, w, h = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y,W,H in pixels, got {text!r}") from None
+    return x, y, w, h
 
 
 def main(argv=None) -> int:
