@@ -8,6 +8,7 @@ included), after a 2-frame warm-up, with OpenCV and BLAS limited to one thread;
 by wall clock and by this process's CPU time (the latter is what one free core
 would give when other jobs share the machine; the 1-minute load average is printed).
 """
+
 from __future__ import annotations
 
 import os
@@ -54,19 +55,28 @@ def main(argv=None) -> int:
         cpu_fps_write = args.frames / (time.process_time() - c0)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
 
-    print(json.dumps({
-        "benchmark": "synth",
-        "frames": args.frames, "height": args.height, "width": args.width,
-        "fps_generate": round(fps_gen, 2),
-        "fps_generate_and_write": round(fps_write, 2),
-        "cpu_time_fps_generate": round(cpu_fps_gen, 2),
-        "cpu_time_fps_generate_and_write": round(cpu_fps_write, 2),
-        "load_avg_1min": load,
-        "threads": 1,
-        "cpu": cpu_model(), "cpu_count": os.cpu_count(),
-        "python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
-        "platform": platform.platform(),
-    }))
+    print(
+        json.dumps(
+            {
+                "benchmark": "synth",
+                "frames": args.frames,
+                "height": args.height,
+                "width": args.width,
+                "fps_generate": round(fps_gen, 2),
+                "fps_generate_and_write": round(fps_write, 2),
+                "cpu_time_fps_generate": round(cpu_fps_gen, 2),
+                "cpu_time_fps_generate_and_write": round(cpu_fps_write, 2),
+                "load_avg_1min": load,
+                "threads": 1,
+                "cpu": cpu_model(),
+                "cpu_count": os.cpu_count(),
+                "python": platform.python_version(),
+                "numpy": np.__version__,
+                "opencv": cv2.__version__,
+                "platform": platform.platform(),
+            }
+        )
+    )
     return 0
 
 

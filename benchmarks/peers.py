@@ -32,6 +32,7 @@ Roofline: best of a few 4096^3 GEMMs, fp32 (numpy and torch sgemm) and int8
 Writes ``--out PREFIX`` .json and .md (default ``runs/bench/peers_<arch>``) and prints the
 markdown tables.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -45,9 +46,9 @@ import sys
 import tempfile
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -65,8 +66,14 @@ from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mi
 
 NETS = ("depthnet", "posenet", "resflownet", "rigidflow")
 BACKENDS = ("eager", "compile", "ort_fp32", "ort_int8", "ov_f32", "ov_int8")
-LABELS = {"eager": "torch eager", "compile": "torch.compile", "ort_fp32": "ORT fp32", "ort_int8": "ORT int8",
-          "ov_f32": "OpenVINO f32", "ov_int8": "OpenVINO int8"}
+LABELS = {
+    "eager": "torch eager",
+    "compile": "torch.compile",
+    "ort_fp32": "ORT fp32",
+    "ort_int8": "ORT int8",
+    "ov_f32": "OpenVINO f32",
+    "ov_int8": "OpenVINO int8",
+}
 INT8_BACKENDS = ("ort_int8", "ov_int8")
 TEMP_DIRS: list[Path] = []  # temporary exports, removed at exit
 DEFAULT_CALIB = REPO / ".." / "shared" / "realdata" / "kitti_raw_2011_09_26_sfnd" / "image_02" / "data"
@@ -74,19 +81,25 @@ DEFAULT_CALIB = REPO / ".." / "shared" / "realdata" / "kitti_raw_2011_09_26_sfnd
 
 # ----------------------------------------------------------------------------- arguments
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="benchmarks/peers.py", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="benchmarks/peers.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     src = p.add_argument_group("weights")
     src.add_argument("--arch", choices=("small", "resnet50", "vgg"), help="with --random-init (default: small)")
     src.add_argument("--random-init", action="store_true", help="seeded random weights (timing only)")
     src.add_argument("--seed", type=int, default=0, help="seed of --random-init (export's default is 0)")
     src.add_argument("--checkpoint", type=Path, help="a training checkpoint (stage flow for ResFlowNet)")
-    src.add_argument("--onnx-dir", type=Path,
-                     help="an existing `python -m export` directory of the SAME weights (skips the export)")
+    src.add_argument(
+        "--onnx-dir", type=Path, help="an existing `python -m export` directory of the SAME weights (skips the export)"
+    )
     src.add_argument("--keep-export", type=Path, help="export into this directory and keep it")
-    src.add_argument("--calib-data", type=Path, default=DEFAULT_CALIB,
-                     help="frames for the int8 calibration of the export (default: the shared KITTI raw drive, "
-                          "else the bundled sample)")
+    src.add_argument(
+        "--calib-data",
+        type=Path,
+        default=DEFAULT_CALIB,
+        help="frames for the int8 calibration of the export (default: the shared KITTI raw drive, "
+        "else the bundled sample)",
+    )
     src.add_argument("--calib-frames", type=int, default=8, help="int8 calibration frames (default: 8)")
     run = p.add_argument_group("run")
     run.add_argument("--nets", default=",".join(NETS), help=f"comma list of {', '.join(NETS)}")
@@ -99,8 +112,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--rewarm-ms", type=float, default=50.0, help="re-warm before each block (default: 50)")
     run.add_argument("--ort-spinning", action="store_true", help="ORT intra-op spinning on (runtime default: off)")
     run.add_argument("--gemm-size", type=int, default=4096, help="roofline GEMM size n (n^3; default 4096)")
-    run.add_argument("--quick", action="store_true",
-                     help="development: small arch, 1 warm-up, 2 rounds x 2 calls, GEMM 1024, 8 calibration frames")
+    run.add_argument(
+        "--quick",
+        action="store_true",
+        help="development: small arch, 1 warm-up, 2 rounds x 2 calls, GEMM 1024, 8 calibration frames",
+    )
     p.add_argument("--out", type=Path, default=None, help="output prefix (default: runs/bench/peers_<arch>)")
     return p
 
@@ -115,9 +131,21 @@ def _csv(text: str, allowed: tuple, what: str) -> list[str]:
 
 # ----------------------------------------------------------------------------- weights and export
 def _export_args(args, out: Path) -> list[str]:
-    calib = args.calib_data if Path(args.calib_data).is_dir() else REPO / "geonet_infer" / "samples" / "synth_seq" / "image"
-    argv = ["--out", str(out), "--precision", "fp32,int8", "--calib-data", str(calib),
-            "--calib-frames", str(args.calib_frames), "--quiet", "--force"]
+    calib = (
+        args.calib_data if Path(args.calib_data).is_dir() else REPO / "geonet_infer" / "samples" / "synth_seq" / "image"
+    )
+    argv = [
+        "--out",
+        str(out),
+        "--precision",
+        "fp32,int8",
+        "--calib-data",
+        str(calib),
+        "--calib-frames",
+        str(args.calib_frames),
+        "--quiet",
+        "--force",
+    ]
     if args.checkpoint:
         return ["--checkpoint", str(args.checkpoint), *argv]
     return ["--arch", args.arch, "--random-init", "--seed", str(args.seed), *argv]
@@ -145,11 +173,21 @@ def load_weights_and_graphs(args, log) -> tuple[object, Path, dict]:
     graphs = list(manifest.graphs["fp32"])
     source = _load_source(eargs, graphs)
     if source.height != manifest.height or source.width != manifest.width:
-        raise SystemExit(f"error: {out} is {manifest.height}x{manifest.width}, the weights' export size is "
-                         f"{source.height}x{source.width}")
-    notes.update(onnx_dir=str(out), arch=source.arch, random_init=source.random_init, seed=args.seed,
-                 checkpoint=str(args.checkpoint) if args.checkpoint else None, height=manifest.height,
-                 width=manifest.width, seq_length=manifest.seq_length, precisions=list(manifest.graphs))
+        raise SystemExit(
+            f"error: {out} is {manifest.height}x{manifest.width}, the weights' export size is "
+            f"{source.height}x{source.width}"
+        )
+    notes.update(
+        onnx_dir=str(out),
+        arch=source.arch,
+        random_init=source.random_init,
+        seed=args.seed,
+        checkpoint=str(args.checkpoint) if args.checkpoint else None,
+        height=manifest.height,
+        width=manifest.width,
+        seq_length=manifest.seq_length,
+        precisions=list(manifest.graphs),
+    )
     return source.model, out, notes
 
 
@@ -165,10 +203,18 @@ def realistic_feeds(model_dir: Path, batch: int, threads: int) -> dict[str, dict
     K_graph = np.ascontiguousarray(np.repeat(graph_intrinsics(camera.K, spec.size, spec)[None], batch, axis=0))
     g = Graphs(predictor)
     ref = net_cascade(g, feeds, K_graph, next_source_position(L))
-    out = {"depthnet": {"image": feeds["target"]}, "posenet": {"snippet": feeds["snippet"]},
-           "rigidflow": {"depth": np.ascontiguousarray(1.0 / ref["disparity"]), "pose": ref["pose"],
-                         "intrinsics": K_graph, "target": feeds["target"], "source": feeds["source"]},
-           "resflownet": {"flow_input": np.ascontiguousarray(ref["flow_input"], dtype=np.float32)}}
+    out = {
+        "depthnet": {"image": feeds["target"]},
+        "posenet": {"snippet": feeds["snippet"]},
+        "rigidflow": {
+            "depth": np.ascontiguousarray(1.0 / ref["disparity"]),
+            "pose": ref["pose"],
+            "intrinsics": K_graph,
+            "target": feeds["target"],
+            "source": feeds["source"],
+        },
+        "resflownet": {"flow_input": np.ascontiguousarray(ref["flow_input"], dtype=np.float32)},
+    }
     del predictor, g
     return out
 
@@ -188,8 +234,7 @@ def _torch_inputs(feeds: dict, names: list[str]) -> tuple[torch.Tensor, ...]:
     return tuple(torch.from_numpy(np.ascontiguousarray(feeds[n])) for n in names)
 
 
-def make_engine(backend: str, net: str, model, model_dir: Path, manifest, feeds: dict, threads: int,
-                args) -> Engine:
+def make_engine(backend: str, net: str, model, model_dir: Path, manifest, feeds: dict, threads: int, args) -> Engine:
     from export.wrappers import build_wrapper, io_spec
 
     spec = io_spec(net, manifest.height, manifest.width, manifest.seq_length)
@@ -244,15 +289,22 @@ def make_engine(backend: str, net: str, model, model_dir: Path, manifest, feeds:
         core = ov.Core()
         ov_model = core.read_model(str(path))
         ov_model.reshape({n: list(feeds[n].shape) for n in in_names})
-        config = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32",
-                  "INFERENCE_NUM_THREADS": str(threads)}
+        config = {
+            "PERFORMANCE_HINT": "LATENCY",
+            "INFERENCE_PRECISION_HINT": "f32",
+            "INFERENCE_NUM_THREADS": str(threads),
+        }
         compiled = core.compile_model(ov_model, "CPU", config)
         request = compiled.create_infer_request()
         ov_feeds = {n: np.ascontiguousarray(feeds[n], dtype=np.float32) for n in in_names}
-        info = {"file": str(path.relative_to(model_dir)), "config": config,
-                "properties": {k: str(compiled.get_property(k))
-                               for k in ("INFERENCE_PRECISION_HINT", "INFERENCE_NUM_THREADS", "NUM_STREAMS",
-                                         "PERFORMANCE_HINT")}}
+        info = {
+            "file": str(path.relative_to(model_dir)),
+            "config": config,
+            "properties": {
+                k: str(compiled.get_property(k))
+                for k in ("INFERENCE_PRECISION_HINT", "INFERENCE_NUM_THREADS", "NUM_STREAMS", "PERFORMANCE_HINT")
+            },
+        }
         ov_outputs = list(compiled.outputs)
 
         def fn():
@@ -294,7 +346,7 @@ def gemm_roofline(n: int, reps: int, log) -> dict:
     rng = np.random.default_rng(0)
     a = rng.random((n, n), dtype=np.float32)
     b = rng.random((n, n), dtype=np.float32)
-    flop = 2.0 * n ** 3
+    flop = 2.0 * n**3
     out = {"n": n, "reps": reps}
 
     def bench(name, fn):
@@ -328,20 +380,38 @@ def gemm_roofline(n: int, reps: int, log) -> dict:
 
 # ----------------------------------------------------------------------------- run
 def max_abs_diff(ref: list[np.ndarray], got: list[np.ndarray]) -> list[float]:
-    return [float(np.max(np.abs(r.astype(np.float64) - g.astype(np.float64)))) if r.shape == g.shape else float("nan")
-            for r, g in zip(ref, got)]
+    return [
+        float(np.max(np.abs(r.astype(np.float64) - g.astype(np.float64)))) if r.shape == g.shape else float("nan")
+        for r, g in zip(ref, got)
+    ]
 
 
 def environment(threads: int) -> dict:
-    env = {"cpu": cpu_model(), "cpu_flags": cpu_flags(), "usable_cpus": usable_cpus(), "threads": threads,
-           "python": platform.python_version(), "platform": platform.platform(), "numpy": np.__version__,
-           "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-           "torch_interop_threads": torch.get_num_interop_threads(),
-           "torch_cpu_capability": getattr(torch.backends.cpu, "get_cpu_capability", lambda: None)(),
-           "load_average_start": load_average(),
-           "thread_env": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY",
-                                                         "KMP_BLOCKTIME", "OPENBLAS_NUM_THREADS",
-                                                         "ORT_INTRA_OP_NUM_THREADS")}}
+    env = {
+        "cpu": cpu_model(),
+        "cpu_flags": cpu_flags(),
+        "usable_cpus": usable_cpus(),
+        "threads": threads,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "numpy": np.__version__,
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "torch_interop_threads": torch.get_num_interop_threads(),
+        "torch_cpu_capability": getattr(torch.backends.cpu, "get_cpu_capability", lambda: None)(),
+        "load_average_start": load_average(),
+        "thread_env": {
+            k: os.environ.get(k)
+            for k in (
+                "OMP_NUM_THREADS",
+                "MKL_NUM_THREADS",
+                "OMP_WAIT_POLICY",
+                "KMP_BLOCKTIME",
+                "OPENBLAS_NUM_THREADS",
+                "ORT_INTRA_OP_NUM_THREADS",
+            )
+        },
+    }
     import onnxruntime as ort
 
     env["onnxruntime"] = ort.__version__
@@ -399,8 +469,10 @@ def run(args) -> dict:
         in_names = [n for n, _ in spec.inputs]
         wrapper = build_wrapper(net, model)
         files = {p: (model_dir / manifest.graphs[p][net].file) for p in manifest.graphs if net in manifest.graphs[p]}
-        net_info[net] = {"params_m": sum(p.numel() for p in wrapper.parameters()) / 1e6,
-                         "onnx_mib": {p: round(f.stat().st_size / 2 ** 20, 2) for p, f in files.items()}}
+        net_info[net] = {
+            "params_m": sum(p.numel() for p in wrapper.parameters()) / 1e6,
+            "onnx_mib": {p: round(f.stat().st_size / 2**20, 2) for p, f in files.items()},
+        }
         for batch in batches:
             feeds = all_feeds[batch][net]
             macs = conv_macs(wrapper, _torch_inputs(feeds, in_names)) if net != "rigidflow" else 0
@@ -414,8 +486,15 @@ def run(args) -> dict:
                     engines.append(make_engine(backend, net, model, model_dir, manifest, feeds, threads, args))
                 except Exception as exc:  # noqa: BLE001 -- report and go on (e.g. torch.compile)
                     msg = f"{type(exc).__name__}: {str(exc).splitlines()[0][:300] if str(exc) else ''}"
-                    failures.append({"net": net, "batch": batch, "backend": backend, "error": msg,
-                                     "traceback": traceback.format_exc(limit=3)})
+                    failures.append(
+                        {
+                            "net": net,
+                            "batch": batch,
+                            "backend": backend,
+                            "error": msg,
+                            "traceback": traceback.format_exc(limit=3),
+                        }
+                    )
                     log(f"{net} b{batch}: {backend} FAILED: {msg}")
             if not engines:
                 continue
@@ -425,26 +504,39 @@ def run(args) -> dict:
             if "eager" in diffs and "ort_fp32" in diffs:
                 worst = max(d / max(s, 1e-6) for d, s in zip(diffs["ort_fp32"], ref_scale))
                 if worst > 1e-3:
-                    raise SystemExit(f"error: ORT fp32 {net} differs from torch eager by {worst:.2e} of the output "
-                                     f"range: {model_dir} was not exported from these weights")
+                    raise SystemExit(
+                        f"error: ORT fp32 {net} differs from torch eager by {worst:.2e} of the output "
+                        f"range: {model_dir} was not exported from these weights"
+                    )
             cases = [Case(e.backend, e.fn, batch) for e in engines]
-            log(f"{net} b{batch}: timing {', '.join(e.backend for e in engines)} "
-                f"({args.rounds} rounds x {args.block} calls)")
-            time_interleaved(cases, warmup=args.warmup, iters=args.rounds * args.block, block=args.block,
-                             rewarm_ms=args.rewarm_ms)
+            log(
+                f"{net} b{batch}: timing {', '.join(e.backend for e in engines)} "
+                f"({args.rounds} rounds x {args.block} calls)"
+            )
+            time_interleaved(
+                cases, warmup=args.warmup, iters=args.rounds * args.block, block=args.block, rewarm_ms=args.rewarm_ms
+            )
             base = None
             rows = []
             for e, c in zip(engines, cases):
                 s = c.stats()
                 gflops = 2 * macs / (s.p50_ms / 1e3) / 1e9 if macs else None
                 roofline = int8_roof if e.backend in INT8_BACKENDS else fp32_roof
-                row = {"net": net, "backend": e.backend, "batch": batch, **s.as_dict(),
-                       "per_item_p50_ms": s.p50_ms / batch, "gflops_at_p50": gflops,
-                       "roofline_gflops": roofline,
-                       "roofline_fraction": gflops / roofline if gflops and roofline else None,
-                       "max_abs_diff_vs_eager": diffs[e.backend], "ref_max_abs": ref_scale,
-                       "setup_s": round(e.setup_s, 3), "first_call_ms": round(e.first_call_ms, 2),
-                       "info": e.info}
+                row = {
+                    "net": net,
+                    "backend": e.backend,
+                    "batch": batch,
+                    **s.as_dict(),
+                    "per_item_p50_ms": s.p50_ms / batch,
+                    "gflops_at_p50": gflops,
+                    "roofline_gflops": roofline,
+                    "roofline_fraction": gflops / roofline if gflops and roofline else None,
+                    "max_abs_diff_vs_eager": diffs[e.backend],
+                    "ref_max_abs": ref_scale,
+                    "setup_s": round(e.setup_s, 3),
+                    "first_call_ms": round(e.first_call_ms, 2),
+                    "info": e.info,
+                }
                 rows.append(row)
                 if e.backend == "ort_fp32":
                     base = s.p50_ms
@@ -458,11 +550,23 @@ def run(args) -> dict:
     env["peak_rss_mib"] = peak_rss_mib()
     env["rss_end_mib"] = current_rss_mib()
     env["wall_s"] = round(time.perf_counter() - started, 1)
-    env["method"] = {"warmup": args.warmup, "rounds": args.rounds, "block": args.block,
-                     "rewarm_ms": args.rewarm_ms, "quiet_wait": True, "gc_disabled": True,
-                     "latency": "wall time of one synchronous call incl. output materialisation"}
-    return {"environment": env, "roofline": roof, "nets": net_info, "results": results, "failures": failures,
-            "backends": backends}
+    env["method"] = {
+        "warmup": args.warmup,
+        "rounds": args.rounds,
+        "block": args.block,
+        "rewarm_ms": args.rewarm_ms,
+        "quiet_wait": True,
+        "gc_disabled": True,
+        "latency": "wall time of one synchronous call incl. output materialisation",
+    }
+    return {
+        "environment": env,
+        "roofline": roof,
+        "nets": net_info,
+        "results": results,
+        "failures": failures,
+        "backends": backends,
+    }
 
 
 # ----------------------------------------------------------------------------- report
@@ -478,28 +582,38 @@ def markdown(data: dict) -> str:
     keys = sorted({(r["net"], r["batch"]) for r in res}, key=lambda k: (NETS.index(k[0]), k[1]))
     cell = {(r["net"], r["batch"], r["backend"]): r for r in res}
     m = env["model"]
-    lines = [f"# GeoNet peers: {m['arch']} {m['height']}x{m['width']}"
-             f"{' (random weights, seed ' + str(m['seed']) + ')' if m['random_init'] else ' (' + str(m['checkpoint']) + ')'}",
-             "",
-             f"- CPU: {env['cpu']}, {env['usable_cpus']} usable CPUs, flags {' '.join(env['cpu_flags'])}; "
-             f"{env['threads']} threads per engine",
-             f"- Python {env['python']}, torch {env['torch']} ({env.get('torch_cpu_capability')}), onnxruntime "
-             f"{env['onnxruntime']}, openvino {env['openvino']}, numpy {env['numpy']}",
-             f"- one interleaved run: {env['method']['warmup']} warm-up, {env['method']['rounds']} rounds x "
-             f"{env['method']['block']} calls per engine (rotating order, quiet-wait, >= "
-             f"{env['method']['rewarm_ms']:g} ms re-warm), GC off; wall {env['wall_s']} s; load average "
-             f"{env['load_average_start']} -> {env['load_average_end']}"
-             + (f"; **{env['busy_warning']}**" if env.get("busy_warning") else ""),
-             f"- graphs: {m['onnx_dir']}",
-             "",
-             "## Roofline (GEMM n = %d)" % roof["n"], "",
-             "| kernel | best | median |", "|---|---|---|"]
+    lines = [
+        f"# GeoNet peers: {m['arch']} {m['height']}x{m['width']}"
+        + (f" (random weights, seed {m['seed']})" if m["random_init"] else f" ({m['checkpoint']})"),
+        "",
+        f"- CPU: {env['cpu']}, {env['usable_cpus']} usable CPUs, flags {' '.join(env['cpu_flags'])}; "
+        f"{env['threads']} threads per engine",
+        f"- Python {env['python']}, torch {env['torch']} ({env.get('torch_cpu_capability')}), onnxruntime "
+        f"{env['onnxruntime']}, openvino {env['openvino']}, numpy {env['numpy']}",
+        f"- one interleaved run: {env['method']['warmup']} warm-up, {env['method']['rounds']} rounds x "
+        f"{env['method']['block']} calls per engine (rotating order, quiet-wait, >= "
+        f"{env['method']['rewarm_ms']:g} ms re-warm), GC off; wall {env['wall_s']} s; load average "
+        f"{env['load_average_start']} -> {env['load_average_end']}"
+        + (f"; **{env['busy_warning']}**" if env.get("busy_warning") else ""),
+        f"- graphs: {m['onnx_dir']}",
+        "",
+        f"## Roofline (GEMM n = {roof['n']})",
+        "",
+        "| kernel | best | median |",
+        "|---|---|---|",
+    ]
     for k in ("numpy_sgemm_fp32_gflops", "torch_sgemm_fp32_gflops", "torch_int_mm_s8s8s32_gops"):
         if f"{k}_best" in roof:
             lines.append(f"| {k} | {roof[k + '_best']:.1f} | {roof[k + '_median']:.1f} |")
+
     def backend_table(title: str, fmt) -> list[str]:
-        out = ["", title, "", "| net | B | " + " | ".join(LABELS[b] for b in backends) + " |",
-               "|---|---|" + "---|" * len(backends)]
+        out = [
+            "",
+            title,
+            "",
+            "| net | B | " + " | ".join(LABELS[b] for b in backends) + " |",
+            "|---|---|" + "---|" * len(backends),
+        ]
         for net, batch in keys:
             row = [fmt(cell[(net, batch, b)]) if (net, batch, b) in cell else "—" for b in backends]
             out.append(f"| {net} | {batch} | " + " | ".join(row) + " |")
@@ -514,11 +628,18 @@ def markdown(data: dict) -> str:
         return sp + (f", {100 * r['roofline_fraction']:.0f} %" if r["roofline_fraction"] else "")
 
     lines += backend_table("## Latency, ms p50 / p90 (GFLOP/s at p50)", latency)
-    lines += backend_table("## Speedup vs ORT fp32 (p50) and fraction of the GEMM roofline "
-                           "(fp32 engines vs torch sgemm, int8 vs torch._int_mm)", speedup)
-    lines += ["", "## max |Δ| vs torch eager, per output", "",
-              "| net | B | max\\|ref\\| | " + " | ".join(LABELS[b] for b in backends if b != "eager") + " |",
-              "|---|---|---|" + "---|" * len([b for b in backends if b != "eager"])]
+    lines += backend_table(
+        "## Speedup vs ORT fp32 (p50) and fraction of the GEMM roofline "
+        "(fp32 engines vs torch sgemm, int8 vs torch._int_mm)",
+        speedup,
+    )
+    lines += [
+        "",
+        "## max |Δ| vs torch eager, per output",
+        "",
+        "| net | B | max\\|ref\\| | " + " | ".join(LABELS[b] for b in backends if b != "eager") + " |",
+        "|---|---|---|" + "---|" * len([b for b in backends if b != "eager"]),
+    ]
     for net, batch in keys:
         ref = next((r for r in res if r["net"] == net and r["batch"] == batch), None)
         row = []
@@ -527,21 +648,35 @@ def markdown(data: dict) -> str:
                 continue
             r = cell.get((net, batch, b))
             row.append("—" if r is None else ", ".join(f"{d:.1e}" for d in r["max_abs_diff_vs_eager"]))
-        lines.append(f"| {net} | {batch} | {', '.join(f'{v:.3g}' for v in ref['ref_max_abs'])} | " + " | ".join(row) + " |")
-    lines += ["", "## One-off costs (setup s / first call ms)", "",
-              "| net | B | " + " | ".join(LABELS[b] for b in backends) + " |",
-              "|---|---|" + "---|" * len(backends)]
+        lines.append(
+            f"| {net} | {batch} | {', '.join(f'{v:.3g}' for v in ref['ref_max_abs'])} | " + " | ".join(row) + " |"
+        )
+    lines += [
+        "",
+        "## One-off costs (setup s / first call ms)",
+        "",
+        "| net | B | " + " | ".join(LABELS[b] for b in backends) + " |",
+        "|---|---|" + "---|" * len(backends),
+    ]
     for net, batch in keys:
         row = []
         for b in backends:
             r = cell.get((net, batch, b))
             row.append("—" if r is None else f"{r['setup_s']:.1f} / {r['first_call_ms']:.0f}")
         lines.append(f"| {net} | {batch} | " + " | ".join(row) + " |")
-    lines += ["", "## Networks", "", "| net | params (M) | conv GMACs @b1 | ONNX MiB (fp32 / int8) |", "|---|---|---|---|"]
+    lines += [
+        "",
+        "## Networks",
+        "",
+        "| net | params (M) | conv GMACs @b1 | ONNX MiB (fp32 / int8) |",
+        "|---|---|---|---|",
+    ]
     for net, info in data["nets"].items():
         gm = info.get("conv_gmacs", {})
         b1 = gm.get(1, gm.get("1"))
-        lines.append(f"| {net} | {info['params_m']:.3f} | {b1:.3f} | " if b1 else f"| {net} | {info['params_m']:.3f} | n/a | ")
+        lines.append(
+            f"| {net} | {info['params_m']:.3f} | {b1:.3f} | " if b1 else f"| {net} | {info['params_m']:.3f} | n/a | "
+        )
         lines[-1] += " / ".join(str(v) for v in info["onnx_mib"].values()) + " |"
     if data["failures"]:
         lines += ["", "## Failures", ""]

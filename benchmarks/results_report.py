@@ -10,6 +10,7 @@ Every number in docs/results.md comes from this run (the paper's rows are parsed
 Models: the bundled ``small_synth`` ONNX fp32 and int8, and the checkpoint it was exported
 from when that file is present and loads (else the report says why it is missing).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -66,9 +67,12 @@ def paper_tables() -> dict[str, list[list[str]]]:
     text = PAPER.read_text(encoding="utf-8")
     out = {}
     for key, heading in (("depth", "## Depth"), ("flow", "## Optical flow"), ("pose", "## Camera pose")):
-        section = text[text.index(heading):].split("\n## ", 1)[0]
-        rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in section.splitlines()
-                if line.startswith("|") and not line.startswith("|---")]
+        section = text[text.index(heading) :].split("\n## ", 1)[0]
+        rows = [
+            [c.strip() for c in line.strip().strip("|").split("|")]
+            for line in section.splitlines()
+            if line.startswith("|") and not line.startswith("|---")
+        ]
         out[key] = rows[1:]  # without the header
     return out
 
@@ -138,8 +142,11 @@ def depth_figure(worst: dict, path: Path, crop: str | None) -> None:
         vis = cv2.dilate(vis, np.ones((3, 3), np.uint8))
         vis[~grown] = (rgb[~grown] * 0.35).astype(np.uint8)
     panels = [rgb, depth_to_color(scaled), vis]
-    labels = [f"{worst['name']}", "predicted depth (median-scaled)",
-              f"|g-p|/g at GT pixels, blue 0 .. red >= 0.5 (AbsRel {row['abs_rel']:.3f})"]
+    labels = [
+        f"{worst['name']}",
+        "predicted depth (median-scaled)",
+        f"|g-p|/g at GT pixels, blue 0 .. red >= 0.5 (AbsRel {row['abs_rel']:.3f})",
+    ]
     write_png(path, side_by_side(panels, labels, height=min(gt.shape[0], 200)))  # keeps the PNG small
 
 
@@ -160,8 +167,12 @@ def flow_figure(worst: dict, path: Path) -> None:
 
 def trajectory_figure(panels: list[tuple[str, dict[str, np.ndarray]]], path: Path, size: int = 420) -> None:
     """Top-down (x right, z up) camera paths per panel; each prediction scaled to GT by least squares."""
-    colours = {"ground truth": (255, 255, 255), "ONNX fp32": (80, 200, 255), "ONNX int8": (255, 170, 60),
-               "ORB-VO": (120, 255, 120)}
+    colours = {
+        "ground truth": (255, 255, 255),
+        "ONNX fp32": (80, 200, 255),
+        "ONNX int8": (255, 170, 60),
+        "ORB-VO": (120, 255, 120),
+    }
     images = []
     for title, paths in panels:
         gt = paths["ground truth"]
@@ -175,15 +186,24 @@ def trajectory_figure(panels: list[tuple[str, dict[str, np.ndarray]]], path: Pat
         centre = (lo + hi) / 2
         img = np.full((size, size, 3), 30, np.uint8)
 
-        def to_px(p):
+        def to_px(p, centre=centre, span=span):
             q = (p[:, [0, 2]] - centre) / span * (size - 80)
             return np.stack([size / 2 + q[:, 0], size / 2 - q[:, 1] + 10], axis=1).round().astype(np.int32)
+
         for k, (name, p) in enumerate(pts.items()):
             px = to_px(p)
             cv2.polylines(img, [px.reshape(-1, 1, 2)], False, colours.get(name, (255, 0, 255)), 2, cv2.LINE_AA)
             cv2.circle(img, tuple(int(v) for v in px[0]), 4, colours.get(name, (255, 0, 255)), -1)
-            cv2.putText(img, name, (8, 40 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colours.get(name, (255, 0, 255)),
-                        1, cv2.LINE_AA)
+            cv2.putText(
+                img,
+                name,
+                (8, 40 + 16 * k),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.45,
+                colours.get(name, (255, 0, 255)),
+                1,
+                cv2.LINE_AA,
+            )
         put_text(img, title, 18)
         put_text(img, f"top view (x right, z forward), {span:.1f} m across", size - 10)
         images.append(img)
@@ -216,34 +236,68 @@ def ours_rows(results: list[tuple[str, str, dict]]) -> list[str]:
 
 def paper_depth_rows(paper) -> list[str]:
     # paper columns: method | supervision | data | 7 metrics
-    return [md_row([f"*paper:* {r[0]} (supervision: {r[1]})", f"KITTI Eigen test, 697 frames; trained on {r[2]}",
-                    *r[3:10], "697"]) for r in paper["depth"]]
+    return [
+        md_row(
+            [
+                f"*paper:* {r[0]} (supervision: {r[1]})",
+                f"KITTI Eigen test, 697 frames; trained on {r[2]}",
+                *r[3:10],
+                "697",
+            ]
+        )
+        for r in paper["depth"]
+    ]
 
 
 def paper_flow_rows(paper) -> list[str]:
-    return [md_row([f"*paper:* {r[0]}", "KITTI 2015 train, 200 pairs" + (f"; trained on {r[1]}" if r[1] != "–" else ""),
-                    r[2], r[3], "–", "–", "200"])
-            for r in paper["flow"]]
+    return [
+        md_row(
+            [
+                f"*paper:* {r[0]}",
+                "KITTI 2015 train, 200 pairs" + (f"; trained on {r[1]}" if r[1] != "–" else ""),
+                r[2],
+                r[3],
+                "–",
+                "–",
+                "200",
+            ]
+        )
+        for r in paper["flow"]
+    ]
 
 
 def paper_pose_rows(paper) -> list[str]:
-    return [md_row([f"*paper:* {r[0]}", f"KITTI odometry seq {seq}", value, "–", "–"])
-            for r in paper["pose"] for seq, value in (("09", r[1]), ("10", r[2]))]
+    return [
+        md_row([f"*paper:* {r[0]}", f"KITTI odometry seq {seq}", value, "–", "–"])
+        for r in paper["pose"]
+        for seq, value in (("09", r[1]), ("10", r[2]))
+    ]
 
 
 # ----------------------------------------------------------------------------- run
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, default=REPO / "runs" / "small_flow" / "last.pt",
-                        help="checkpoint the bundled model was exported from (default: runs/small_flow/last.pt)")
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=REPO / "runs" / "small_flow" / "last.pt",
+        help="checkpoint the bundled model was exported from (default: runs/small_flow/last.pt)",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "results.md")
-    parser.add_argument("--json", type=Path, default=REPO / "runs" / "results_report" / "results.json",
-                        help="every result with per-item rows")
+    parser.add_argument(
+        "--json",
+        type=Path,
+        default=REPO / "runs" / "results_report" / "results.json",
+        help="every result with per-item rows",
+    )
     args = parser.parse_args(argv)
     for path in (KITTI_RAW, ODOMETRY, MIDDLEBURY, PAPER):
         if not path.exists():
-            print(f"results_report: error: {rel(path)}: not found (shared reference data, see "
-                  f"../shared/realdata/README.md)", file=sys.stderr)
+            print(
+                f"results_report: error: {rel(path)}: not found (shared reference data, see "
+                f"../shared/realdata/README.md)",
+                file=sys.stderr,
+            )
             return 2
     started = time.perf_counter()
     paper = paper_tables()
@@ -251,8 +305,10 @@ def main(argv=None) -> int:
     models = {p: load(MODEL, precision=p) for p in ("fp32", "int8")}
     ckpt_fns, ckpt_note = checkpoint_methods(args.checkpoint)
 
-    methods = {task: [(f"{MODEL} ONNX {p}", evaluation.model_fn(task, m)) for p, m in models.items()]
-               for task in ("depth", "flow", "pose")}
+    methods = {
+        task: [(f"{MODEL} ONNX {p}", evaluation.model_fn(task, m)) for p, m in models.items()]
+        for task in ("depth", "flow", "pose")
+    }
     if ckpt_fns:
         for task, fn in ckpt_fns.items():
             methods[task].insert(0, (f"{MODEL} checkpoint (PyTorch)", fn))
@@ -262,18 +318,35 @@ def main(argv=None) -> int:
 
     K_mb = np.array([[640.0, 0, 320], [0, 640, 240], [0, 0, 1]])  # Grove3 has no intrinsics: a nominal guess
     sets = {
-        "depth": [("KITTI raw 2011_09_26, frames 0–9, Velodyne GT, Garg crop, 80 m", depth_dataset(KITTI_RAW), {}),
-                  ("KITTI raw 2011_09_26, frames 0–9, Velodyne GT, Garg crop, 50 m", depth_dataset(KITTI_RAW),
-                   {"max_depth": 50.0}),
-                  (f"synthetic held-out ({len(synth_names)} seq, every GT pixel, 80 m)",
-                   depth_dataset(synth_root, "synth", synth_names, SYNTH_STRIDE["depth"]), {})],
-        "flow": [(f"synthetic held-out ({len(synth_names)} seq, pair stride {SYNTH_STRIDE['flow']})",
-                  flow_dataset(synth_root, "synth", synth_names, SYNTH_STRIDE["flow"]), {}),
-                 ("Middlebury Grove3 (rendered; nominal K for the model)", flow_dataset(MIDDLEBURY),
-                  {"intrinsics": K_mb})],
-        "pose": [("KITTI odometry 00, frames 0–5 (2 snippets)", pose_dataset(ODOMETRY), {}),
-                 (f"synthetic held-out ({len(synth_names)} seq, snippet stride {SYNTH_STRIDE['pose']})",
-                  pose_dataset(synth_root, "synth", synth_names, SYNTH_STRIDE["pose"]), {})],
+        "depth": [
+            ("KITTI raw 2011_09_26, frames 0–9, Velodyne GT, Garg crop, 80 m", depth_dataset(KITTI_RAW), {}),
+            (
+                "KITTI raw 2011_09_26, frames 0–9, Velodyne GT, Garg crop, 50 m",
+                depth_dataset(KITTI_RAW),
+                {"max_depth": 50.0},
+            ),
+            (
+                f"synthetic held-out ({len(synth_names)} seq, every GT pixel, 80 m)",
+                depth_dataset(synth_root, "synth", synth_names, SYNTH_STRIDE["depth"]),
+                {},
+            ),
+        ],
+        "flow": [
+            (
+                f"synthetic held-out ({len(synth_names)} seq, pair stride {SYNTH_STRIDE['flow']})",
+                flow_dataset(synth_root, "synth", synth_names, SYNTH_STRIDE["flow"]),
+                {},
+            ),
+            ("Middlebury Grove3 (rendered; nominal K for the model)", flow_dataset(MIDDLEBURY), {"intrinsics": K_mb}),
+        ],
+        "pose": [
+            ("KITTI odometry 00, frames 0–5 (2 snippets)", pose_dataset(ODOMETRY), {}),
+            (
+                f"synthetic held-out ({len(synth_names)} seq, snippet stride {SYNTH_STRIDE['pose']})",
+                pose_dataset(synth_root, "synth", synth_names, SYNTH_STRIDE["pose"]),
+                {},
+            ),
+        ],
     }
 
     results = {t: [] for t in sets}
@@ -291,11 +364,14 @@ def main(argv=None) -> int:
                 if label == f"{MODEL} ONNX fp32" and task == "depth" and "50 m" not in data_label:
                     key = "depth_kitti" if dataset.layout == "kitti-raw" else "depth_synth"
                     observe = lambda item, rgb, gt, pred, row, key=key: keep_worst(  # noqa: E731
-                        key, row["abs_rel"], {"name": item.name, "rgb": rgb, "gt": gt, "pred": pred, "row": row})
+                        key, row["abs_rel"], {"name": item.name, "rgb": rgb, "gt": gt, "pred": pred, "row": row}
+                    )
                 elif label == f"{MODEL} ONNX fp32" and task == "flow" and dataset.layout == "synth":
                     observe = lambda item, frames, gt, valid, pred, row: keep_worst(  # noqa: E731
-                        "flow_synth", row["epe_all"], {"name": item.name, "frames": frames, "gt": gt, "valid": valid,
-                                                       "pred": pred, "row": row})
+                        "flow_synth",
+                        row["epe_all"],
+                        {"name": item.name, "frames": frames, "gt": gt, "valid": valid, "pred": pred, "row": row},
+                    )
                 if task == "pose":
                     r = evaluation.evaluate_pose(fn, dataset, method=label)
                 else:
@@ -323,12 +399,17 @@ def main(argv=None) -> int:
         odo_paths[f"ONNX {p}"] = traj.trajectory[:, :3, 3]
     # ORB-VO over the whole 6 frames: its snippet function chains any number of frames
     odo_paths["ORB-VO"] = baselines.orb_vo([read_image(f) for f in frames], K_odo)[0][:, :3, 3]
-    trajectory_figure([(f"synthetic {traj_seq.name} ({len(synth_paths['ground truth'])} frames)", synth_paths),
-                       (f"KITTI odometry 00, frames {numbers[0]}-{numbers[-1]}", odo_paths)],
-                      IMG / "results_trajectories.png")
+    trajectory_figure(
+        [
+            (f"synthetic {traj_seq.name} ({len(synth_paths['ground truth'])} frames)", synth_paths),
+            (f"KITTI odometry 00, frames {numbers[0]}-{numbers[-1]}", odo_paths),
+        ],
+        IMG / "results_trajectories.png",
+    )
 
-    evaluation.write_json(args.json, {t: [{"label": lab, "data": d, **r} for lab, d, r in rs]
-                                      for t, rs in results.items()})
+    evaluation.write_json(
+        args.json, {t: [{"label": lab, "data": d, **r} for lab, d, r in rs] for t, rs in results.items()}
+    )
     seconds = time.perf_counter() - started
     write_doc(args.out, paper, results, synth_how, ckpt_note, seconds, worst, sets)
     log(f"wrote {rel(args.out)}, {rel(args.json)} and docs/img/results_*.png in {seconds:.0f} s")
@@ -337,8 +418,9 @@ def main(argv=None) -> int:
 
 def _git_commit() -> str:
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                              check=True).stdout.strip()
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
@@ -464,7 +546,8 @@ def write_doc(path: Path, paper, results, synth_how, ckpt_note, seconds, worst, 
         "geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --max-depth 50",
         "geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --stride 2 "
         "--method model,dis,zero",
-        "geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 --method model,orb-vo,identity",
+        "geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 "
+        "--method model,orb-vo,identity",
         "python -m training.evaluate --checkpoint runs/small_flow/last.pt --data data/synth40 "
         "--heldout data/synth40_prepared/heldout.txt",
         "```",

@@ -14,6 +14,7 @@ The directory is written as ``DIR.tmp-XXXX`` beside DIR and renamed when
 complete, so DIR is either absent or whole. Exit codes: 0 written, 1 an exported
 graph failed its check, 2 bad usage or input (one line on stderr naming the item).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,13 +38,17 @@ def _names(text: str) -> tuple[str, ...]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m export", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     src = p.add_argument_group("model")
     src.add_argument("--checkpoint", type=Path, help="a last.pt / best.pt written by training.train")
     src.add_argument("--arch", help=f"with --random-init: one of {', '.join(ARCHS)}")
-    src.add_argument("--random-init", action="store_true",
-                     help="export randomly initialised nets (timing only; accuracy commands refuse them)")
+    src.add_argument(
+        "--random-init",
+        action="store_true",
+        help="export randomly initialised nets (timing only; accuracy commands refuse them)",
+    )
     src.add_argument("--seed", type=int, default=D.seed, help="torch seed of --random-init weights")
     src.add_argument("--height", type=int, help="graph height (default: the checkpoint's, or 128)")
     src.add_argument("--width", type=int, help="graph width (default: the checkpoint's, or 416)")
@@ -51,20 +56,38 @@ def build_parser() -> argparse.ArgumentParser:
     out = p.add_argument_group("output")
     out.add_argument("--out", required=True, type=Path, help="model directory to create")
     out.add_argument("--force", action="store_true", help="replace an existing --out directory")
-    out.add_argument("--graphs", type=_names, default=D.graphs,
-                     help="comma list of depthnet,posenet,rigidflow,resflownet or 'all' (default); "
-                          "a stage 'rigid' checkpoint needs --graphs depthnet,posenet,rigidflow")
-    out.add_argument("--precision", dest="precisions", type=_names, default=D.precisions,
-                     help="fp32 (default) or fp32,int8 (int8 graphs go to DIR/int8/)")
+    out.add_argument(
+        "--graphs",
+        type=_names,
+        default=D.graphs,
+        help="comma list of depthnet,posenet,rigidflow,resflownet or 'all' (default); "
+        "a stage 'rigid' checkpoint needs --graphs depthnet,posenet,rigidflow",
+    )
+    out.add_argument(
+        "--precision",
+        dest="precisions",
+        type=_names,
+        default=D.precisions,
+        help="fp32 (default) or fp32,int8 (int8 graphs go to DIR/int8/)",
+    )
     q = p.add_argument_group("int8")
     q.add_argument("--calib-data", type=Path, help="folder of consecutive frames for INT8 calibration")
-    q.add_argument("--calib-frames", type=int, default=D.calib_frames,
-                   help="calibration frames to read from --calib-data (default %(default)s)")
+    q.add_argument(
+        "--calib-frames",
+        type=int,
+        default=D.calib_frames,
+        help="calibration frames to read from --calib-data (default %(default)s)",
+    )
     q.add_argument("--calib-method", default=D.calib_method, choices=CALIBRATION_METHODS)
-    q.add_argument("--reduce-range", action="store_true",
-                   help="7-bit weights for CPUs without VNNI (AVX2 / plain AVX-512)")
-    q.add_argument("--no-per-channel", dest="per_channel", action="store_false",
-                   help="per-tensor instead of per-channel weight scales")
+    q.add_argument(
+        "--reduce-range", action="store_true", help="7-bit weights for CPUs without VNNI (AVX2 / plain AVX-512)"
+    )
+    q.add_argument(
+        "--no-per-channel",
+        dest="per_channel",
+        action="store_false",
+        help="per-tensor instead of per-channel weight scales",
+    )
     ev = p.add_argument_group("int8 accuracy delta (held-out synthetic set)")
     ev.add_argument("--eval-synth-dir", type=Path, help="output of training.synth")
     ev.add_argument("--eval-prepared-dir", type=Path, help="output of training.prepare (has heldout.txt)")

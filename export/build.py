@@ -8,6 +8,7 @@
 renamed when complete, so DIR is either absent or whole. Bad input raises
 :class:`~geonet_infer.errors.GeoNetInputError` before anything is written.
 """
+
 from __future__ import annotations
 
 import os
@@ -66,8 +67,12 @@ class ExportConfig:
     quiet: bool = False  # no progress lines on stderr
 
     def quant_settings(self) -> qz.QuantSettings:
-        return qz.QuantSettings(per_channel=self.per_channel, reduce_range=self.reduce_range,
-                                calibrate_method=self.calib_method, max_frames=self.calib_frames)
+        return qz.QuantSettings(
+            per_channel=self.per_channel,
+            reduce_range=self.reduce_range,
+            calibrate_method=self.calib_method,
+            max_frames=self.calib_frames,
+        )
 
 
 @dataclass
@@ -98,9 +103,11 @@ def _check_calib_data(folder: Path) -> None:
     try:
         list_images(folder)
     except GeoNetInputError as err:
-        raise GeoNetInputError(folder, f"--calib-data: {err.problem}",
-                               f"it needs consecutive frames ({', '.join(IMAGE_SUFFIXES)}), "
-                               "e.g. a KITTI image_02/data folder") from None
+        raise GeoNetInputError(
+            folder,
+            f"--calib-data: {err.problem}",
+            f"it needs consecutive frames ({', '.join(IMAGE_SUFFIXES)}), e.g. a KITTI image_02/data folder",
+        ) from None
 
 
 def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
@@ -108,21 +115,30 @@ def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
     graphs = _choose(cfg.graphs, GRAPH_NAMES, "graph")
     precisions = _choose(cfg.precisions, PRECISIONS, "precision")
     if "fp32" not in precisions:
-        raise GeoNetInputError(None, "--precision must include fp32",
-                               "int8 graphs are calibrated with the fp32 ones: use --precision fp32,int8")
+        raise GeoNetInputError(
+            None,
+            "--precision must include fp32",
+            "int8 graphs are calibrated with the fp32 ones: use --precision fp32,int8",
+        )
     if bool(cfg.checkpoint) == bool(cfg.random_init):
         raise GeoNetInputError(None, "pass exactly one of --checkpoint or --random-init")
     if cfg.random_init and cfg.arch not in ARCHS:
         raise GeoNetInputError(None, f"unknown arch {cfg.arch!r}", f"--arch must be one of {', '.join(ARCHS)}")
     if cfg.random_init and (cfg.eval_synth_dir or cfg.eval_prepared_dir):
-        raise GeoNetInputError(None, "--random-init graphs have no accuracy to evaluate",
-                               "drop --eval-synth-dir/--eval-prepared-dir or export a trained --checkpoint")
+        raise GeoNetInputError(
+            None,
+            "--random-init graphs have no accuracy to evaluate",
+            "drop --eval-synth-dir/--eval-prepared-dir or export a trained --checkpoint",
+        )
     if bool(cfg.eval_synth_dir) != bool(cfg.eval_prepared_dir):
         raise GeoNetInputError(None, "--eval-synth-dir and --eval-prepared-dir go together")
     if "int8" in precisions:
         if not cfg.calib_data:
-            raise GeoNetInputError(None, "--precision int8 needs --calib-data DIR", "a folder of consecutive frames, "
-                                   "e.g. ../shared/realdata/kitti_raw_2011_09_26_sfnd/image_02/data")
+            raise GeoNetInputError(
+                None,
+                "--precision int8 needs --calib-data DIR",
+                "a folder of consecutive frames, e.g. ../shared/realdata/kitti_raw_2011_09_26_sfnd/image_02/data",
+            )
         _check_calib_data(Path(cfg.calib_data))
         _choose([cfg.calib_method], qz.CALIBRATION_METHODS, "--calib-method")
     elif cfg.calib_data or cfg.eval_synth_dir:
@@ -131,16 +147,23 @@ def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
         from training.evaluate import heldout_sequences
 
         if not Path(cfg.eval_synth_dir).is_dir():
-            raise GeoNetInputError(cfg.eval_synth_dir, "synthetic data folder not found",
-                                   "pass the --out folder of `python -m training.synth`")
+            raise GeoNetInputError(
+                cfg.eval_synth_dir,
+                "synthetic data folder not found",
+                "pass the --out folder of `python -m training.synth`",
+            )
         heldout_sequences(cfg.eval_prepared_dir)  # raises naming heldout.txt
     if cfg.seq_length is not None and (cfg.seq_length < 3 or cfg.seq_length % 2 == 0):
-        raise GeoNetInputError(None, f"--seq-length {cfg.seq_length}: need an odd number >= 3",
-                               "the target is the middle frame of the snippet")
+        raise GeoNetInputError(
+            None,
+            f"--seq-length {cfg.seq_length}: need an odd number >= 3",
+            "the target is the middle frame of the snippet",
+        )
     out = Path(cfg.out)
     if out.exists() and not cfg.force:
-        raise GeoNetInputError(out, "output directory already exists",
-                               "pass --force to replace it, or choose another --out")
+        raise GeoNetInputError(
+            out, "output directory already exists", "pass --force to replace it, or choose another --out"
+        )
     if out.exists() and not out.is_dir():
         raise GeoNetInputError(out, "output path exists and is not a directory", "choose another --out")
     return graphs, precisions
@@ -152,8 +175,9 @@ def _random_source(cfg: ExportConfig, graphs: list[str]) -> Source:
     seq_length = cfg.seq_length or DEFAULT_SEQ_LENGTH
     torch.manual_seed(cfg.seed)
     model = GeoNet(cfg.arch, seq_length - 1, with_flow="resflownet" in graphs).eval()
-    return Source(model, cfg.arch, cfg.height or REFERENCE_HEIGHT, cfg.width or REFERENCE_WIDTH, seq_length,
-                  random_init=True)
+    return Source(
+        model, cfg.arch, cfg.height or REFERENCE_HEIGHT, cfg.width or REFERENCE_WIDTH, seq_length, random_init=True
+    )
 
 
 def _checkpoint_source(cfg: ExportConfig, graphs: list[str]) -> Source:
@@ -161,25 +185,43 @@ def _checkpoint_source(cfg: ExportConfig, graphs: list[str]) -> Source:
     ckpt = load_checkpoint(path)
     train_cfg = ckpt["config"]
     if "resflownet" in graphs and ckpt["stage"] != "flow":
-        raise GeoNetInputError(path, f"resflownet.onnx needs a stage 'flow' checkpoint, this one is stage "
-                               f"'{ckpt['stage']}'", f"pass --graphs {','.join(RIGID_GRAPHS)} to export the rigid "
-                               "graphs only, or train stage flow first")
+        raise GeoNetInputError(
+            path,
+            f"resflownet.onnx needs a stage 'flow' checkpoint, this one is stage '{ckpt['stage']}'",
+            f"pass --graphs {','.join(RIGID_GRAPHS)} to export the rigid graphs only, or train stage flow first",
+        )
     if cfg.arch and cfg.arch != ckpt["arch"]:
-        raise GeoNetInputError(path, f"checkpoint arch is '{ckpt['arch']}', --arch says '{cfg.arch}'",
-                               "drop --arch when exporting a checkpoint")
+        raise GeoNetInputError(
+            path,
+            f"checkpoint arch is '{ckpt['arch']}', --arch says '{cfg.arch}'",
+            "drop --arch when exporting a checkpoint",
+        )
     if cfg.seq_length and cfg.seq_length != train_cfg["seq_length"]:
-        raise GeoNetInputError(path, f"checkpoint was trained with seq_length {train_cfg['seq_length']}",
-                               "drop --seq-length; PoseNet's input width is fixed by training")
-    return Source(model_from_checkpoint(ckpt), ckpt["arch"], cfg.height or train_cfg["height"],
-                  cfg.width or train_cfg["width"], train_cfg["seq_length"], random_init=False, checkpoint=path,
-                  ckpt=ckpt)
+        raise GeoNetInputError(
+            path,
+            f"checkpoint was trained with seq_length {train_cfg['seq_length']}",
+            "drop --seq-length; PoseNet's input width is fixed by training",
+        )
+    return Source(
+        model_from_checkpoint(ckpt),
+        ckpt["arch"],
+        cfg.height or train_cfg["height"],
+        cfg.width or train_cfg["width"],
+        train_cfg["seq_length"],
+        random_init=False,
+        checkpoint=path,
+        ckpt=ckpt,
+    )
 
 
 def _load_source(cfg: ExportConfig, graphs: list[str]) -> Source:
     src = _random_source(cfg, graphs) if cfg.random_init else _checkpoint_source(cfg, graphs)
     if src.height % SIZE_MULTIPLE or src.width % SIZE_MULTIPLE or src.height <= 0 or src.width <= 0:
-        raise GeoNetInputError(None, f"graph size {src.height}x{src.width} is not a positive multiple of "
-                               f"{SIZE_MULTIPLE}", "pass --height/--width divisible by 8 (GeoNet uses 128x416)")
+        raise GeoNetInputError(
+            None,
+            f"graph size {src.height}x{src.width} is not a positive multiple of {SIZE_MULTIPLE}",
+            "pass --height/--width divisible by 8 (GeoNet uses 128x416)",
+        )
     return src
 
 
@@ -190,8 +232,11 @@ def _make_tmp_dir(out: Path) -> Path:
         parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f"{out.name}.tmp-", dir=parent))
     except OSError as exc:
-        raise GeoNetInputError(parent, f"cannot create the output directory here ({exc.strerror or exc})",
-                               "choose a writable --out location") from None
+        raise GeoNetInputError(
+            parent,
+            f"cannot create the output directory here ({exc.strerror or exc})",
+            "choose a writable --out location",
+        ) from None
     os.chmod(tmp, 0o755)  # mkdtemp makes 0700; a model directory is meant to be shared
     return tmp
 
@@ -201,8 +246,9 @@ def _publish(tmp: Path, out: Path, force: bool) -> None:
     old = None
     if out.exists():
         if not force:
-            raise GeoNetInputError(out, "output directory appeared during the export",
-                                   "pass --force or choose another --out")
+            raise GeoNetInputError(
+                out, "output directory appeared during the export", "pass --force or choose another --out"
+            )
         old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-", dir=out.parent))
         os.rmdir(old)
         os.replace(out, old)
@@ -219,10 +265,20 @@ def _log(cfg: ExportConfig, msg: str) -> None:
 
 def _interim_manifest(src: Source, graphs: dict, tmp: Path) -> None:
     """A manifest over the graphs written so far, so the runtime Predictor can run from ``tmp``."""
-    write_manifest(mf.build_manifest(height=src.height, width=src.width, seq_length=src.seq_length, arch=src.arch,
-                                     random_init=src.random_init, graphs=graphs,
-                                     prov=mf.provenance(src.arch, src.random_init, ""), metrics={},
-                                     quantization=None), tmp)
+    write_manifest(
+        mf.build_manifest(
+            height=src.height,
+            width=src.width,
+            seq_length=src.seq_length,
+            arch=src.arch,
+            random_init=src.random_init,
+            graphs=graphs,
+            prov=mf.provenance(src.arch, src.random_init, ""),
+            metrics={},
+            quantization=None,
+        ),
+        tmp,
+    )
 
 
 def _export_fp32(cfg: ExportConfig, src: Source, graphs: list[str], tmp: Path) -> tuple[dict, str]:
@@ -230,13 +286,18 @@ def _export_fp32(cfg: ExportConfig, src: Source, graphs: list[str], tmp: Path) -
     for graph in graphs:
         example = example_inputs(graph, src.height, src.width, src.seq_length, batch=1)
         meta = mf.graph_metadata(graph, src.arch, src.height, src.width, src.seq_length, "fp32", src.random_init)
-        result = export_graph(build_wrapper(graph, src.model), example, io_spec(graph, src.height, src.width,
-                                                                                 src.seq_length),
-                              tmp / f"{graph}.onnx", meta)
+        result = export_graph(
+            build_wrapper(graph, src.model),
+            example,
+            io_spec(graph, src.height, src.width, src.seq_length),
+            tmp / f"{graph}.onnx",
+            meta,
+        )
         exporters.add(result.exporter)
-        entries[graph] = mf.graph_entry(tmp, f"{graph}.onnx", graph, src.height, src.width, src.seq_length,
-                                        OPSET, "fp32", result.exporter)
-        size = result.path.stat().st_size / 2 ** 20
+        entries[graph] = mf.graph_entry(
+            tmp, f"{graph}.onnx", graph, src.height, src.width, src.seq_length, OPSET, "fp32", result.exporter
+        )
+        size = result.path.stat().st_size / 2**20
         _log(cfg, f"  fp32 {graph}.onnx  {size:.1f} MiB  ({result.seconds:.1f} s)")
     return entries, "; ".join(sorted(exporters))
 
@@ -246,8 +307,9 @@ def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):
     from geonet_infer.preprocess import InputSpec
 
     settings = cfg.quant_settings()
-    frames, original = qz.load_frames(cfg.calib_data, src.height, src.width, settings.max_frames,
-                                      min_frames=src.seq_length)
+    frames, original = qz.load_frames(
+        cfg.calib_data, src.height, src.width, settings.max_frames, min_frames=src.seq_length
+    )
     K, k_source = qz.calibration_intrinsics(cfg.calib_data, original, src.height, src.width)
     _interim_manifest(src, {"fp32": fp32}, tmp)  # the fp32 cascade validates hashes too
     spec = InputSpec.from_conventions(src.height, src.width, src.seq_length)
@@ -260,13 +322,30 @@ def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):
             entries[graph] = fp32[graph]  # same file: the int8 set reuses fp32 rigidflow.onnx
             continue
         started = time.perf_counter()
-        qz.quantize_graph(tmp / fp32[graph].file, tmp / "int8" / f"{graph}.onnx", feeds[graph], settings,
-                          float_after=qz.FLOAT_AFTER.get(graph, ()))
-        entries[graph] = mf.graph_entry(tmp, f"int8/{graph}.onnx", graph, src.height, src.width, src.seq_length,
-                                        OPSET, "int8", f"onnxruntime quantize_static QDQ of {fp32[graph].file}")
-        size = (tmp / "int8" / f"{graph}.onnx").stat().st_size / 2 ** 20
-        _log(cfg, f"  int8 {graph}.onnx  {size:.1f} MiB  ({len(feeds[graph])} calibration inputs, "
-                  f"{time.perf_counter() - started:.1f} s)")
+        qz.quantize_graph(
+            tmp / fp32[graph].file,
+            tmp / "int8" / f"{graph}.onnx",
+            feeds[graph],
+            settings,
+            float_after=qz.FLOAT_AFTER.get(graph, ()),
+        )
+        entries[graph] = mf.graph_entry(
+            tmp,
+            f"int8/{graph}.onnx",
+            graph,
+            src.height,
+            src.width,
+            src.seq_length,
+            OPSET,
+            "int8",
+            f"onnxruntime quantize_static QDQ of {fp32[graph].file}",
+        )
+        size = (tmp / "int8" / f"{graph}.onnx").stat().st_size / 2**20
+        _log(
+            cfg,
+            f"  int8 {graph}.onnx  {size:.1f} MiB  ({len(feeds[graph])} calibration inputs, "
+            f"{time.perf_counter() - started:.1f} s)",
+        )
     samples = {g: len(f) for g, f in feeds.items() if g in entries}
     return entries, settings, samples, k_source
 
@@ -286,14 +365,17 @@ def _accuracy_delta(cfg: ExportConfig, src: Source, graphs: dict, tmp: Path) -> 
     sequences = heldout_sequences(cfg.eval_prepared_dir)
     result: dict = {"synth_dir": str(cfg.eval_synth_dir), "sequences": sequences, "stride": cfg.eval_stride}
     predictors = {p: Predictor(tmp, p) for p in ("fp32", "int8")}
-    depth = {p: evaluate_depth(onnx_depth_fn(c), cfg.eval_synth_dir, sequences, cfg.eval_stride)
-             for p, c in predictors.items()}
+    depth = {
+        p: evaluate_depth(onnx_depth_fn(c), cfg.eval_synth_dir, sequences, cfg.eval_stride)
+        for p, c in predictors.items()
+    }
     result["depth_abs_rel"] = _delta(depth, "model", "abs_rel")
     result["depth_frames"] = depth["fp32"]["frames"]
     if "resflownet" not in graphs["fp32"] or src.seq_length != 3:
         return result, "flow EPE not measured: needs resflownet (stage flow checkpoint) and seq_length 3"
-    flow = {p: evaluate_flow(onnx_flow_fn(c), cfg.eval_synth_dir, sequences, cfg.eval_stride)
-            for p, c in predictors.items()}
+    flow = {
+        p: evaluate_flow(onnx_flow_fn(c), cfg.eval_synth_dir, sequences, cfg.eval_stride) for p, c in predictors.items()
+    }
     result["flow_epe_noc"] = _delta(flow, "noc", "epe")
     result["flow_epe_occ"] = _delta(flow, "occ", "epe")
     result["flow_pairs"] = flow["fp32"]["pairs"]
@@ -311,10 +393,16 @@ def _write_graphs(cfg: ExportConfig, src: Source, graphs: list[str], precisions:
         delta, reason = _accuracy_delta(cfg, src, all_graphs, tmp)
         quant = mf.quantization_record(settings.describe(), str(cfg.calib_data), samples, k_source, delta, reason)
     manifest = mf.build_manifest(
-        height=src.height, width=src.width, seq_length=src.seq_length, arch=src.arch,
-        random_init=src.random_init, graphs=all_graphs,
+        height=src.height,
+        width=src.width,
+        seq_length=src.seq_length,
+        arch=src.arch,
+        random_init=src.random_init,
+        graphs=all_graphs,
         prov=mf.provenance(src.arch, src.random_init, exporter, src.checkpoint, src.ckpt),
-        metrics=(src.ckpt or {}).get("metrics", {}), quantization=quant)
+        metrics=(src.ckpt or {}).get("metrics", {}),
+        quantization=quant,
+    )
     write_manifest(manifest, tmp)
     load_manifest(tmp)  # the directory must validate before it is published
 
@@ -331,8 +419,11 @@ def export_model(cfg: ExportConfig) -> Path:
     out = Path(cfg.out)
     tmp = _make_tmp_dir(out)
     try:
-        _log(cfg, f"exporting {src.arch} {src.height}x{src.width} seq {src.seq_length} "
-                  f"({'random init' if src.random_init else src.checkpoint}) -> {out}")
+        _log(
+            cfg,
+            f"exporting {src.arch} {src.height}x{src.width} seq {src.seq_length} "
+            f"({'random init' if src.random_init else src.checkpoint}) -> {out}",
+        )
         _write_graphs(cfg, src, graphs, precisions, tmp)
         _publish(tmp, out, cfg.force)
     except BaseException:

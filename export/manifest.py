@@ -3,6 +3,7 @@
 Also the per-graph ``metadata_props`` written into every ONNX file, so a single
 graph carries its key conventions even without the manifest.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -13,8 +14,15 @@ from pathlib import Path
 
 from export.wrappers import io_spec
 from geonet_infer import conventions
-from geonet_infer.manifest import (SCHEMA_VERSION, GraphEntry, Manifest, Provenance, Quantization,
-                                   TensorSpec, file_sha256)
+from geonet_infer.manifest import (
+    SCHEMA_VERSION,
+    GraphEntry,
+    Manifest,
+    Provenance,
+    Quantization,
+    TensorSpec,
+    file_sha256,
+)
 from training.losses import LossWeights
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -30,16 +38,16 @@ def graph_notes(graph: str) -> str:
     alpha = LossWeights.alpha_recon
     notes = {
         "depthnet": f"image (B,3,H,W) {image} -> disparity (B,1,H,W) = scale*sigmoid+{offset:g}, "
-                    "depth = 1/disparity; scale 0 only",
+        "depth = 1/disparity; scale 0 only",
         "posenet": f"snippet (B,3L,H,W) {image}, channels [target, sources in temporal order] -> "
-                   f"pose (B,L-1,6) [{','.join(pose.vector)}] (x{pose.output_scale:g} inside), "
-                   f"pose_matrix (B,L-1,4,4) {pose.direction.replace('_', ' ')}, {pose.rotation}",
+        f"pose (B,L-1,6) [{','.join(pose.vector)}] (x{pose.output_scale:g} inside), "
+        f"pose_matrix (B,L-1,4,4) {pose.direction.replace('_', ' ')}, {pose.rotation}",
         "rigidflow": f"depth (B,1,H,W) of the target, pose (B,6) {pose.direction.replace('_', ' ')}, "
-                     f"intrinsics (B,3,3) at HxW, target/source (B,3,H,W) {image} -> rigid_flow (B,2,H,W) px "
-                     f"(x then y), warped (B,3,H,W) source sampled at grid+flow ({warp}), error (B,1,H,W) = "
-                     f"||{alpha:g}*DSSIM+{1 - alpha:.2f}*|warped-target| + 1e-10||_2 over channels",
+        f"intrinsics (B,3,3) at HxW, target/source (B,3,H,W) {image} -> rigid_flow (B,2,H,W) px "
+        f"(x then y), warped (B,3,H,W) source sampled at grid+flow ({warp}), error (B,1,H,W) = "
+        f"||{alpha:g}*DSSIM+{1 - alpha:.2f}*|warped-target| + 1e-10||_2 over channels",
         "resflownet": "flow_input (B,12,H,W) = [target(3), source(3), warped(3), rigid_flow(2) px, error(1)] -> "
-                      "residual_flow (B,2,H,W) px, flow = residual_flow + rigid_flow, scale 0",
+        "residual_flow (B,2,H,W) px, flow = residual_flow + rigid_flow, scale 0",
     }
     return notes[graph]
 
@@ -47,8 +55,9 @@ def graph_notes(graph: str) -> str:
 def git_commit() -> str | None:
     """``git rev-parse HEAD`` of the repository, or None (no git, not a checkout)."""
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True,
-                             timeout=10, check=True)
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10, check=True
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() or None
@@ -59,8 +68,13 @@ def versions() -> dict:
     import onnxruntime
     import onnxscript
     import torch
-    return {"torch": torch.__version__, "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__,
-            "onnxscript": getattr(onnxscript, "__version__", "unknown")}
+
+    return {
+        "torch": torch.__version__,
+        "onnx": onnx.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        "onnxscript": getattr(onnxscript, "__version__", "unknown"),
+    }
 
 
 def utc_now() -> str:
@@ -83,8 +97,9 @@ def json_safe(value):
     return value
 
 
-def graph_metadata(graph: str, arch: str, height: int, width: int, seq_length: int, precision: str,
-                   random_init: bool) -> dict[str, str]:
+def graph_metadata(
+    graph: str, arch: str, height: int, width: int, seq_length: int, precision: str, random_init: bool
+) -> dict[str, str]:
     """``metadata_props`` of one ONNX file: its I/O contract and the conventions it relies on."""
     conv = conventions.as_dict()
     meta = {
@@ -111,48 +126,99 @@ def graph_metadata(graph: str, arch: str, height: int, width: int, seq_length: i
     return meta
 
 
-def graph_entry(directory: Path, file: str, graph: str, height: int, width: int, seq_length: int,
-                opset: int, precision: str, exporter: str) -> GraphEntry:
+def graph_entry(
+    directory: Path,
+    file: str,
+    graph: str,
+    height: int,
+    width: int,
+    seq_length: int,
+    opset: int,
+    precision: str,
+    exporter: str,
+) -> GraphEntry:
     """Manifest entry of ``directory/file`` (hash computed from the file as written)."""
     spec = io_spec(graph, height, width, seq_length)
     return GraphEntry(
-        file=file, sha256=file_sha256(directory / file), opset=opset, precision=precision,
+        file=file,
+        sha256=file_sha256(directory / file),
+        opset=opset,
+        precision=precision,
         inputs=tuple(TensorSpec(n, tuple(s), spec.dtype) for n, s in spec.inputs),
         outputs=tuple(TensorSpec(n, tuple(s), spec.dtype) for n, s in spec.outputs),
-        exporter=exporter)
+        exporter=exporter,
+    )
 
 
-def provenance(arch: str, random_init: bool, exporter: str, checkpoint: str | Path | None = None,
-               ckpt: dict | None = None) -> Provenance:
+def provenance(
+    arch: str, random_init: bool, exporter: str, checkpoint: str | Path | None = None, ckpt: dict | None = None
+) -> Provenance:
     cfg = (ckpt or {}).get("config", {})
     return Provenance(
-        architecture=arch, random_init=random_init, export_date=utc_now(), git_commit=git_commit(),
+        architecture=arch,
+        random_init=random_init,
+        export_date=utc_now(),
+        git_commit=git_commit(),
         checkpoint=str(checkpoint) if checkpoint else None,
         checkpoint_sha256=file_sha256(checkpoint) if checkpoint else None,
-        checkpoint_stage=(ckpt or {}).get("stage"), checkpoint_step=(ckpt or {}).get("step"),
-        training_command=(ckpt or {}).get("command"), data_dir=cfg.get("data_dir"),
-        exporter=exporter, versions=versions())
+        checkpoint_stage=(ckpt or {}).get("stage"),
+        checkpoint_step=(ckpt or {}).get("step"),
+        training_command=(ckpt or {}).get("command"),
+        data_dir=cfg.get("data_dir"),
+        exporter=exporter,
+        versions=versions(),
+    )
 
 
-def build_manifest(*, height: int, width: int, seq_length: int, arch: str, random_init: bool,
-                   graphs: dict, prov: Provenance, metrics: dict | None,
-                   quantization: Quantization | None) -> Manifest:
+def build_manifest(
+    *,
+    height: int,
+    width: int,
+    seq_length: int,
+    arch: str,
+    random_init: bool,
+    graphs: dict,
+    prov: Provenance,
+    metrics: dict | None,
+    quantization: Quantization | None,
+) -> Manifest:
     return Manifest(
-        schema_version=SCHEMA_VERSION, height=height, width=width, seq_length=seq_length, arch=arch,
-        random_init=random_init, precisions=tuple(graphs), graphs=graphs,
-        conventions=conventions.as_dict(), provenance=prov, metrics=json_safe(metrics or {}),
-        quantization=quantization)
+        schema_version=SCHEMA_VERSION,
+        height=height,
+        width=width,
+        seq_length=seq_length,
+        arch=arch,
+        random_init=random_init,
+        precisions=tuple(graphs),
+        graphs=graphs,
+        conventions=conventions.as_dict(),
+        provenance=prov,
+        metrics=json_safe(metrics or {}),
+        quantization=quantization,
+    )
 
 
-def quantization_record(settings_description: dict, calibration_data: str, samples: dict,
-                        intrinsics_source: str, accuracy_delta: dict | None,
-                        reason: str | None) -> Quantization:
+def quantization_record(
+    settings_description: dict,
+    calibration_data: str,
+    samples: dict,
+    intrinsics_source: str,
+    accuracy_delta: dict | None,
+    reason: str | None,
+) -> Quantization:
     from export.quantize import FP32_ONLY_GRAPHS
+
     return Quantization(
-        method=settings_description["method"], activation_type=settings_description["activation_type"],
-        weight_type=settings_description["weight_type"], per_channel=settings_description["per_channel"],
+        method=settings_description["method"],
+        activation_type=settings_description["activation_type"],
+        weight_type=settings_description["weight_type"],
+        per_channel=settings_description["per_channel"],
         reduce_range=settings_description["reduce_range"],
-        calibrate_method=settings_description["calibrate_method"], calibration_data=calibration_data,
-        calibration_samples=dict(samples), calibration_intrinsics=intrinsics_source,
-        fp32_graphs=tuple(FP32_ONLY_GRAPHS), accuracy_delta=json_safe(accuracy_delta),
-        accuracy_delta_reason=reason)
+        calibrate_method=settings_description["calibrate_method"],
+        calibration_data=calibration_data,
+        calibration_samples=dict(samples),
+        calibration_intrinsics=intrinsics_source,
+        fp32_graphs=tuple(FP32_ONLY_GRAPHS),
+        accuracy_delta=json_safe(accuracy_delta),
+        accuracy_delta_reason=reason,
+    )

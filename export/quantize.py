@@ -19,13 +19,14 @@ H x W with ``cv2.INTER_AREA``:
 ``rigidflow`` is never quantised: it is geometry (projection, grid sampling),
 not convolutions, and its output is measured in pixels.
 """
+
 from __future__ import annotations
 
 import shutil
 import tempfile
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -51,22 +52,29 @@ class QuantSettings:
     max_frames: int = 24  # calibration frames read from the folder
 
     def describe(self) -> dict:
-        return {"method": "onnxruntime quantize_static, QDQ", "activation_type": "uint8", "weight_type": "int8",
-                "per_channel": self.per_channel, "reduce_range": self.reduce_range,
-                "calibrate_method": self.calibrate_method}
+        return {
+            "method": "onnxruntime quantize_static, QDQ",
+            "activation_type": "uint8",
+            "weight_type": "int8",
+            "per_channel": self.per_channel,
+            "reduce_range": self.reduce_range,
+            "calibrate_method": self.calibrate_method,
+        }
 
 
 # ----------------------------------------------------------------------------- frames
-def load_frames(folder: str | Path, height: int, width: int, max_frames: int,
-                min_frames: int = 1) -> tuple[list[np.ndarray], tuple[int, int]]:
+def load_frames(
+    folder: str | Path, height: int, width: int, max_frames: int, min_frames: int = 1
+) -> tuple[list[np.ndarray], tuple[int, int]]:
     """The first ``max_frames`` consecutive frames, resized (INTER_AREA) to H x W.
 
     Returns (frames uint8 RGB, original (H, W) of the first frame).
     """
     files = list_images(folder)[:max_frames]
     if len(files) < min_frames:
-        raise GeoNetInputError(folder, f"{len(files)} images, calibration needs at least {min_frames}",
-                               "add consecutive frames")
+        raise GeoNetInputError(
+            folder, f"{len(files)} images, calibration needs at least {min_frames}", "add consecutive frames"
+        )
     frames, original = [], None
     for f in files:
         rgb = read_image(f)
@@ -75,8 +83,9 @@ def load_frames(folder: str | Path, height: int, width: int, max_frames: int,
     return frames, original
 
 
-def calibration_intrinsics(folder: str | Path, original_hw: tuple[int, int], height: int,
-                           width: int) -> tuple[np.ndarray, str]:
+def calibration_intrinsics(
+    folder: str | Path, original_hw: tuple[int, int], height: int, width: int
+) -> tuple[np.ndarray, str]:
     """K at H x W for the calibration frames and where it came from.
 
     Looks for ``calib.txt`` (key ``K``) in the folder or its parent (synthetic
@@ -87,9 +96,12 @@ def calibration_intrinsics(folder: str | Path, original_hw: tuple[int, int], hei
     """
     folder = Path(folder)
     sx, sy = width / original_hw[1], height / original_hw[0]
-    candidates = [(folder / "calib.txt", "K"), (folder.parent / "calib.txt", "K"),
-                  (folder.parent.parent / "calib_cam_to_cam.txt", "P_rect_02"),
-                  (folder.parent / "calib_cam_to_cam.txt", "P_rect_02")]
+    candidates = [
+        (folder / "calib.txt", "K"),
+        (folder.parent / "calib.txt", "K"),
+        (folder.parent.parent / "calib_cam_to_cam.txt", "P_rect_02"),
+        (folder.parent / "calib_cam_to_cam.txt", "P_rect_02"),
+    ]
     for path, key in candidates:
         if path.is_file():
             try:
@@ -97,7 +109,9 @@ def calibration_intrinsics(folder: str | Path, original_hw: tuple[int, int], hei
             except GeoNetInputError:
                 continue
             return scale_intrinsics(K, sx, sy).astype(np.float32), f"{path} ({key})"
-    return kitti_like_K(height, width).astype(np.float32), "assumed KITTI-like (no calib.txt / calib_cam_to_cam.txt found)"
+    return kitti_like_K(height, width).astype(
+        np.float32
+    ), "assumed KITTI-like (no calib.txt / calib_cam_to_cam.txt found)"
 
 
 # ----------------------------------------------------------------------------- feeds
@@ -107,22 +121,26 @@ def depth_feeds(frames: Sequence[np.ndarray], spec: InputSpec) -> list[dict]:
 
 def snippets(frames: Sequence[np.ndarray], seq_length: int) -> list[list[np.ndarray]]:
     """Every window of ``seq_length`` consecutive frames (temporal order)."""
-    return [list(frames[i:i + seq_length]) for i in range(len(frames) - seq_length + 1)]
+    return [list(frames[i : i + seq_length]) for i in range(len(frames) - seq_length + 1)]
 
 
 def pose_feeds(frames: Sequence[np.ndarray], spec: InputSpec) -> list[dict]:
     """PoseNet inputs [target] + sources (``preprocess.snippet_indices`` order) for every window."""
     L = spec.seq_length
     order = snippet_indices(L // 2, L, L)
-    return [{"snippet": np.concatenate([spec.to_network(window[i]) for i in order])[None]}
-            for window in snippets(frames, L)]
+    return [
+        {"snippet": np.concatenate([spec.to_network(window[i]) for i in order])[None]} for window in snippets(frames, L)
+    ]
 
 
 def resflow_feeds(predictor, frames: Sequence[np.ndarray], K: np.ndarray) -> list[dict]:
     """12-channel inputs target -> every source, from the fp32 runtime cascade (``Predictor``)."""
     L = predictor.seq_length
-    return [{"flow_input": predictor.resflow_input(window, K, source_index=src)}
-            for window in snippets(frames, L) for src in range(L - 1)]
+    return [
+        {"flow_input": predictor.resflow_input(window, K, source_index=src)}
+        for window in snippets(frames, L)
+        for src in range(L - 1)
+    ]
 
 
 class _ListReader:
@@ -150,20 +168,36 @@ def downstream_nodes(model: onnx.ModelProto, tensors: Sequence[str]) -> list[str
     return names
 
 
-def quantize_graph(fp32_path: str | Path, out_path: str | Path, feeds: Sequence[dict],
-                   settings: QuantSettings = QuantSettings(), float_after: Sequence[str] = ()) -> None:
+def quantize_graph(
+    fp32_path: str | Path,
+    out_path: str | Path,
+    feeds: Sequence[dict],
+    settings: QuantSettings = QuantSettings(),
+    float_after: Sequence[str] = (),
+) -> None:
     """Pre-process + quantize_static (QDQ) one graph; keeps the fp32 file's metadata_props."""
-    from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     if not feeds:
-        raise GeoNetInputError(None, f"no calibration inputs for {Path(fp32_path).name}",
-                               "the calibration folder needs at least seq_length consecutive frames")
-    methods = dict(zip(CALIBRATION_METHODS, (CalibrationMethod.MinMax, CalibrationMethod.Entropy,
-                                             CalibrationMethod.Percentile)))
+        raise GeoNetInputError(
+            None,
+            f"no calibration inputs for {Path(fp32_path).name}",
+            "the calibration folder needs at least seq_length consecutive frames",
+        )
+    methods = dict(
+        zip(CALIBRATION_METHODS, (CalibrationMethod.MinMax, CalibrationMethod.Entropy, CalibrationMethod.Percentile))
+    )
     if settings.calibrate_method not in methods:
-        raise GeoNetInputError(None, f"unknown calibration method {settings.calibrate_method!r}",
-                               f"choose one of {', '.join(methods)}")
+        raise GeoNetInputError(
+            None, f"unknown calibration method {settings.calibrate_method!r}", f"choose one of {', '.join(methods)}"
+        )
     fp32_path, out_path = Path(fp32_path), Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
 
@@ -181,11 +215,18 @@ def quantize_graph(fp32_path: str | Path, out_path: str | Path, feeds: Sequence[
         if float_after and not exclude:
             raise GeoNetInputError(fp32_path, f"no nodes consume {list(float_after)}", "re-export the fp32 graph")
         quantize_static(
-            str(pre), str(work / "q.onnx"), Reader(feeds), quant_format=QuantFormat.QDQ,
-            per_channel=settings.per_channel, reduce_range=settings.reduce_range,
-            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-            calibrate_method=methods[settings.calibrate_method], nodes_to_exclude=exclude,
-            extra_options={"CalibTensorRangeSymmetric": False})
+            str(pre),
+            str(work / "q.onnx"),
+            Reader(feeds),
+            quant_format=QuantFormat.QDQ,
+            per_channel=settings.per_channel,
+            reduce_range=settings.reduce_range,
+            activation_type=QuantType.QUInt8,
+            weight_type=QuantType.QInt8,
+            calibrate_method=methods[settings.calibrate_method],
+            nodes_to_exclude=exclude,
+            extra_options={"CalibTensorRangeSymmetric": False},
+        )
         model = onnx.load(str(work / "q.onnx"))
         source_meta = {p.key: p.value for p in onnx.load(str(fp32_path), load_external_data=False).metadata_props}
         del model.metadata_props[:]

@@ -17,6 +17,7 @@ would silently give a static graph. :func:`export_graph` therefore traces with
 the example repeated to batch 2 and then asserts that axis 0 of every input
 and output is symbolic.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -86,26 +87,45 @@ def _dynamo_export(module, example, spec: IOSpec, opset: int) -> onnx.ModelProto
     batch = torch.export.Dim(BATCH_AXIS, min=1)
     input_names = [n for n, _ in spec.inputs]
     program = torch.onnx.export(
-        module, example, dynamo=True, opset_version=opset, verbose=False,
-        input_names=input_names, output_names=[n for n, _ in spec.outputs],
+        module,
+        example,
+        dynamo=True,
+        opset_version=opset,
+        verbose=False,
+        input_names=input_names,
+        output_names=[n for n, _ in spec.outputs],
         dynamic_shapes={name: {0: batch} for name in input_names},
-        optimize=True, report=False, verify=False)
+        optimize=True,
+        report=False,
+        verify=False,
+    )
     return program.model_proto
 
 
 def _torchscript_export(module, example, spec: IOSpec, opset: int) -> onnx.ModelProto:
     buffer = io.BytesIO()
     names = [n for n, _ in spec.inputs] + [n for n, _ in spec.outputs]
-    torch.onnx.export(module, example, buffer, dynamo=False, opset_version=opset,
-                      input_names=[n for n, _ in spec.inputs], output_names=[n for n, _ in spec.outputs],
-                      dynamic_axes={n: {0: BATCH_AXIS} for n in names}, do_constant_folding=True)
+    torch.onnx.export(
+        module,
+        example,
+        buffer,
+        dynamo=False,
+        opset_version=opset,
+        input_names=[n for n, _ in spec.inputs],
+        output_names=[n for n, _ in spec.outputs],
+        dynamic_axes={n: {0: BATCH_AXIS} for n in names},
+        do_constant_folding=True,
+    )
     return onnx.load_from_string(buffer.getvalue())
 
 
 def _name_batch_axis(model: onnx.ModelProto) -> None:
     """Rename the symbolic axis 0 of the graph inputs/outputs to "B" (everywhere it appears)."""
-    old = {vi.type.tensor_type.shape.dim[0].dim_param for vi in [*model.graph.input, *model.graph.output]
-           if vi.type.tensor_type.shape.dim and vi.type.tensor_type.shape.dim[0].dim_param}
+    old = {
+        vi.type.tensor_type.shape.dim[0].dim_param
+        for vi in [*model.graph.input, *model.graph.output]
+        if vi.type.tensor_type.shape.dim and vi.type.tensor_type.shape.dim[0].dim_param
+    }
     for vi in [*model.graph.input, *model.graph.output, *model.graph.value_info]:
         for dim in vi.type.tensor_type.shape.dim:
             if dim.dim_param in old:
@@ -162,9 +182,15 @@ def set_metadata(model: onnx.ModelProto, metadata: dict[str, str]) -> None:
         entry.key, entry.value = key, str(metadata[key])
 
 
-def export_graph(module: torch.nn.Module, example: tuple[torch.Tensor, ...], spec: IOSpec, path: str | Path,
-                 metadata: dict[str, str] | None = None, opset: int = OPSET,
-                 producer_version: str | None = None) -> ExportedGraph:
+def export_graph(
+    module: torch.nn.Module,
+    example: tuple[torch.Tensor, ...],
+    spec: IOSpec,
+    path: str | Path,
+    metadata: dict[str, str] | None = None,
+    opset: int = OPSET,
+    producer_version: str | None = None,
+) -> ExportedGraph:
     """Export ``module`` (eval mode) to ``path`` with the I/O of ``spec`` and a dynamic batch axis.
 
     The example may have any batch size (batch 1 is repeated to 2 for tracing).
@@ -184,8 +210,9 @@ def export_graph(module: torch.nn.Module, example: tuple[torch.Tensor, ...], spe
                 model = _torchscript_export(module, example, spec, opset)
                 exporter = EXPORTER_TORCHSCRIPT
             except Exception as legacy_error:
-                raise ExportCheckError(f"both exporters failed for {path.name}: dynamo: {dynamo_error!r}; "
-                                       f"torchscript: {legacy_error!r}") from legacy_error
+                raise ExportCheckError(
+                    f"both exporters failed for {path.name}: dynamo: {dynamo_error!r}; torchscript: {legacy_error!r}"
+                ) from legacy_error
     _name_batch_axis(model)
     _strip_debug_info(model)
     _dedupe_initializers(model)
@@ -200,12 +227,15 @@ def export_graph(module: torch.nn.Module, example: tuple[torch.Tensor, ...], spe
 
 
 def _dims(value_info) -> list:
-    return [d.dim_param if d.dim_param else (d.dim_value if d.HasField("dim_value") else "?")
-            for d in value_info.type.tensor_type.shape.dim]
+    return [
+        d.dim_param if d.dim_param else (d.dim_value if d.HasField("dim_value") else "?")
+        for d in value_info.type.tensor_type.shape.dim
+    ]
 
 
-def check_graph(path: str | Path, spec: IOSpec | None = None, opset: int | None = None,
-                strict_shapes: bool = True) -> onnx.ModelProto:
+def check_graph(
+    path: str | Path, spec: IOSpec | None = None, opset: int | None = None, strict_shapes: bool = True
+) -> onnx.ModelProto:
     """Structural checks of an exported file; raises ExportCheckError on the first failure.
 
     * ``onnx.checker.check_model(full_check=True)`` and strict shape inference;
@@ -227,7 +257,10 @@ def check_graph(path: str | Path, spec: IOSpec | None = None, opset: int | None 
     if opset is not None and model_opset != opset:
         raise ExportCheckError(f"{path.name}: opset {model_opset}, expected {opset}")
     if spec is not None:
-        for kind, want, have in (("input", spec.inputs, model.graph.input), ("output", spec.outputs, model.graph.output)):
+        for kind, want, have in (
+            ("input", spec.inputs, model.graph.input),
+            ("output", spec.outputs, model.graph.output),
+        ):
             got = [(vi.name, _dims(vi)) for vi in have]
             expected = [(n, list(s)) for n, s in want]
             if got != expected:
@@ -236,7 +269,9 @@ def check_graph(path: str | Path, spec: IOSpec | None = None, opset: int | None 
         if node.op_type in FORBIDDEN_OPS:
             raise ExportCheckError(f"{path.name}: contains a {node.domain or 'ai.onnx'}::{node.op_type} node")
         if node.op_type == "GridSample":
-            mode = next((a.s for a in node.attribute if a.name == "mode"), b"linear" if model_opset >= 20 else b"bilinear")
+            mode = next(
+                (a.s for a in node.attribute if a.name == "mode"), b"linear" if model_opset >= 20 else b"bilinear"
+            )
             allowed = GRIDSAMPLE_MODES_NEW if model_opset >= 20 else GRIDSAMPLE_MODES_OLD
             if mode not in allowed:
                 raise ExportCheckError(f"{path.name}: GridSample mode {mode!r} is invalid at opset {model_opset}")

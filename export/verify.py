@@ -4,10 +4,11 @@ The ORT-side GeoNet cascade is the runtime's :class:`geonet_infer.predictor.Pred
 export uses it for INT8 calibration inputs and accuracy deltas, so there is one cascade.
 onnxruntime sessions always come from :func:`geonet_infer.session.make_session`.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -48,5 +49,4 @@ def compare_graph(module, onnx_path, inputs: Sequence) -> dict[str, dict[str, fl
     names = [o.name for o in session.get_outputs()]
     ref = torch_outputs(module, inputs)
     got = ort_outputs(session, [np.asarray(x) for x in inputs])
-    return {n: {"max_abs": max_abs_diff(g, r), "relative": relative_max_diff(g, r)}
-            for n, g, r in zip(names, got, ref)}
+    return {n: {"max_abs": max_abs_diff(g, r), "relative": relative_max_diff(g, r)} for n, g, r in zip(names, got, ref)}

@@ -18,6 +18,7 @@ resflownet.onnx    flow_input (B,12,H,W)                         residual_flow (
 The wrappers only re-use training code (``training.model.rigid_warp``,
 ``training.geometry``), so the exported math is the trained math.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -49,19 +50,30 @@ def io_spec(graph: str, height: int, width: int, seq_length: int) -> IOSpec:
     """The fixed I/O contract of ``graph`` at H x W (what the manifest records)."""
     H, W, N = height, width, seq_length - 1
     if graph == "depthnet":
-        return IOSpec(inputs=(("image", ("B", 3, H, W)),),
-                      outputs=(("disparity", ("B", 1, H, W)), ("depth", ("B", 1, H, W))))
+        return IOSpec(
+            inputs=(("image", ("B", 3, H, W)),), outputs=(("disparity", ("B", 1, H, W)), ("depth", ("B", 1, H, W)))
+        )
     if graph == "posenet":
-        return IOSpec(inputs=(("snippet", ("B", 3 * seq_length, H, W)),),
-                      outputs=(("pose", ("B", N, 6)), ("pose_matrix", ("B", N, 4, 4))))
+        return IOSpec(
+            inputs=(("snippet", ("B", 3 * seq_length, H, W)),),
+            outputs=(("pose", ("B", N, 6)), ("pose_matrix", ("B", N, 4, 4))),
+        )
     if graph == "rigidflow":
-        return IOSpec(inputs=(("depth", ("B", 1, H, W)), ("pose", ("B", 6)), ("intrinsics", ("B", 3, 3)),
-                              ("target", ("B", 3, H, W)), ("source", ("B", 3, H, W))),
-                      outputs=(("rigid_flow", ("B", 2, H, W)), ("warped", ("B", 3, H, W)),
-                               ("error", ("B", 1, H, W))))
+        return IOSpec(
+            inputs=(
+                ("depth", ("B", 1, H, W)),
+                ("pose", ("B", 6)),
+                ("intrinsics", ("B", 3, 3)),
+                ("target", ("B", 3, H, W)),
+                ("source", ("B", 3, H, W)),
+            ),
+            outputs=(("rigid_flow", ("B", 2, H, W)), ("warped", ("B", 3, H, W)), ("error", ("B", 1, H, W))),
+        )
     if graph == "resflownet":
-        return IOSpec(inputs=(("flow_input", ("B", FLOW_INPUT_CHANNELS, H, W)),),
-                      outputs=(("residual_flow", ("B", 2, H, W)), ("flow", ("B", 2, H, W))))
+        return IOSpec(
+            inputs=(("flow_input", ("B", FLOW_INPUT_CHANNELS, H, W)),),
+            outputs=(("residual_flow", ("B", 2, H, W)), ("flow", ("B", 2, H, W))),
+        )
     raise ValueError(f"unknown graph {graph!r}; expected one of {GRAPH_NAMES}")
 
 
@@ -148,8 +160,9 @@ def build_wrapper(graph: str, model: GeoNet) -> nn.Module:
     return wrapper.eval()
 
 
-def example_inputs(graph: str, height: int, width: int, seq_length: int, batch: int = 1,
-                   generator: torch.Generator | None = None) -> tuple[torch.Tensor, ...]:
+def example_inputs(
+    graph: str, height: int, width: int, seq_length: int, batch: int = 1, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, ...]:
     """Plausible example inputs (the export trace and smoke checks use them).
 
     Images are uniform in [-1, 1]; depth in [1, 50]; small poses; a KITTI-like K.

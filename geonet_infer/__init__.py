@@ -1,9 +1,10 @@
 """geonet_infer: GeoNet depth, flow and pose on CPU (onnxruntime + numpy + OpenCV, no torch).
 
-    import geonet_infer
-    predictor = geonet_infer.load()              # the bundled default model
-    result = predictor.depth("frame.png")        # DepthResult: depth (H, W), timings_ms
+import geonet_infer
+predictor = geonet_infer.load()              # the bundled default model
+result = predictor.depth("frame.png")        # DepthResult: depth (H, W), timings_ms
 """
+
 from geonet_infer.errors import GeoNetInputError
 
 try:  # one version, in pyproject.toml
@@ -13,8 +14,24 @@ try:  # one version, in pyproject.toml
 except PackageNotFoundError:  # running from a source tree that was never installed
     __version__ = "0+unknown"
 
-from geonet_infer.predictor import (DepthResult, FlowResult, FrameResult, PoseResult, Predictor,  # noqa: E402
-                                    SequenceResult, load)
+from geonet_infer.predictor import (
+    DepthResult,
+    FlowResult,
+    FrameResult,
+    PoseResult,
+    Predictor,  # noqa: E402
+    SequenceResult,
+    load,
+)
 
-__all__ = ["DepthResult", "FlowResult", "FrameResult", "GeoNetInputError", "PoseResult", "Predictor",
-           "SequenceResult", "__version__", "load"]
+__all__ = [
+    "DepthResult",
+    "FlowResult",
+    "FrameResult",
+    "GeoNetInputError",
+    "PoseResult",
+    "Predictor",
+    "SequenceResult",
+    "__version__",
+    "load",
+]

@@ -6,6 +6,7 @@ Same call signatures as the model adapters in :mod:`geonet_infer.evaluation`:
 * flow ``fn(frames, K) -> flow (H, W, 2)`` from ``frames[-2]`` to ``frames[-1]``;
 * pose ``fn(frames (5), K) -> (poses (5, 4, 4) in the first frame's coordinates, info)``.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -44,6 +45,7 @@ def dis_flow(preset: str):
     def predict(frames: list, K=None) -> np.ndarray:
         dis = cv2.DISOpticalFlow_create(code)  # per call: the object keeps no useful state between pairs
         return dis.calc(_grey(frames[-2]), _grey(frames[-1]), None)
+
     return predict
 
 

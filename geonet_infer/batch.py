@@ -17,6 +17,7 @@ calibration, bad frame, any exception in a worker, a worker process that died) i
 and the job goes on. Work units are whole sequences: the frames of a sequence depend on
 each other (pose and flow pair frame t with t + 1, and each frame's depth is reused).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -30,11 +31,11 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 from geonet_infer import __version__
 from geonet_infer.errors import GeoNetInputError
@@ -44,8 +45,20 @@ from geonet_infer.io.frames import open_frames
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, predict_to_dir
 from geonet_infer.session import usable_cpus
 
-__all__ = ["ENGINES", "MARKER_NAME", "FAILURES_NAME", "LIST_SUFFIX", "BatchConfig", "WorkUnit", "expand_inputs",
-           "plan_units", "sequence_name", "plan_workers", "run_sequence", "run_batch"]
+__all__ = [
+    "ENGINES",
+    "MARKER_NAME",
+    "FAILURES_NAME",
+    "LIST_SUFFIX",
+    "BatchConfig",
+    "WorkUnit",
+    "expand_inputs",
+    "plan_units",
+    "sequence_name",
+    "plan_workers",
+    "run_sequence",
+    "run_batch",
+]
 
 ENGINES = ("local", "ray")
 MARKER_NAME = ".done"
@@ -86,12 +99,24 @@ class BatchConfig:
     def options(self) -> dict:
         """What decides the outputs (stored in each ``.done``; a resume with other options is refused)."""
         from geonet_infer.models import resolve_model
-        cam = None if self.camera is None else {
-            "K": self.camera.K.tolist(), "dist": None if self.camera.dist is None else self.camera.dist.tolist(),
-            "size": None if self.camera.size is None else list(self.camera.size)}
-        return {"model": str(resolve_model(self.model).resolve()), "precision": self.precision,
-                "backend": self.backend,
-                "tasks": list(self.tasks), "batch_size": self.batch_size, "camera": cam}
+
+        cam = (
+            None
+            if self.camera is None
+            else {
+                "K": self.camera.K.tolist(),
+                "dist": None if self.camera.dist is None else self.camera.dist.tolist(),
+                "size": None if self.camera.size is None else list(self.camera.size),
+            }
+        )
+        return {
+            "model": str(resolve_model(self.model).resolve()),
+            "precision": self.precision,
+            "backend": self.backend,
+            "tasks": list(self.tasks),
+            "batch_size": self.batch_size,
+            "camera": cam,
+        }
 
 
 def read_input_list(path: Path) -> list[Path]:
@@ -100,8 +125,11 @@ def read_input_list(path: Path) -> list[Path]:
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
-        raise GeoNetInputError(path, f"cannot read this input list ({exc.__class__.__name__})",
-                               "pass a text file with one input path a line") from None
+        raise GeoNetInputError(
+            path,
+            f"cannot read this input list ({exc.__class__.__name__})",
+            "pass a text file with one input path a line",
+        ) from None
     out = []
     for line in text.splitlines():
         line = line.strip()
@@ -122,16 +150,18 @@ def expand_inputs(inputs) -> list[Path]:
             listed = read_input_list(given)
             bad = [p for p in listed if p.suffix.lower() == LIST_SUFFIX and p.is_file()]
             if bad:
-                raise GeoNetInputError(bad[0], f"listed in {given}, but input lists do not nest",
-                                       "list the sequences themselves")
+                raise GeoNetInputError(
+                    bad[0], f"listed in {given}, but input lists do not nest", "list the sequences themselves"
+                )
             paths += listed
         else:
             paths.append(given)
     missing = [p for p in paths if not p.exists()]
     if missing:
         more = f" (and {len(missing) - 1} more missing)" if len(missing) > 1 else ""
-        raise GeoNetInputError(missing[0], f"not found{more}",
-                               "pass sequence folders, videos, KITTI drives or a .txt file listing them")
+        raise GeoNetInputError(
+            missing[0], f"not found{more}", "pass sequence folders, videos, KITTI drives or a .txt file listing them"
+        )
     if not paths:
         raise GeoNetInputError(None, "no inputs", "pass sequence folders, videos, KITTI drives or a .txt list")
     return paths
@@ -183,8 +213,9 @@ def plan_units(paths) -> list[WorkUnit]:
             seen.add(real)
             distinct.append(Path(os.path.abspath(p)))
     base = [_safe_name(sequence_name(p)) for p in distinct]
-    names = [f"{n}__{_sequence_root(p).parent.name or 'root'}" if base.count(n) > 1 else n
-             for p, n in zip(distinct, base)]
+    names = [
+        f"{n}__{_sequence_root(p).parent.name or 'root'}" if base.count(n) > 1 else n for p, n in zip(distinct, base)
+    ]
     final: list[str] = []
     for n in names:
         candidate, k = n, 1
@@ -198,6 +229,7 @@ def plan_units(paths) -> list[WorkUnit]:
 def needs_own_calib(path) -> bool:
     """Whether the input has no calibration of its own (anything but a KITTI drive with its file)."""
     from geonet_infer.io.frames import KITTI_CALIB_NAME
+
     root = _sequence_root(path)
     if not (root.is_dir() and (root / _KITTI[0] / _KITTI[1]).is_dir()):
         return True
@@ -236,8 +268,13 @@ class _CountingSource:
             yield frame
 
 
-def run_sequence(unit: WorkUnit, config: BatchConfig, predictor, on_frame: Callable[[], None] | None = None,
-                 options: dict | None = None) -> dict:
+def run_sequence(
+    unit: WorkUnit,
+    config: BatchConfig,
+    predictor,
+    on_frame: Callable[[], None] | None = None,
+    options: dict | None = None,
+) -> dict:
     """Predict one sequence into ``OUT/<name>/`` and write its ``.done``; never raises ``Exception``.
 
     Returns a result dict: sequence, input, index, status ("done" | "failed"), frames,
@@ -246,8 +283,15 @@ def run_sequence(unit: WorkUnit, config: BatchConfig, predictor, on_frame: Calla
     """
     out = Path(config.out_dir) / unit.name
     started = time.perf_counter()
-    result = {"index": unit.index, "sequence": unit.name, "input": unit.path, "status": "failed", "frames": 0,
-              "failures": [], "wall_s": 0.0}
+    result = {
+        "index": unit.index,
+        "sequence": unit.name,
+        "input": unit.path,
+        "status": "failed",
+        "frames": 0,
+        "failures": [],
+        "wall_s": 0.0,
+    }
     try:
         _discard(out)  # a partial folder of an interrupted run, or the results of an earlier job
         source = open_frames(unit.path)
@@ -256,12 +300,20 @@ def run_sequence(unit: WorkUnit, config: BatchConfig, predictor, on_frame: Calla
             camera = read_camera(source.default_calib).validate(source.default_calib)
         if on_frame is not None:
             source = _CountingSource(source, on_frame)
-        summary = predict_to_dir(predictor, source, out, camera=camera, tasks=config.tasks,
-                                 batch_size=config.batch_size, progress=False)
-        failures = [{"sequence": unit.name, "input": unit.path, "frame": f["frame"], "reason": f["reason"]}
-                    for f in summary["failures"]]
-        marker = {"sequence": unit.name, "input": unit.path, "frames": summary["frames"], "failures": failures,
-                  "options": options if options is not None else config.options()}
+        summary = predict_to_dir(
+            predictor, source, out, camera=camera, tasks=config.tasks, batch_size=config.batch_size, progress=False
+        )
+        failures = [
+            {"sequence": unit.name, "input": unit.path, "frame": f["frame"], "reason": f["reason"]}
+            for f in summary["failures"]
+        ]
+        marker = {
+            "sequence": unit.name,
+            "input": unit.path,
+            "frames": summary["frames"],
+            "failures": failures,
+            "options": options if options is not None else config.options(),
+        }
         with atomic_write(out / MARKER_NAME) as tmp:
             tmp.write_text(json.dumps(marker) + "\n")
         result.update(status="done", frames=summary["frames"], failures=failures)
@@ -282,8 +334,7 @@ def read_marker(folder: Path) -> dict | None:
 
 
 # ----------------------------------------------------------------------------- workers x threads
-def plan_workers(n_units: int, workers: int | None, threads: int | None, cpus: int | None = None
-                 ) -> tuple[int, int]:
+def plan_workers(n_units: int, workers: int | None, threads: int | None, cpus: int | None = None) -> tuple[int, int]:
     """(workers, threads per worker): by default workers x threads <= the usable CPUs.
 
     Neither given: one worker per CPU (at most one per sequence), the CPUs split among them.
@@ -350,14 +401,17 @@ def _init_worker(config: BatchConfig, options: dict, frames, started, parent_pid
     signal.signal(signal.SIGTERM, _on_sigterm)
     _die_with_parent(parent_pid)
     from tqdm import tqdm
+
     # predict_to_dir makes a (disabled) tqdm; by default tqdm then creates a multiprocessing lock,
     # which a worker stopped by SIGTERM (os._exit) would leave registered: "leaked semaphore" warnings.
     tqdm.set_lock(threading.RLock())
     from geonet_infer.predictor import load
+
     _WORKER.update(config=config, options=options, frames=frames, started=started, busy=None)
     try:
-        _WORKER["predictor"] = load(config.model, precision=config.precision, threads=config.threads,
-                                    backend=config.backend)
+        _WORKER["predictor"] = load(
+            config.model, precision=config.precision, threads=config.threads, backend=config.backend
+        )
     except Exception as exc:  # noqa: BLE001 - reported per sequence by _work
         _WORKER["predictor"], _WORKER["load_error"] = None, exc
 
@@ -375,9 +429,22 @@ def _work(unit: WorkUnit) -> dict:
     try:
         if _WORKER["predictor"] is None:
             exc = _WORKER["load_error"]
-            return {"index": unit.index, "sequence": unit.name, "input": unit.path, "status": "failed", "frames": 0,
-                    "wall_s": 0.0, "failures": [{"sequence": unit.name, "input": unit.path, "frame": None,
-                                                 "reason": f"the worker could not load the model: {_reason(exc)}"}]}
+            return {
+                "index": unit.index,
+                "sequence": unit.name,
+                "input": unit.path,
+                "status": "failed",
+                "frames": 0,
+                "wall_s": 0.0,
+                "failures": [
+                    {
+                        "sequence": unit.name,
+                        "input": unit.path,
+                        "frame": None,
+                        "reason": f"the worker could not load the model: {_reason(exc)}",
+                    }
+                ],
+            }
         return run_sequence(unit, _WORKER["config"], _WORKER["predictor"], _count_frame, _WORKER["options"])
     except _Stopped:
         if read_marker(out) is None:
@@ -450,8 +517,11 @@ class LocalEngine:
         while todo:
             started = self._ctx.Array("q", max(u.index for u in todo) + 1, lock=False)  # unit -> worker pid
             executor = self._executor = ProcessPoolExecutor(
-                max_workers=min(self.workers, len(todo)), mp_context=self._ctx, initializer=_init_worker,
-                initargs=(self.config, self.options, self._frames, started, os.getpid()))
+                max_workers=min(self.workers, len(todo)),
+                mp_context=self._ctx,
+                initializer=_init_worker,
+                initargs=(self.config, self.options, self._frames, started, os.getpid()),
+            )
             pending = {executor.submit(_work, u): u for u in todo}
             processes = dict(getattr(executor, "_processes", None) or {})
             lost: list[WorkUnit] = []
@@ -477,8 +547,11 @@ class LocalEngine:
             barren = barren + 1 if lost and not any(started[u.index] for u in lost) else 0
             if barren >= 2:  # the workers cannot even start: report, do not loop
                 for unit in sorted(lost, key=lambda u: u.index):
-                    yield _failed(unit, "the worker processes died before they could start "
-                                  f"(exit codes {sorted({str(c) for c in exit_codes.values()})})")
+                    yield _failed(
+                        unit,
+                        "the worker processes died before they could start "
+                        f"(exit codes {sorted({str(c) for c in exit_codes.values()})})",
+                    )
                 return
             for unit in sorted(lost, key=lambda u: u.index):
                 pid = started[unit.index]
@@ -490,15 +563,25 @@ class LocalEngine:
                         if read_marker(folder) is None:  # the dead worker could not clean up
                             with contextlib.suppress(Exception):
                                 _discard(folder)
-                        yield _failed(unit, "the worker process died while predicting this sequence"
-                                      + (f" (exit code {code})" if code not in (None, 143) else ""))
+                        yield _failed(
+                            unit,
+                            "the worker process died while predicting this sequence"
+                            + (f" (exit code {code})" if code not in (None, 143) else ""),
+                        )
                         continue
                 todo.append(unit)
 
 
 def _failed(unit: WorkUnit, reason: str) -> dict:
-    return {"index": unit.index, "sequence": unit.name, "input": unit.path, "status": "failed", "frames": 0,
-            "wall_s": 0.0, "failures": [{"sequence": unit.name, "input": unit.path, "frame": None, "reason": reason}]}
+    return {
+        "index": unit.index,
+        "sequence": unit.name,
+        "input": unit.path,
+        "status": "failed",
+        "frames": 0,
+        "wall_s": 0.0,
+        "failures": [{"sequence": unit.name, "input": unit.path, "frame": None, "reason": reason}],
+    }
 
 
 # ----------------------------------------------------------------------------- the job
@@ -528,8 +611,9 @@ def _job_lock(out_dir: Path):
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            raise GeoNetInputError(out_dir, "another batch job is writing to this folder",
-                                   "wait for it to finish, or pass another --out") from None
+            raise GeoNetInputError(
+                out_dir, "another batch job is writing to this folder", "wait for it to finish, or pass another --out"
+            ) from None
         yield
     finally:
         os.close(fd)
@@ -549,14 +633,16 @@ class _Progress:
 
     def __post_init__(self):
         from tqdm import tqdm
+
         self.bar = tqdm(total=self.total, unit="seq", desc="sequences", disable=not self.enabled, dynamic_ncols=True)
         self.t0 = time.perf_counter()
 
     def tick(self, live_frames: int | None = None, done: int = 0, failed: int = 0) -> None:
         frames = self.frames_done if live_frames is None else max(live_frames, self.frames_done)
         elapsed = time.perf_counter() - self.t0
-        self.bar.set_postfix_str(f"frames={frames}, {frames / elapsed if elapsed > 0 else 0:.1f} frames/s, "
-                                 f"failed={failed}", refresh=True)
+        self.bar.set_postfix_str(
+            f"frames={frames}, {frames / elapsed if elapsed > 0 else 0:.1f} frames/s, failed={failed}", refresh=True
+        )
         if done:
             self.bar.update(done)
 
@@ -564,11 +650,24 @@ class _Progress:
         self.bar.close()
 
 
-def run_batch(inputs, out_dir, *, engine: str = "local", workers: int | None = None, threads: int | None = None,
-              model: str | None = None, precision: str = "fp32", backend: str = "onnxruntime",
-              tasks: tuple[str, ...] = TASKS,
-              batch_size: int = 4, camera: Camera | None = None, resume: bool = False,
-              ray_address: str | None = None, progress: bool = True, log=None) -> dict:
+def run_batch(
+    inputs,
+    out_dir,
+    *,
+    engine: str = "local",
+    workers: int | None = None,
+    threads: int | None = None,
+    model: str | None = None,
+    precision: str = "fp32",
+    backend: str = "onnxruntime",
+    tasks: tuple[str, ...] = TASKS,
+    batch_size: int = 4,
+    camera: Camera | None = None,
+    resume: bool = False,
+    ray_address: str | None = None,
+    progress: bool = True,
+    log=None,
+) -> dict:
     """Run a batch job (see the module docstring); returns the summary (also OUT/summary.json).
 
     ``summary["exit_code"]``: 0 all good, 1 something failed (see failures.jsonl).
@@ -592,8 +691,15 @@ def run_batch(inputs, out_dir, *, engine: str = "local", workers: int | None = N
         raise GeoNetInputError(out_dir, "exists and is not a folder", "pass a folder for --out")
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    probe = BatchConfig(out_dir=str(out_dir), model=model, precision=precision, backend=backend, tasks=tasks,
-                        batch_size=batch_size, camera=camera)
+    probe = BatchConfig(
+        out_dir=str(out_dir),
+        model=model,
+        precision=precision,
+        backend=backend,
+        tasks=tasks,
+        batch_size=batch_size,
+        camera=camera,
+    )
     options = probe.options()
     with _job_lock(out_dir):
         skipped, carried = [], []
@@ -606,18 +712,33 @@ def run_batch(inputs, out_dir, *, engine: str = "local", workers: int | None = N
                     todo.append(unit)
                     continue
                 if marker.get("options") != options or marker.get("input") != unit.path:
-                    what = "input" if marker.get("input") != unit.path else "set of options (model, precision, tasks, " \
-                                                                          "batch size or camera)"
-                    raise GeoNetInputError(out_dir / unit.name, f"was made with another {what} than this job has",
-                                           "resume with the options of the first run, or pass another --out")
-                skipped.append({"index": unit.index, "sequence": unit.name, "input": unit.path, "status": "skipped",
-                                "frames": marker.get("frames", 0), "failures": marker.get("failures", []),
-                                "wall_s": 0.0})
+                    what = (
+                        "input"
+                        if marker.get("input") != unit.path
+                        else "set of options (model, precision, tasks, batch size or camera)"
+                    )
+                    raise GeoNetInputError(
+                        out_dir / unit.name,
+                        f"was made with another {what} than this job has",
+                        "resume with the options of the first run, or pass another --out",
+                    )
+                skipped.append(
+                    {
+                        "index": unit.index,
+                        "sequence": unit.name,
+                        "input": unit.path,
+                        "status": "skipped",
+                        "frames": marker.get("frames", 0),
+                        "failures": marker.get("failures", []),
+                        "wall_s": 0.0,
+                    }
+                )
                 carried += marker.get("failures", [])
         if not todo:  # everything is complete already: no workers, no cluster
             runner, n_workers, n_threads = _NoEngine(), 0, 0
         elif engine == "ray":
             from geonet_infer.batch_ray import RayEngine
+
             runner = RayEngine.start(probe, options, len(todo), workers, threads, ray_address, log)
             n_workers, n_threads = runner.workers, runner.threads
         else:
@@ -625,8 +746,9 @@ def run_batch(inputs, out_dir, *, engine: str = "local", workers: int | None = N
             cpus = usable_cpus()
             if n_workers * n_threads > cpus:
                 log(f"geonet-infer batch: note: {n_workers} workers x {n_threads} threads > {cpus} usable CPUs")
-            runner = LocalEngine(BatchConfig(**{**asdict(probe), "camera": camera, "threads": n_threads}),
-                                 options, n_workers)
+            runner = LocalEngine(
+                BatchConfig(**{**asdict(probe), "camera": camera, "threads": n_threads}), options, n_workers
+            )
 
         failures_path = out_dir / FAILURES_NAME
         _write_failures(failures_path, carried)
@@ -665,20 +787,44 @@ def run_batch(inputs, out_dir, *, engine: str = "local", workers: int | None = N
         _write_failures(failures_path, records)  # final: in input order (appends came in completion order)
         frames = sum(r["frames"] for r in ordered if r["status"] == "done")
         summary = {
-            "engine": engine, "workers": n_workers, "threads_per_worker": n_threads, "usable_cpus": usable_cpus(),
+            "engine": engine,
+            "workers": n_workers,
+            "threads_per_worker": n_threads,
+            "usable_cpus": usable_cpus(),
             "ray_address": getattr(runner, "address", None),
-            "out": str(out_dir), "resume": resume, "interrupted": interrupted,
-            "sequences": {"total": len(units), "done": n_done, "failed": n_failed, "skipped": len(skipped),
-                          "not_run": len(units) - n_done - n_failed - len(skipped)},
-            "frames": frames, "frames_failed": sum(1 for r in records if r["frame"] is not None),
-            "failures": len(records), "failures_file": FAILURES_NAME,
-            "wall_s": wall, "frames_per_s": frames / wall if wall > 0 and frames else 0.0,
-            "tasks": list(tasks), "batch_size": batch_size, "model": options["model"], "precision": precision,
+            "out": str(out_dir),
+            "resume": resume,
+            "interrupted": interrupted,
+            "sequences": {
+                "total": len(units),
+                "done": n_done,
+                "failed": n_failed,
+                "skipped": len(skipped),
+                "not_run": len(units) - n_done - n_failed - len(skipped),
+            },
+            "frames": frames,
+            "frames_failed": sum(1 for r in records if r["frame"] is not None),
+            "failures": len(records),
+            "failures_file": FAILURES_NAME,
+            "wall_s": wall,
+            "frames_per_s": frames / wall if wall > 0 and frames else 0.0,
+            "tasks": list(tasks),
+            "batch_size": batch_size,
+            "model": options["model"],
+            "precision": precision,
             "backend": backend,
             "camera": "per input (its own calibration, if any)" if camera is None else camera.source,
-            "per_sequence": [{"sequence": r["sequence"], "input": r["input"], "status": r["status"],
-                              "frames": r["frames"], "failures": len(r["failures"]), "wall_s": round(r["wall_s"], 3)}
-                             for r in ordered],
+            "per_sequence": [
+                {
+                    "sequence": r["sequence"],
+                    "input": r["input"],
+                    "status": r["status"],
+                    "frames": r["frames"],
+                    "failures": len(r["failures"]),
+                    "wall_s": round(r["wall_s"], 3),
+                }
+                for r in ordered
+            ],
             "versions": {"geonet_infer": __version__, "python": platform.python_version()},
         }
         summary["exit_code"] = 1 if records or n_failed else 0

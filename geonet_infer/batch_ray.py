@@ -12,6 +12,7 @@ tasks (the items live in the driver's object store), and the pool is sized from 
 cluster's CPUs, node by node: actors x threads never exceed them. Outputs must be on a file
 system every node sees at the same path (a local cluster: this machine).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -19,19 +20,27 @@ import inspect
 import json
 import logging
 import os
+from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
-from geonet_infer.batch import (BatchConfig, WorkUnit, _discard, _failed, _reason, plan_workers, read_marker,
-                                run_sequence)
+from geonet_infer.batch import (
+    BatchConfig,
+    WorkUnit,
+    _discard,
+    _failed,
+    _reason,
+    plan_workers,
+    read_marker,
+    run_sequence,
+)
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.session import usable_cpus
 
 INSTALL_HINT = "pip install 'geonet-infer[ray]'"
-LOCAL_OBJECT_STORE_BYTES = 256 * 1024 ** 2  # results are a few hundred bytes a sequence
+LOCAL_OBJECT_STORE_BYTES = 256 * 1024**2  # results are a few hundred bytes a sequence
 
 
 def import_ray():
@@ -40,8 +49,9 @@ def import_ray():
         import ray
         import ray.data  # noqa: F401
     except ImportError as exc:
-        raise GeoNetInputError(None, f"--engine ray needs Ray Data, which is not installed ({exc})",
-                               INSTALL_HINT) from None
+        raise GeoNetInputError(
+            None, f"--engine ray needs Ray Data, which is not installed ({exc})", INSTALL_HINT
+        ) from None
     return ray
 
 
@@ -58,11 +68,13 @@ class _SequenceActor:
 
     def __init__(self):
         from geonet_infer.predictor import load
+
         config = self.config
         self.predictor, self.error = None, None
         try:
-            self.predictor = load(config.model, precision=config.precision, threads=config.threads,
-                                  backend=config.backend)
+            self.predictor = load(
+                config.model, precision=config.precision, threads=config.threads, backend=config.backend
+            )
         except Exception as exc:  # noqa: BLE001 - reported per sequence
             self.error = exc
 
@@ -79,8 +91,9 @@ class _SequenceActor:
 
 
 def _actor_class(config: BatchConfig, options: dict) -> type:
-    return type("GeoNetSequenceActor", (_SequenceActor,), {"config": config, "options": options,
-                                                           "__module__": __name__})
+    return type(
+        "GeoNetSequenceActor", (_SequenceActor,), {"config": config, "options": options, "__module__": __name__}
+    )
 
 
 def _node_cpus(ray) -> list[int]:
@@ -92,8 +105,9 @@ def _node_cpus(ray) -> list[int]:
     return cpus if cpus and sum(cpus) <= total else [total]
 
 
-def size_pool(node_cpus: list[int], n_units: int, workers: int | None, threads: int | None
-              ) -> tuple[int, int, str | None]:
+def size_pool(
+    node_cpus: list[int], n_units: int, workers: int | None, threads: int | None
+) -> tuple[int, int, str | None]:
     """(actors, threads per actor, note or None) that fit the nodes' CPUs.
 
     Actors x threads never exceed the CPUs (per node: an actor's CPUs are on one node);
@@ -107,8 +121,10 @@ def size_pool(node_cpus: list[int], n_units: int, workers: int | None, threads: 
         threads = max(node_cpus)
     fit = sum(c // threads for c in node_cpus)
     if workers > fit:
-        note = (f"{workers} actors x {threads} threads do not fit the cluster's {total} CPUs "
-                f"(Ray Data would wait forever); using {fit} actors")
+        note = (
+            f"{workers} actors x {threads} threads do not fit the cluster's {total} CPUs "
+            f"(Ray Data would wait forever); using {fit} actors"
+        )
         workers = fit
     return max(1, workers), threads, note
 
@@ -117,7 +133,8 @@ def check_reachable(address: str, timeout_s: float = 5.0) -> None:
     """Fail fast (GeoNetInputError) when a HOST:PORT or ray://HOST:PORT address does not answer:
     ``ray.init`` would retry for minutes. ``auto`` and other forms are left to Ray."""
     import socket
-    rest = address[len("ray://"):] if address.startswith("ray://") else address
+
+    rest = address[len("ray://") :] if address.startswith("ray://") else address
     host, sep, port = rest.rpartition(":")
     if not sep or not port.isdigit() or "/" in rest:
         return
@@ -125,15 +142,26 @@ def check_reachable(address: str, timeout_s: float = 5.0) -> None:
         with socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=timeout_s):
             pass
     except OSError as exc:
-        raise GeoNetInputError(None, f"cannot reach the Ray cluster at {address} ({exc.strerror or exc})",
-                               "is the cluster up (ray status)? check --ray-address") from None
+        raise GeoNetInputError(
+            None,
+            f"cannot reach the Ray cluster at {address} ({exc.strerror or exc})",
+            "is the cluster up (ray status)? check --ray-address",
+        ) from None
 
 
 class RayEngine:
     name = "ray"
 
-    def __init__(self, ray, config: BatchConfig, options: dict, workers: int, threads: int, address: str | None,
-                 started_here: bool):
+    def __init__(
+        self,
+        ray,
+        config: BatchConfig,
+        options: dict,
+        workers: int,
+        threads: int,
+        address: str | None,
+        started_here: bool,
+    ):
         self.ray, self.options = ray, options
         self.config = BatchConfig(**{**asdict(config), "camera": config.camera, "threads": threads})
         self.workers, self.threads, self.address, self._started_here = workers, threads, address, started_here
@@ -141,8 +169,16 @@ class RayEngine:
         self._pending: list[WorkUnit] = []
 
     @classmethod
-    def start(cls, config: BatchConfig, options: dict, n_units: int, workers: int | None, threads: int | None,
-              address: str | None, log) -> "RayEngine":
+    def start(
+        cls,
+        config: BatchConfig,
+        options: dict,
+        n_units: int,
+        workers: int | None,
+        threads: int | None,
+        address: str | None,
+        log,
+    ) -> RayEngine:
         """Start a local cluster (no address) or join ``address``, and size the actor pool."""
         ray = import_ray()
         started_here = False
@@ -157,16 +193,27 @@ class RayEngine:
                 if address:
                     ray.init(address=address, **common)
                 else:
-                    ray.init(address="local", num_cpus=usable_cpus(), include_dashboard=False,
-                             object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
+                    ray.init(
+                        address="local",
+                        num_cpus=usable_cpus(),
+                        include_dashboard=False,
+                        object_store_memory=LOCAL_OBJECT_STORE_BYTES,
+                        **common,
+                    )
             except (ConnectionError, RuntimeError, ValueError) as exc:
                 where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
-                raise GeoNetInputError(None, f"cannot start or join {where} ({_reason(exc).splitlines()[0]})",
-                                       "check --ray-address (e.g. ray://HOST:10001, HOST:6379 or auto)") from None
+                raise GeoNetInputError(
+                    None,
+                    f"cannot start or join {where} ({_reason(exc).splitlines()[0]})",
+                    "check --ray-address (e.g. ray://HOST:10001, HOST:6379 or auto)",
+                ) from None
             started_here = True
         ctx = ray.data.DataContext.get_current()
-        for key, value in (("enable_progress_bars", False), ("print_on_execution_start", False),
-                           ("enable_auto_log_stats", False)):
+        for key, value in (
+            ("enable_progress_bars", False),
+            ("print_on_execution_start", False),
+            ("enable_auto_log_stats", False),
+        ):
             if hasattr(ctx, key):
                 setattr(ctx, key, value)
         n_workers, n_threads, note = size_pool(_node_cpus(ray), n_units, workers, threads)
@@ -183,8 +230,13 @@ class RayEngine:
         params = inspect.signature(ray.data.from_items).parameters
         blocks = {"override_num_blocks": len(items)} if "override_num_blocks" in params else {"parallelism": len(items)}
         ds = ray.data.from_items(items, **blocks)
-        ds = ds.map_batches(_actor_class(self.config, self.options), batch_size=1, batch_format="numpy", num_cpus=self.threads,
-                            compute=ray.data.ActorPoolStrategy(size=self.workers))
+        ds = ds.map_batches(
+            _actor_class(self.config, self.options),
+            batch_size=1,
+            batch_format="numpy",
+            num_cpus=self.threads,
+            compute=ray.data.ActorPoolStrategy(size=self.workers),
+        )
         returned: set[int] = set()
         self._pending = list(units)
         try:

@@ -18,6 +18,7 @@ Facts (from the official TF implementation, see ``docs/conventions.md``):
   corner-aligned (``grid_sample(align_corners=True)``).
 * Disparity heads: ``scale * sigmoid(x) + 0.01``; depth = 1 / disparity.
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass

@@ -36,6 +36,7 @@ pose
                   by the number in their file name, so a subset of frames is fine.
   Items are 5-frame snippets of consecutive frames (the paper's protocol).
 """
+
 from __future__ import annotations
 
 import re
@@ -45,13 +46,24 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import (list_images, read_calib_K, read_calib_file, read_camera, read_depth_kitti, read_flo,
-                             read_flow_kitti, read_kitti_poses)
+from geonet_infer.io import (
+    list_images,
+    read_calib_file,
+    read_calib_K,
+    read_camera,
+    read_depth_kitti,
+    read_flo,
+    read_flow_kitti,
+    read_kitti_poses,
+)
 from geonet_infer.velodyne import velodyne_to_depth_map
 
 TASKS = ("depth", "flow", "pose")
-LAYOUTS = {"depth": ("synth", "kitti-raw"), "flow": ("synth", "kitti", "middlebury"),
-           "pose": ("synth", "kitti-odometry")}
+LAYOUTS = {
+    "depth": ("synth", "kitti-raw"),
+    "flow": ("synth", "kitti", "middlebury"),
+    "pose": ("synth", "kitti-odometry"),
+}
 SNIPPET = 5  # frames per pose snippet (the paper's ATE protocol)
 FLO_UNKNOWN = 1e9  # Middlebury: |u| or |v| above this = no ground truth
 KITTI_CALIB = ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt")
@@ -72,8 +84,9 @@ def _require_file(path: Path, what: str, hint: str = "") -> Path:
 def _frame_number(path: Path) -> int:
     digits = re.findall(r"\d+", path.stem)
     if not digits:
-        raise GeoNetInputError(path, "frame file name holds no frame number",
-                               "name frames by index (000000.png, 000001.png, ...)")
+        raise GeoNetInputError(
+            path, "frame file name holds no frame number", "name frames by index (000000.png, 000001.png, ...)"
+        )
     return int(digits[-1])
 
 
@@ -85,12 +98,16 @@ def synth_sequences(root: Path, sequences: list[str] | None = None) -> list[Path
     if (root / "image").is_dir():
         return [root]
     if sequences:
-        return [_require_dir(root / s, "sequence folder", f"{root} should hold the listed sequences")
-                for s in sequences]
+        return [
+            _require_dir(root / s, "sequence folder", f"{root} should hold the listed sequences") for s in sequences
+        ]
     found = sorted(p for p in root.iterdir() if p.is_dir() and (p / "image").is_dir())
     if not found:
-        raise GeoNetInputError(root, "no sequence folder (with image/) here",
-                               "pass a folder written by `python -m training.synth` or one of its seq_NNNN folders")
+        raise GeoNetInputError(
+            root,
+            "no sequence folder (with image/) here",
+            "pass a folder written by `python -m training.synth` or one of its seq_NNNN folders",
+        )
     return found
 
 
@@ -110,8 +127,11 @@ def _matched_files(images: list[Path], folder: Path, what: str, suffix: str = ".
         gt = folder / (img.stem + suffix)
         if not gt.is_file():
             have = len(list(folder.glob(f"*{suffix}"))) if folder.is_dir() else 0
-            raise GeoNetInputError(gt, f"{what} missing ({len(images)} frames, {have} {what} files in {folder.name}/)",
-                                   "every scored frame needs its ground truth file of the same name")
+            raise GeoNetInputError(
+                gt,
+                f"{what} missing ({len(images)} frames, {have} {what} files in {folder.name}/)",
+                "every scored frame needs its ground truth file of the same name",
+            )
         out.append(gt)
     return out
 
@@ -133,9 +153,12 @@ class DepthItem:
             return velodyne_to_depth_map(self.calib_dir, self.gt, shape, cam=2, vel_depth=True)
         gt = read_depth_kitti(self.gt)
         if gt.shape != tuple(shape):
-            raise GeoNetInputError(self.gt, f"depth ground truth is {gt.shape[1]}x{gt.shape[0]}, its image "
-                                   f"{self.image.name} is {shape[1]}x{shape[0]}",
-                                   "ground truth and image must have the same size")
+            raise GeoNetInputError(
+                self.gt,
+                f"depth ground truth is {gt.shape[1]}x{gt.shape[0]}, its image "
+                f"{self.image.name} is {shape[1]}x{shape[0]}",
+                "ground truth and image must have the same size",
+            )
         return gt
 
 
@@ -151,8 +174,14 @@ class Dataset:
     notes: list[str] = field(default_factory=list)
 
     def describe(self) -> dict:
-        return {"task": self.task, "layout": self.layout, "root": str(self.root), "items": len(self.items),
-                "description": self.description, "notes": list(self.notes)}
+        return {
+            "task": self.task,
+            "layout": self.layout,
+            "root": str(self.root),
+            "items": len(self.items),
+            "description": self.description,
+            "notes": list(self.notes),
+        }
 
 
 def _find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | None:
@@ -162,8 +191,9 @@ def _find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | No
     return None
 
 
-def depth_dataset(root, layout: str = "auto", sequences: list[str] | None = None, stride: int = 1,
-                  limit: int | None = None) -> Dataset:
+def depth_dataset(
+    root, layout: str = "auto", sequences: list[str] | None = None, stride: int = 1, limit: int | None = None
+) -> Dataset:
     root = Path(root)
     layout = detect_layout("depth", root) if layout == "auto" else layout
     items: list[DepthItem] = []
@@ -175,8 +205,9 @@ def depth_dataset(root, layout: str = "auto", sequences: list[str] | None = None
                 items.append(DepthItem(f"{seq.name}/{img.stem}", img, gt, "png"))
         desc = f"synthetic ({len(seqs)} seq: {', '.join(s.name for s in seqs[:4])}{', ...' if len(seqs) > 4 else ''})"
     elif layout == "kitti-raw":
-        image_dir = _require_dir(root / "image_02" / "data", "KITTI raw image folder",
-                                 "pass a drive folder holding image_02/data")
+        image_dir = _require_dir(
+            root / "image_02" / "data", "KITTI raw image folder", "pass a drive folder holding image_02/data"
+        )
         images = list_images(image_dir)
         png_dir = root / "proj_depth" / "groundtruth" / "image_02"
         velo_dir = root / "velodyne_points" / "data"
@@ -186,17 +217,25 @@ def depth_dataset(root, layout: str = "auto", sequences: list[str] | None = None
         elif velo_dir.is_dir():
             calib_dir = _find_up(root, KITTI_CALIB)
             if calib_dir is None:
-                raise GeoNetInputError(root / KITTI_CALIB[0], "KITTI calibration not found (here or up to two "
-                                       "levels up)", "Velodyne ground truth needs calib_cam_to_cam.txt and "
-                                       "calib_velo_to_cam.txt of the drive's date")
+                raise GeoNetInputError(
+                    root / KITTI_CALIB[0],
+                    "KITTI calibration not found (here or up to two levels up)",
+                    "Velodyne ground truth needs calib_cam_to_cam.txt and calib_velo_to_cam.txt of the drive's date",
+                )
             pairs = [(img, velo_dir / f"{img.stem}.bin") for img in images if (velo_dir / f"{img.stem}.bin").is_file()]
             kind, gt_what = "velodyne", "Velodyne scans projected to camera 2"
         else:
-            raise GeoNetInputError(root, "no depth ground truth: neither proj_depth/groundtruth/image_02/ nor "
-                                   "velodyne_points/data/", "KITTI raw depth needs sparse depth PNGs or Velodyne scans")
+            raise GeoNetInputError(
+                root,
+                "no depth ground truth: neither proj_depth/groundtruth/image_02/ nor velodyne_points/data/",
+                "KITTI raw depth needs sparse depth PNGs or Velodyne scans",
+            )
         if not pairs:
-            raise GeoNetInputError(png_dir if kind == "png" else velo_dir, "no frame of image_02/data has "
-                                   "ground truth here", "ground truth files are named like the frames")
+            raise GeoNetInputError(
+                png_dir if kind == "png" else velo_dir,
+                "no frame of image_02/data has ground truth here",
+                "ground truth files are named like the frames",
+            )
         items = [DepthItem(img.stem, img, gt, kind, calib_dir) for img, gt in pairs[::stride]]
         desc = f"KITTI raw {root.name}, {gt_what}"
     else:
@@ -235,8 +274,14 @@ class FlowItem:
         return read_camera(self.calib).K
 
 
-def flow_dataset(root, layout: str = "auto", sequences: list[str] | None = None, stride: int = 1,
-                 limit: int | None = None, multiview: Path | None = None) -> Dataset:
+def flow_dataset(
+    root,
+    layout: str = "auto",
+    sequences: list[str] | None = None,
+    stride: int = 1,
+    limit: int | None = None,
+    multiview: Path | None = None,
+) -> Dataset:
     root = Path(root)
     layout = detect_layout("flow", root) if layout == "auto" else layout
     items: list[FlowItem] = []
@@ -250,48 +295,96 @@ def flow_dataset(root, layout: str = "auto", sequences: list[str] | None = None,
             noc = _matched_files(targets, seq / "flow_noc", "flow ground truth (noc)")
             occ = _matched_files(targets, seq / "flow_occ", "flow ground truth (occ)")
             for k, t in enumerate(range(1, len(frames) - 1, stride)):
-                items.append(FlowItem(f"{seq.name}/{frames[t].stem}", frames[t - 1:t + 2], noc[k], occ[k],
-                                      calib=calib, snippet="t-1, t, t+1"))
+                items.append(
+                    FlowItem(
+                        f"{seq.name}/{frames[t].stem}",
+                        frames[t - 1 : t + 2],
+                        noc[k],
+                        occ[k],
+                        calib=calib,
+                        snippet="t-1, t, t+1",
+                    )
+                )
         desc = f"synthetic ({len(seqs)} seq: {', '.join(s.name for s in seqs[:4])}{', ...' if len(seqs) > 4 else ''})"
     elif layout == "kitti":
         image_name = "image_2" if (root / "image_2").is_dir() else "colored_0"
-        image_dir = _require_dir(root / image_name, "KITTI flow image folder",
-                                 "expected image_2/ (KITTI 2015) or colored_0/ (KITTI 2012)")
+        image_dir = _require_dir(
+            root / image_name, "KITTI flow image folder", "expected image_2/ (KITTI 2015) or colored_0/ (KITTI 2012)"
+        )
         version = "2015" if image_name == "image_2" else "2012"
         calib_dir = root / ("calib_cam_to_cam" if version == "2015" else "calib")
         firsts = sorted(image_dir.glob("*_10.png"))
         if not firsts:
-            raise GeoNetInputError(image_dir, "no NNNNNN_10.png frame", "KITTI flow pairs are NNNNNN_10.png -> NNNNNN_11.png")
+            raise GeoNetInputError(
+                image_dir, "no NNNNNN_10.png frame", "KITTI flow pairs are NNNNNN_10.png -> NNNNNN_11.png"
+            )
         fallback = 0
         for first in firsts[::stride]:
-            stem = first.name[:-len("_10.png")]
+            stem = first.name[: -len("_10.png")]
             second = _require_file(image_dir / f"{stem}_11.png", "second frame of the pair")
-            prev = next((p for p in (image_dir / f"{stem}_09.png",
-                                     multiview / image_name / f"{stem}_09.png" if multiview else None)
-                         if p is not None and p.is_file()), None)
+            prev = next(
+                (
+                    p
+                    for p in (
+                        image_dir / f"{stem}_09.png",
+                        multiview / image_name / f"{stem}_09.png" if multiview else None,
+                    )
+                    if p is not None and p.is_file()
+                ),
+                None,
+            )
             frames = [prev, first, second] if prev else [first, second]
             fallback += prev is None
             noc = _require_file(root / "flow_noc" / f"{stem}_10.png", "flow ground truth (noc)")
             occ = _require_file(root / "flow_occ" / f"{stem}_10.png", "flow ground truth (occ)")
             calib = calib_dir / f"{stem}.txt"
-            items.append(FlowItem(stem, frames, noc, occ, calib=calib if calib.is_file() else None,
-                                  snippet="_09, _10, _11" if prev else "_10, _10, _11 (no _09: sequence-start padding)"))
+            items.append(
+                FlowItem(
+                    stem,
+                    frames,
+                    noc,
+                    occ,
+                    calib=calib if calib.is_file() else None,
+                    snippet="_09, _10, _11" if prev else "_10, _10, _11 (no _09: sequence-start padding)",
+                )
+            )
         if fallback:
             notes.append(f"{fallback} of {len(items)} pairs have no _09 frame: the cascade saw [_10, _10, _11]")
         desc = f"KITTI {version} layout {root.name}"
     elif layout == "middlebury":
-        gt_root = _require_dir(root / "other-gt-flow", "Middlebury GT folder", "expected other-gt-flow/<Seq>/flow10.flo")
+        gt_root = _require_dir(
+            root / "other-gt-flow", "Middlebury GT folder", "expected other-gt-flow/<Seq>/flow10.flo"
+        )
         for gt in sorted(gt_root.glob("*/flow10.flo"))[::stride]:
             seq = gt.parent.name
-            image_dir = next((d for d in (root / "other-data" / seq, root / "other-data-gray" / seq)
-                              if (d / "frame11.png").is_file() and (d / "frame10.png").is_file()), None)
+            image_dir = next(
+                (
+                    d
+                    for d in (root / "other-data" / seq, root / "other-data-gray" / seq)
+                    if (d / "frame11.png").is_file() and (d / "frame10.png").is_file()
+                ),
+                None,
+            )
             if image_dir is None:
-                raise GeoNetInputError(root / "other-data-gray" / seq / "frame11.png", "frame pair for this GT not found",
-                                       "expected other-data[-gray]/<Seq>/frame10.png and frame11.png")
-            items.append(FlowItem(seq, [image_dir / "frame10.png", image_dir / "frame11.png"], gt, gt, gt_format="flo",
-                                  snippet="10, 10, 11 (pair: sequence-start padding)"))
+                raise GeoNetInputError(
+                    root / "other-data-gray" / seq / "frame11.png",
+                    "frame pair for this GT not found",
+                    "expected other-data[-gray]/<Seq>/frame10.png and frame11.png",
+                )
+            items.append(
+                FlowItem(
+                    seq,
+                    [image_dir / "frame10.png", image_dir / "frame11.png"],
+                    gt,
+                    gt,
+                    gt_format="flo",
+                    snippet="10, 10, 11 (pair: sequence-start padding)",
+                )
+            )
         if not items:
-            raise GeoNetInputError(gt_root, "no <Seq>/flow10.flo ground truth", "Middlebury GT is other-gt-flow/<Seq>/flow10.flo")
+            raise GeoNetInputError(
+                gt_root, "no <Seq>/flow10.flo ground truth", "Middlebury GT is other-gt-flow/<Seq>/flow10.flo"
+            )
         notes.append("Middlebury has no occlusion masks: Noc = All")
         desc = f"Middlebury {', '.join(i.name for i in items)}"
     else:
@@ -318,21 +411,37 @@ class PoseItem:
         return read_camera(self.calib).K
 
 
-def _snippets(frames: list[Path], poses: np.ndarray, poses_path: Path, stride: int, prefix: str,
-              calib: Path | None, calib_key: str | None) -> list[PoseItem]:
+def _snippets(
+    frames: list[Path],
+    poses: np.ndarray,
+    poses_path: Path,
+    stride: int,
+    prefix: str,
+    calib: Path | None,
+    calib_key: str | None,
+) -> list[PoseItem]:
     """5-frame snippets of consecutive frame numbers; poses indexed by frame number."""
     numbers = [_frame_number(f) for f in frames]
     if max(numbers) >= len(poses):
-        raise GeoNetInputError(poses_path, f"{len(poses)} poses, but frame {frames[numbers.index(max(numbers))].name} "
-                               f"needs pose line {max(numbers) + 1}", "poses and frames must come from one sequence")
+        raise GeoNetInputError(
+            poses_path,
+            f"{len(poses)} poses, but frame {frames[numbers.index(max(numbers))].name} "
+            f"needs pose line {max(numbers) + 1}",
+            "poses and frames must come from one sequence",
+        )
     by_number = dict(zip(numbers, frames))
     starts = [n for n in sorted(by_number) if all(n + k in by_number for k in range(SNIPPET))][::stride]
-    return [PoseItem(f"{prefix}{n:06d}", [by_number[n + k] for k in range(SNIPPET)], poses[n:n + SNIPPET],
-                     calib, calib_key) for n in starts]
+    return [
+        PoseItem(
+            f"{prefix}{n:06d}", [by_number[n + k] for k in range(SNIPPET)], poses[n : n + SNIPPET], calib, calib_key
+        )
+        for n in starts
+    ]
 
 
-def pose_dataset(root, layout: str = "auto", sequences: list[str] | None = None, stride: int = 1,
-                 limit: int | None = None) -> Dataset:
+def pose_dataset(
+    root, layout: str = "auto", sequences: list[str] | None = None, stride: int = 1, limit: int | None = None
+) -> Dataset:
     root = Path(root)
     layout = detect_layout("pose", root) if layout == "auto" else layout
     items: list[PoseItem] = []
@@ -343,31 +452,44 @@ def pose_dataset(root, layout: str = "auto", sequences: list[str] | None = None,
             poses_path = seq / "poses.txt"
             poses = read_kitti_poses(poses_path)
             if len(poses) != len(frames):
-                raise GeoNetInputError(poses_path, f"{len(poses)} poses for {len(frames)} frames in {seq.name}/image",
-                                       "one camera-to-world pose per frame")
-            items += _snippets(frames, poses, poses_path, stride, f"{seq.name}/",
-                               _require_file(seq / "calib.txt", "calibration"), None)
+                raise GeoNetInputError(
+                    poses_path,
+                    f"{len(poses)} poses for {len(frames)} frames in {seq.name}/image",
+                    "one camera-to-world pose per frame",
+                )
+            items += _snippets(
+                frames, poses, poses_path, stride, f"{seq.name}/", _require_file(seq / "calib.txt", "calibration"), None
+            )
         desc = f"synthetic ({len(seqs)} seq: {', '.join(s.name for s in seqs[:4])}{', ...' if len(seqs) > 4 else ''})"
     elif layout == "kitti-odometry":
         image_name = next((n for n in ("image_2", "image_0") if (root / n).is_dir()), None)
         if image_name is None:
-            raise GeoNetInputError(root / "image_2", "KITTI odometry image folder not found",
-                                   "pass a sequences/XX folder holding image_2/ or image_0/")
+            raise GeoNetInputError(
+                root / "image_2",
+                "KITTI odometry image folder not found",
+                "pass a sequences/XX folder holding image_2/ or image_0/",
+            )
         frames = list_images(root / image_name)
         poses_path = root / "poses.txt"
         if not poses_path.is_file():
             poses_path = root.parent.parent / "poses" / f"{root.name}.txt"
         if not poses_path.is_file():
-            raise GeoNetInputError(root / "poses.txt", f"ground-truth poses not found (nor {poses_path})",
-                                   "put poses.txt in the sequence folder or keep the dev kit layout poses/XX.txt")
+            raise GeoNetInputError(
+                root / "poses.txt",
+                f"ground-truth poses not found (nor {poses_path})",
+                "put poses.txt in the sequence folder or keep the dev kit layout poses/XX.txt",
+            )
         calib = _require_file(root / "calib.txt", "calibration", "KITTI odometry sequences hold calib.txt")
         key = "P2" if image_name == "image_2" else "P0"  # each camera's own projection matrix
         if key not in read_calib_file(calib):
             raise GeoNetInputError(calib, f"missing calibration key '{key}'", f"{image_name}/ frames need {key}")
         items = _snippets(frames, read_kitti_poses(poses_path), poses_path, stride, "", calib, key)
         if not items:
-            raise GeoNetInputError(root / image_name, f"no {SNIPPET} consecutive frames", "the ATE protocol scores 5-frame snippets")
-        desc = f"KITTI odometry seq {root.name} ({image_name}, frames {_frame_number(frames[0])}–{_frame_number(frames[-1])})"
+            raise GeoNetInputError(
+                root / image_name, f"no {SNIPPET} consecutive frames", "the ATE protocol scores 5-frame snippets"
+            )
+        first, last = _frame_number(frames[0]), _frame_number(frames[-1])
+        desc = f"KITTI odometry seq {root.name} ({image_name}, frames {first}–{last})"
     else:
         raise _bad_layout("pose", layout)
     return Dataset("pose", layout, root, _limit(items, limit, root), desc)
@@ -381,7 +503,9 @@ def _limit(items: list, limit: int | None, root: Path) -> list:
 
 
 def _bad_layout(task: str, layout: str) -> GeoNetInputError:
-    return GeoNetInputError(None, f"unknown {task} layout {layout!r}", f"choose one of {', '.join(LAYOUTS[task])} or auto")
+    return GeoNetInputError(
+        None, f"unknown {task} layout {layout!r}", f"choose one of {', '.join(LAYOUTS[task])} or auto"
+    )
 
 
 def detect_layout(task: str, root: Path) -> str:
@@ -391,16 +515,27 @@ def detect_layout(task: str, root: Path) -> str:
         raise GeoNetInputError(root, "data folder not found", "pass --data DIR")
     if task == "depth" and (root / "image_02" / "data").is_dir():
         return "kitti-raw"
-    if task == "flow" and ((root / "image_2").is_dir() or (root / "colored_0").is_dir()) and (root / "flow_occ").is_dir():
+    if (
+        task == "flow"
+        and ((root / "image_2").is_dir() or (root / "colored_0").is_dir())
+        and (root / "flow_occ").is_dir()
+    ):
         return "kitti"
     if task == "flow" and (root / "other-gt-flow").is_dir():
         return "middlebury"
-    if task == "pose" and (root / "calib.txt").is_file() and ((root / "image_2").is_dir() or (root / "image_0").is_dir()):
+    if (
+        task == "pose"
+        and (root / "calib.txt").is_file()
+        and ((root / "image_2").is_dir() or (root / "image_0").is_dir())
+    ):
         return "kitti-odometry"
     if (root / "image").is_dir() or any(p.is_dir() and (p / "image").is_dir() for p in root.iterdir() if root.is_dir()):
         return "synth"
-    raise GeoNetInputError(root, f"cannot tell the {task} layout of this folder",
-                           f"pass --layout ({', '.join(LAYOUTS[task])}); see `geonet-infer eval --help`")
+    raise GeoNetInputError(
+        root,
+        f"cannot tell the {task} layout of this folder",
+        f"pass --layout ({', '.join(LAYOUTS[task])}); see `geonet-infer eval --help`",
+    )
 
 
 def load_dataset(task: str, root, layout: str = "auto", **kwargs) -> Dataset:

@@ -10,6 +10,7 @@
 * ``auto``: times both engines on each graph at load and keeps the faster one per
   graph (:func:`pick_fastest`); onnxruntime alone when OpenVINO is not installed.
 """
+
 from __future__ import annotations
 
 import time
@@ -54,11 +55,16 @@ class OrtEngine:
 
     def describe(self) -> dict:
         so = self.session.get_session_options()
-        out = {"engine": self.backend, "providers": self.session.get_providers(),
-               "intra_op_num_threads": so.intra_op_num_threads, "inter_op_num_threads": so.inter_op_num_threads,
-               "execution_mode": str(so.execution_mode),
-               "graph_optimization_level": str(so.graph_optimization_level),
-               "enable_cpu_mem_arena": so.enable_cpu_mem_arena, "enable_mem_pattern": so.enable_mem_pattern}
+        out = {
+            "engine": self.backend,
+            "providers": self.session.get_providers(),
+            "intra_op_num_threads": so.intra_op_num_threads,
+            "inter_op_num_threads": so.inter_op_num_threads,
+            "execution_mode": str(so.execution_mode),
+            "graph_optimization_level": str(so.graph_optimization_level),
+            "enable_cpu_mem_arena": so.enable_cpu_mem_arena,
+            "enable_mem_pattern": so.enable_mem_pattern,
+        }
         for key in ("session.intra_op.allow_spinning", "session.inter_op.allow_spinning"):
             try:
                 out[key] = so.get_session_config_entry(key)
@@ -71,8 +77,11 @@ def _import_openvino():
     try:
         import openvino
     except ImportError as exc:
-        raise GeoNetInputError(None, "backend 'openvino' needs the OpenVINO runtime, which is not installed",
-                               "pip install 'geonet-infer[openvino]', or use backend='onnxruntime'") from exc
+        raise GeoNetInputError(
+            None,
+            "backend 'openvino' needs the OpenVINO runtime, which is not installed",
+            "pip install 'geonet-infer[openvino]', or use backend='onnxruntime'",
+        ) from exc
     return openvino
 
 
@@ -94,8 +103,11 @@ class OpenVinoEngine:
         try:
             self.model = self.core.read_model(str(self.path))
         except Exception as exc:  # OpenVINO raises RuntimeError subclasses for unreadable graphs
-            raise GeoNetInputError(self.path, f"OpenVINO cannot read this model ({str(exc).splitlines()[0][:300]})",
-                                   "re-export it, or use backend='onnxruntime'") from exc
+            raise GeoNetInputError(
+                self.path,
+                f"OpenVINO cannot read this model ({str(exc).splitlines()[0][:300]})",
+                "re-export it, or use backend='onnxruntime'",
+            ) from exc
         self.input_names = [p.get_any_name() for p in self.model.inputs]
         self.output_names = [p.get_any_name() for p in self.model.outputs]
         self.config = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32", "NUM_STREAMS": "1"}
@@ -108,8 +120,11 @@ class OpenVinoEngine:
             model = self.model.clone()
             model.reshape(dict(zip(self.input_names, [list(s) for s in shapes])))
             compiled = self.core.compile_model(model, "CPU", self.config)
-            self._compiled[shapes] = (compiled, compiled.create_infer_request(),
-                                      [compiled.output(name) for name in self.output_names])
+            self._compiled[shapes] = (
+                compiled,
+                compiled.create_infer_request(),
+                [compiled.output(name) for name in self.output_names],
+            )
         return self._compiled[shapes]
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -120,16 +135,19 @@ class OpenVinoEngine:
         return {name: np.array(result[port]) for name, port in zip(self.output_names, outputs)}
 
     def input_shapes(self) -> dict[str, list]:
-        return {p.get_any_name(): [d.get_length() if d.is_static else "B" for d in p.get_partial_shape()]
-                for p in self.model.inputs}
+        return {
+            p.get_any_name(): [d.get_length() if d.is_static else "B" for d in p.get_partial_shape()]
+            for p in self.model.inputs
+        }
 
     def describe(self) -> dict:
         out = {"engine": self.backend, "config": dict(self.config)}
         if self._compiled:
             compiled = next(iter(self._compiled.values()))[0]
-            out["properties"] = {k: str(compiled.get_property(k)) for k in
-                                 ("INFERENCE_PRECISION_HINT", "INFERENCE_NUM_THREADS", "NUM_STREAMS",
-                                  "PERFORMANCE_HINT")}
+            out["properties"] = {
+                k: str(compiled.get_property(k))
+                for k in ("INFERENCE_PRECISION_HINT", "INFERENCE_NUM_THREADS", "NUM_STREAMS", "PERFORMANCE_HINT")
+            }
         return out
 
 
@@ -145,8 +163,9 @@ def timing_feeds(engine, seed: int = 0) -> dict[str, np.ndarray]:
     """Batch-1 inputs of realistic range for timing a graph: images ~N(0, 0.5), depth 10 m, zero pose,
     a pinhole K with fx = fy = W centred on the image."""
     rng = np.random.default_rng(seed)
-    shapes = {name: [d if isinstance(d, int) and d > 0 else 1 for d in shape]
-              for name, shape in engine.input_shapes().items()}
+    shapes = {
+        name: [d if isinstance(d, int) and d > 0 else 1 for d in shape] for name, shape in engine.input_shapes().items()
+    }
     h, w = next(s[-2:] for s in shapes.values() if len(s) == 4)
     feeds = {}
     for name, shape in shapes.items():

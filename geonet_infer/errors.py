@@ -1,4 +1,5 @@
 """Errors a user can act on: each names the offending file and what to do."""
+
 from __future__ import annotations
 
 from pathlib import Path

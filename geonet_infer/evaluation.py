@@ -16,12 +16,13 @@ every mean over it is NaN too (never dropped), and ``errors`` names the item.
 Broken data (missing file, size mismatch, no valid ground-truth pixel) raises
 :class:`~geonet_infer.errors.GeoNetInputError` naming the file.
 """
+
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -34,11 +35,21 @@ from geonet_infer.io.atomic import atomic_write
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
 # Paper column order (Tables 1-3), then our extra columns. (header, key, format)
 COLUMNS = {
-    "depth": [("AbsRel", "abs_rel", "{:.3f}"), ("SqRel", "sq_rel", "{:.3f}"), ("RMSE", "rmse", "{:.3f}"),
-              ("RMSElog", "rmse_log", "{:.3f}"), ("δ<1.25", "a1", "{:.3f}"), ("δ<1.25²", "a2", "{:.3f}"),
-              ("δ<1.25³", "a3", "{:.3f}")],
-    "flow": [("EPE Noc", "epe_noc", "{:.2f}"), ("EPE All", "epe_all", "{:.2f}"), ("Fl-noc", "fl_noc", "{:.1%}"),
-             ("Fl-all", "fl_all", "{:.1%}")],
+    "depth": [
+        ("AbsRel", "abs_rel", "{:.3f}"),
+        ("SqRel", "sq_rel", "{:.3f}"),
+        ("RMSE", "rmse", "{:.3f}"),
+        ("RMSElog", "rmse_log", "{:.3f}"),
+        ("δ<1.25", "a1", "{:.3f}"),
+        ("δ<1.25²", "a2", "{:.3f}"),
+        ("δ<1.25³", "a3", "{:.3f}"),
+    ],
+    "flow": [
+        ("EPE Noc", "epe_noc", "{:.2f}"),
+        ("EPE All", "epe_all", "{:.2f}"),
+        ("Fl-noc", "fl_noc", "{:.1%}"),
+        ("Fl-all", "fl_all", "{:.1%}"),
+    ],
     "pose": [("ATE (paper, ÷N)", "ate_snippet", "{:.4f}"), ("ATE RMSE", "ate_rmse_true", "{:.4f}")],
 }
 COUNT_LABEL = {"depth": "frames", "flow": "pairs", "pose": "snippets"}
@@ -68,9 +79,11 @@ def _intrinsics(item, fn, override: np.ndarray | None) -> np.ndarray | None:
         return np.asarray(override, dtype=np.float64)
     K = item.intrinsics()
     if K is None:
-        raise GeoNetInputError(item.frames[-1], "no camera intrinsics for this pair",
-                               "the model's rigid flow needs K: add the calibration file of this layout or pass "
-                               "--intrinsics FX,FY,CX,CY")
+        raise GeoNetInputError(
+            item.frames[-1],
+            "no camera intrinsics for this pair",
+            "the model's rigid flow needs K: add the calibration file of this layout or pass --intrinsics FX,FY,CX,CY",
+        )
     return K
 
 
@@ -78,26 +91,45 @@ def _read_frames(paths: list[Path]) -> list[np.ndarray]:
     frames = [read_image(p) for p in paths]
     for p, f in zip(paths, frames):
         if f.shape != frames[-1].shape:
-            raise GeoNetInputError(p, f"frame is {f.shape[1]}x{f.shape[0]}, {paths[-1].name} is "
-                                   f"{frames[-1].shape[1]}x{frames[-1].shape[0]}", "frames of one item must share a size")
+            raise GeoNetInputError(
+                p,
+                f"frame is {f.shape[1]}x{f.shape[0]}, {paths[-1].name} is {frames[-1].shape[1]}x{frames[-1].shape[0]}",
+                "frames of one item must share a size",
+            )
     return frames
 
 
-def _result(task: str, method: str, dataset: Dataset, settings: dict, rows: list[dict], errors: list[dict],
-            std: bool = False) -> dict:
+def _result(
+    task: str, method: str, dataset: Dataset, settings: dict, rows: list[dict], errors: list[dict], std: bool = False
+) -> dict:
     keys = [k for _, k, _ in COLUMNS[task]]
     values = [{k: r[k] for k in keys} for r in rows]
-    out = {"task": task, "method": method, "data": dataset.describe(), "settings": settings,
-           "metrics": metrics.aggregate(values), "items": rows, "errors": errors}
+    out = {
+        "task": task,
+        "method": method,
+        "data": dataset.describe(),
+        "settings": settings,
+        "metrics": metrics.aggregate(values),
+        "items": rows,
+        "errors": errors,
+    }
     if std:
         out["std"] = metrics.aggregate_std(values)
     return out
 
 
 # ----------------------------------------------------------------------------- depth
-def evaluate_depth(fn: Callable, dataset: Dataset, *, method: str = "model", max_depth: float = MAX_DEPTH,
-                   min_depth: float = MIN_DEPTH, crop: str | None = "auto", median_scaling: bool = True,
-                   observe: Callable | None = None) -> dict:
+def evaluate_depth(
+    fn: Callable,
+    dataset: Dataset,
+    *,
+    method: str = "model",
+    max_depth: float = MAX_DEPTH,
+    min_depth: float = MIN_DEPTH,
+    crop: str | None = "auto",
+    median_scaling: bool = True,
+    observe: Callable | None = None,
+) -> dict:
     """Eigen depth metrics of ``fn`` on every item, averaged per image.
 
     crop: "garg", "eigen", None, or "auto" (Garg on KITTI, none on synthetic frames, which have
@@ -113,12 +145,18 @@ def evaluate_depth(fn: Callable, dataset: Dataset, *, method: str = "model", max
         gt = item.load_gt(rgb.shape[:2])
         mask = (gt > min_depth) & (gt < max_depth) & metrics.crop_mask(gt.shape, crop)
         if not mask.any():
-            raise GeoNetInputError(item.gt, f"no ground-truth pixel in ({min_depth:g}, {max_depth:g}) m inside the "
-                                   f"{crop or 'full-image'} crop", "check the ground truth of this frame")
+            raise GeoNetInputError(
+                item.gt,
+                f"no ground-truth pixel in ({min_depth:g}, {max_depth:g}) m inside the {crop or 'full-image'} crop",
+                "check the ground truth of this frame",
+            )
         pred, info = _call(fn, rgb)
         if pred.ndim != 2:
-            raise GeoNetInputError(item.image, f"predicted depth has shape {pred.shape}, expected (H, W)",
-                                   "the depth method must return one 2-D map per image")
+            raise GeoNetInputError(
+                item.image,
+                f"predicted depth has shape {pred.shape}, expected (H, W)",
+                "the depth method must return one 2-D map per image",
+            )
         bad = _nonfinite(pred)
         row = {"name": item.name}
         if bad:
@@ -134,14 +172,25 @@ def evaluate_depth(fn: Callable, dataset: Dataset, *, method: str = "model", max
         rows.append(row | scores | info)
         if observe is not None:
             observe(item, rgb, gt, pred, rows[-1])
-    settings = {"min_depth": min_depth, "max_depth": max_depth, "crop": crop, "median_scaling": median_scaling,
-                "resize": "prediction depth resized to GT size, cv2 bilinear"}
+    settings = {
+        "min_depth": min_depth,
+        "max_depth": max_depth,
+        "crop": crop,
+        "median_scaling": median_scaling,
+        "resize": "prediction depth resized to GT size, cv2 bilinear",
+    }
     return _result("depth", method, dataset, settings, rows, errors)
 
 
 # ----------------------------------------------------------------------------- flow
-def evaluate_flow(fn: Callable, dataset: Dataset, *, method: str = "model", intrinsics: np.ndarray | None = None,
-                  observe: Callable | None = None) -> dict:
+def evaluate_flow(
+    fn: Callable,
+    dataset: Dataset,
+    *,
+    method: str = "model",
+    intrinsics: np.ndarray | None = None,
+    observe: Callable | None = None,
+) -> dict:
     """EPE on non-occluded (Noc) and all (All = KITTI "occ") GT pixels, and the Fl outlier rates.
 
     ``intrinsics``: K at the frames' size for items without a calibration file (Middlebury).
@@ -156,12 +205,18 @@ def evaluate_flow(fn: Callable, dataset: Dataset, *, method: str = "model", intr
         height, width = frames[-1].shape[:2]
         for path, gt in ((item.gt_noc, gt_noc), (item.gt_occ, gt_all)):
             if gt.shape[:2] != (height, width):
-                raise GeoNetInputError(path, f"flow ground truth is {gt.shape[1]}x{gt.shape[0]}, the frames are "
-                                       f"{width}x{height}", "ground truth and frames must have the same size")
+                raise GeoNetInputError(
+                    path,
+                    f"flow ground truth is {gt.shape[1]}x{gt.shape[0]}, the frames are {width}x{height}",
+                    "ground truth and frames must have the same size",
+                )
         pred, info = _call(fn, frames, _intrinsics(item, fn, intrinsics))
         if pred.ndim != 3 or pred.shape[2] != 2:
-            raise GeoNetInputError(item.frames[-2], f"predicted flow has shape {pred.shape}, expected (H, W, 2)",
-                                   "the flow method must return (u, v) per pixel")
+            raise GeoNetInputError(
+                item.frames[-2],
+                f"predicted flow has shape {pred.shape}, expected (H, W, 2)",
+                "the flow method must return (u, v) per pixel",
+            )
         row = {"name": item.name, "snippet": item.snippet}
         bad = _nonfinite(pred)
         if bad:
@@ -171,7 +226,10 @@ def evaluate_flow(fn: Callable, dataset: Dataset, *, method: str = "model", intr
         if pred.shape[:2] != (height, width):
             pred = metrics.resize_flow_nearest(pred, (height, width))
         scored = {}
-        for which, gt, valid, path in (("noc", gt_noc, valid_noc, item.gt_noc), ("all", gt_all, valid_all, item.gt_occ)):
+        for which, gt, valid, path in (
+            ("noc", gt_noc, valid_noc, item.gt_noc),
+            ("all", gt_all, valid_all, item.gt_occ),
+        ):
             if not valid.any():
                 raise GeoNetInputError(path, "flow ground truth has no valid pixel", "check the GT's valid channel")
             r = metrics.flow_epe(gt, valid, pred)
@@ -179,8 +237,10 @@ def evaluate_flow(fn: Callable, dataset: Dataset, *, method: str = "model", intr
         rows.append(row | scored | info)
         if observe is not None:
             observe(item, frames, gt_all, valid_all, pred, rows[-1])
-    settings = {"resize": "nearest to GT size, u *= W/w, v *= H/h (official test)",
-                "fl": f"EPE > {metrics.FLOW_OUTLIER_PX:g} px and > {metrics.FLOW_OUTLIER_REL:.0%} of |gt|"}
+    settings = {
+        "resize": "nearest to GT size, u *= W/w, v *= H/h (official test)",
+        "fl": f"EPE > {metrics.FLOW_OUTLIER_PX:g} px and > {metrics.FLOW_OUTLIER_REL:.0%} of |gt|",
+    }
     return _result("flow", method, dataset, settings, rows, errors)
 
 
@@ -196,8 +256,10 @@ def ate_rows(gt_xyz: np.ndarray, pred_xyz: np.ndarray) -> dict:
     exactly 0 (``inv(C) @ C`` leaves ~1e-16, to which the alignment would fit a huge scale)."""
     gt_xyz = gt_xyz - gt_xyz[0]
     pred_xyz = pred_xyz - pred_xyz[0]
-    return {"ate_snippet": metrics.ate_snippet(gt_xyz, pred_xyz),
-            "ate_rmse_true": metrics.ate_rmse_true(gt_xyz, pred_xyz)}
+    return {
+        "ate_snippet": metrics.ate_snippet(gt_xyz, pred_xyz),
+        "ate_rmse_true": metrics.ate_rmse_true(gt_xyz, pred_xyz),
+    }
 
 
 def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", observe: Callable | None = None) -> dict:
@@ -212,8 +274,11 @@ def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", obse
         K = item.intrinsics() if getattr(fn, "needs_intrinsics", False) else None
         pred, info = _call(fn, frames, K)
         if pred.shape != (SNIPPET, 4, 4):
-            raise GeoNetInputError(item.frames[0], f"predicted snippet poses have shape {pred.shape}, "
-                                   f"expected ({SNIPPET}, 4, 4)", "one pose per snippet frame")
+            raise GeoNetInputError(
+                item.frames[0],
+                f"predicted snippet poses have shape {pred.shape}, expected ({SNIPPET}, 4, 4)",
+                "one pose per snippet frame",
+            )
         row = {"name": item.name}
         bad = _nonfinite(pred)
         if bad:
@@ -224,9 +289,12 @@ def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", obse
         rows.append(row | ate_rows(gt[:, :3, 3], pred[:, :3, 3]) | info)
         if observe is not None:
             observe(item, gt, pred, rows[-1])
-    settings = {"snippet": SNIPPET, "alignment": "first positions matched, scale s = Σ(gt·pred)/Σ(pred²), no rotation",
-                "ate_snippet": "sqrt(Σ|e|²)/N: the paper's value (divides by N, not sqrt(N): NOT an RMSE)",
-                "ate_rmse_true": "sqrt(Σ|e|²/N) after the same alignment"}
+    settings = {
+        "snippet": SNIPPET,
+        "alignment": "first positions matched, scale s = Σ(gt·pred)/Σ(pred²), no rotation",
+        "ate_snippet": "sqrt(Σ|e|²)/N: the paper's value (divides by N, not sqrt(N): NOT an RMSE)",
+        "ate_rmse_true": "sqrt(Σ|e|²/N) after the same alignment",
+    }
     return _result("pose", method, dataset, settings, rows, errors, std=True)
 
 
@@ -241,8 +309,11 @@ def _needs_K(fn):
 
 def refuse_random_init(predictor) -> None:
     if predictor.manifest.random_init:
-        raise GeoNetInputError(predictor.model_dir, "this model directory holds random-init (timing-only) graphs",
-                               "accuracy needs graphs exported from a trained --checkpoint")
+        raise GeoNetInputError(
+            predictor.model_dir,
+            "this model directory holds random-init (timing-only) graphs",
+            "accuracy needs graphs exported from a trained --checkpoint",
+        )
 
 
 def model_depth_fn(predictor) -> Callable:
@@ -260,6 +331,7 @@ def model_flow_fn(predictor) -> Callable:
         if len(frames) == predictor.seq_length:
             return predictor.flow(list(frames), K).flow
         return predictor.flow(list(frames[-2:]), K).flow
+
     return _needs_K(predict)
 
 
@@ -273,8 +345,11 @@ def snippet_from_pose_calls(pose_fn: Callable, frames: list, seq_length: int) ->
     if seq_length == SNIPPET:
         return metrics.snippet_poses_to_global(pose_fn(frames), target_index=SNIPPET // 2)
     if seq_length != 3:
-        raise GeoNetInputError(None, f"pose snippets need a PoseNet of 3 or 5 frames, this one takes {seq_length}",
-                               "export the model with --seq-length 3 or 5")
+        raise GeoNetInputError(
+            None,
+            f"pose snippets need a PoseNet of 3 or 5 frames, this one takes {seq_length}",
+            "export the model with --seq-length 3 or 5",
+        )
     (T10, T12), (T32, T34) = pose_fn(frames[0:3]), pose_fn(frames[2:5])
     G1 = np.asarray(T10, np.float64)
     G2 = G1 @ metrics.rigid_inverse(T12)
@@ -285,8 +360,9 @@ def snippet_from_pose_calls(pose_fn: Callable, frames: list, seq_length: int) ->
 def model_pose_fn(predictor) -> Callable:
     """Snippet poses from the runtime's PoseNet (:func:`snippet_from_pose_calls`)."""
     refuse_random_init(predictor)
-    return lambda frames, K: snippet_from_pose_calls(lambda f: predictor.pose(list(f)).matrices, frames,
-                                                     predictor.seq_length)
+    return lambda frames, K: snippet_from_pose_calls(
+        lambda f: predictor.pose(list(f)).matrices, frames, predictor.seq_length
+    )
 
 
 def model_fn(task: str, predictor) -> Callable:
@@ -300,10 +376,12 @@ def baseline_fns(task: str, method: str) -> dict[str, Callable]:
 
     table = {
         "depth": {"constant": {"constant depth": b.constant_depth}},
-        "flow": {"zero": {"zero flow": b.zero_flow},
-                 "dis": {"DIS medium": b.dis_flow("medium"), "DIS ultrafast": b.dis_flow("ultrafast")},
-                 "dis-medium": {"DIS medium": b.dis_flow("medium")},
-                 "dis-ultrafast": {"DIS ultrafast": b.dis_flow("ultrafast")}},
+        "flow": {
+            "zero": {"zero flow": b.zero_flow},
+            "dis": {"DIS medium": b.dis_flow("medium"), "DIS ultrafast": b.dis_flow("ultrafast")},
+            "dis-medium": {"DIS medium": b.dis_flow("medium")},
+            "dis-ultrafast": {"DIS ultrafast": b.dis_flow("ultrafast")},
+        },
         "pose": {"identity": {"identity pose": b.identity_pose}, "orb-vo": {"ORB-VO": _needs_K(b.orb_vo)}},
     }[task]
     if method not in table:
@@ -311,8 +389,11 @@ def baseline_fns(task: str, method: str) -> dict[str, Callable]:
     return table[method]
 
 
-BASELINES = {"depth": ("constant",), "flow": ("dis", "dis-medium", "dis-ultrafast", "zero"),
-             "pose": ("orb-vo", "identity")}
+BASELINES = {
+    "depth": ("constant",),
+    "flow": ("dis", "dis-medium", "dis-ultrafast", "zero"),
+    "pose": ("orb-vo", "identity"),
+}
 
 
 # ----------------------------------------------------------------------------- output

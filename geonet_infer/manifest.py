@@ -13,6 +13,7 @@ Layout of a model directory::
 ``rigidflow`` entry points at the fp32 ``rigidflow.onnx`` (the geometric op stays
 fp32), so a consumer picks a precision and gets a complete set.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -57,7 +58,7 @@ class TensorSpec:
     dtype: str = "float32"
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TensorSpec":
+    def from_dict(cls, d: dict) -> TensorSpec:
         return cls(name=str(d["name"]), shape=tuple(d["shape"]), dtype=str(d["dtype"]))
 
 
@@ -74,12 +75,16 @@ class GraphEntry:
     exporter: str = ""  # how the file was made (torch.onnx dynamo, ORT quantize_static, ...)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "GraphEntry":
-        return cls(file=str(d["file"]), sha256=str(d["sha256"]), opset=int(d["opset"]),
-                   precision=str(d["precision"]),
-                   inputs=tuple(TensorSpec.from_dict(t) for t in d["inputs"]),
-                   outputs=tuple(TensorSpec.from_dict(t) for t in d["outputs"]),
-                   exporter=str(d.get("exporter", "")))
+    def from_dict(cls, d: dict) -> GraphEntry:
+        return cls(
+            file=str(d["file"]),
+            sha256=str(d["sha256"]),
+            opset=int(d["opset"]),
+            precision=str(d["precision"]),
+            inputs=tuple(TensorSpec.from_dict(t) for t in d["inputs"]),
+            outputs=tuple(TensorSpec.from_dict(t) for t in d["outputs"]),
+            exporter=str(d.get("exporter", "")),
+        )
 
     @property
     def input_names(self) -> tuple[str, ...]:
@@ -108,7 +113,7 @@ class Provenance:
     versions: dict = field(default_factory=dict)  # torch, onnx, onnxruntime, onnxscript
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Provenance":
+    def from_dict(cls, d: dict) -> Provenance:
         return _from_known_fields(cls, d)
 
 
@@ -130,7 +135,7 @@ class Quantization:
     accuracy_delta_reason: str | None = None  # why accuracy_delta is null (or a note)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Quantization":
+    def from_dict(cls, d: dict) -> Quantization:
         d = dict(d)
         d["fp32_graphs"] = tuple(d.get("fp32_graphs", ()))
         return _from_known_fields(cls, d)
@@ -167,8 +172,11 @@ class Manifest:
         graphs = self._set(precision)
         if name not in graphs:
             where = self.root / MANIFEST_NAME if self.root else None
-            hint = ("resflownet needs a stage 'flow' checkpoint at export time" if name == "resflownet"
-                    else f"graphs present: {', '.join(graphs)}")
+            hint = (
+                "resflownet needs a stage 'flow' checkpoint at export time"
+                if name == "resflownet"
+                else f"graphs present: {', '.join(graphs)}"
+            )
             raise GeoNetInputError(where, f"no '{name}' graph in the {precision} set", hint)
         return graphs[name]
 
@@ -181,8 +189,11 @@ class Manifest:
     def _set(self, precision: str) -> dict:
         if precision not in self.graphs:
             where = self.root / MANIFEST_NAME if self.root else None
-            raise GeoNetInputError(where, f"no {precision} graphs in this model directory",
-                                   f"precisions present: {', '.join(self.graphs)}; export with --precision fp32,int8")
+            raise GeoNetInputError(
+                where,
+                f"no {precision} graphs in this model directory",
+                f"precisions present: {', '.join(self.graphs)}; export with --precision fp32,int8",
+            )
         return self.graphs[precision]
 
     # -------------------------------------------------------------- (de)serialise
@@ -193,17 +204,24 @@ class Manifest:
         return {"format": d.pop("format"), "schema_version": d.pop("schema_version"), **d}
 
     @classmethod
-    def from_dict(cls, d: dict, root: Path | None = None) -> "Manifest":
+    def from_dict(cls, d: dict, root: Path | None = None) -> Manifest:
         quant = d.get("quantization")
         return cls(
-            schema_version=int(d["schema_version"]), height=int(d["height"]), width=int(d["width"]),
-            seq_length=int(d["seq_length"]), arch=str(d["arch"]), random_init=bool(d["random_init"]),
+            schema_version=int(d["schema_version"]),
+            height=int(d["height"]),
+            width=int(d["width"]),
+            seq_length=int(d["seq_length"]),
+            arch=str(d["arch"]),
+            random_init=bool(d["random_init"]),
             precisions=tuple(d["precisions"]),
             graphs={p: {n: GraphEntry.from_dict(g) for n, g in gs.items()} for p, gs in d["graphs"].items()},
-            conventions=dict(d["conventions"]), provenance=Provenance.from_dict(d["provenance"]),
+            conventions=dict(d["conventions"]),
+            provenance=Provenance.from_dict(d["provenance"]),
             metrics=dict(d.get("metrics") or {}),
             quantization=Quantization.from_dict(quant) if quant else None,
-            format=str(d.get("format", "")), root=root)
+            format=str(d.get("format", "")),
+            root=root,
+        )
 
 
 def write_manifest(manifest: Manifest, directory: str | Path) -> Path:
@@ -241,11 +259,17 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
     if not isinstance(raw, dict):
         raise GeoNetInputError(path, "the manifest is not a JSON object", REEXPORT_HINT)
     if raw.get("format") != MANIFEST_FORMAT:
-        raise GeoNetInputError(path, f"not a GeoNet model manifest (format {raw.get('format')!r}, "
-                               f"expected {MANIFEST_FORMAT!r})", REEXPORT_HINT)
+        raise GeoNetInputError(
+            path,
+            f"not a GeoNet model manifest (format {raw.get('format')!r}, expected {MANIFEST_FORMAT!r})",
+            REEXPORT_HINT,
+        )
     if raw.get("schema_version") != SCHEMA_VERSION:
-        raise GeoNetInputError(path, f"manifest schema_version {raw.get('schema_version')!r}, this package "
-                               f"reads {SCHEMA_VERSION}", REEXPORT_HINT + " with this version of the package")
+        raise GeoNetInputError(
+            path,
+            f"manifest schema_version {raw.get('schema_version')!r}, this package reads {SCHEMA_VERSION}",
+            REEXPORT_HINT + " with this version of the package",
+        )
     conv = raw.get("conventions")
     if not isinstance(conv, dict) or not conv:
         raise GeoNetInputError(path, "the manifest has no conventions", REEXPORT_HINT)
@@ -264,8 +288,11 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
             raise GeoNetInputError(path, f"unknown precision {precision!r}", f"expected one of {PRECISIONS}")
         for name, entry in graphs.items():
             if not _safe_relative(entry.file):
-                raise GeoNetInputError(path, f"graph {precision}/{name} has an unsafe file path {entry.file!r}",
-                                       "paths must be relative and stay inside the model directory")
+                raise GeoNetInputError(
+                    path,
+                    f"graph {precision}/{name} has an unsafe file path {entry.file!r}",
+                    "paths must be relative and stay inside the model directory",
+                )
             if verify_files:
                 _verify_file(directory / entry.file, entry.sha256)
     return manifest
@@ -276,5 +303,8 @@ def _verify_file(file: Path, expected: str) -> None:
         raise GeoNetInputError(file, "graph file listed in the manifest is missing", REEXPORT_HINT)
     actual = file_sha256(file)
     if actual != expected:
-        raise GeoNetInputError(file, f"sha256 mismatch: manifest says {expected[:16]}..., file has {actual[:16]}...",
-                               "the file is corrupt or was changed after export; " + REEXPORT_HINT)
+        raise GeoNetInputError(
+            file,
+            f"sha256 mismatch: manifest says {expected[:16]}..., file has {actual[:16]}...",
+            "the file is corrupt or was changed after export; " + REEXPORT_HINT,
+        )

@@ -6,6 +6,7 @@ Pose: the snippet "ATE" of SfMLearner/GeoNet, quirk included, plus a true RMSE.
 
 Every function is pure: arrays in, numbers/arrays out. See docs/evaluation.md.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -40,8 +41,9 @@ def crop_mask(shape, crop="garg"):
     if crop is None:
         return np.ones((height, width), dtype=bool)
     if crop not in CROPS:
-        raise GeoNetInputError(None, f"unknown depth crop {crop!r}",
-                               "use 'garg' (the official protocol), 'eigen' or None")
+        raise GeoNetInputError(
+            None, f"unknown depth crop {crop!r}", "use 'garg' (the official protocol), 'eigen' or None"
+        )
     f = CROPS[crop]
     # np.int32 truncation as in the official eval (e.g. 0.408*375 = 153.04 -> 153).
     r0, r1 = int(f[0] * height), int(f[1] * height)
@@ -59,8 +61,11 @@ def resize_depth_to(pred, shape):
     """
     pred = np.asarray(pred, dtype=np.float32)
     if pred.ndim != 2:
-        raise GeoNetInputError(None, f"predicted depth must be 2-D (h, w), got shape {pred.shape}",
-                               "squeeze batch/channel axes before evaluating")
+        raise GeoNetInputError(
+            None,
+            f"predicted depth must be 2-D (h, w), got shape {pred.shape}",
+            "squeeze batch/channel axes before evaluating",
+        )
     height, width = int(shape[0]), int(shape[1])
     return cv2.resize(pred, (width, height), interpolation=cv2.INTER_LINEAR)
 
@@ -77,12 +82,12 @@ def depth_errors(gt, pred):
     diff = gt - pred
     return {
         "abs_rel": float(np.mean(np.abs(diff) / gt)),
-        "sq_rel": float(np.mean(diff ** 2 / gt)),
-        "rmse": float(np.sqrt(np.mean(diff ** 2))),
+        "sq_rel": float(np.mean(diff**2 / gt)),
+        "rmse": float(np.sqrt(np.mean(diff**2))),
         "rmse_log": float(np.sqrt(np.mean((np.log(gt) - np.log(pred)) ** 2))),
         "a1": float(np.mean(thresh < 1.25)),
-        "a2": float(np.mean(thresh < 1.25 ** 2)),
-        "a3": float(np.mean(thresh < 1.25 ** 3)),
+        "a2": float(np.mean(thresh < 1.25**2)),
+        "a3": float(np.mean(thresh < 1.25**3)),
     }
 
 
@@ -101,20 +106,29 @@ def depth_metrics(gt, pred, min_depth=1e-3, max_depth=80.0, crop="garg", median_
     gt = np.asarray(gt, dtype=np.float64)
     pred = np.asarray(pred, dtype=np.float64)
     if gt.ndim != 2 or gt.shape != pred.shape:
-        raise GeoNetInputError(None, f"gt shape {gt.shape} and prediction shape {pred.shape} differ "
-                               "or are not 2-D", "resize the prediction with resize_depth_to(pred, gt.shape)")
+        raise GeoNetInputError(
+            None,
+            f"gt shape {gt.shape} and prediction shape {pred.shape} differ or are not 2-D",
+            "resize the prediction with resize_depth_to(pred, gt.shape)",
+        )
     mask = (gt > min_depth) & (gt < max_depth) & crop_mask(gt.shape, crop)
     if not mask.any():
-        raise GeoNetInputError(None, "no ground-truth pixel inside the depth range and crop",
-                               f"check the GT map (valid depths in ({min_depth}, {max_depth})) and the crop")
+        raise GeoNetInputError(
+            None,
+            "no ground-truth pixel inside the depth range and crop",
+            f"check the GT map (valid depths in ({min_depth}, {max_depth})) and the crop",
+        )
     gt_valid = gt[mask]
     pred_valid = pred[mask]
     scale = 1.0
     if median_scaling:
         pred_median = np.median(pred_valid)
         if not pred_median > 0:
-            raise GeoNetInputError(None, f"median predicted depth is {pred_median}, cannot median-scale",
-                                   "predicted depths must be positive")
+            raise GeoNetInputError(
+                None,
+                f"median predicted depth is {pred_median}, cannot median-scale",
+                "predicted depths must be positive",
+            )
         scale = float(np.median(gt_valid) / pred_median)
     pred_valid = np.clip(pred_valid * scale, min_depth, max_depth)
     result = depth_errors(gt_valid, pred_valid)
@@ -163,13 +177,16 @@ def flow_epe(gt, valid, pred):
     pred = np.asarray(pred, dtype=np.float64)
     valid = np.asarray(valid) != 0
     if gt.shape != pred.shape or gt.ndim != 3 or gt.shape[2] != 2 or valid.shape != gt.shape[:2]:
-        raise GeoNetInputError(None, f"flow shapes differ: gt {gt.shape}, valid {valid.shape}, pred {pred.shape}",
-                               "gt and pred must be (H, W, 2) and valid (H, W); resize pred with resize_flow_nearest")
+        raise GeoNetInputError(
+            None,
+            f"flow shapes differ: gt {gt.shape}, valid {valid.shape}, pred {pred.shape}",
+            "gt and pred must be (H, W, 2) and valid (H, W); resize pred with resize_flow_nearest",
+        )
     n_valid = int(valid.sum())
     if n_valid == 0:
         raise GeoNetInputError(None, "ground-truth flow has no valid pixel", "check the GT mask channel")
     epe = np.sqrt(np.sum((gt - pred) ** 2, axis=2))[valid]
-    mag = np.sqrt(np.sum(gt ** 2, axis=2))[valid] + 1e-5
+    mag = np.sqrt(np.sum(gt**2, axis=2))[valid] + 1e-5
     outlier = (epe > FLOW_OUTLIER_PX) & (epe / mag > FLOW_OUTLIER_REL)
     fl = float(outlier.sum()) / n_valid
     return {"epe": float(epe.mean()), "fl": fl, "acc": 1.0 - fl, "n_valid": n_valid}
@@ -204,14 +221,17 @@ def _align_first_and_scale(gt_xyz, pred_xyz):
     gt_xyz = np.asarray(gt_xyz, dtype=np.float64)
     pred_xyz = np.asarray(pred_xyz, dtype=np.float64)
     if gt_xyz.shape != pred_xyz.shape or gt_xyz.ndim != 2 or gt_xyz.shape[1] != 3 or len(gt_xyz) < 2:
-        raise GeoNetInputError(None, f"trajectory shapes differ or are too short: gt {gt_xyz.shape}, "
-                               f"pred {pred_xyz.shape}", "pass matched (N, 3) positions with N >= 2")
+        raise GeoNetInputError(
+            None,
+            f"trajectory shapes differ or are too short: gt {gt_xyz.shape}, pred {pred_xyz.shape}",
+            "pass matched (N, 3) positions with N >= 2",
+        )
     pred_xyz = pred_xyz + (gt_xyz[0] - pred_xyz[0])[None, :]
-    denom = np.sum(pred_xyz ** 2)
+    denom = np.sum(pred_xyz**2)
     # A trajectory standing still at the origin has no scale to fit: keep 1. "At the origin"
     # is relative to the GT's extent: GT files store the first position to ~1e-9, and fitting
     # a scale to that rounding noise would make a zero-motion prediction look good.
-    scale = np.sum(gt_xyz * pred_xyz) / denom if denom > 1e-12 * np.sum(gt_xyz ** 2) else 1.0
+    scale = np.sum(gt_xyz * pred_xyz) / denom if denom > 1e-12 * np.sum(gt_xyz**2) else 1.0
     return pred_xyz * scale - gt_xyz
 
 
@@ -226,7 +246,7 @@ def ate_snippet(gt_xyz, pred_xyz):
     (x 0.447 for N = 5). See SfmLearner-Pytorch #88.
     """
     err = _align_first_and_scale(gt_xyz, pred_xyz)
-    return float(np.sqrt(np.sum(err ** 2)) / len(err))
+    return float(np.sqrt(np.sum(err**2)) / len(err))
 
 
 def ate_rmse_true(gt_xyz, pred_xyz):
@@ -236,7 +256,7 @@ def ate_rmse_true(gt_xyz, pred_xyz):
     with the paper's 0.012 numbers; use it to judge the trajectory itself.
     """
     err = _align_first_and_scale(gt_xyz, pred_xyz)
-    return float(np.sqrt(np.mean(np.sum(err ** 2, axis=1))))
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
 
 
 def rigid_inverse(T):

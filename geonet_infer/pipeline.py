@@ -15,14 +15,15 @@ Every file is written under a temporary name and renamed, so a reader never sees
 half-written file. A frame that cannot be read (or has another size than the first)
 is recorded in the summary and skipped; the sequence goes on with the next frame.
 """
+
 from __future__ import annotations
 
 import json
 import platform
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -55,8 +56,7 @@ def output_path(out_dir: Path, subdir: str, name: str, suffix: str) -> Path:
     path = out_dir / subdir / f"{name}{suffix}"
     root = out_dir.resolve()
     if root not in path.resolve().parents or "/" in name or "\\" in name or name in ("", ".", ".."):
-        raise GeoNetInputError(path, f"frame name {name!r} would write outside {out_dir}",
-                               "rename the input file")
+        raise GeoNetInputError(path, f"frame name {name!r} would write outside {out_dir}", "rename the input file")
     return path
 
 
@@ -82,8 +82,9 @@ class _Frames:
                 self.size = frame.rgb.shape[:2]
             elif frame.rgb.shape[:2] != self.size:
                 h, w = frame.rgb.shape[:2]
-                self.failures.append({"frame": frame.name, "reason": f"frame is {w}x{h}, the sequence is "
-                                      f"{self.size[1]}x{self.size[0]}"})
+                self.failures.append(
+                    {"frame": frame.name, "reason": f"frame is {w}x{h}, the sequence is {self.size[1]}x{self.size[0]}"}
+                )
                 pending_bad.append(frame.name)
                 continue
             if pending_bad and self.names:
@@ -93,9 +94,16 @@ class _Frames:
             yield frame.rgb
 
 
-def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Path, camera: Camera | None = None,
-                   tasks: tuple[str, ...] = TASKS, batch_size: int = 4, progress: bool = True,
-                   camera_height: float | None = None) -> dict:
+def predict_to_dir(
+    predictor: Predictor,
+    source: FrameSource,
+    out_dir: str | Path,
+    camera: Camera | None = None,
+    tasks: tuple[str, ...] = TASKS,
+    batch_size: int = 4,
+    progress: bool = True,
+    camera_height: float | None = None,
+) -> dict:
     """Predict every frame of ``source`` into ``out_dir`` (layout in the module docstring).
 
     Args:
@@ -116,13 +124,19 @@ def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Pat
     out_dir = Path(out_dir)
     tasks = tuple(t for t in TASKS if t in tasks)
     if "flow" in tasks and camera is None:
-        raise GeoNetInputError(source.path, "flow needs camera intrinsics and none were found",
-                               "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)")
+        raise GeoNetInputError(
+            source.path,
+            "flow needs camera intrinsics and none were found",
+            "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
+        )
     if camera_height is not None:
         check_camera_height(camera_height)
         if camera is None:
-            raise GeoNetInputError(source.path, "--camera-height needs camera intrinsics and none were found",
-                                   "pass --calib FILE or --intrinsics FX,FY,CX,CY")
+            raise GeoNetInputError(
+                source.path,
+                "--camera-height needs camera intrinsics and none were found",
+                "pass --calib FILE or --intrinsics FX,FY,CX,CY",
+            )
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     totals: dict[str, float] = defaultdict(float)
@@ -135,8 +149,14 @@ def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Pat
         if tasks == ("depth",):
             results = _depth_only(predictor, frames, camera, batch_size, camera_height)
         else:
-            results = predictor.iter_sequence(frames, camera, batch_size=batch_size, names=frames.names,
-                                              with_flow="flow" in tasks, camera_height=camera_height)
+            results = predictor.iter_sequence(
+                frames,
+                camera,
+                batch_size=batch_size,
+                names=frames.names,
+                with_flow="flow" in tasks,
+                camera_height=camera_height,
+            )
         for result in results:
             t0 = time.perf_counter()
             _write_frame(out_dir, result, tasks)
@@ -150,8 +170,9 @@ def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Pat
             bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
     except GeoNetInputError as exc:
         if done == 0 and frames.size is None:
-            raise GeoNetInputError(source.path, "no readable frame", "; ".join(
-                f["reason"] for f in frames.failures[:3]) or str(exc)) from None
+            raise GeoNetInputError(
+                source.path, "no readable frame", "; ".join(f["reason"] for f in frames.failures[:3]) or str(exc)
+            ) from None
         raise
     finally:
         bar.close()
@@ -163,26 +184,48 @@ def predict_to_dir(predictor: Predictor, source: FrameSource, out_dir: str | Pat
         write_tum_poses(out_dir / "poses_tum.txt", stamps, np.stack(poses))
     elapsed = time.perf_counter() - started
     summary = {
-        "input": {"path": str(source.path), "kind": source.kind, "name": source.name, "fps": getattr(source, "fps", None)},
-        "frames": done, "failed": len(frames.failures), "failures": frames.failures,
+        "input": {
+            "path": str(source.path),
+            "kind": source.kind,
+            "name": source.name,
+            "fps": getattr(source, "fps", None),
+        },
+        "frames": done,
+        "failed": len(frames.failures),
+        "failures": frames.failures,
         "gaps": [{"frame": k, "skipped_before": v} for k, v in frames.skipped_before.items()],
         "tasks": list(tasks),
         "outputs": _outputs(tasks),
-        "model": {"dir": str(predictor.model_dir), "arch": predictor.manifest.arch,
-                  "precision": predictor.precision, "threads": predictor.threads,
-                  "graph_size": [predictor.spec.height, predictor.spec.width],
-                  "random_init": predictor.manifest.random_init},
-        "camera": None if camera is None else {
-            "K_input_resolution": (camera.scaled_to(frames.size[1], frames.size[0]).K.tolist()
-                                   if frames.size else camera.K.tolist()),
+        "model": {
+            "dir": str(predictor.model_dir),
+            "arch": predictor.manifest.arch,
+            "precision": predictor.precision,
+            "threads": predictor.threads,
+            "graph_size": [predictor.spec.height, predictor.spec.width],
+            "random_init": predictor.manifest.random_init,
+        },
+        "camera": None
+        if camera is None
+        else {
+            "K_input_resolution": (
+                camera.scaled_to(frames.size[1], frames.size[0]).K.tolist() if frames.size else camera.K.tolist()
+            ),
             "dist": None if camera.dist is None else camera.dist.tolist(),
-            "source": camera.source, "undistorted": camera.has_distortion},
+            "source": camera.source,
+            "undistorted": camera.has_distortion,
+        },
         "image_size": None if frames.size is None else [frames.size[1], frames.size[0]],
-        "metric_scale": None if camera_height is None else {
-            "camera_height_m": camera_height, "per_frame_median": float(np.median(scales)) if scales else None,
-            "per_frame_min": min(scales, default=None), "per_frame_max": max(scales, default=None)},
+        "metric_scale": None
+        if camera_height is None
+        else {
+            "camera_height_m": camera_height,
+            "per_frame_median": float(np.median(scales)) if scales else None,
+            "per_frame_min": min(scales, default=None),
+            "per_frame_max": max(scales, default=None),
+        },
         "timings_ms_per_frame": {k: v / max(done, 1) for k, v in totals.items()},
-        "wall_s": elapsed, "frames_per_s": done / elapsed if elapsed > 0 else None,
+        "wall_s": elapsed,
+        "frames_per_s": done / elapsed if elapsed > 0 else None,
         "versions": {"geonet_infer": __version__, "python": platform.python_version()},
     }
     with atomic_write(out_dir / SUMMARY_NAME) as tmp:
@@ -201,8 +244,9 @@ def _outputs(tasks: tuple[str, ...]) -> list[str]:
     return out
 
 
-def _depth_only(predictor: Predictor, frames: _Frames, camera: Camera | None, batch_size: int,
-                camera_height: float | None = None) -> Iterator[FrameResult]:
+def _depth_only(
+    predictor: Predictor, frames: _Frames, camera: Camera | None, batch_size: int, camera_height: float | None = None
+) -> Iterator[FrameResult]:
     """Depth in batches of ``batch_size`` frames; works on a single image too."""
     batch: list[np.ndarray] = []
     index = 0
@@ -216,11 +260,21 @@ def _depth_only(predictor: Predictor, frames: _Frames, camera: Camera | None, ba
                 K = camera.scaled_to(rgb.shape[1], rgb.shape[0]).K
                 scale = scaler(depth, K, frames.names[index])
                 depth, disparity = depth * scale, disparity / scale
-            yield FrameResult(index=index, name=frames.names[index], depth=depth,
-                              disparity=disparity, camera_to_world=np.eye(4), pose_to_next=None,
-                              pose_vector_to_next=None, flow=None, rigid_flow=None, residual_flow=None,
-                              undistorted=rgb_result.undistorted, timings_ms=rgb_result.timings_ms,
-                              metric_scale=scale)
+            yield FrameResult(
+                index=index,
+                name=frames.names[index],
+                depth=depth,
+                disparity=disparity,
+                camera_to_world=np.eye(4),
+                pose_to_next=None,
+                pose_vector_to_next=None,
+                flow=None,
+                rigid_flow=None,
+                residual_flow=None,
+                undistorted=rgb_result.undistorted,
+                timings_ms=rgb_result.timings_ms,
+                metric_scale=scale,
+            )
             index += 1
 
     for rgb in frames:

@@ -15,31 +15,39 @@ distortion), resized to the graphs' size, normalised, and outputs are mapped bac
 to the input size, all inside. Every result carries per-stage timings in ms.
 A Predictor holds no per-call state, so one instance can serve many threads.
 """
+
 from __future__ import annotations
 
 import time
 from collections import defaultdict
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence, Union
 
 import cv2
 import numpy as np
 
+from geonet_infer.engines import BACKENDS, Engine, make_engine, pick_fastest
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.images import read_image
 from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, Manifest, load_manifest
 from geonet_infer.metrics import rigid_inverse
 from geonet_infer.models import resolve_model
-from geonet_infer.preprocess import (InputSpec, check_image, disparity_to_input, flow_to_input,
-                                     graph_intrinsics, next_source_position, snippet_indices)
-from geonet_infer.engines import BACKENDS, Engine, make_engine, pick_fastest
+from geonet_infer.preprocess import (
+    InputSpec,
+    check_image,
+    disparity_to_input,
+    flow_to_input,
+    graph_intrinsics,
+    next_source_position,
+    snippet_indices,
+)
 from geonet_infer.scale import SequenceScaler, check_camera_height
 from geonet_infer.session import usable_cpus
 
-ImageLike = Union[np.ndarray, str, Path]
-Intrinsics = Union[np.ndarray, Sequence[Sequence[float]], Camera]
+ImageLike = np.ndarray | str | Path
+Intrinsics = np.ndarray | Sequence[Sequence[float]] | Camera
 # "write" is filled in by pipeline.predict_to_dir (saving outputs), not by the Predictor.
 STAGES = ("read", "preprocess", "depthnet", "posenet", "rigidflow", "resflownet", "postprocess", "write")
 
@@ -161,6 +169,7 @@ class _Timer:
 
             def __exit__(self, *exc):
                 timer.ms[name] += (time.perf_counter() - self.t0) * 1e3
+
         return _Stage()
 
     def result(self, share: float = 1.0) -> dict[str, float]:
@@ -175,13 +184,21 @@ def _check_camera_height(camera_height: float | None, camera) -> None:
         return
     check_camera_height(camera_height)
     if camera is None:
-        raise GeoNetInputError(None, "camera_height needs the camera intrinsics",
-                               "pass camera= / K= (a Camera, a 3x3 K, or --calib / --intrinsics)")
+        raise GeoNetInputError(
+            None,
+            "camera_height needs the camera intrinsics",
+            "pass camera= / K= (a Camera, a 3x3 K, or --calib / --intrinsics)",
+        )
 
 
 # ----------------------------------------------------------------------------- predictor
-def load(model: str | Path | None = None, *, precision: str = "fp32", threads: int | None = None,
-         backend: str = "onnxruntime") -> "Predictor":
+def load(
+    model: str | Path | None = None,
+    *,
+    precision: str = "fp32",
+    threads: int | None = None,
+    backend: str = "onnxruntime",
+) -> Predictor:
     """Load a model: None = the bundled default, a bundled name, or a model directory.
 
     Args:
@@ -201,8 +218,14 @@ class Predictor:
     Methods take uint8 RGB (H, W, 3) arrays of any size or image paths.
     """
 
-    def __init__(self, model_dir: str | Path, precision: str = "fp32", threads: int | None = None,
-                 manifest: Manifest | None = None, backend: str = "onnxruntime"):
+    def __init__(
+        self,
+        model_dir: str | Path,
+        precision: str = "fp32",
+        threads: int | None = None,
+        manifest: Manifest | None = None,
+        backend: str = "onnxruntime",
+    ):
         if precision not in PRECISIONS:
             raise GeoNetInputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISIONS)}")
         if backend not in BACKENDS:
@@ -229,8 +252,10 @@ class Predictor:
         return {name: engine.backend for name, engine in self._engines.items()}
 
     def __repr__(self) -> str:
-        return (f"Predictor({str(self.model_dir)!r}, precision={self.precision!r}, threads={self.threads}, "
-                f"backend={self.backend!r}, arch={self.manifest.arch!r}, size={self.spec.height}x{self.spec.width})")
+        return (
+            f"Predictor({str(self.model_dir)!r}, precision={self.precision!r}, threads={self.threads}, "
+            f"backend={self.backend!r}, arch={self.manifest.arch!r}, size={self.spec.height}x{self.spec.width})"
+        )
 
     @property
     def has_flow(self) -> bool:
@@ -244,8 +269,11 @@ class Predictor:
     def engine(self, name: str) -> Engine:
         """The engine of graph ``name``: ``run(feeds) -> {output: array}`` (benchmarks, profiling)."""
         if name not in self._engines:
-            raise GeoNetInputError(self.model_dir / MANIFEST_NAME, f"no '{name}' graph in the {self.precision} set",
-                                   f"graphs present: {', '.join(self._engines)}")
+            raise GeoNetInputError(
+                self.model_dir / MANIFEST_NAME,
+                f"no '{name}' graph in the {self.precision} set",
+                f"graphs present: {', '.join(self._engines)}",
+            )
         return self._engines[name]
 
     # ------------------------------------------------------------------ graph calls
@@ -269,8 +297,11 @@ class Predictor:
             return K.scaled_to(size[1], size[0]).validate(K.source or None)
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3):  # Camera() itself raises a plain ValueError for this
-            raise GeoNetInputError(None, f"intrinsics must be a 3x3 matrix, got shape {K.shape}",
-                                   "pass K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] at the input resolution")
+            raise GeoNetInputError(
+                None,
+                f"intrinsics must be a 3x3 matrix, got shape {K.shape}",
+                "pass K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] at the input resolution",
+            )
         return Camera(K=K, dist=None, size=(size[1], size[0])).validate()
 
     def _to_network(self, rgb: np.ndarray, camera: Camera | None, timer: _Timer) -> np.ndarray:
@@ -285,8 +316,9 @@ class Predictor:
         sizes = {r.shape[:2] for r in rgbs}
         if len(sizes) > 1:
             detail = ", ".join(f"{n}: {r.shape[1]}x{r.shape[0]}" for n, r in zip(names, rgbs))
-            raise GeoNetInputError(None, f"frames of one {what} differ in size ({detail})",
-                                   "pass consecutive frames of one camera")
+            raise GeoNetInputError(
+                None, f"frames of one {what} differ in size ({detail})", "pass consecutive frames of one camera"
+            )
         size = rgbs[0].shape[:2]
         return list(rgbs), self._camera(camera_or_K, size), size
 
@@ -296,19 +328,29 @@ class Predictor:
         if isinstance(frames, np.ndarray) and frames.ndim == 4:
             frames = list(frames)
         if not isinstance(frames, (list, tuple)):
-            raise GeoNetInputError(None, f"expected a list of frames, got {type(frames).__name__}",
-                                   f"pass {L} consecutive frames (target in the middle) or a pair [t, t+1]")
+            raise GeoNetInputError(
+                None,
+                f"expected a list of frames, got {type(frames).__name__}",
+                f"pass {L} consecutive frames (target in the middle) or a pair [t, t+1]",
+            )
         if len(frames) == L:
             return list(frames)
         if len(frames) == 2:
             return [frames[i] for i in sorted(snippet_indices(0, 2, L))]
-        raise GeoNetInputError(None, f"got {len(frames)} frames; this model takes snippets of {L} "
-                               "(target in the middle) or a pair [t, t+1]",
-                               "pass consecutive frames of one video")
+        raise GeoNetInputError(
+            None,
+            f"got {len(frames)} frames; this model takes snippets of {L} (target in the middle) or a pair [t, t+1]",
+            "pass consecutive frames of one video",
+        )
 
     # ------------------------------------------------------------------ depth
-    def depth(self, image: ImageLike | Sequence[ImageLike], camera: Intrinsics | None = None, *,
-              camera_height: float | None = None) -> DepthResult | list[DepthResult]:
+    def depth(
+        self,
+        image: ImageLike | Sequence[ImageLike],
+        camera: Intrinsics | None = None,
+        *,
+        camera_height: float | None = None,
+    ) -> DepthResult | list[DepthResult]:
         """Depth of one image, or of a list of images run as one batch.
 
         Args:
@@ -340,8 +382,10 @@ class Predictor:
                     depth, disp = depth * scale, disp / scale
                 results.append((depth, disp, bool(c and c.has_distortion), scale))
         timings = timer.result(1.0 / len(images))
-        out = [DepthResult(depth=d, disparity=p, undistorted=u, timings_ms=dict(timings), metric_scale=m)
-               for d, p, u, m in results]
+        out = [
+            DepthResult(depth=d, disparity=p, undistorted=u, timings_ms=dict(timings), metric_scale=m)
+            for d, p, u, m in results
+        ]
         return out[0] if single else out
 
     # ------------------------------------------------------------------ pose
@@ -358,8 +402,9 @@ class Predictor:
         order = snippet_indices(len(x) // 2, len(x), len(x))
         with timer.stage("posenet"):
             out = self._run("posenet", snippet=np.concatenate([x[i] for i in order])[None])
-        return PoseResult(matrices=out["pose_matrix"][0].astype(np.float64), vectors=out["pose"][0],
-                          timings_ms=timer.result())
+        return PoseResult(
+            matrices=out["pose_matrix"][0].astype(np.float64), vectors=out["pose"][0], timings_ms=timer.result()
+        )
 
     # ------------------------------------------------------------------ flow
     def flow(self, frames: Sequence[ImageLike], K: Intrinsics) -> FlowResult:
@@ -381,11 +426,15 @@ class Predictor:
         with timer.stage("postprocess"):
             depth, _ = disparity_to_input(parts["disparity"][0], size)
             flows = self._flows_to_input(parts, 0, size)
-        return FlowResult(depth=depth, pose=parts["pose_matrix"][0].astype(np.float64),
-                          undistorted=cam.has_distortion, timings_ms=timer.result(), **flows)
+        return FlowResult(
+            depth=depth,
+            pose=parts["pose_matrix"][0].astype(np.float64),
+            undistorted=cam.has_distortion,
+            timings_ms=timer.result(),
+            **flows,
+        )
 
-    def resflow_input(self, frames: Sequence[np.ndarray], K: np.ndarray, source_index: int | None = None
-                      ) -> np.ndarray:
+    def resflow_input(self, frames: Sequence[np.ndarray], K: np.ndarray, source_index: int | None = None) -> np.ndarray:
         """The (1, 12, h, w) ResFlowNet input for target -> source ``source_index`` (INT8 calibration).
 
         ``frames``: a snippet (any size; resized like every other call); ``source_index`` counts
@@ -400,9 +449,18 @@ class Predictor:
         parts = self._cascade(x[None], [mid], cam.K, size, timer, source_position=source, run_resflow=False)
         return parts["flow_input"]
 
-    def _cascade(self, snippets: np.ndarray, targets: list[int], K: np.ndarray | None, size: tuple[int, int],
-                 timer: _Timer, disparity: np.ndarray | None = None, source_position: int | None = None,
-                 run_resflow: bool = True, with_flow: bool = True) -> dict[str, np.ndarray]:
+    def _cascade(
+        self,
+        snippets: np.ndarray,
+        targets: list[int],
+        K: np.ndarray | None,
+        size: tuple[int, int],
+        timer: _Timer,
+        disparity: np.ndarray | None = None,
+        source_position: int | None = None,
+        run_resflow: bool = True,
+        with_flow: bool = True,
+    ) -> dict[str, np.ndarray]:
         """Batched cascade on normalised snippets (B, L, 3, h, w) in temporal order.
 
         ``targets[b]`` is the target's index in snippet b; the source is the frame after it
@@ -427,8 +485,14 @@ class Predictor:
             return out
         K_graph = np.repeat(graph_intrinsics(K, size, self.spec)[None], B, axis=0)
         with timer.stage("rigidflow"):
-            rigid = self._run("rigidflow", depth=1.0 / disparity[:, None], pose=pose["pose"][:, src_pos],
-                              intrinsics=K_graph, target=target, source=source)
+            rigid = self._run(
+                "rigidflow",
+                depth=1.0 / disparity[:, None],
+                pose=pose["pose"][:, src_pos],
+                intrinsics=K_graph,
+                target=target,
+                source=source,
+            )
         flow_input = np.concatenate([target, source, rigid["warped"], rigid["rigid_flow"], rigid["error"]], axis=1)
         out.update(rigid_flow=rigid["rigid_flow"], flow_input=flow_input)
         if run_resflow and self.has_flow:
@@ -440,13 +504,23 @@ class Predictor:
         rigid = flow_to_input(parts["rigid_flow"][b], size)
         if "flow" not in parts:
             return {"flow": rigid, "rigid_flow": rigid, "residual_flow": None}
-        return {"flow": flow_to_input(parts["flow"][b], size), "rigid_flow": rigid,
-                "residual_flow": flow_to_input(parts["residual_flow"][b], size)}
+        return {
+            "flow": flow_to_input(parts["flow"][b], size),
+            "rigid_flow": rigid,
+            "residual_flow": flow_to_input(parts["residual_flow"][b], size),
+        }
 
     # ------------------------------------------------------------------ sequences
-    def iter_sequence(self, frames: Iterable[ImageLike], K: Intrinsics | None, *, batch_size: int = 4,
-                      names: Sequence[str] | None = None, with_flow: bool = True,
-                      camera_height: float | None = None) -> Iterator[FrameResult]:
+    def iter_sequence(
+        self,
+        frames: Iterable[ImageLike],
+        K: Intrinsics | None,
+        *,
+        batch_size: int = 4,
+        names: Sequence[str] | None = None,
+        with_flow: bool = True,
+        camera_height: float | None = None,
+    ) -> Iterator[FrameResult]:
         """Stream a whole sequence: yields one :class:`FrameResult` per frame, in order.
 
         Each frame's depth is computed once (one DepthNet batch per ``batch_size``
@@ -489,18 +563,28 @@ class Predictor:
                     size = rgb.shape[:2]
                     camera = self._camera(K, size)
                     if camera is None and with_flow:
-                        raise GeoNetInputError(None, "a sequence needs the camera intrinsics K",
-                                               "pass K (3x3) or a Camera")
+                        raise GeoNetInputError(
+                            None, "a sequence needs the camera intrinsics K", "pass K (3x3) or a Camera"
+                        )
                 elif rgb.shape[:2] != size:
-                    raise GeoNetInputError(label, f"frame {n_read} is {rgb.shape[1]}x{rgb.shape[0]}, the sequence started "
-                                           f"at {size[1]}x{size[0]}", "all frames of a sequence must have one size")
+                    raise GeoNetInputError(
+                        label,
+                        f"frame {n_read} is {rgb.shape[1]}x{rgb.shape[0]}, the sequence started at {size[1]}x{size[0]}",
+                        "all frames of a sequence must have one size",
+                    )
                 prepared[n_read] = self._to_network(rgb, camera, timer)
-                frame_names[n_read] = (names[n_read] if names is not None else
-                                       Path(label).stem if isinstance(item, (str, Path)) else f"{n_read:06d}")
+                frame_names[n_read] = (
+                    names[n_read]
+                    if names is not None
+                    else Path(label).stem
+                    if isinstance(item, (str, Path))
+                    else f"{n_read:06d}"
+                )
                 n_read += 1
             if t0 == 0 and exhausted and n_read < 2:
-                raise GeoNetInputError(None, f"a sequence needs at least 2 frames, got {n_read}",
-                                       "pass consecutive frames of one video")
+                raise GeoNetInputError(
+                    None, f"a sequence needs at least 2 frames, got {n_read}", "pass consecutive frames of one video"
+                )
             if t0 >= n_read:
                 return
             last = n_read - 1 if exhausted else n_read - 1 - k
@@ -513,14 +597,24 @@ class Predictor:
             if paired:
                 windows = [[min(max(i, 0), n_read - 1) for i in range(t - k, t + k + 1)] for t in paired]
                 snippets = np.stack([np.stack([prepared[i] for i in w]) for w in windows])
-                parts = self._cascade(snippets, [k] * len(paired), camera.K if camera else None, size, timer,
-                                      disparity=disparity[:len(paired)], with_flow=with_flow)
+                parts = self._cascade(
+                    snippets,
+                    [k] * len(paired),
+                    camera.K if camera else None,
+                    size,
+                    timer,
+                    disparity=disparity[: len(paired)],
+                    with_flow=with_flow,
+                )
             results = []
             with timer.stage("postprocess"):
                 for j, t in enumerate(batch):
                     depth, disp = disparity_to_input(disparity[j], size)
-                    flows = (self._flows_to_input(parts, j, size) if t in paired and with_flow else
-                             {"flow": None, "rigid_flow": None, "residual_flow": None})
+                    flows = (
+                        self._flows_to_input(parts, j, size)
+                        if t in paired and with_flow
+                        else {"flow": None, "rigid_flow": None, "residual_flow": None}
+                    )
                     pose_next = parts["pose_matrix"][j].astype(np.float64) if t in paired else None
                     vector = parts["pose"][j] if t in paired else None
                     scale = None
@@ -535,18 +629,28 @@ class Predictor:
                     results.append((t, depth, disp, pose_next, vector, flows, scale))
             share = timer.result(1.0 / len(batch))
             for t, depth, disp, pose_next, vector, flows, scale in results:
-                yield FrameResult(index=t, name=frame_names.pop(t), depth=depth, disparity=disp,
-                                  camera_to_world=pose_world.copy(), pose_to_next=pose_next,
-                                  pose_vector_to_next=vector, undistorted=bool(camera and camera.has_distortion),
-                                  timings_ms=dict(share), metric_scale=scale, **flows)
+                yield FrameResult(
+                    index=t,
+                    name=frame_names.pop(t),
+                    depth=depth,
+                    disparity=disp,
+                    camera_to_world=pose_world.copy(),
+                    pose_to_next=pose_next,
+                    pose_vector_to_next=vector,
+                    undistorted=bool(camera and camera.has_distortion),
+                    timings_ms=dict(share),
+                    metric_scale=scale,
+                    **flows,
+                )
                 if pose_next is not None:
                     pose_world = pose_world @ rigid_inverse(pose_next)
             t0 = batch[-1] + 1
             for i in [i for i in prepared if i < t0 - k]:
                 del prepared[i]
 
-    def predict_sequence(self, frames: Iterable[ImageLike], K: Intrinsics, *, batch_size: int = 4,
-                         camera_height: float | None = None) -> SequenceResult:
+    def predict_sequence(
+        self, frames: Iterable[ImageLike], K: Intrinsics, *, batch_size: int = 4, camera_height: float | None = None
+    ) -> SequenceResult:
         """All of :meth:`iter_sequence` in memory (mind the size of flow for long videos)."""
         results = list(self.iter_sequence(frames, K, batch_size=batch_size, camera_height=camera_height))
         totals: dict[str, float] = defaultdict(float)

@@ -15,6 +15,7 @@ Everything that maps between a user's frames and that size lives here, once:
 * :func:`snippet_indices` forms the snippet around a frame, replicating the end
   frames of a sequence (see its docstring).
 """
+
 from __future__ import annotations
 
 import json
@@ -58,15 +59,18 @@ class InputSpec:
     channel_order: str = "RGB"
 
     @classmethod
-    def from_manifest(cls, manifest: Manifest) -> "InputSpec":
+    def from_manifest(cls, manifest: Manifest) -> InputSpec:
         """Read the conventions a manifest declares; raise on any this runtime does not implement."""
         where = manifest.root / MANIFEST_NAME if manifest.root else None
         conv = manifest.conventions
 
         def refuse(problem: str) -> GeoNetInputError:
-            return GeoNetInputError(where, f"unsupported convention: {problem}",
-                                    "this version of geonet-infer cannot run this model; re-export it with "
-                                    "the matching training code or upgrade geonet-infer")
+            return GeoNetInputError(
+                where,
+                f"unsupported convention: {problem}",
+                "this version of geonet-infer cannot run this model; re-export it with "
+                "the matching training code or upgrade geonet-infer",
+            )
 
         implemented = json.loads(json.dumps(conventions.as_dict()))  # tuples -> lists, as in the JSON
         if list(conv.get("input_range", [])) != implemented["input_range"]:
@@ -97,23 +101,41 @@ class InputSpec:
             names = manifest.graph_names(precision)
             missing = [g for g in REQUIRED_GRAPHS if g not in names]
             if missing:
-                raise GeoNetInputError(where, f"the {precision} set lacks graph(s) {missing}",
-                                       "export all of depthnet, posenet and rigidflow")
+                raise GeoNetInputError(
+                    where,
+                    f"the {precision} set lacks graph(s) {missing}",
+                    "export all of depthnet, posenet and rigidflow",
+                )
             for name in names:
                 entry = manifest.graph(name, precision)
                 expected = GRAPH_IO.get(name)
                 if expected and (entry.input_names, entry.output_names) != expected:
-                    raise refuse(f"{precision}/{name} has inputs {entry.input_names} and outputs "
-                                 f"{entry.output_names}; this runtime drives {expected[0]} -> {expected[1]}")
-        return cls(height=manifest.height, width=manifest.width, seq_length=manifest.seq_length,
-                   norm_scale=scale, norm_offset=offset, channel_order=order)
+                    raise refuse(
+                        f"{precision}/{name} has inputs {entry.input_names} and outputs "
+                        f"{entry.output_names}; this runtime drives {expected[0]} -> {expected[1]}"
+                    )
+        return cls(
+            height=manifest.height,
+            width=manifest.width,
+            seq_length=manifest.seq_length,
+            norm_scale=scale,
+            norm_offset=offset,
+            channel_order=order,
+        )
 
     @classmethod
-    def from_conventions(cls, height: int = conventions.REFERENCE_HEIGHT, width: int = conventions.REFERENCE_WIDTH,
-                         seq_length: int = 3) -> "InputSpec":
+    def from_conventions(
+        cls, height: int = conventions.REFERENCE_HEIGHT, width: int = conventions.REFERENCE_WIDTH, seq_length: int = 3
+    ) -> InputSpec:
         """The spec ``python -m export`` writes into manifests (for code that runs before one exists)."""
-        return cls(height=height, width=width, seq_length=seq_length, norm_scale=conventions.IMAGE_NORM.scale,
-                   norm_offset=conventions.IMAGE_NORM.offset, channel_order=conventions.as_dict()["channel_order"])
+        return cls(
+            height=height,
+            width=width,
+            seq_length=seq_length,
+            norm_scale=conventions.IMAGE_NORM.scale,
+            norm_offset=conventions.IMAGE_NORM.offset,
+            channel_order=conventions.as_dict()["channel_order"],
+        )
 
     @property
     def size(self) -> tuple[int, int]:
@@ -139,14 +161,23 @@ class InputSpec:
 def check_image(image, name: str | Path | None = None) -> np.ndarray:
     """Validate one frame: a uint8 array (H, W, 3). Returns it as a C-contiguous array."""
     if not isinstance(image, np.ndarray):
-        raise GeoNetInputError(name, f"expected a numpy uint8 (H, W, 3) RGB array, got {type(image).__name__}",
-                               "pass an image array or a path to an image file")
+        raise GeoNetInputError(
+            name,
+            f"expected a numpy uint8 (H, W, 3) RGB array, got {type(image).__name__}",
+            "pass an image array or a path to an image file",
+        )
     if image.dtype != np.uint8:
-        raise GeoNetInputError(name, f"image dtype is {image.dtype}, expected uint8",
-                               "pass 8-bit RGB; convert float images with (img * 255).round().astype(np.uint8)")
+        raise GeoNetInputError(
+            name,
+            f"image dtype is {image.dtype}, expected uint8",
+            "pass 8-bit RGB; convert float images with (img * 255).round().astype(np.uint8)",
+        )
     if image.ndim != 3 or image.shape[2] != 3:
-        raise GeoNetInputError(name, f"image shape is {image.shape}, expected (H, W, 3) RGB",
-                               "convert grey images with cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)")
+        raise GeoNetInputError(
+            name,
+            f"image shape is {image.shape}, expected (H, W, 3) RGB",
+            "convert grey images with cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)",
+        )
     if min(image.shape[:2]) < 8:
         raise GeoNetInputError(name, f"image is only {image.shape[1]}x{image.shape[0]} pixels", "pass a real frame")
     return np.ascontiguousarray(image)
@@ -196,11 +227,12 @@ def snippet_indices(t: int, num_frames: int, seq_length: int) -> list[int]:
     This is the only place that order is written down for the runtime.
     """
     if num_frames < 2:
-        raise GeoNetInputError(None, f"a sequence needs at least 2 frames, got {num_frames}",
-                               "pass consecutive frames of one video")
+        raise GeoNetInputError(
+            None, f"a sequence needs at least 2 frames, got {num_frames}", "pass consecutive frames of one video"
+        )
     k = seq_length // 2
     window = [min(max(i, 0), num_frames - 1) for i in range(t - k, t + k + 1)]
-    return [window[k]] + window[:k] + window[k + 1:]
+    return [window[k]] + window[:k] + window[k + 1 :]
 
 
 def next_source_position(seq_length: int) -> int:

@@ -9,6 +9,7 @@ depth map's resolution. The plane is fitted with RANSAC over the lower part of t
 image (where the road is), its normal required to be within ``max_tilt_deg`` of the
 camera's y axis, then refined by least squares on the inliers.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -52,9 +53,17 @@ def _plane_through(p: np.ndarray) -> tuple[np.ndarray, float] | None:
     return n, float(n @ p[0])
 
 
-def fit_ground_plane(depth: np.ndarray, K: np.ndarray, *, rows_from: float | None = None,
-                     max_tilt_deg: float = 20.0, inlier_rel: float = 0.02, iterations: int = 200,
-                     max_points: int = 20000, seed: int = 0) -> GroundFit:
+def fit_ground_plane(
+    depth: np.ndarray,
+    K: np.ndarray,
+    *,
+    rows_from: float | None = None,
+    max_tilt_deg: float = 20.0,
+    inlier_rel: float = 0.02,
+    iterations: int = 200,
+    max_points: int = 20000,
+    seed: int = 0,
+) -> GroundFit:
     """RANSAC ground plane of a depth map.
 
     Args:
@@ -75,8 +84,11 @@ def fit_ground_plane(depth: np.ndarray, K: np.ndarray, *, rows_from: float | Non
     points = backproject(depth, K)[start:].reshape(-1, 3)
     points = points[np.isfinite(points).all(axis=1) & (points[:, 2] > 0)]
     if len(points) < 50:
-        raise GeoNetInputError(None, f"only {len(points)} valid depth pixels below row {start}",
-                               "the ground plane needs the road in the lower part of the image")
+        raise GeoNetInputError(
+            None,
+            f"only {len(points)} valid depth pixels below row {start}",
+            "the ground plane needs the road in the lower part of the image",
+        )
     rng = np.random.default_rng(seed)
     if len(points) > max_points:
         points = points[rng.choice(len(points), max_points, replace=False)]
@@ -91,21 +103,25 @@ def fit_ground_plane(depth: np.ndarray, K: np.ndarray, *, rows_from: float | Non
         if count > best_count:
             best, best_count = plane, count
     if best is None or best_count < 0.1 * len(points):
-        raise GeoNetInputError(None, "no ground plane found in the depth map "
-                               f"({best_count} of {len(points)} points on the best candidate)",
-                               "metric scale from camera height needs a visible, roughly flat road")
+        raise GeoNetInputError(
+            None,
+            f"no ground plane found in the depth map ({best_count} of {len(points)} points on the best candidate)",
+            "metric scale from camera height needs a visible, roughly flat road",
+        )
     n, d = best
     inliers = points[np.abs(points @ n - d) < inlier_rel * d]
     centroid = inliers.mean(axis=0)
     normal = np.linalg.svd(inliers - centroid, full_matrices=False)[2][-1]
     if normal[1] < 0:
         normal = -normal
-    return GroundFit(normal=normal, height=float(normal @ centroid), inlier_fraction=len(inliers) / len(points),
-                     n_points=len(points))
+    return GroundFit(
+        normal=normal, height=float(normal @ centroid), inlier_fraction=len(inliers) / len(points), n_points=len(points)
+    )
 
 
-def metric_depth(depth: np.ndarray, K: np.ndarray, camera_height_m: float, **fit_options
-                 ) -> tuple[np.ndarray, GroundFit]:
+def metric_depth(
+    depth: np.ndarray, K: np.ndarray, camera_height_m: float, **fit_options
+) -> tuple[np.ndarray, GroundFit]:
     """Depth scaled so the fitted ground plane lies ``camera_height_m`` below the camera."""
     check_camera_height(camera_height_m)
     fit = fit_ground_plane(depth, K, **fit_options)
@@ -131,7 +147,9 @@ class SequenceScaler:
 
 
 def check_camera_height(camera_height_m) -> None:
-    if (not isinstance(camera_height_m, (int, float)) or not np.isfinite(camera_height_m)
-            or camera_height_m <= 0):
-        raise GeoNetInputError(None, f"camera height must be a positive number of metres, got {camera_height_m!r}",
-                               "e.g. 1.65 for KITTI's colour cameras")
+    if not isinstance(camera_height_m, (int, float)) or not np.isfinite(camera_height_m) or camera_height_m <= 0:
+        raise GeoNetInputError(
+            None,
+            f"camera height must be a positive number of metres, got {camera_height_m!r}",
+            "e.g. 1.65 for KITTI's colour cameras",
+        )

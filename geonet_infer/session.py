@@ -10,11 +10,12 @@ CPU facts behind the defaults (``../shared/reference/onnx_notes.md`` section 2):
 * ``inter_op_num_threads`` only matters for ``ORT_PARALLEL``; we keep sequential
   execution and 1 inter-op thread.
 """
+
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import onnxruntime as ort
 
@@ -59,8 +60,9 @@ def _cgroup_quota() -> int | None:
         return None
 
 
-def make_session_options(threads: int | None = None, spinning: bool = False,
-                         opt_level: str = "all") -> ort.SessionOptions:
+def make_session_options(
+    threads: int | None = None, spinning: bool = False, opt_level: str = "all"
+) -> ort.SessionOptions:
     """SessionOptions for CPU inference.
 
     Args:
@@ -69,8 +71,9 @@ def make_session_options(threads: int | None = None, spinning: bool = False,
         opt_level: "disable" | "basic" | "extended" | "all" (graph optimisations).
     """
     if opt_level not in OPT_LEVELS:
-        raise GeoNetInputError(None, f"unknown optimisation level {opt_level!r}",
-                               f"choose one of {', '.join(OPT_LEVELS)}")
+        raise GeoNetInputError(
+            None, f"unknown optimisation level {opt_level!r}", f"choose one of {', '.join(OPT_LEVELS)}"
+        )
     if threads is not None and (not isinstance(threads, int) or threads < 1):
         raise GeoNetInputError(None, f"threads must be a positive integer or None, got {threads!r}")
     so = ort.SessionOptions()
@@ -86,8 +89,9 @@ def make_session_options(threads: int | None = None, spinning: bool = False,
     return so
 
 
-def make_session(path: str | Path, options: ort.SessionOptions | None = None,
-                 providers: Sequence[str] = ("CPUExecutionProvider",)) -> ort.InferenceSession:
+def make_session(
+    path: str | Path, options: ort.SessionOptions | None = None, providers: Sequence[str] = ("CPUExecutionProvider",)
+) -> ort.InferenceSession:
     """Load an ONNX graph; errors name the file.
 
     Raises GeoNetInputError if the file is missing or onnxruntime cannot load it,
@@ -97,14 +101,18 @@ def make_session(path: str | Path, options: ort.SessionOptions | None = None,
     if not path.is_file():
         raise GeoNetInputError(path, "ONNX model not found", "export models with `python -m export`")
     try:
-        session = ort.InferenceSession(str(path), sess_options=options or make_session_options(),
-                                       providers=list(providers))
+        session = ort.InferenceSession(
+            str(path), sess_options=options or make_session_options(), providers=list(providers)
+        )
     except Exception as exc:  # ORT raises Fail / InvalidProtobuf / InvalidGraph / RuntimeException
-        raise GeoNetInputError(path, f"onnxruntime cannot load this model ({exc.__class__.__name__}: "
-                               f"{str(exc).splitlines()[0][:300]})",
-                               "the file is corrupt or was written by an incompatible exporter; re-export it") from exc
+        raise GeoNetInputError(
+            path,
+            f"onnxruntime cannot load this model ({exc.__class__.__name__}: {str(exc).splitlines()[0][:300]})",
+            "the file is corrupt or was written by an incompatible exporter; re-export it",
+        ) from exc
     missing = [p for p in providers if p not in session.get_providers()]
     if missing:
-        raise GeoNetInputError(path, f"execution provider(s) {missing} not active",
-                               f"available: {ort.get_available_providers()}")
+        raise GeoNetInputError(
+            path, f"execution provider(s) {missing} not active", f"available: {ort.get_available_providers()}"
+        )
     return session

@@ -18,6 +18,7 @@ Method (the one behind ``../shared/reference/cpu_latency_anchors.md``):
   with Python's garbage collector disabled;
 * statistics: p50/p90/p99 (linear interpolation), mean, sample std, min, max.
 """
+
 from __future__ import annotations
 
 import gc
@@ -25,8 +26,8 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -60,12 +61,20 @@ class Stats:
     def as_dict(self) -> dict:
         return asdict(self)
 
-    def scaled(self, factor: float) -> "Stats":
+    def scaled(self, factor: float) -> Stats:
         """The same statistics with every time multiplied by ``factor`` (e.g. 1 / frames: per-frame ms)."""
-        return Stats(n=self.n, p50_ms=self.p50_ms * factor, p90_ms=self.p90_ms * factor,
-                     p99_ms=self.p99_ms * factor, mean_ms=self.mean_ms * factor, std_ms=self.std_ms * factor,
-                     min_ms=self.min_ms * factor, max_ms=self.max_ms * factor, fps=self.fps,
-                     items_per_call=self.items_per_call)
+        return Stats(
+            n=self.n,
+            p50_ms=self.p50_ms * factor,
+            p90_ms=self.p90_ms * factor,
+            p99_ms=self.p99_ms * factor,
+            mean_ms=self.mean_ms * factor,
+            std_ms=self.std_ms * factor,
+            min_ms=self.min_ms * factor,
+            max_ms=self.max_ms * factor,
+            fps=self.fps,
+            items_per_call=self.items_per_call,
+        )
 
 
 def summarize(samples_ns: Sequence[int], items_per_call: int = 1) -> Stats:
@@ -78,9 +87,18 @@ def summarize(samples_ns: Sequence[int], items_per_call: int = 1) -> Stats:
     p50, p90, p99 = (float(v) for v in np.percentile(ms, PERCENTILES))
     mean = float(ms.mean())
     std = float(ms.std(ddof=1)) if ms.size > 1 else 0.0
-    return Stats(n=int(ms.size), p50_ms=p50, p90_ms=p90, p99_ms=p99, mean_ms=mean, std_ms=std,
-                 min_ms=float(ms.min()), max_ms=float(ms.max()),
-                 fps=items_per_call * 1000.0 / mean if mean > 0 else math.inf, items_per_call=items_per_call)
+    return Stats(
+        n=int(ms.size),
+        p50_ms=p50,
+        p90_ms=p90,
+        p99_ms=p99,
+        mean_ms=mean,
+        std_ms=std,
+        min_ms=float(ms.min()),
+        max_ms=float(ms.max()),
+        fps=items_per_call * 1000.0 / mean if mean > 0 else math.inf,
+        items_per_call=items_per_call,
+    )
 
 
 class gc_disabled:
@@ -136,9 +154,16 @@ def _call_ns(fn: Callable[[], object]) -> int:
     return time.perf_counter_ns() - t0
 
 
-def time_interleaved(cases: Sequence[Case], *, warmup: int = 3, iters: int = 20, block: int = 4,
-                     quiet: bool = True, rewarm_ms: float = 50.0,
-                     progress: Callable[[str], None] | None = None) -> list[Case]:
+def time_interleaved(
+    cases: Sequence[Case],
+    *,
+    warmup: int = 3,
+    iters: int = 20,
+    block: int = 4,
+    quiet: bool = True,
+    rewarm_ms: float = 50.0,
+    progress: Callable[[str], None] | None = None,
+) -> list[Case]:
     """Time every case ``iters`` times, block-interleaved (see the module docstring).
 
     Args:
@@ -198,7 +223,7 @@ def peak_rss_mib() -> float | None:
     if resource is None:
         return None
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / 2 ** 20 if sys.platform == "darwin" else peak / 2 ** 10  # bytes on macOS, KiB on Linux
+    return peak / 2**20 if sys.platform == "darwin" else peak / 2**10  # bytes on macOS, KiB on Linux
 
 
 def current_rss_mib() -> float | None:
@@ -206,7 +231,7 @@ def current_rss_mib() -> float | None:
     try:
         with open("/proc/self/statm") as f:
             pages = int(f.read().split()[1])
-        return pages * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
     except (OSError, ValueError, IndexError):
         return None
 

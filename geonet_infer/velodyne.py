@@ -11,6 +11,7 @@ published Eigen-split numbers were computed with:
 * value = velodyne forward distance x (``vel_depth=True``, what GeoNet uses)
   or the projective depth (third row of P_velo2im) otherwise.
 """
+
 from __future__ import annotations
 
 import os
@@ -26,28 +27,36 @@ def load_velodyne_points(bin_path):
     """Read a KITTI Velodyne scan. Returns (N, 4) float32: x forward, y left, z up, reflectance."""
     bin_path = Path(bin_path)
     if not bin_path.is_file():
-        raise GeoNetInputError(bin_path, "Velodyne scan not found",
-                               "expected <drive>/velodyne_points/data/<frame>.bin")
+        raise GeoNetInputError(bin_path, "Velodyne scan not found", "expected <drive>/velodyne_points/data/<frame>.bin")
     size = os.path.getsize(bin_path)
     if size % 16 != 0:
         # 4 float32 per point = 16 bytes; anything else is truncated or not a scan.
-        raise GeoNetInputError(bin_path, f"size {size} bytes is not a multiple of 16 (4 float32 per point)",
-                               "the scan is truncated or not a KITTI Velodyne .bin file")
+        raise GeoNetInputError(
+            bin_path,
+            f"size {size} bytes is not a multiple of 16 (4 float32 per point)",
+            "the scan is truncated or not a KITTI Velodyne .bin file",
+        )
     return np.fromfile(bin_path, dtype=np.float32).reshape(-1, 4)
 
 
 def _calib_matrix(calib, key, shape, path):
     """calib[key] as a float64 array of ``shape``; GeoNetInputError naming ``path`` if absent or malformed."""
     if key not in calib:
-        raise GeoNetInputError(path, f"calibration key {key!r} is missing",
-                               "use the official KITTI raw calib_cam_to_cam.txt / calib_velo_to_cam.txt of the drive's date")
+        raise GeoNetInputError(
+            path,
+            f"calibration key {key!r} is missing",
+            "use the official KITTI raw calib_cam_to_cam.txt / calib_velo_to_cam.txt of the drive's date",
+        )
     try:
         values = np.asarray(calib[key], dtype=np.float64).ravel()
     except (TypeError, ValueError):
         values = np.empty(0)  # a non-numeric value: reported as a wrong count below
     if values.size != int(np.prod(shape)):
-        raise GeoNetInputError(path, f"calibration key {key!r} has {values.size} numbers, expected {int(np.prod(shape))}",
-                               "the calibration file is truncated or not a KITTI raw calibration")
+        raise GeoNetInputError(
+            path,
+            f"calibration key {key!r} has {values.size} numbers, expected {int(np.prod(shape))}",
+            "the calibration file is truncated or not a KITTI raw calibration",
+        )
     return values.reshape(shape)
 
 

@@ -1,4 +1,5 @@
 """Visualisation: Middlebury flow colours, depth colour maps and side-by-side panels (uint8 RGB)."""
+
 from __future__ import annotations
 
 import cv2
@@ -11,9 +12,14 @@ def _make_color_wheel() -> np.ndarray:
     """Middlebury colour wheel (Baker et al. 2011): (55, 3) float RGB in [0, 255]."""
     RY, YG, GC, CB, BM, MR = 15, 6, 4, 11, 13, 6
     segments = []
-    for n, start, ch_up, ch_down in ((RY, (255, 0, 0), 1, None), (YG, (255, 255, 0), None, 0),
-                                     (GC, (0, 255, 0), 2, None), (CB, (0, 255, 255), None, 1),
-                                     (BM, (0, 0, 255), 0, None), (MR, (255, 0, 255), None, 2)):
+    for n, start, ch_up, ch_down in (
+        (RY, (255, 0, 0), 1, None),
+        (YG, (255, 255, 0), None, 0),
+        (GC, (0, 255, 0), 2, None),
+        (CB, (0, 255, 255), None, 1),
+        (BM, (0, 0, 255), 0, None),
+        (MR, (255, 0, 255), None, 2),
+    ):
         seg = np.tile(np.array(start, dtype=np.float64), (n, 1))
         ramp = np.floor(255 * np.arange(n) / n)
         if ch_up is not None:
@@ -70,8 +76,9 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None, valid: np.nda
     return img
 
 
-def depth_to_color(depth_or_disp: np.ndarray, is_disparity: bool = False, vmax: float | None = None,
-                   colormap: int = cv2.COLORMAP_MAGMA) -> np.ndarray:
+def depth_to_color(
+    depth_or_disp: np.ndarray, is_disparity: bool = False, vmax: float | None = None, colormap: int = cv2.COLORMAP_MAGMA
+) -> np.ndarray:
     """Colour a depth (or disparity) map like monodepth/GeoNet figures: near = bright.
 
     Depth is converted to inverse depth, normalised by its 95th percentile (or
@@ -96,8 +103,9 @@ def depth_to_color(depth_or_disp: np.ndarray, is_disparity: bool = False, vmax: 
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
-def side_by_side(panels: list[np.ndarray], labels: list[str] | None = None, height: int | None = None,
-                 gap: int = 4) -> np.ndarray:
+def side_by_side(
+    panels: list[np.ndarray], labels: list[str] | None = None, height: int | None = None, gap: int = 4
+) -> np.ndarray:
     """Panels resized to one height and placed left to right, optionally labelled.
 
     Args:
@@ -140,11 +148,19 @@ def side_by_side(panels: list[np.ndarray], labels: list[str] | None = None, heig
     out = np.full((strip_h + h, total_w, 3), 24, np.uint8)  # dark strip and gaps
     x = 0
     for i, p in enumerate(resized):
-        out[strip_h:, x:x + p.shape[1]] = p
+        out[strip_h:, x : x + p.shape[1]] = p
         if labels is not None and labels[i]:
-            canvas = np.ascontiguousarray(out[:strip_h, x:x + p.shape[1]])
-            cv2.putText(canvas, str(labels[i]), (4, strip_h - baseline - 4), font, scale, (255, 255, 255),
-                        thickness, cv2.LINE_AA)
-            out[:strip_h, x:x + p.shape[1]] = canvas
+            canvas = np.ascontiguousarray(out[:strip_h, x : x + p.shape[1]])
+            cv2.putText(
+                canvas,
+                str(labels[i]),
+                (4, strip_h - baseline - 4),
+                font,
+                scale,
+                (255, 255, 255),
+                thickness,
+                cv2.LINE_AA,
+            )
+            out[:strip_h, x : x + p.shape[1]] = canvas
         x += p.shape[1] + gap
     return out

@@ -5,6 +5,7 @@ Tests that use it are skipped when it is missing, except on CI (env var ``CI`` s
 anything but ``""``, ``0``, ``false`` or ``no``), where a missing folder is a failure:
 there the data is expected, and a silent skip would hide that nothing was tested.
 """
+
 from __future__ import annotations
 
 import os

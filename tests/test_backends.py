@@ -4,6 +4,7 @@ OpenVINO is a second, independent implementation of the same ONNX graphs, so
 agreement with onnxruntime on fp32 checks both engines' wiring (input order,
 output names, batch reshapes) against each other.
 """
+
 from __future__ import annotations
 
 import sys
@@ -20,6 +21,7 @@ from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 
 try:
     import openvino  # noqa: F401 -- a third-party optional extra, not a module of this repo
+
     HAVE_OPENVINO = True
 except ImportError:
     HAVE_OPENVINO = False
@@ -75,8 +77,9 @@ def test_auto_picks_one_engine_per_graph_and_keeps_the_results(sequence, ort_fp3
         assert choice["chosen"] == predictor.engines[name] in ENGINES
         timings = choice["p50_ms_batch1"]
         assert timings[choice["chosen"]] == min(timings.values())
-    _assert_close(ort_fp32, predictor.predict_sequence(frames, K=camera),
-                  depth_rtol=1e-4, flow_atol=1e-2, pose_atol=1e-5)
+    _assert_close(
+        ort_fp32, predictor.predict_sequence(frames, K=camera), depth_rtol=1e-4, flow_atol=1e-2, pose_atol=1e-5
+    )
 
 
 def test_unknown_backend_is_refused():
@@ -100,8 +103,12 @@ def test_timing_feeds_follow_the_graph_inputs():
     engine = OrtEngine(model / "rigidflow.onnx", threads=1)
     feeds = timing_feeds(engine)
     assert {k: v.shape for k, v in feeds.items()} == {
-        "depth": (1, 1, 128, 416), "pose": (1, 6), "intrinsics": (1, 3, 3),
-        "target": (1, 3, 128, 416), "source": (1, 3, 128, 416)}
+        "depth": (1, 1, 128, 416),
+        "pose": (1, 6),
+        "intrinsics": (1, 3, 3),
+        "target": (1, 3, 128, 416),
+        "source": (1, 3, 128, 416),
+    }
     assert feeds["intrinsics"][0, 0, 2] == 208 and feeds["intrinsics"][0, 1, 2] == 64
     flow = engine.run(feeds)["rigid_flow"]
     assert np.abs(flow).max() < 1e-3  # zero pose: no rigid flow
@@ -120,15 +127,34 @@ def test_bench_times_each_backend_and_records_the_engines(capsys, tmp_path):
     from geonet_infer.cli import main
 
     out = tmp_path / "bench.json"
-    rc = main(["bench", "--backend", "onnxruntime,openvino,auto", "--precision", "fp32", "--tasks", "depth,flow",
-               "--iters", "2", "--warmup", "1", "--rewarm-ms", "0", "--quiet", "--json", str(out)])
+    rc = main(
+        [
+            "bench",
+            "--backend",
+            "onnxruntime,openvino,auto",
+            "--precision",
+            "fp32",
+            "--tasks",
+            "depth,flow",
+            "--iters",
+            "2",
+            "--warmup",
+            "1",
+            "--rewarm-ms",
+            "0",
+            "--quiet",
+            "--json",
+            str(out),
+        ]
+    )
     capsys.readouterr()
     assert rc == 0
     import json
 
     data = json.loads(out.read_text())
     assert {(r["backend"], r["task"]) for r in data["results"]} == {
-        (b, t) for b in ("onnxruntime", "openvino", "auto") for t in ("depth", "flow")}
+        (b, t) for b in ("onnxruntime", "openvino", "auto") for t in ("depth", "flow")
+    }
     engines = data["environment"]["engines"]
     assert {e["engine"] for e in engines["openvino/fp32"].values()} == {"openvino"}
     assert "float32" in engines["openvino/fp32"]["depthnet"]["properties"]["INFERENCE_PRECISION_HINT"]

@@ -6,6 +6,7 @@ Reference outputs come from `geonet-infer predict` on each sequence, with the sa
 file is compared byte for byte, except the summary.json files (they hold timings) and
 batch's own ``.done`` markers. No torch.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -48,8 +49,11 @@ def make_sequences(root: Path, names, n_frames: int) -> list[Path]:
 
 def tree(folder: Path, skip=("summary.json", MARKER_NAME)) -> dict[str, bytes]:
     """Relative path -> bytes of every file under ``folder`` whose name is not in ``skip``."""
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
-            if p.is_file() and p.name not in skip}
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name not in skip
+    }
 
 
 def assert_complete_and_clean(out: Path, names) -> None:
@@ -72,8 +76,22 @@ def three(tmp_path_factory):
     root = tmp_path_factory.mktemp("batch")
     seqs = make_sequences(root / "in", ["seq_a", "seq_b", "seq_c"], 4)
     for seq in seqs:
-        assert main(["predict", str(seq), "--out", str(root / "predict" / seq.name), "--calib", str(SAMPLE_CALIB),
-                     "--no-progress", "--batch-size", "4"]) == 0
+        assert (
+            main(
+                [
+                    "predict",
+                    str(seq),
+                    "--out",
+                    str(root / "predict" / seq.name),
+                    "--calib",
+                    str(SAMPLE_CALIB),
+                    "--no-progress",
+                    "--batch-size",
+                    "4",
+                ]
+            )
+            == 0
+        )
     return root, seqs
 
 
@@ -89,15 +107,34 @@ def assert_same_as_predict(out: Path, root: Path, seqs) -> None:
 def test_local_engine_matches_predict(three, tmp_path, capfd):
     root, seqs = three
     out = tmp_path / "out"
-    rc, stdout, stderr = cli(capfd, "batch", *seqs, "--out", out, "--calib", SAMPLE_CALIB, "--no-progress",
-                             "--workers", 2, "--threads-per-worker", 1, "--batch-size", 4)
+    rc, stdout, stderr = cli(
+        capfd,
+        "batch",
+        *seqs,
+        "--out",
+        out,
+        "--calib",
+        SAMPLE_CALIB,
+        "--no-progress",
+        "--workers",
+        2,
+        "--threads-per-worker",
+        1,
+        "--batch-size",
+        4,
+    )
     assert rc == 0, stderr
     assert_same_as_predict(out, root, seqs)
     assert_complete_and_clean(out, [s.name for s in seqs])
     assert (out / FAILURES_NAME).read_text() == ""
     summary = json.loads((out / "summary.json").read_text())
     assert summary["sequences"] == {"total": 3, "done": 3, "failed": 0, "skipped": 0, "not_run": 0}
-    assert (summary["frames"], summary["engine"], summary["workers"], summary["threads_per_worker"]) == (12, "local", 2, 1)
+    assert (summary["frames"], summary["engine"], summary["workers"], summary["threads_per_worker"]) == (
+        12,
+        "local",
+        2,
+        1,
+    )
     assert summary["exit_code"] == 0 and "3 sequences done" in stdout
 
 
@@ -125,8 +162,20 @@ def test_ray_engine_matches_predict(three, tmp_path, cluster):
     require_ray()
     root, seqs = three
     out = tmp_path / "out"
-    argv = [*CLI, "batch", *map(str, seqs), "--out", str(out), "--calib", str(SAMPLE_CALIB), "--engine", "ray",
-            "--no-progress", "--batch-size", "4"]
+    argv = [
+        *CLI,
+        "batch",
+        *map(str, seqs),
+        "--out",
+        str(out),
+        "--calib",
+        str(SAMPLE_CALIB),
+        "--engine",
+        "ray",
+        "--no-progress",
+        "--batch-size",
+        "4",
+    ]
     if cluster == "joined":
         argv = [sys.executable, "-c", JOIN_SCRIPT, *argv]
     # A subprocess: Ray's cluster, logging and signal handlers stay out of the test process.
@@ -186,8 +235,12 @@ def test_killed_job_resumes_to_identical_outputs(tmp_path, capfd, how):
     assert cli(capfd, "batch", *seqs, "--out", ref, *common)[0] == 0
 
     out = tmp_path / "out"
-    proc = subprocess.Popen([*CLI, "batch", *map(str, seqs), "--out", str(out), *map(str, common)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [*CLI, "batch", *map(str, seqs), "--out", str(out), *map(str, common)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert _wait_for(lambda: any(out.glob(f"*/{MARKER_NAME}")), 120), "no sequence finished"
         workers = _children(proc.pid) if sys.platform.startswith("linux") else []
@@ -228,14 +281,32 @@ def test_a_worker_that_dies_fails_its_sequence_and_the_rest_completes(tmp_path):
     names = ["w1", "w2", "w3"]
     seqs = make_sequences(tmp_path / "in", names, 12)
     out = tmp_path / "out"
-    proc = subprocess.Popen([*CLI, "batch", *map(str, seqs), "--out", str(out), "--calib", str(SAMPLE_CALIB),
-                             "--no-progress", "--workers", "2", "--threads-per-worker", "1"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            *CLI,
+            "batch",
+            *map(str, seqs),
+            "--out",
+            str(out),
+            "--calib",
+            str(SAMPLE_CALIB),
+            "--no-progress",
+            "--workers",
+            "2",
+            "--threads-per-worker",
+            "1",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
+
         def busy_worker():  # a worker that has started writing a sequence (as an OOM kill would find it)
             started = [d for d in out.glob("w*") if not (d / MARKER_NAME).exists() and any(d.rglob("*.npy"))]
             workers = [w for w in _children(proc.pid) if b"spawn_main" in _cmdline(w)]
             return bool(started) and len(workers) == 2 and workers
+
         assert _wait_for(busy_worker, 120), "no worker got busy"
         victim = busy_worker()[0]
         os.kill(victim, signal.SIGKILL)
@@ -278,8 +349,9 @@ def test_corrupt_inputs_are_recorded_and_the_rest_completes(tmp_path, capfd):
     assert summary["frames_failed"] == 1 and summary["exit_code"] == 1
 
     # --resume: the complete ones are skipped, their bad frame stays on record; the failed ones are retried
-    rc, stdout, stderr = cli(capfd, "batch", listing, "--out", out, "--tasks", "depth,pose", "--no-progress",
-                             "--resume")
+    rc, stdout, stderr = cli(
+        capfd, "batch", listing, "--out", out, "--tasks", "depth,pose", "--no-progress", "--resume"
+    )
     assert rc == 1 and "2 skipped" in stdout
     again = {(r["sequence"], r["frame"]) for r in map(json.loads, (out / FAILURES_NAME).read_text().splitlines())}
     assert again == set(by_seq)
@@ -288,14 +360,25 @@ def test_corrupt_inputs_are_recorded_and_the_rest_completes(tmp_path, capfd):
 def test_ray_missing_is_a_usage_error(tmp_path, capfd, monkeypatch):
     (seq,) = make_sequences(tmp_path / "in", ["s"], 2)
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
-    rc, _, stderr = cli(capfd, "batch", seq, "--out", tmp_path / "out", "--engine", "ray", "--tasks", "depth",
-                        "--no-progress")
+    rc, _, stderr = cli(
+        capfd, "batch", seq, "--out", tmp_path / "out", "--engine", "ray", "--tasks", "depth", "--no-progress"
+    )
     assert rc == 2 and len(stderr.strip().splitlines()) == 1
     assert "pip install 'geonet-infer[ray]'" in stderr
 
 
-@pytest.mark.parametrize("case", ["missing_input", "flow_without_intrinsics", "unknown_model", "resume_other_options",
-                                  "address_without_ray", "empty_list", "unreachable_ray_cluster"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "missing_input",
+        "flow_without_intrinsics",
+        "unknown_model",
+        "resume_other_options",
+        "address_without_ray",
+        "empty_list",
+        "unreachable_ray_cluster",
+    ],
+)
 def test_bad_usage_exits_2_with_one_line(tmp_path, capfd, case):
     (seq,) = make_sequences(tmp_path / "in", ["s"], 2)
     out = tmp_path / "out"
@@ -327,8 +410,14 @@ def test_sequence_names_are_unique_and_deterministic(tmp_path):
     for d in ("x/cam", "y/cam", "z/x/cam", "solo"):
         (tmp_path / d).mkdir(parents=True)
     (tmp_path / "clip.mp4").write_bytes(b"")
-    paths = [tmp_path / "x/cam", tmp_path / "y/cam", tmp_path / "z/x/cam", tmp_path / "solo",
-             tmp_path / "solo/", tmp_path / "clip.mp4"]
+    paths = [
+        tmp_path / "x/cam",
+        tmp_path / "y/cam",
+        tmp_path / "z/x/cam",
+        tmp_path / "solo",
+        tmp_path / "solo/",
+        tmp_path / "clip.mp4",
+    ]
     names = [u.name for u in plan_units(paths)]
     assert names == ["cam__x", "cam__y", "cam__x__2", "solo", "clip"]  # the same input twice runs once
     assert [u.name for u in plan_units(paths)] == names
@@ -336,10 +425,10 @@ def test_sequence_names_are_unique_and_deterministic(tmp_path):
 
 def test_default_workers_times_threads_fit_the_cpus():
     assert plan_workers(10, None, None, cpus=2) == (2, 1)
-    assert plan_workers(1, None, None, cpus=8) == (1, 8)    # one sequence: one worker, all threads
+    assert plan_workers(1, None, None, cpus=8) == (1, 8)  # one sequence: one worker, all threads
     assert plan_workers(10, None, 2, cpus=8) == (4, 2)
     assert plan_workers(10, 3, None, cpus=8) == (3, 2)
-    assert plan_workers(2, 4, 1, cpus=2) == (2, 1)          # never more workers than sequences
+    assert plan_workers(2, 4, 1, cpus=2) == (2, 1)  # never more workers than sequences
     for n in (1, 3, 16):
         for cpus in (1, 2, 3, 16):
             w, t = plan_workers(n, None, None, cpus=cpus)
@@ -348,8 +437,9 @@ def test_default_workers_times_threads_fit_the_cpus():
 
 def test_ray_pool_never_asks_for_more_cpus_than_the_nodes_have():
     from geonet_infer.batch_ray import size_pool  # importable without ray (ray is imported lazily)
+
     assert size_pool([2], 3, None, None)[:2] == (2, 1)
-    assert size_pool([2], 3, 4, 1)[:2] == (2, 1)             # asked for 4 actors on 2 CPUs
-    assert size_pool([2], 3, None, 4)[:2] == (1, 2)          # threads capped at the node's CPUs
-    assert size_pool([4, 4], 10, None, 3)[:2] == (2, 3)      # per node: 4 // 3 = 1 actor each
-    assert size_pool([2], 3, 4, 1)[2] is not None            # and says so
+    assert size_pool([2], 3, 4, 1)[:2] == (2, 1)  # asked for 4 actors on 2 CPUs
+    assert size_pool([2], 3, None, 4)[:2] == (1, 2)  # threads capped at the node's CPUs
+    assert size_pool([4, 4], 10, None, 3)[:2] == (2, 3)  # per node: 4 // 3 = 1 actor each
+    assert size_pool([2], 3, 4, 1)[2] is not None  # and says so

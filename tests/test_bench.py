@@ -5,12 +5,12 @@ wall-clock threshold is asserted anywhere. int8 plumbing uses a model directory 
 whose int8 set points at the fp32 files (cheap; the numbers are fp32 ones, the code path is
 the int8 one). No torch.
 """
+
 from __future__ import annotations
 
 import gc
 import json
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -24,11 +24,44 @@ from geonet_infer.cli.bench import MODES, TASKS
 PKG = Path(geonet_infer.__file__).resolve().parent
 MODEL_DIR = PKG / "models" / "small_synth"
 FAST = ("--iters", "2", "--warmup", "1", "--rewarm-ms", "0", "--quiet")
-ROW_KEYS = {"task", "mode", "precision", "backend", "batch", "p50_ms", "p90_ms", "p99_ms", "mean_ms", "std_ms",
-            "min_ms", "max_ms", "fps", "n", "items_per_call", "per_item_p50_ms", "graphs", "unit"}
-ENV_KEYS = {"cpu", "cpu_flags", "usable_cpus", "threads", "python", "onnxruntime", "numpy", "opencv",
-            "geonet_infer", "session_options", "model", "peak_rss_mib", "memory", "timing", "input_size",
-            "load_average_start"}
+ROW_KEYS = {
+    "task",
+    "mode",
+    "precision",
+    "backend",
+    "batch",
+    "p50_ms",
+    "p90_ms",
+    "p99_ms",
+    "mean_ms",
+    "std_ms",
+    "min_ms",
+    "max_ms",
+    "fps",
+    "n",
+    "items_per_call",
+    "per_item_p50_ms",
+    "graphs",
+    "unit",
+}
+ENV_KEYS = {
+    "cpu",
+    "cpu_flags",
+    "usable_cpus",
+    "threads",
+    "python",
+    "onnxruntime",
+    "numpy",
+    "opencv",
+    "geonet_infer",
+    "session_options",
+    "model",
+    "peak_rss_mib",
+    "memory",
+    "timing",
+    "input_size",
+    "load_average_start",
+}
 
 
 def run_cli(capsys, *argv) -> tuple[int, str, str]:
@@ -121,8 +154,9 @@ def test_environment_block(bundled_run):
 
 
 def test_table_is_printed(capsys, tmp_path):
-    rc, out, err = run_cli(capsys, *FAST, "--precision", "fp32", "--tasks", "pose", "--modes", "graph",
-                           "--input-size", "graph")
+    rc, out, err = run_cli(
+        capsys, *FAST, "--precision", "fp32", "--tasks", "pose", "--modes", "graph", "--input-size", "graph"
+    )
     assert rc == 0, err
     assert "p50 ms" in out and "pose" in out and "416x128" in out
 
@@ -131,8 +165,22 @@ def test_table_is_printed(capsys, tmp_path):
 def test_int8_set_and_batches(capsys, tmp_path):
     model = model_copy(tmp_path, fake_int8)
     out = tmp_path / "bench.json"
-    rc, _, err = run_cli(capsys, *FAST, "--model", model, "--tasks", "depth,pose,sequence", "--batch", "1,2",
-                         "--seq-frames", "3", "--input-size", "graph", "--json", out)
+    rc, _, err = run_cli(
+        capsys,
+        *FAST,
+        "--model",
+        model,
+        "--tasks",
+        "depth,pose,sequence",
+        "--batch",
+        "1,2",
+        "--seq-frames",
+        "3",
+        "--input-size",
+        "graph",
+        "--json",
+        out,
+    )
     assert rc == 0, err
     data = json.loads(out.read_text())
     got = {(r["task"], r["mode"], r["precision"], r["batch"]) for r in data["results"]}
@@ -154,8 +202,26 @@ def test_model_without_resflownet(capsys, tmp_path):
     rc, _, err = run_cli(capsys, *FAST, "--model", model, "--tasks", "resflow")
     assert rc == 2 and "resflownet" in err and len(err.strip().splitlines()) == 1
     out = tmp_path / "bench.json"
-    rc, _, err = run_cli(capsys, "--iters", "1", "--warmup", "0", "--rewarm-ms", "0", "--quiet", "--model", model,
-                         "--modes", "graph", "--seq-frames", "2", "--input-size", "graph", "--json", out)
+    rc, _, err = run_cli(
+        capsys,
+        "--iters",
+        "1",
+        "--warmup",
+        "0",
+        "--rewarm-ms",
+        "0",
+        "--quiet",
+        "--model",
+        model,
+        "--modes",
+        "graph",
+        "--seq-frames",
+        "2",
+        "--input-size",
+        "graph",
+        "--json",
+        out,
+    )
     assert rc == 0, err
     data = json.loads(out.read_text())
     assert {r["task"] for r in data["results"]} == set(TASKS) - {"resflow"}
@@ -164,18 +230,22 @@ def test_model_without_resflownet(capsys, tmp_path):
     assert flow["graphs"] == ["depthnet", "posenet", "rigidflow"]
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (("--tasks", "depth,optical"), "optical"),
-    (("--precision", "fp16"), "fp16"),
-    (("--backend", "tensorrt"), "tensorrt"),
-    (("--iters", "0"), "--iters"),
-    (("--warmup", "-1"), "--warmup"),
-    (("--batch", "0"), "--batch"),
-    (("--modes", "cold"), "cold"),
-    (("--input-size", "big"), "--input-size"),
-    (("--seq-frames", "1"), "--seq-frames"),
-    (("--model", "no_such_model_dir"), "no_such_model_dir"),
-], ids=["task", "precision", "backend", "iters", "warmup", "batch", "mode", "input-size", "seq-frames", "model"])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (("--tasks", "depth,optical"), "optical"),
+        (("--precision", "fp16"), "fp16"),
+        (("--backend", "tensorrt"), "tensorrt"),
+        (("--iters", "0"), "--iters"),
+        (("--warmup", "-1"), "--warmup"),
+        (("--batch", "0"), "--batch"),
+        (("--modes", "cold"), "cold"),
+        (("--input-size", "big"), "--input-size"),
+        (("--seq-frames", "1"), "--seq-frames"),
+        (("--model", "no_such_model_dir"), "no_such_model_dir"),
+    ],
+    ids=["task", "precision", "backend", "iters", "warmup", "batch", "mode", "input-size", "seq-frames", "model"],
+)
 def test_bad_input_exits_2_with_one_line(capsys, argv, needle):
     rc, out, err = run_cli(capsys, *argv)
     assert rc == 2
@@ -217,6 +287,7 @@ def test_time_interleaved_counts_calls_and_restores_gc():
         def fn():
             calls[name] += 1
             order.append(name)
+
         return fn
 
     cases = [timing.Case("a", make("a")), timing.Case("b", make("b"), items_per_call=3)]

@@ -5,6 +5,7 @@ Commands run in-process through ``geonet_infer.cli.main(argv)`` (one subprocess 
 readers and compared with the Python API run here, and with facts (counts, shapes, sizes)
 from the data folders' READMEs. No torch.
 """
+
 from __future__ import annotations
 
 import json
@@ -28,7 +29,7 @@ SAMPLE = PKG / "samples" / "synth_seq"
 SAMPLE_CALIB = SAMPLE / "calib.txt"
 MODEL_DIR = PKG / "models" / "small_synth"
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"
-FLOW_MAX = (2 ** 16 - 1 - 2 ** 15) / 64  # largest u/v a KITTI flow PNG holds; the smallest is -512
+FLOW_MAX = (2**16 - 1 - 2**15) / 64  # largest u/v a KITTI flow PNG holds; the smallest is -512
 
 
 @pytest.fixture(scope="module")
@@ -119,8 +120,18 @@ def test_predict_records_a_corrupt_frame_and_goes_on(tmp_path, capsys):
 def test_predict_video_depth_only_undistorts(tmp_path, capsys, realdata):
     dashcam = realdata / "udacity_dashcam"
     out = tmp_path / "out"
-    rc, _, stderr = run_cli(capsys, "predict", dashcam / "test_video.mp4", "--out", out,
-                            "--calib", dashcam / "calib_advanced_lane_lines.txt", "--tasks", "depth", "--no-progress")
+    rc, _, stderr = run_cli(
+        capsys,
+        "predict",
+        dashcam / "test_video.mp4",
+        "--out",
+        out,
+        "--calib",
+        dashcam / "calib_advanced_lane_lines.txt",
+        "--tasks",
+        "depth",
+        "--no-progress",
+    )
     assert rc == 0, stderr
     files = sorted((out / "depth").glob("*.npy"))
     assert len(files) == 38  # README: 38 frames decoded by OpenCV, 1280x720
@@ -171,8 +182,18 @@ def _folder_without_calib(tmp_path):
 # (geonet_infer/io/frames.py opens videos without silencing OpenCV's log;
 # cv2.utils.logging.setLogLevel(0) around the open stops it). Pure random bytes are usually not
 # probed as MP4, so whether random_bytes_video shows it depends on the bytes.
-@pytest.mark.parametrize("case", ["missing_input", "flow_without_calib", "bad_intrinsics", "bad_tasks",
-                                  "missing_model", "random_bytes_video", "truncated_mp4_video"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "missing_input",
+        "flow_without_calib",
+        "bad_intrinsics",
+        "bad_tasks",
+        "missing_model",
+        "random_bytes_video",
+        "truncated_mp4_video",
+    ],
+)
 def test_usage_errors_exit_2_with_one_line_naming_the_item(tmp_path, capfd, case):
     out = tmp_path / "out"
     if case == "missing_input":
@@ -238,8 +259,9 @@ def test_no_command_prints_help_and_exits_2(capsys):
 # directly executed" (rc 1), although cli/__init__.py ends with `if __name__ == "__main__":
 # # python -m geonet_infer.cli`. Fix: add geonet_infer/cli/__main__.py calling sys.exit(main()).
 def test_module_entry_point_help_in_a_subprocess():
-    result = subprocess.run([sys.executable, "-m", "geonet_infer.cli", "--help"], capture_output=True,
-                            text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "geonet_infer.cli", "--help"], capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0, result.stderr
     assert "predict" in result.stdout and "demo" in result.stdout and "info" in result.stdout
 

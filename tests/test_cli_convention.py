@@ -3,6 +3,7 @@
 Each CLI runs as a user would start it (``python -m ...`` in a fresh process), so the test also
 covers the ``__main__`` wiring: no traceback, no progress bar, no usage text before the message.
 """
+
 from __future__ import annotations
 
 import subprocess
@@ -20,8 +21,22 @@ CASES = [
     ("training.synth", ["--out", "{file}/sub", "--sequences", "1", "--frames", "2"], "{file}"),
     ("training.train", ["--data-dir", "{missing}", "--out-dir", "{out}", "--max-steps", "1"], "{missing}"),
     ("training.evaluate", ["--checkpoint", "{missing}", "--data", "{missing}"], "{missing}"),
-    ("training.model_card", ["--model", "{missing}", "--synth-dir", "{missing}", "--prepared-dir", "{missing}",
-                             "--kitti", "{missing}", "--out", "{out}.md"], "{missing}"),
+    (
+        "training.model_card",
+        [
+            "--model",
+            "{missing}",
+            "--synth-dir",
+            "{missing}",
+            "--prepared-dir",
+            "{missing}",
+            "--kitti",
+            "{missing}",
+            "--out",
+            "{out}.md",
+        ],
+        "{missing}",
+    ),
     ("training.summary", ["--height", "0"], "--height"),  # no input path: the bad size is the item
     ("export", ["--checkpoint", "{missing}", "--out", "{out}"], "{missing}"),
     ("geonet_infer.cli", ["predict", "{missing}", "--out", "{out}"], "{missing}"),
@@ -45,8 +60,14 @@ def test_bad_input_exits_2_with_one_line_naming_it(case, tmp_path):
     a_file.write_text("not a folder")
     paths = {"missing": str(tmp_path / MISSING), "out": str(tmp_path / "out"), "file": str(a_file)}
     argv = [a.format(**paths) for a in argv]
-    run = subprocess.run([sys.executable, "-m", module, *argv], cwd=ROOT, capture_output=True, text=True,
-                         env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"}, timeout=300)
+    run = subprocess.run(
+        [sys.executable, "-m", module, *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"},
+        timeout=300,
+    )
     lines = run.stderr.strip().splitlines()
     assert run.returncode == 2, run.stderr
     assert len(lines) == 1, run.stderr

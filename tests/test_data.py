@@ -3,6 +3,7 @@
 Prepared folders are written here by hand (cv2 + plain text), independent of training.prepare,
 except for the held-out test which checks the two together.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -25,8 +26,9 @@ def write_sample(root: Path, folder: str, frame: str, frames_rgb: list[np.ndarra
     """One prepared sample by hand: frames side by side in a q95 JPEG + official _cam.txt line."""
     (root / folder).mkdir(parents=True, exist_ok=True)
     strip = np.concatenate(frames_rgb, axis=1)
-    cv2.imwrite(str(root / folder / f"{frame}.jpg"), cv2.cvtColor(strip, cv2.COLOR_RGB2BGR),
-                [cv2.IMWRITE_JPEG_QUALITY, 95])
+    cv2.imwrite(
+        str(root / folder / f"{frame}.jpg"), cv2.cvtColor(strip, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95]
+    )
     fx, cx, fy, cy = K[0, 0], K[0, 2], K[1, 1], K[1, 2]
     (root / folder / f"{frame}_cam.txt").write_text(f"{fx},0.,{cx},0.,{fy},{cy},0.,0.,1.")
 
@@ -61,7 +63,7 @@ def test_shapes_ranges_and_temporal_order(tmp_path, seq_length):
     ds = D.SequenceDataset(tmp_path, "val", seq_length=seq_length)
     item = ds[0]
     mid = seq_length // 2
-    src_values = values[:mid] + values[mid + 1:]  # seq 3: [t-1, t+1]; seq 5: [t-2, t-1, t+1, t+2]
+    src_values = values[:mid] + values[mid + 1 :]  # seq 3: [t-1, t+1]; seq 5: [t-2, t-1, t+1, t+2]
     assert abs(float(item["target"].mean()) - values[mid] / 255) < 2 / 255
     for s, v in zip(item["sources"], src_values):
         assert abs(float(s.mean()) - v / 255) < 2 / 255
@@ -72,7 +74,7 @@ def test_shapes_ranges_and_temporal_order(tmp_path, seq_length):
 def blob_image(u: float, v: float, sigma: float = 2.5, h=H, w=W) -> np.ndarray:
     """(h, w, 3) uint8: black with a Gaussian spot centred at pixel (u, v) (pixel-centre coords)."""
     yy, xx = np.mgrid[0:h, 0:w]
-    g = np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma ** 2))
+    g = np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma**2))
     return np.repeat((g * 230)[..., None], 3, axis=2).round().astype(np.uint8)
 
 
@@ -80,7 +82,7 @@ def centroid(img_chw: np.ndarray) -> tuple[float, float]:
     """Intensity-weighted centre of the spot (background and JPEG noise thresholded away)."""
     g = img_chw.mean(axis=0)
     wgt = np.clip(g - 0.1 * g.max(), 0, None)
-    yy, xx = np.mgrid[0:g.shape[0], 0:g.shape[1]]
+    yy, xx = np.mgrid[0 : g.shape[0], 0 : g.shape[1]]
     return float((wgt * xx).sum() / wgt.sum()), float((wgt * yy).sum() / wgt.sum())
 
 
@@ -149,7 +151,7 @@ def test_random_color_gain_shared_or_not():
     for out in (same, diff):
         assert 0.0 <= out.min() and out.max() <= 1.0
         px = out[:, 0, 0]
-        assert px.min() >= 0.5 ** 1.2 * 0.5 * 0.8 - 1e-6
+        assert px.min() >= 0.5**1.2 * 0.5 * 0.8 - 1e-6
         ratio = px.max(axis=1) / px.min(axis=1)
         assert np.all(ratio <= 1.2 / 0.8 + 1e-6)
 

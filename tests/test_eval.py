@@ -1,5 +1,6 @@
 """geonet-infer eval / geonet_infer.evaluation: readers on real files, the DIS acceptance check against
 an independent EPE, hand-computed golden values on hand-built folders, and bad input."""
+
 from __future__ import annotations
 
 import json
@@ -33,8 +34,8 @@ def read_flo_numpy(path: Path) -> np.ndarray:
 def write_kitti_flow_png(path: Path, flow: np.ndarray, valid: np.ndarray) -> None:
     """KITTI flow PNG by hand (devkit): 16-bit, R = u*64 + 2^15, G = v*64 + 2^15, B = valid; cv2 is BGR."""
     enc = np.zeros(flow.shape[:2] + (3,), np.uint16)
-    enc[..., 2] = np.where(valid, np.round(flow[..., 0] * 64 + 2 ** 15), 0)
-    enc[..., 1] = np.where(valid, np.round(flow[..., 1] * 64 + 2 ** 15), 0)
+    enc[..., 2] = np.where(valid, np.round(flow[..., 0] * 64 + 2**15), 0)
+    enc[..., 1] = np.where(valid, np.round(flow[..., 1] * 64 + 2**15), 0)
     enc[..., 0] = valid
     path.parent.mkdir(parents=True, exist_ok=True)
     assert cv2.imwrite(str(path), enc)
@@ -56,7 +57,7 @@ def make_synth(root: Path, frames: int = 6, h: int = 64, w: int = 208) -> Path:
     flow (3, 4) px everywhere (noc: top half only); camera moving 1 m forward per frame."""
     seq = root / "seq_0000"
     depth = np.full((h, w), 10.0)
-    depth[:, w // 2:] = 20.0
+    depth[:, w // 2 :] = 20.0
     flow = np.zeros((h, w, 2))
     flow[..., 0], flow[..., 1] = 3.0, 4.0
     noc = np.zeros((h, w), bool)
@@ -101,7 +102,7 @@ def test_middlebury_reader_matches_flo_by_hand():
     expected = read_flo_numpy(root / "other-gt-flow" / "Grove3" / "flow10.flo")
     np.testing.assert_array_equal(flow, expected)
     assert flow.shape == (480, 640, 2) and valid.all()  # README: 640x480, all pixels valid
-    assert np.sqrt((flow ** 2).sum(axis=2)).max() == pytest.approx(18.6, abs=0.05)  # README: max 18.6 px
+    assert np.sqrt((flow**2).sum(axis=2)).max() == pytest.approx(18.6, abs=0.05)  # README: max 18.6 px
 
 
 def test_kitti_raw_velodyne_reader():
@@ -166,8 +167,10 @@ def test_dis_on_kitti2012_layout_agrees_with_independent_epe(tmp_path, capsys):
     table = capsys.readouterr().out
     assert "DIS medium" in table and "KITTI 2012 layout" in table
     results = {r["method"]: r for r in json.loads(out.read_text())["results"]}
-    for label, preset in (("DIS medium", cv2.DISOPTICAL_FLOW_PRESET_MEDIUM),
-                          ("DIS ultrafast", cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST)):
+    for label, preset in (
+        ("DIS medium", cv2.DISOPTICAL_FLOW_PRESET_MEDIUM),
+        ("DIS ultrafast", cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST),
+    ):
         noc, all_ = [], []
         for a, b, flow, mask in pairs:
             pred = cv2.DISOpticalFlow_create(preset).calc(a, b, None)
@@ -188,12 +191,15 @@ def test_kitti_layout_uses_09_and_calibration_for_the_model(tmp_path):
     root = require_realdata(MIDDLEBURY)
     data_dir = tmp_path / "kitti2012"
     _kitti2012_from_middlebury(root, data_dir)
-    cv2.imwrite(str(data_dir / "colored_0" / "000000_09.png"),
-                cv2.imread(str(root / "other-data-gray" / "Grove3" / "frame10.png")))
+    cv2.imwrite(
+        str(data_dir / "colored_0" / "000000_09.png"),
+        cv2.imread(str(root / "other-data-gray" / "Grove3" / "frame10.png")),
+    )
     (data_dir / "calib").mkdir()
     for k in range(2):
         (data_dir / "calib" / f"{k:06d}.txt").write_text(
-            "".join(f"P{c}: 600 0 320 0 0 600 240 0 0 0 1 0\n" for c in range(4)))
+            "".join(f"P{c}: 600 0 320 0 0 600 240 0 0 0 1 0\n" for c in range(4))
+        )
     data = flow_dataset(data_dir)
     assert [len(i.frames) for i in data.items] == [3, 2]
     assert data.items[0].frames[0].name == "000000_09.png"
@@ -228,6 +234,7 @@ def test_snippet_from_three_frame_pose_calls_recovers_trajectory():
         T[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
         T[:3, 3] = t
         return T
+
     c2w = [rigid(0.05 * i, rng.normal(size=3) + [0, 0, i]) for i in range(5)]
 
     def T(target, source):  # maps target-camera points to source-camera points
@@ -244,8 +251,9 @@ def test_orb_vo_recovers_direction_of_a_rendered_plane_motion():
     trajectory points along +x (unit steps) — the geometry comes from cv2.warpPerspective, not from the code."""
     h, w = 240, 320
     K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
-    tex = cv2.resize(np.random.default_rng(3).integers(0, 255, (60, 80), np.uint8), (2 * w, 2 * h),
-                     interpolation=cv2.INTER_NEAREST)
+    tex = cv2.resize(
+        np.random.default_rng(3).integers(0, 255, (60, 80), np.uint8), (2 * w, 2 * h), interpolation=cv2.INTER_NEAREST
+    )
     frames = []
     for i in range(5):
         # plane z = 5 m (plus a tilt so it is not degenerate for the essential matrix), camera at x = 0.2 i
@@ -272,6 +280,7 @@ def test_nan_prediction_is_reported_not_dropped(tmp_path, monkeypatch, capsys):
         if calls["n"] == 3:
             out[0, 0] = np.nan
         return out
+
     monkeypatch.setattr(baselines, "constant_depth", sometimes_nan)
     out = tmp_path / "r.json"
     assert cli_main(["eval", "depth", "--data", str(tmp_path), "--method", "constant", "--json", str(out)]) == 1
@@ -293,15 +302,23 @@ def test_missing_data_folder_exit_2(tmp_path, capsys):
     assert str(missing) in err and len(err.splitlines()) == 1
 
 
-@pytest.mark.parametrize("task,breakage,named", [
-    ("depth", lambda s: (s / "depth" / "000003.png").unlink(), "depth/000003.png"),
-    ("depth", lambda s: write_depth_png(s / "depth" / "000001.png", np.ones((10, 10))), "depth/000001.png"),
-    ("depth", lambda s: write_depth_png(s / "depth" / "000002.png", np.zeros((64, 208))), "depth/000002.png"),
-    ("flow", lambda s: (s / "flow_occ" / "000002.png").unlink(), "flow_occ/000002.png"),
-    ("flow", lambda s: write_kitti_flow_png(s / "flow_noc" / "000001.png", np.zeros((64, 208, 2)),
-                                            np.zeros((64, 208), bool)), "flow_noc/000001.png"),
-    ("pose", lambda s: (s / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 4), "poses.txt"),
-])
+@pytest.mark.parametrize(
+    "task,breakage,named",
+    [
+        ("depth", lambda s: (s / "depth" / "000003.png").unlink(), "depth/000003.png"),
+        ("depth", lambda s: write_depth_png(s / "depth" / "000001.png", np.ones((10, 10))), "depth/000001.png"),
+        ("depth", lambda s: write_depth_png(s / "depth" / "000002.png", np.zeros((64, 208))), "depth/000002.png"),
+        ("flow", lambda s: (s / "flow_occ" / "000002.png").unlink(), "flow_occ/000002.png"),
+        (
+            "flow",
+            lambda s: write_kitti_flow_png(
+                s / "flow_noc" / "000001.png", np.zeros((64, 208, 2)), np.zeros((64, 208), bool)
+            ),
+            "flow_noc/000001.png",
+        ),
+        ("pose", lambda s: (s / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 4), "poses.txt"),
+    ],
+)
 def test_bad_data_names_the_file(tmp_path, capsys, task, breakage, named):
     seq = make_synth(tmp_path)
     breakage(seq)

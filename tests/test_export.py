@@ -5,6 +5,7 @@ perturbed BN statistics, stage-flow checkpoint, fp32 + int8 with the accuracy
 delta on a tiny synthetic held-out set) is shared by most tests. Parity tests
 need the KITTI frames in ``<repo>/../shared/realdata`` and skip without them.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,15 +23,15 @@ import torch
 from export.__main__ import main as export_main
 from export.to_onnx import ExportCheckError, check_graph, op_types
 from export.verify import compare_graph
-from geonet_infer.predictor import Predictor
-from geonet_infer.preprocess import InputSpec
-from training.evaluate import onnx_depth_fn
 from export.wrappers import GRAPH_NAMES, build_wrapper, io_spec
 from geonet_infer import conventions
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io import list_images, read_calib_K, read_image
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest, write_manifest
+from geonet_infer.predictor import Predictor
+from geonet_infer.preprocess import InputSpec
 from geonet_infer.session import make_session
+from training.evaluate import onnx_depth_fn
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO.parent / "shared" / "realdata" / "kitti_raw_2011_09_26_sfnd"
@@ -68,21 +69,28 @@ def perturb_model(model: torch.nn.Module, seed: int = 0) -> None:
 
 
 def save_small_checkpoint(path: Path, stage: str, height: int = H, width: int = W) -> None:
+    from training.checkpoint import save_checkpoint
     from training.config import TrainConfig
     from training.model import GeoNet
-    from training.checkpoint import save_checkpoint
 
     torch.manual_seed(1234)
     model = GeoNet("small", 2, with_flow=stage == "flow")
     perturb_model(model)
-    cfg = TrainConfig(stage=stage, arch="small", height=height, width=width, data_dir="data/prepared-test",
-                      out_dir=str(path.parent))
-    save_checkpoint(path, model.eval(), torch.optim.Adam(model.parameters()), 42, cfg,
-                    {"val_total": 0.5, "best_val_total": 0.5, "best_step": 42})
+    cfg = TrainConfig(
+        stage=stage, arch="small", height=height, width=width, data_dir="data/prepared-test", out_dir=str(path.parent)
+    )
+    save_checkpoint(
+        path,
+        model.eval(),
+        torch.optim.Adam(model.parameters()),
+        42,
+        cfg,
+        {"val_total": 0.5, "best_val_total": 0.5, "best_step": 42},
+    )
 
 
 def kitti_frames(n: int = 3, start: int = 0) -> list[np.ndarray]:
-    files = list_images(KITTI_FRAMES)[start:start + n]
+    files = list_images(KITTI_FRAMES)[start : start + n]
     return [cv2.resize(read_image(f), (W, H), interpolation=cv2.INTER_AREA) for f in files]
 
 
@@ -115,13 +123,31 @@ def flow_ckpt(work) -> Path:
 @pytest.fixture(scope="module")
 def synth(work) -> tuple[Path, Path]:
     """A tiny synthetic set (2 sequences x 5 frames, 1 held out) at H x W, via the real tools."""
-    from training import prepare, synth as synth_mod
+    from training import prepare
+    from training import synth as synth_mod
 
     synth_dir, prepared = work / "synth", work / "prepared"
-    synth_mod.main(["--out", str(synth_dir), "--sequences", "2", "--frames", "5",
-                    "--height", str(H), "--width", str(W)])
-    prepare.main(["--kind", "synth", "--src", str(synth_dir), "--out", str(prepared),
-                  "--height", str(H), "--width", str(W), "--heldout", "1", "--workers", "1"])
+    synth_mod.main(
+        ["--out", str(synth_dir), "--sequences", "2", "--frames", "5", "--height", str(H), "--width", str(W)]
+    )
+    prepare.main(
+        [
+            "--kind",
+            "synth",
+            "--src",
+            str(synth_dir),
+            "--out",
+            str(prepared),
+            "--height",
+            str(H),
+            "--width",
+            str(W),
+            "--heldout",
+            "1",
+            "--workers",
+            "1",
+        ]
+    )
     assert (prepared / "heldout.txt").is_file() and (synth_dir / "seq_0001" / "calib.txt").is_file()
     return synth_dir, prepared
 
@@ -132,9 +158,25 @@ def model_dir(work, flow_ckpt, synth) -> Path:
     synth_dir, prepared = synth
     calib = KITTI_FRAMES if KITTI_FRAMES.is_dir() else synth_dir / "seq_0000" / "image"
     out = work / "model"
-    code = export_main(["--checkpoint", str(flow_ckpt), "--out", str(out), "--precision", "fp32,int8",
-                        "--calib-data", str(calib), "--calib-frames", "6", "--eval-synth-dir", str(synth_dir),
-                        "--eval-prepared-dir", str(prepared), "--quiet"])
+    code = export_main(
+        [
+            "--checkpoint",
+            str(flow_ckpt),
+            "--out",
+            str(out),
+            "--precision",
+            "fp32,int8",
+            "--calib-data",
+            str(calib),
+            "--calib-frames",
+            "6",
+            "--eval-synth-dir",
+            str(synth_dir),
+            "--eval-prepared-dir",
+            str(prepared),
+            "--quiet",
+        ]
+    )
     assert code == 0
     return out
 
@@ -142,6 +184,7 @@ def model_dir(work, flow_ckpt, synth) -> Path:
 @pytest.fixture(scope="module")
 def torch_model(flow_ckpt):
     from training.checkpoint import load_checkpoint, model_from_checkpoint
+
     return model_from_checkpoint(load_checkpoint(flow_ckpt))
 
 
@@ -194,7 +237,10 @@ def test_per_graph_parity_on_real_frames(model_dir, torch_model):
     rigid_in = [depth, pose, K[None], norm[1], norm[2]]
     r = compare_graph(build_wrapper("rigidflow", torch_model), model_dir / "rigidflow.onnx", rigid_in)
     report["rigid_flow_px"], report["warped_rel"], report["error_rel"] = (
-        r["rigid_flow"]["max_abs"], r["warped"]["relative"], r["error"]["relative"])
+        r["rigid_flow"]["max_abs"],
+        r["warped"]["relative"],
+        r["error"]["relative"],
+    )
     assert r["rigid_flow"]["max_abs"] <= FLOW_PX_TOL
     assert r["warped"]["relative"] <= DERIVED_REL_TOL and r["error"]["relative"] <= DERIVED_REL_TOL
 
@@ -215,8 +261,12 @@ def test_cascade_matches_torch_flow_forward(model_dir, torch_model):
     K = kitti_K()
     predictor = Predictor(model_dir)
     flow = predictor.flow(frames, K)
-    out = {"flow": flow.flow, "rigid_flow": flow.rigid_flow, "depth": flow.depth,
-           "pose": predictor.pose(frames).vectors[1]}
+    out = {
+        "flow": flow.flow,
+        "rigid_flow": flow.rigid_flow,
+        "depth": flow.depth,
+        "pose": predictor.pose(frames).vectors[1],
+    }
     target = to01(frames[1])
     sources = torch.stack([to01(frames[0])[0], to01(frames[2])[0]]).unsqueeze(0)
     with torch.no_grad():
@@ -231,7 +281,9 @@ def test_cascade_matches_torch_flow_forward(model_dir, torch_model):
         "depth_rel": float(np.abs(out["depth"] - ref_depth).max() / np.ptp(ref_depth)),
         "pose_abs": float(np.abs(out["pose"] - rigid.poses[0, 1].numpy()).max()),
     }
-    print("\ncascade parity (ORT vs GeoNet.flow_forward):", json.dumps({k: float(f"{v:.3g}") for k, v in numbers.items()}))
+    print(
+        "\ncascade parity (ORT vs GeoNet.flow_forward):", json.dumps({k: float(f"{v:.3g}") for k, v in numbers.items()})
+    )
     assert numbers["flow_px"] <= FLOW_PX_TOL
     assert numbers["rigid_flow_px"] <= FLOW_PX_TOL
     assert numbers["depth_rel"] <= DEPTH_REL_TOL
@@ -250,8 +302,11 @@ def test_dynamic_batch_from_batch1_export(model_dir, torch_model):
         pose = 0.02 * (torch.rand(batch, 6, generator=g) - 0.5)
         K = torch.tensor([[200.0, 0, W / 2], [0, 200.0, H / 2], [0, 0, 1]]).repeat(batch, 1, 1)
         imgs = [torch.rand(batch, 3, H, W, generator=g) * 2 - 1 for _ in range(2)]
-        r = compare_graph(build_wrapper("rigidflow", torch_model), model_dir / "rigidflow.onnx",
-                          [x.numpy() for x in (depth, pose, K, *imgs)])
+        r = compare_graph(
+            build_wrapper("rigidflow", torch_model),
+            model_dir / "rigidflow.onnx",
+            [x.numpy() for x in (depth, pose, K, *imgs)],
+        )
         assert r["rigid_flow"]["max_abs"] <= FLOW_PX_TOL
         session = make_session(model_dir / "posenet.onnx")
         pose_out = session.run(None, {"snippet": np.zeros((batch, 9, H, W), np.float32)})[0]
@@ -298,9 +353,11 @@ def test_manifest_errors_name_the_file(model_dir, tmp_path):
         load_manifest(copy)
     assert err.value.path == copy / "posenet.onnx"
     raw = json.loads((model_dir / MANIFEST_NAME).read_text())
-    for mutate, pattern in ((lambda d: d.update(schema_version=99), "schema_version"),
-                            (lambda d: d.pop("conventions"), "conventions"),
-                            (lambda d: d.pop("height"), "missing key")):
+    for mutate, pattern in (
+        (lambda d: d.update(schema_version=99), "schema_version"),
+        (lambda d: d.pop("conventions"), "conventions"),
+        (lambda d: d.pop("height"), "missing key"),
+    ):
         bad = json.loads(json.dumps(raw))
         mutate(bad)
         shutil.copytree(model_dir, tmp_path / "b", dirs_exist_ok=True)
@@ -375,8 +432,10 @@ def test_cli_wrong_stage_checkpoint(tmp_path, capsys):
     assert "--graphs depthnet,posenet,rigidflow" in err
     assert no_leftovers(out)
     # the hint works: the rigid graphs alone export from a rigid checkpoint
-    assert export_main(["--checkpoint", str(ckpt), "--out", str(out), "--graphs", "depthnet,posenet,rigidflow",
-                        "--quiet"]) == 0
+    assert (
+        export_main(["--checkpoint", str(ckpt), "--out", str(out), "--graphs", "depthnet,posenet,rigidflow", "--quiet"])
+        == 0
+    )
     manifest = load_manifest(out)
     assert manifest.graph_names() == ("depthnet", "posenet", "rigidflow")
     assert manifest.provenance.checkpoint_stage == "rigid" and (manifest.height, manifest.width) == (64, 208)
@@ -390,8 +449,12 @@ def test_cli_input_errors(tmp_path, capsys, flow_ckpt):
     assert "unknown arch" in capsys.readouterr().err
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert export_main(["--checkpoint", str(flow_ckpt), "--out", str(out), "--precision", "fp32,int8",
-                        "--calib-data", str(empty)]) == 2
+    assert (
+        export_main(
+            ["--checkpoint", str(flow_ckpt), "--out", str(out), "--precision", "fp32,int8", "--calib-data", str(empty)]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert str(empty) in err and "no images" in err
     blocker = tmp_path / "a_file"
@@ -417,8 +480,25 @@ def test_cli_failure_leaves_no_partial_directory(tmp_path, monkeypatch):
 
     monkeypatch.setattr(build, "export_graph", fail_on_second)
     out = tmp_path / "m"
-    assert export_main(["--arch", "small", "--random-init", "--out", str(out), "--height", "64", "--width", "208",
-                        "--graphs", "posenet,rigidflow", "--quiet"]) == 1
+    assert (
+        export_main(
+            [
+                "--arch",
+                "small",
+                "--random-init",
+                "--out",
+                str(out),
+                "--height",
+                "64",
+                "--width",
+                "208",
+                "--graphs",
+                "posenet,rigidflow",
+                "--quiet",
+            ]
+        )
+        == 1
+    )
     assert len(calls) == 2 and no_leftovers(out)
 
 
@@ -427,12 +507,46 @@ def test_cli_and_library_write_the_same_model_directory(tmp_path):
     from export import ExportConfig, export_model
 
     cli, lib = tmp_path / "cli", tmp_path / "lib"
-    run = subprocess.run([sys.executable, "-m", "export", "--arch", "small", "--random-init", "--seed", "3",
-                          "--out", str(cli), "--height", "32", "--width", "64", "--graphs", "posenet,rigidflow",
-                          "--quiet"], cwd=REPO, capture_output=True, text=True)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "export",
+            "--arch",
+            "small",
+            "--random-init",
+            "--seed",
+            "3",
+            "--out",
+            str(cli),
+            "--height",
+            "32",
+            "--width",
+            "64",
+            "--graphs",
+            "posenet,rigidflow",
+            "--quiet",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     assert run.returncode == 0, run.stderr
-    assert export_model(ExportConfig(out=lib, arch="small", random_init=True, seed=3, height=32, width=64,
-                                      graphs=("posenet", "rigidflow"), quiet=True)) == lib
+    assert (
+        export_model(
+            ExportConfig(
+                out=lib,
+                arch="small",
+                random_init=True,
+                seed=3,
+                height=32,
+                width=64,
+                graphs=("posenet", "rigidflow"),
+                quiet=True,
+            )
+        )
+        == lib
+    )
 
     def manifest_without_date(d: Path) -> dict:
         m = json.loads((d / MANIFEST_NAME).read_text())

@@ -3,6 +3,7 @@
 Expected values come from hand-derived formulas or from OpenCV, never from
 the functions under test.
 """
+
 import math
 
 import cv2
@@ -10,9 +11,18 @@ import numpy as np
 import pytest
 import torch
 
-from training.geometry import (backproject, euler_to_rotation, flow_consistency, flow_warp,
-                               in_view_mask, intrinsics_at_scale, invert_intrinsics, invert_rigid,
-                               pose_vec_to_mat, rigid_flow)
+from training.geometry import (
+    backproject,
+    euler_to_rotation,
+    flow_consistency,
+    flow_warp,
+    in_view_mask,
+    intrinsics_at_scale,
+    invert_intrinsics,
+    invert_rigid,
+    pose_vec_to_mat,
+    rigid_flow,
+)
 
 H, W = 24, 40
 K_NP = np.array([[30.0, 0.0, 19.5], [0.0, 28.0, 11.5], [0.0, 0.0, 1.0]])
@@ -135,7 +145,7 @@ def test_integer_shift_warp_reproduces_shifted_image():
     flow[:, 0], flow[:, 1] = 3.0, -2.0  # sample source at (u + 3, v - 2)
     warped = flow_warp(image, flow)
     # warped[v, u] = image[v - 2, u + 3] wherever that pixel exists
-    assert torch.allclose(warped[:, :, 2:, :W - 3], image[:, :, :H - 2, 3:], atol=1e-12)
+    assert torch.allclose(warped[:, :, 2:, : W - 3], image[:, :, : H - 2, 3:], atol=1e-12)
 
 
 def test_fractional_warp_matches_opencv_remap():
@@ -145,8 +155,9 @@ def test_fractional_warp_matches_opencv_remap():
     warped = flow_warp(image, flow)[0, 0].numpy()
     u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
     map_x, map_y = u + flow[0, 0].numpy(), v + flow[0, 1].numpy()
-    expected = cv2.remap(image[0, 0].numpy(), map_x, map_y, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    expected = cv2.remap(
+        image[0, 0].numpy(), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
     inside = (map_x >= 0) & (map_x <= W - 1) & (map_y >= 0) & (map_y <= H - 1)
     # OpenCV quantises bilinear weights to 1/32 px: allow that much interpolation error.
     assert np.abs(warped - expected)[inside].max() < 1.0 / 32 + 1e-3

@@ -4,6 +4,7 @@ Checked two ways: statically (every import statement of every runtime module, in
 imports inside functions, which a plain ``import geonet_infer`` would not execute) and
 dynamically (importing every runtime module in a fresh interpreter loads none of them).
 """
+
 from __future__ import annotations
 
 import ast
@@ -39,20 +40,26 @@ def test_the_ast_walk_sees_nested_imports():
 def test_no_runtime_module_imports_torch_training_or_export():
     files = sorted(RUNTIME.rglob("*.py"))
     assert RUNTIME / "predictor.py" in files and len(files) > 20
-    bad = [f"{f.relative_to(ROOT)}:{line} imports {mod}"
-           for f in files for line, mod in imported_modules(ast.parse(f.read_text(), str(f)))
-           if mod in FORBIDDEN]
+    bad = [
+        f"{f.relative_to(ROOT)}:{line} imports {mod}"
+        for f in files
+        for line, mod in imported_modules(ast.parse(f.read_text(), str(f)))
+        if mod in FORBIDDEN
+    ]
     assert not bad, "\n".join(bad)
 
 
 def test_importing_every_runtime_module_loads_none_of_them():
-    modules = [m.name for m in pkgutil.walk_packages(geonet_infer.__path__, "geonet_infer.")
-               if not m.name.endswith("__main__")]
+    modules = [
+        m.name for m in pkgutil.walk_packages(geonet_infer.__path__, "geonet_infer.") if not m.name.endswith("__main__")
+    ]
     assert {"geonet_infer.predictor", "geonet_infer.cli", "geonet_infer.io.frames"} <= set(modules)
-    code = ("import sys\n"
-            "import geonet_infer\n"
-            f"for name in {modules!r}: __import__(name)\n"
-            f"print(sorted(m for m in sys.modules if m.split('.')[0] in {FORBIDDEN!r}))\n")
+    code = (
+        "import sys\n"
+        "import geonet_infer\n"
+        f"for name in {modules!r}: __import__(name)\n"
+        f"print(sorted(m for m in sys.modules if m.split('.')[0] in {FORBIDDEN!r}))\n"
+    )
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "[]", run.stdout

@@ -4,6 +4,7 @@ Golden values are hand-computed from the format definitions, typed from the text
 files in ../shared/realdata (the ``realdata`` fixture of conftest.py: skipped if that folder
 is absent, a failure on CI), or written with plain OpenCV / numpy, never with the code under test.
 """
+
 from __future__ import annotations
 
 import struct
@@ -314,17 +315,20 @@ def test_read_camera_kitti_odometry_calib_uses_p2(realdata):
 def test_read_camera_kitti_odometry_without_p2_uses_p0(tmp_path):
     (tmp_path / "calib.txt").write_text(
         "P0: 7.0e+02 0.0 6.0e+02 0.0 0.0 7.1e+02 1.8e+02 0.0 0.0 0.0 1.0 0.0\n"
-        "P1: 7.0e+02 0.0 6.0e+02 -3.8e+02 0.0 7.1e+02 1.8e+02 0.0 0.0 0.0 1.0 0.0\n")
+        "P1: 7.0e+02 0.0 6.0e+02 -3.8e+02 0.0 7.1e+02 1.8e+02 0.0 0.0 0.0 1.0 0.0\n"
+    )
     cam = read_camera(tmp_path / "calib.txt")
     np.testing.assert_array_equal(cam.K, [[700, 0, 600], [0, 710, 180], [0, 0, 1]])
 
 
 def test_read_camera_udacity_key_value_file(realdata):
     cam = read_camera(realdata / "udacity_dashcam/calib_advanced_lane_lines.txt")
-    np.testing.assert_allclose(cam.K, [[1158.774754, 0, 669.642741], [0, 1154.076607, 388.079450], [0, 0, 1]],
-                               rtol=0, atol=1e-9)
-    np.testing.assert_allclose(cam.dist, [-0.25677908, 0.04338451, -0.00068745, 0.00012577, -0.11502545],
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        cam.K, [[1158.774754, 0, 669.642741], [0, 1154.076607, 388.079450], [0, 0, 1]], rtol=0, atol=1e-9
+    )
+    np.testing.assert_allclose(
+        cam.dist, [-0.25677908, 0.04338451, -0.00068745, 0.00012577, -0.11502545], rtol=0, atol=1e-12
+    )
     assert cam.size == (1280, 720) and cam.has_distortion
 
 
@@ -340,8 +344,10 @@ def test_read_camera_euroc_sensor_yaml(realdata):
 
 
 def test_read_camera_refuses_a_fisheye_yaml(tmp_path):
-    (tmp_path / "sensor.yaml").write_text("%YAML:1.0\ncamera_model: pinhole\nintrinsics: [400, 401, 320, 240]\n"
-                                          "distortion_model: equidistant\ndistortion_coefficients: [0.1, 0.01, 0, 0]\n")
+    (tmp_path / "sensor.yaml").write_text(
+        "%YAML:1.0\ncamera_model: pinhole\nintrinsics: [400, 401, 320, 240]\n"
+        "distortion_model: equidistant\ndistortion_coefficients: [0.1, 0.01, 0, 0]\n"
+    )
     with pytest.raises(GeoNetInputError, match="equidistant"):
         read_camera(tmp_path / "sensor.yaml")
 
@@ -493,6 +499,7 @@ def test_open_frames_truncated_video_counts_what_decodes_and_warns(realdata, cap
 
 def test_atomic_write_gives_the_mode_of_a_plain_open(tmp_path):
     from geonet_infer.io import atomic_write
+
     plain = tmp_path / "plain.txt"
     plain.write_text("x")
     with atomic_write(tmp_path / "atomic.txt") as tmp:

@@ -1,4 +1,5 @@
 """Velodyne -> GT depth on real KITTI raw data (2011_09_26), cross-checked with cv2.projectPoints."""
+
 from pathlib import Path
 
 import cv2

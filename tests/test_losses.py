@@ -23,14 +23,14 @@ def test_ssim_border_windows_exclude_padding():
 
 def test_ssim_of_constant_images_by_hand():
     # Constant a vs b: sigmas are 0, so SSIM = (2ab + C1) / (a^2 + b^2 + C1).
-    a, b, C1 = 0.5, -0.25, 0.01 ** 2
+    a, b, C1 = 0.5, -0.25, 0.01**2
     s = ssim(torch.full((1, 1, 4, 4), a), torch.full((1, 1, 4, 4), b))
     assert torch.allclose(s, torch.full_like(s, (2 * a * b + C1) / (a * a + b * b + C1)), atol=1e-6)
 
 
 def test_photometric_error_weights():
     # Constant images: DSSIM from the hand formula above, L1 = |a - b|.
-    a, b, C1 = 0.5, -0.25, 0.01 ** 2
+    a, b, C1 = 0.5, -0.25, 0.01**2
     x, y = torch.full((1, 3, 4, 4), a), torch.full((1, 3, 4, 4), b)
     s = (2 * a * b + C1) / (a * a + b * b + C1)
     expected = 0.85 * (1 - s) / 2 + 0.15 * abs(a - b)

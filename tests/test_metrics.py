@@ -1,4 +1,5 @@
 """Golden-value tests of geonet_infer.metrics; every expected number is worked out by hand below."""
+
 import math
 
 import numpy as np
@@ -117,13 +118,13 @@ def test_eigen_crop_boundaries_on_kitti_size():
 def test_garg_crop_applied_in_depth_metrics():
     gt = np.full((375, 1242), 10.0)
     pred = gt.copy()
-    pred[152, 600] = 1.0   # one row above the crop: ignored
-    pred[300, 43] = 1.0    # one column left of the crop: ignored
+    pred[152, 600] = 1.0  # one row above the crop: ignored
+    pred[300, 43] = 1.0  # one column left of the crop: ignored
     pred[300, 1197] = 1.0  # first column right of the crop: ignored
     m = depth_metrics(gt, pred)
     assert m["abs_rel"] == 0.0
     assert m["n_valid"] == (371 - 153) * (1197 - 44)
-    pred[153, 600] = 1.0   # first row inside: counted. Median unchanged (10) -> scale 1.
+    pred[153, 600] = 1.0  # first row inside: counted. Median unchanged (10) -> scale 1.
     m = depth_metrics(gt, pred)
     assert m["abs_rel"] == pytest.approx(0.9 / m["n_valid"])
 

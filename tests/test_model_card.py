@@ -9,6 +9,7 @@ straight ahead, the "depth network" follows image brightness). The synthetic dat
 one 6-frame sequence from ``python -m training.synth`` at 64x208, the real data
 2 KITTI frames with Velodyne scans from ``../shared/realdata``.
 """
+
 from __future__ import annotations
 
 import json
@@ -25,8 +26,15 @@ from onnx import TensorProto, helper, numpy_helper
 from export.wrappers import io_spec
 from geonet_infer import conventions
 from geonet_infer.io import read_kitti_poses
-from geonet_infer.manifest import (GraphEntry, Manifest, Provenance, Quantization, TensorSpec, file_sha256,
-                                   write_manifest)
+from geonet_infer.manifest import (
+    GraphEntry,
+    Manifest,
+    Provenance,
+    Quantization,
+    TensorSpec,
+    file_sha256,
+    write_manifest,
+)
 from training import kitti_depth
 from training.model_card import ate_rows, chain_snippet, gt_snippet, main, sig3
 
@@ -43,7 +51,10 @@ def _const(name: str, value) -> onnx.NodeProto:
 
 def _graph(name: str, seq_length: int, nodes: list) -> onnx.ModelProto:
     spec = io_spec(name, H, W, seq_length)
-    vi = lambda n, s: helper.make_tensor_value_info(n, TensorProto.FLOAT, [d if isinstance(d, int) else "B" for d in s])
+
+    def vi(n, s):
+        return helper.make_tensor_value_info(n, TensorProto.FLOAT, [d if isinstance(d, int) else "B" for d in s])
+
     graph = helper.make_graph(nodes, name, [vi(n, s) for n, s in spec.inputs], [vi(n, s) for n, s in spec.outputs])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
     onnx.checker.check_model(model)
@@ -52,12 +63,16 @@ def _graph(name: str, seq_length: int, nodes: list) -> onnx.ModelProto:
 
 def depthnet(seq_length: int, extra: float) -> onnx.ModelProto:
     """disparity = 0.05 + extra + 0.1 * sigmoid(mean over RGB): depth follows brightness."""
-    nodes = [_const("ax", np.array([1], np.int64)), _const("k", np.float32(0.1)),
-             _const("c", np.float32(0.05 + extra)),
-             helper.make_node("ReduceMean", ["image", "ax"], ["m"], keepdims=1),
-             helper.make_node("Sigmoid", ["m"], ["s"]), helper.make_node("Mul", ["s", "k"], ["a"]),
-             helper.make_node("Add", ["a", "c"], ["disparity"]),
-             helper.make_node("Reciprocal", ["disparity"], ["depth"])]
+    nodes = [
+        _const("ax", np.array([1], np.int64)),
+        _const("k", np.float32(0.1)),
+        _const("c", np.float32(0.05 + extra)),
+        helper.make_node("ReduceMean", ["image", "ax"], ["m"], keepdims=1),
+        helper.make_node("Sigmoid", ["m"], ["s"]),
+        helper.make_node("Mul", ["s", "k"], ["a"]),
+        helper.make_node("Add", ["a", "c"], ["disparity"]),
+        helper.make_node("Reciprocal", ["disparity"], ["depth"]),
+    ]
     return _graph("depthnet", seq_length, nodes)
 
 
@@ -75,37 +90,53 @@ def posenet(seq_length: int, extra: float) -> onnx.ModelProto:
         vec[i, 2] = -step * o
         if extra >= 0:
             mat[i, 2, 3] = -step * o
-    nodes = [_const("ax", np.array([1, 2, 3], np.int64)), _const("zero", np.float32(0.0)),
-             _const("u3", np.array([1, 2], np.int64)), _const("u4", np.array([1, 2, 3], np.int64)),
-             _const("vec", vec), _const("mat", mat),
-             helper.make_node("ReduceMean", ["snippet", "ax"], ["m"], keepdims=0),
-             helper.make_node("Mul", ["m", "zero"], ["z"]),
-             helper.make_node("Unsqueeze", ["z", "u3"], ["z3"]), helper.make_node("Unsqueeze", ["z", "u4"], ["z4"]),
-             helper.make_node("Add", ["z3", "vec"], ["pose"]), helper.make_node("Add", ["z4", "mat"], ["pose_matrix"])]
+    nodes = [
+        _const("ax", np.array([1, 2, 3], np.int64)),
+        _const("zero", np.float32(0.0)),
+        _const("u3", np.array([1, 2], np.int64)),
+        _const("u4", np.array([1, 2, 3], np.int64)),
+        _const("vec", vec),
+        _const("mat", mat),
+        helper.make_node("ReduceMean", ["snippet", "ax"], ["m"], keepdims=0),
+        helper.make_node("Mul", ["m", "zero"], ["z"]),
+        helper.make_node("Unsqueeze", ["z", "u3"], ["z3"]),
+        helper.make_node("Unsqueeze", ["z", "u4"], ["z4"]),
+        helper.make_node("Add", ["z3", "vec"], ["pose"]),
+        helper.make_node("Add", ["z4", "mat"], ["pose_matrix"]),
+    ]
     return _graph("posenet", seq_length, nodes)
 
 
 def rigidflow(seq_length: int, extra: float) -> onnx.ModelProto:
     """rigid flow (0.5, 0) px, warped = source, error = mean |target - source|."""
-    nodes = [_const("zero", np.float32(0.0)), _const("half", np.float32(0.5)),
-             _const("ax", np.array([1], np.int64)),
-             helper.make_node("Mul", ["depth", "zero"], ["d0"]), helper.make_node("Add", ["d0", "half"], ["u"]),
-             helper.make_node("Concat", ["u", "d0"], ["rigid_flow"], axis=1),
-             helper.make_node("Identity", ["source"], ["warped"]),
-             helper.make_node("Sub", ["target", "source"], ["diff"]), helper.make_node("Abs", ["diff"], ["ad"]),
-             helper.make_node("ReduceMean", ["ad", "ax"], ["error"], keepdims=1)]
+    nodes = [
+        _const("zero", np.float32(0.0)),
+        _const("half", np.float32(0.5)),
+        _const("ax", np.array([1], np.int64)),
+        helper.make_node("Mul", ["depth", "zero"], ["d0"]),
+        helper.make_node("Add", ["d0", "half"], ["u"]),
+        helper.make_node("Concat", ["u", "d0"], ["rigid_flow"], axis=1),
+        helper.make_node("Identity", ["source"], ["warped"]),
+        helper.make_node("Sub", ["target", "source"], ["diff"]),
+        helper.make_node("Abs", ["diff"], ["ad"]),
+        helper.make_node("ReduceMean", ["ad", "ax"], ["error"], keepdims=1),
+    ]
     return _graph("rigidflow", seq_length, nodes)
 
 
 def resflownet(seq_length: int, extra: float) -> onnx.ModelProto:
     """residual = (0.25 + extra) px on both axes; flow = rigid flow (channels 9:11) + residual."""
-    nodes = [_const("s", np.array([9], np.int64)), _const("e", np.array([11], np.int64)),
-             _const("ax", np.array([1], np.int64)), _const("zero", np.float32(0.0)),
-             _const("r", np.float32(0.25 + extra)),
-             helper.make_node("Slice", ["flow_input", "s", "e", "ax"], ["rigid"]),
-             helper.make_node("Mul", ["rigid", "zero"], ["r0"]),
-             helper.make_node("Add", ["r0", "r"], ["residual_flow"]),
-             helper.make_node("Add", ["rigid", "residual_flow"], ["flow"])]
+    nodes = [
+        _const("s", np.array([9], np.int64)),
+        _const("e", np.array([11], np.int64)),
+        _const("ax", np.array([1], np.int64)),
+        _const("zero", np.float32(0.0)),
+        _const("r", np.float32(0.25 + extra)),
+        helper.make_node("Slice", ["flow_input", "s", "e", "ax"], ["rigid"]),
+        helper.make_node("Mul", ["rigid", "zero"], ["r0"]),
+        helper.make_node("Add", ["r0", "r"], ["residual_flow"]),
+        helper.make_node("Add", ["rigid", "residual_flow"], ["flow"]),
+    ]
     return _graph("resflownet", seq_length, nodes)
 
 
@@ -122,33 +153,63 @@ def make_model_dir(out: Path, seq_length: int = 3, int8: bool = True, int8_stati
     for name, build in BUILDERS.items():
         spec = io_spec(name, H, W, seq_length)
 
-        def entry(file: str, precision: str, extra: float) -> GraphEntry:
+        def entry(file: str, precision: str, extra: float, build=build, spec=spec) -> GraphEntry:
             onnx.save(build(seq_length, extra), str(out / file))
-            return GraphEntry(file=file, sha256=file_sha256(out / file), opset=OPSET, precision=precision,
-                              inputs=tuple(TensorSpec(n, tuple(s)) for n, s in spec.inputs),
-                              outputs=tuple(TensorSpec(n, tuple(s)) for n, s in spec.outputs),
-                              exporter="tests/test_model_card.py onnx.helper stand-in")
+            return GraphEntry(
+                file=file,
+                sha256=file_sha256(out / file),
+                opset=OPSET,
+                precision=precision,
+                inputs=tuple(TensorSpec(n, tuple(s)) for n, s in spec.inputs),
+                outputs=tuple(TensorSpec(n, tuple(s)) for n, s in spec.outputs),
+                exporter="tests/test_model_card.py onnx.helper stand-in",
+            )
+
         graphs["fp32"][name] = entry(f"{name}.onnx", "fp32", 0.0)
         if int8:
             # The INT8 set's rigidflow is the fp32 file, as in a real export.
-            graphs["int8"][name] = (graphs["fp32"][name] if name == "rigidflow"
-                                    else entry(f"int8/{name}.onnx", "int8",
-                                               -0.01 if name == "posenet" and int8_static_pose else 0.01))
+            graphs["int8"][name] = (
+                graphs["fp32"][name]
+                if name == "rigidflow"
+                else entry(f"int8/{name}.onnx", "int8", -0.01 if name == "posenet" and int8_static_pose else 0.01)
+            )
     # arch "small": a real arch, so the manifest declares its disparity head (the runtime checks it).
     manifest = Manifest(
-        schema_version=conventions.SCHEMA_VERSION, height=H, width=W, seq_length=seq_length, arch="small",
-        random_init=True, precisions=tuple(graphs), graphs=graphs,
+        schema_version=conventions.SCHEMA_VERSION,
+        height=H,
+        width=W,
+        seq_length=seq_length,
+        arch="small",
+        random_init=True,
+        precisions=tuple(graphs),
+        graphs=graphs,
         conventions=json.loads(json.dumps(conventions.as_dict())),
-        provenance=Provenance(architecture="standin", random_init=True, export_date="2000-01-01T00:00:00+00:00",
-                              exporter="onnx.helper"),
+        provenance=Provenance(
+            architecture="standin", random_init=True, export_date="2000-01-01T00:00:00+00:00", exporter="onnx.helper"
+        ),
         metrics={"val_total": 1.5, "best_step": 10},
         quantization=Quantization(
-            method="stand-in", activation_type="uint8", weight_type="int8", per_channel=True, reduce_range=False,
-            calibrate_method="minmax", calibration_data="none", calibration_samples={"depthnet": 1},
-            calibration_intrinsics="none", fp32_graphs=("rigidflow",),
-            accuracy_delta={"synth_dir": "x", "sequences": ["seq_0000"], "stride": 2,
-                            "depth_abs_rel": {"fp32": 0.25, "int8": 0.375, "delta": 0.125}, "depth_frames": 3})
-        if int8 else None)
+            method="stand-in",
+            activation_type="uint8",
+            weight_type="int8",
+            per_channel=True,
+            reduce_range=False,
+            calibrate_method="minmax",
+            calibration_data="none",
+            calibration_samples={"depthnet": 1},
+            calibration_intrinsics="none",
+            fp32_graphs=("rigidflow",),
+            accuracy_delta={
+                "synth_dir": "x",
+                "sequences": ["seq_0000"],
+                "stride": 2,
+                "depth_abs_rel": {"fp32": 0.25, "int8": 0.375, "delta": 0.125},
+                "depth_frames": 3,
+            },
+        )
+        if int8
+        else None,
+    )
     write_manifest(manifest, out)
     return out
 
@@ -159,9 +220,28 @@ def synth(tmp_path_factory) -> tuple[Path, Path]:
     """One 6-frame synthetic sequence at 64x208 and a prepared dir whose heldout.txt lists it."""
     root = tmp_path_factory.mktemp("synth")
     synth_dir = root / "synth"
-    subprocess.run([sys.executable, "-m", "training.synth", "--out", str(synth_dir), "--sequences", "1",
-                    "--frames", "6", "--height", "64", "--width", "208", "--seed", "3"],
-                   cwd=ROOT, check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "training.synth",
+            "--out",
+            str(synth_dir),
+            "--sequences",
+            "1",
+            "--frames",
+            "6",
+            "--height",
+            "64",
+            "--width",
+            "208",
+            "--seed",
+            "3",
+        ],
+        cwd=ROOT,
+        check=True,
+        capture_output=True,
+    )
     prepared = root / "prepared"
     prepared.mkdir()
     (prepared / "heldout.txt").write_text("".join(f"seq_0000 {i:06d}\n" for i in range(1, 5)))
@@ -174,9 +254,26 @@ def kitti(realdata) -> Path:
 
 
 def _args(model: Path, synth: tuple[Path, Path], kitti: Path, out: Path, *extra: str) -> list[str]:
-    return ["--model", str(model), "--synth-dir", str(synth[0]), "--prepared-dir", str(synth[1]),
-            "--kitti", str(kitti), "--out", str(out / "models.md"), "--json", str(out / "card.json"),
-            "--kitti-frames", "2", "--threads", "1", "--quiet", *extra]
+    return [
+        "--model",
+        str(model),
+        "--synth-dir",
+        str(synth[0]),
+        "--prepared-dir",
+        str(synth[1]),
+        "--kitti",
+        str(kitti),
+        "--out",
+        str(out / "models.md"),
+        "--json",
+        str(out / "card.json"),
+        "--kitti-frames",
+        "2",
+        "--threads",
+        "1",
+        "--quiet",
+        *extra,
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -205,14 +302,26 @@ def test_card_has_every_table_and_finite_numbers(card3):
     assert md.startswith("# Model card")
     assert "```bash\n.venv/bin/python -m training.model_card --model " in md
     assert "WARNING: RANDOM-INIT MODEL" in md
-    for heading in ("## The model", "## Files", "## What was measured", "## Depth",
-                    "### Synthetic held-out sequences", "### Real KITTI (Velodyne ground truth)",
-                    "## Optical flow (synthetic held-out sequences)",
-                    "## Camera pose (synthetic held-out sequences, 5-frame snippets)",
-                    "## INT8 versus FP32", "## Limitations"):
+    for heading in (
+        "## The model",
+        "## Files",
+        "## What was measured",
+        "## Depth",
+        "### Synthetic held-out sequences",
+        "### Real KITTI (Velodyne ground truth)",
+        "## Optical flow (synthetic held-out sequences)",
+        "## Camera pose (synthetic held-out sequences, 5-frame snippets)",
+        "## INT8 versus FP32",
+        "## Limitations",
+    ):
         assert heading in md, heading
-    for row in ("| model, FP32 |", "| model, INT8 |", "| constant depth (baseline) |", "| zero flow (baseline) |",
-                "| identity pose / no motion (baseline) |"):
+    for row in (
+        "| model, FP32 |",
+        "| model, INT8 |",
+        "| constant depth (baseline) |",
+        "| zero flow (baseline) |",
+        "| identity pose / no motion (baseline) |",
+    ):
         assert row in md, row
     assert md.count("| constant depth (baseline) |") == 2  # synthetic and KITTI
     assert "| `depth_abs_rel` | 0.250 | 0.375 | +0.125 |" in md  # the export's own check, from the manifest
@@ -251,7 +360,7 @@ def test_kitti_constant_baseline_equals_numpy(card3, kitti):
         gt = kitti_depth.velodyne_to_depth_map(kitti, kitti / "velodyne_points" / "data" / f"{stem}.bin", (375, 1242))
         h, w = gt.shape
         crop = np.zeros_like(gt, dtype=bool)
-        crop[int(0.40810811 * h):int(0.99189189 * h), int(0.03594771 * w):int(0.96405229 * w)] = True
+        crop[int(0.40810811 * h) : int(0.99189189 * h), int(0.03594771 * w) : int(0.96405229 * w)] = True
         g = gt[(gt > 1e-3) & (gt < 80) & crop].astype(np.float64)
         ours.append(np.mean(np.abs(g - np.median(g)) / g))
     per_frame = result["kitti"]["depth"]["per_frame"]
@@ -282,8 +391,8 @@ def test_pose_helpers_with_ground_truth(synth):
     assert ate_rows(gt, chain_snippet(to_next)[:, :3, 3])["ate_snippet"] < 1e-6
     gt0 = gt - gt[0]
     base = ate_rows(gt, np.zeros_like(gt))
-    assert base["ate_snippet"] == pytest.approx(np.sqrt(np.sum(gt0 ** 2)) / 5, rel=1e-12)
-    assert base["ate_rmse_true"] == pytest.approx(np.sqrt(np.mean(np.sum(gt0 ** 2, axis=1))), rel=1e-12)
+    assert base["ate_snippet"] == pytest.approx(np.sqrt(np.sum(gt0**2)) / 5, rel=1e-12)
+    assert base["ate_rmse_true"] == pytest.approx(np.sqrt(np.mean(np.sum(gt0**2, axis=1))), rel=1e-12)
 
 
 def test_five_frame_model_without_int8(tmp_path, synth, kitti):
@@ -321,5 +430,13 @@ def test_missing_input_exits_2_naming_the_path(tmp_path, synth, kitti, capsys, w
 
 
 def test_sig3():
-    assert [sig3(x) for x in (0.123456, 12.3456, 12345.6, 0.000123456, 9.9951, -1.5, 0.0, 3)] == \
-        ["0.123", "12.3", "12300", "0.000123", "10.0", "-1.50", "0", "3"]
+    assert [sig3(x) for x in (0.123456, 12.3456, 12345.6, 0.000123456, 9.9951, -1.5, 0.0, 3)] == [
+        "0.123",
+        "12.3",
+        "12300",
+        "0.000123",
+        "10.0",
+        "-1.50",
+        "0",
+        "3",
+    ]

@@ -4,6 +4,7 @@ Parameter and MAC anchors come from an INDEPENDENT implementation
 (../shared/reference/cpu_latency_anchors.md, "Networks" table; BN folded into
 conv + bias there, which counts the same as conv + BN beta here).
 """
+
 from __future__ import annotations
 
 import functools
@@ -41,7 +42,7 @@ NETS = {
 }
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def cached_net(kind: str, arch: str) -> nn.Module:
     """One shared instance per net for read-only tests (building resnet50 takes ~0.5 s)."""
     torch.manual_seed(0)
@@ -54,6 +55,7 @@ def run(net: nn.Module, x: torch.Tensor):
 
 
 # ----------------------------------------------------------------------------- shapes
+
 
 @pytest.mark.parametrize("height,width", [(128, 416), (64, 208)])
 @pytest.mark.parametrize("kind,arch", list(NETS))
@@ -70,16 +72,17 @@ def test_output_shapes(kind, arch, height, width):
         assert pred.shape == (2, pred_ch, height // 2**s, width // 2**s), f"scale {s}"
 
 
-@pytest.mark.parametrize("kind,arch,height,width", [
-    (kind, arch, 72, 232) for kind, arch in NETS if kind != "pose"] + [
-    ("depth", "small", 256, 832), ("flow", "small", 256, 832)])
+@pytest.mark.parametrize(
+    "kind,arch,height,width",
+    [(kind, arch, 72, 232) for kind, arch in NETS if kind != "pose"]
+    + [("depth", "small", 256, 832), ("flow", "small", 256, 832)],
+)
 def test_scale0_is_input_size_for_multiples_of_8(kind, arch, height, width):
     # 72 x 232: odd sizes from H/16 down, so every resize_like path runs.
     # 256 x 832 only for the small nets, to keep the suite short on 2 cores.
     net = cached_net(kind, arch)
     out = run(net, torch.randn(1, NETS[(kind, arch)][1], height, width))
-    assert [tuple(p.shape[-2:]) for p in out] == [
-        (height // 2**s, width // 2**s) for s in range(4)]
+    assert [tuple(p.shape[-2:]) for p in out] == [(height // 2**s, width // 2**s) for s in range(4)]
 
 
 def test_posenet_seq5_and_direct_flow_shapes():
@@ -87,7 +90,8 @@ def test_posenet_seq5_and_direct_flow_shapes():
     assert run(pose, torch.randn(2, 15, 64, 208)).shape == (2, 4, 6)
     flow = ResFlowNet("small", in_channels=6).eval()
     assert [p.shape for p in run(flow, torch.randn(2, 6, 64, 208))] == [
-        (2, 2, 64 // 2**s, 208 // 2**s) for s in range(4)]
+        (2, 2, 64 // 2**s, 208 // 2**s) for s in range(4)
+    ]
 
 
 def test_build_network_and_bad_arch():
@@ -117,8 +121,7 @@ def test_params_and_macs_match_independent_anchors(name):
     assert macs / 1e9 == pytest.approx(gmacs, rel=1e-2)
 
 
-@pytest.mark.parametrize("kind,max_params_m,max_gmacs", [
-    ("depth", 2.5, 0.5), ("flow", 2.5, 0.5), ("pose", 0.3, 0.2)])
+@pytest.mark.parametrize("kind,max_params_m,max_gmacs", [("depth", 2.5, 0.5), ("flow", 2.5, 0.5), ("pose", 0.3, 0.2)])
 def test_small_variants_within_budget(kind, max_params_m, max_gmacs):
     channels = NETS[(kind, "small")][1]
     params, macs = count_params_and_macs(cached_net(kind, "small"), (1, channels, 128, 416))
@@ -127,8 +130,9 @@ def test_small_variants_within_budget(kind, max_params_m, max_gmacs):
 
 
 def test_count_params_and_macs_hand_computed_and_restores_mode():
-    net = nn.Sequential(nn.Conv2d(3, 4, 3, 2, 1, bias=True), BatchNormNoScale(4),
-                        nn.Conv2d(4, 8, 1, groups=2, bias=False))
+    net = nn.Sequential(
+        nn.Conv2d(3, 4, 3, 2, 1, bias=True), BatchNormNoScale(4), nn.Conv2d(4, 8, 1, groups=2, bias=False)
+    )
     net.train()
     params, macs = count_params_and_macs(net, (1, 3, 10, 12))
     assert params == 3 * 4 * 9 + 4 + 4 + 8 * 2
@@ -140,13 +144,19 @@ def test_count_params_and_macs_hand_computed_and_restores_mode():
 def test_summary_table_lists_every_variant():
     rows = network_table(64, 208)
     assert {(name, variant.split(" ")[0]) for name, variant, *_ in rows} == {
-        ("DepthNet", "resnet50"), ("DepthNet", "vgg"), ("DepthNet", "small"),
-        ("PoseNet", "standard"), ("PoseNet", "small"),
-        ("ResFlowNet", "resnet50"), ("ResFlowNet", "small")}
+        ("DepthNet", "resnet50"),
+        ("DepthNet", "vgg"),
+        ("DepthNet", "small"),
+        ("PoseNet", "standard"),
+        ("PoseNet", "small"),
+        ("ResFlowNet", "resnet50"),
+        ("ResFlowNet", "small"),
+    }
     assert {shape[1] for name, _, shape, *_ in rows if name == "PoseNet"} == {9, 15}
 
 
 # ----------------------------------------------------------------------------- heads
+
 
 @pytest.mark.parametrize("arch", ["resnet50", "vgg", "small"])
 def test_disparity_range_and_head_constants(arch):
@@ -183,8 +193,12 @@ def test_resflownet_returns_pixels_and_feeds_normalised_flow():
     torch.manual_seed(0)
     net = ResFlowNet("small").eval()
     height, width = 64, 208  # W != H and W/H not a power of 2: a swapped x/y fails
-    biases = [torch.tensor([0.5, -0.25]), torch.tensor([1.0, 2.0]),
-              torch.tensor([-1.5, 0.75]), torch.tensor([0.3, 0.6])]
+    biases = [
+        torch.tensor([0.5, -0.25]),
+        torch.tensor([1.0, 2.0]),
+        torch.tensor([-1.5, 0.75]),
+        torch.tensor([0.3, 0.6]),
+    ]
     for s, head in enumerate(net.decoder.heads):
         nn.init.zeros_(head.conv.weight)
         with torch.no_grad():
@@ -197,6 +211,7 @@ def test_resflownet_returns_pixels_and_feeds_normalised_flow():
 
         def grab(module, inputs, scale=scale):
             fed[scale] = inputs[0][:, -2:]
+
         iconv.register_forward_pre_hook(grab)
     flows = run(net, torch.randn(2, 12, height, width))
     for s, flow in enumerate(flows):
@@ -209,6 +224,7 @@ def test_resflownet_returns_pixels_and_feeds_normalised_flow():
 
 
 # ----------------------------------------------------------------------------- BN / init
+
 
 @pytest.mark.parametrize("kind,arch", list(NETS))
 def test_batchnorm_settings_no_gamma(kind, arch):
@@ -226,8 +242,11 @@ def test_batchnorm_settings_no_gamma(kind, arch):
 
 
 def test_bn_momentum_is_passed_down():
-    for net in (DepthNet("small", bn_momentum=0.01), PoseNet(2, "small", bn_momentum=0.01),
-                ResFlowNet("small", bn_momentum=0.01)):
+    for net in (
+        DepthNet("small", bn_momentum=0.01),
+        PoseNet(2, "small", bn_momentum=0.01),
+        ResFlowNet("small", bn_momentum=0.01),
+    ):
         assert {m.momentum for m in net.modules() if isinstance(m, BatchNormNoScale)} == {0.01}
 
 
@@ -278,6 +297,7 @@ def test_xavier_init_and_zero_biases():
 
 # ----------------------------------------------------------------------------- padding / resize
 
+
 def test_tf_same_pads():
     # (left, right, top, bottom); TF puts the odd pixel after (bottom/right).
     assert tf_same_pads(128, 416, 7, 2) == (2, 3, 2, 3)
@@ -305,7 +325,7 @@ def test_resize_bilinear_tf_legacy_values():
     # TF1 resize_bilinear, align_corners=False, legacy: src = dst * in / out, clamped.
     x = torch.tensor([0.0, 1.0, 2.0, 3.0]).view(1, 1, 1, 4)
     out = resize_bilinear_tf_legacy(x, (1, 8))
-    torch.testing.assert_close(out.flatten(), torch.tensor([0, .5, 1, 1.5, 2, 2.5, 3, 3]))
+    torch.testing.assert_close(out.flatten(), torch.tensor([0, 0.5, 1, 1.5, 2, 2.5, 3, 3]))
     x = torch.tensor([0.0, 10.0, 20.0]).view(1, 1, 3, 1)
     out = resize_bilinear_tf_legacy(x, (5, 1))
     torch.testing.assert_close(out.flatten(), torch.tensor([0.0, 6.0, 12.0, 18.0, 20.0]))

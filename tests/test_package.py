@@ -1,4 +1,5 @@
 """Packaging: the wheel ships only the runtime (the import contract is in test_import_contract.py)."""
+
 from pathlib import Path
 
 import tomllib

@@ -5,6 +5,7 @@ OpenCV and onnxruntime: no torch. Golden values come from closed-form facts, fro
 OpenCV code written here, or from the ONNX graphs driven by hand with onnxruntime; nothing
 depends on the weights' values.
 """
+
 from __future__ import annotations
 
 import json
@@ -101,8 +102,14 @@ def test_depth_pose_flow_match_the_graphs_driven_by_hand(predictor, frames, K):
     x_prev, x_tgt, x_nxt = (normalise(f)[None] for f in (prev, tgt, nxt))
     disp = run("depthnet", image=x_tgt)["disparity"]  # (1, 1, H, W)
     pose = run("posenet", snippet=np.concatenate([x_tgt, x_prev, x_nxt], axis=1))  # [target, prev, next]
-    rigid = run("rigidflow", depth=1.0 / disp, pose=pose["pose"][:, 1], intrinsics=K[None].astype(np.float32),
-                target=x_tgt, source=x_nxt)
+    rigid = run(
+        "rigidflow",
+        depth=1.0 / disp,
+        pose=pose["pose"][:, 1],
+        intrinsics=K[None].astype(np.float32),
+        target=x_tgt,
+        source=x_nxt,
+    )
     hand_input = np.concatenate([x_tgt, x_nxt, rigid["warped"], rigid["rigid_flow"], rigid["error"]], axis=1)
 
     d = predictor.depth(tgt)
@@ -209,7 +216,7 @@ def test_predict_sequence_matches_single_calls(predictor, frames, K):
         np.testing.assert_allclose(fr.depth, predictor.depth(img).depth, **TOL)
 
     t = 2  # a middle frame: the snippet centred on it
-    mid = predictor.flow(seq_frames[t - 1:t + 2], K)
+    mid = predictor.flow(seq_frames[t - 1 : t + 2], K)
     np.testing.assert_allclose(seq.frames[t].flow, mid.flow, **TOL)
     np.testing.assert_allclose(seq.frames[t].rigid_flow, mid.rigid_flow, **TOL)
     np.testing.assert_allclose(seq.frames[t].pose_to_next, mid.pose, **TOL)
@@ -226,11 +233,14 @@ def test_predict_sequence_matches_single_calls(predictor, frames, K):
 
     np.testing.assert_array_equal(seq.frames[0].camera_to_world, np.eye(4))
     for a, b in zip(seq.frames[:-1], seq.frames[1:]):
-        np.testing.assert_allclose(b.camera_to_world, a.camera_to_world @ np.linalg.inv(a.pose_to_next),
-                                   rtol=0, atol=1e-6)  # PoseNet's R is orthonormal to float32 precision
+        np.testing.assert_allclose(
+            b.camera_to_world, a.camera_to_world @ np.linalg.inv(a.pose_to_next), rtol=0, atol=1e-6
+        )  # PoseNet's R is orthonormal to float32 precision
 
-    for other in (predictor.predict_sequence(seq_frames, K, batch_size=1),
-                  predictor.predict_sequence((f for f in seq_frames), K, batch_size=4)):
+    for other in (
+        predictor.predict_sequence(seq_frames, K, batch_size=1),
+        predictor.predict_sequence((f for f in seq_frames), K, batch_size=4),
+    ):
         assert len(other.frames) == 6
         np.testing.assert_allclose(other.depth, seq.depth, **TOL)
         np.testing.assert_allclose(other.flow, seq.flow, **TOL)
@@ -245,7 +255,7 @@ def test_iter_sequence_of_paths_names_frames_after_the_files(predictor, K):
 
 # ----------------------------------------------------------------------------- 6. threads
 def test_one_predictor_shared_by_8_threads_gives_identical_results(predictor, frames, K):
-    snippets = [frames[i:i + 3] for i in range(8)]
+    snippets = [frames[i : i + 3] for i in range(8)]
     sequential = [predictor.flow(s, K) for s in snippets]
     with ThreadPoolExecutor(max_workers=8) as pool:
         concurrent = list(pool.map(lambda s: predictor.flow(s, K), snippets))
@@ -311,7 +321,7 @@ def test_bad_intrinsics_are_refused(predictor, frames, K):
     for fx in (0.0, -5.0):
         bad = K.copy()
         bad[0, 0] = fx
-        _raises(lambda: predictor.flow(frames[:3], bad), "focal", f"fx={fx:g}")
+        _raises(lambda bad=bad: predictor.flow(frames[:3], bad), "focal", f"fx={fx:g}")
     _raises(lambda: predictor.flow(frames[:3], np.eye(2)), "3x3")
 
 
@@ -342,14 +352,20 @@ def test_corrupt_graph_file_is_named_with_sha256(tmp_path):
     assert err.path == model / "depthnet.onnx"
 
 
-@pytest.mark.parametrize("edit, needles", [
-    (lambda m: m.update(schema_version=m["schema_version"] + 1), ("manifest.json", "schema_version")),
-    (lambda m: m["conventions"].update(channel_order="XYZ"), ("manifest.json", "unsupported convention", "XYZ")),
-    (lambda m: m["conventions"]["intrinsics"].update(half_pixel_correction=True),
-     ("manifest.json", "unsupported convention", "intrinsics")),
-    (lambda m: m["conventions"]["disp_heads"].pop(m["arch"]), ("manifest.json", "disparity head")),
-    (lambda m: m["graphs"]["fp32"]["depthnet"]["outputs"].reverse(), ("manifest.json", "depthnet", "outputs")),
-], ids=["schema_version", "channel_order", "half_pixel", "disp_head", "graph_io"])
+@pytest.mark.parametrize(
+    "edit, needles",
+    [
+        (lambda m: m.update(schema_version=m["schema_version"] + 1), ("manifest.json", "schema_version")),
+        (lambda m: m["conventions"].update(channel_order="XYZ"), ("manifest.json", "unsupported convention", "XYZ")),
+        (
+            lambda m: m["conventions"]["intrinsics"].update(half_pixel_correction=True),
+            ("manifest.json", "unsupported convention", "intrinsics"),
+        ),
+        (lambda m: m["conventions"]["disp_heads"].pop(m["arch"]), ("manifest.json", "disparity head")),
+        (lambda m: m["graphs"]["fp32"]["depthnet"]["outputs"].reverse(), ("manifest.json", "depthnet", "outputs")),
+    ],
+    ids=["schema_version", "channel_order", "half_pixel", "disp_head", "graph_io"],
+)
 def test_manifest_that_this_runtime_cannot_drive_is_refused(tmp_path, edit, needles):
     model = _model_copy(tmp_path)
     manifest = json.loads((model / "manifest.json").read_text())

@@ -4,6 +4,7 @@ Golden values come from outside the code under test: P_rect_02 / P0 are parsed h
 calibration text, the resize factors are the documented image sizes (1242x375, 1241x376), and
 snippet contents are compared with frames resized independently in the test.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -52,7 +53,7 @@ def assert_no_partial_files(out: Path) -> None:
     for jpg in out.rglob("*.jpg"):
         assert jpg.with_name(jpg.stem + "_cam.txt").is_file(), f"{jpg} without _cam.txt"
     for cam in out.rglob("*_cam.txt"):
-        assert cam.with_name(cam.name[:-len("_cam.txt")] + ".jpg").is_file(), f"{cam} without .jpg"
+        assert cam.with_name(cam.name[: -len("_cam.txt")] + ".jpg").is_file(), f"{cam} without .jpg"
 
 
 # --------------------------------------------------------------------------- tiny synthetic tree
@@ -75,8 +76,25 @@ def make_synth_seq(folder: Path, n_frames: int, size=(64, 96), seed=0, K=None) -
 @needs_raw
 def test_kitti_raw_extract(tmp_path):
     out = tmp_path / "raw"
-    assert P.main(["--kind", "kitti_raw", "--src", str(RAW), "--out", str(out), "--max-frames", "12",
-                   "--workers", "2", "--split", "eigen"]) == 0
+    assert (
+        P.main(
+            [
+                "--kind",
+                "kitti_raw",
+                "--src",
+                str(RAW),
+                "--out",
+                str(out),
+                "--max-frames",
+                "12",
+                "--workers",
+                "2",
+                "--split",
+                "eigen",
+            ]
+        )
+        == 0
+    )
     res = P.PrepareResult(out, train=read_list(out / "train.txt"), val=read_list(out / "val.txt"))
     folder = out / "kitti_raw_2011_09_26_sfnd_02"
     # 12 frames, seq 3 -> targets 1..10
@@ -91,8 +109,12 @@ def test_kitti_raw_extract(tmp_path):
     K_expected[0] *= 416 / 1242  # README: frames are 1242x375
     K_expected[1] *= 128 / 375
     src = RAW / "image_02" / "data"
-    frames = {i: cv2.resize(cv2.imread(str(src / f"{i:010d}.png")), (416, 128), interpolation=cv2.INTER_AREA)
-              .astype(np.float64) for i in range(12)}
+    frames = {
+        i: cv2.resize(cv2.imread(str(src / f"{i:010d}.png")), (416, 128), interpolation=cv2.INTER_AREA).astype(
+            np.float64
+        )
+        for i in range(12)
+    }
     for t in range(1, 11):
         img = cv2.imread(str(folder / f"{t:010d}.jpg"))
         assert img.shape == (128, 1248, 3)
@@ -134,13 +156,19 @@ def test_kitti_raw_root_layout_split_and_static(tmp_path):
     d.mkdir(parents=True)
     for i in range(384, 392):
         (d / f"{i:010d}.png").symlink_to((RAW / "image_02" / "data" / f"{i - 384:010d}.png").resolve())
-    res = P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "raw_root", tmp_path / "out_static", split="stereo",
-                    remove_static=True, workers=1))
+    res = P.prepare(
+        P.PrepareConfig(
+            "kitti_raw", tmp_path / "raw_root", tmp_path / "out_static", split="stereo", remove_static=True, workers=1
+        )
+    )
     names = sorted(res.train + res.val)
     # 0009 is a stereo test scene -> excluded; 0001 and 0002 stay
     assert not any("drive_0009" in n for n in names) and len(names) == 6
-    res = P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "raw_root", tmp_path / "out_static2", split="none",
-                    remove_static=True, workers=1))
+    res = P.prepare(
+        P.PrepareConfig(
+            "kitti_raw", tmp_path / "raw_root", tmp_path / "out_static2", split="none", remove_static=True, workers=1
+        )
+    )
     kept = sorted(n.split()[1] for n in res.train + res.val if "drive_0009" in n)
     # static: 386, 387, 390, 391 -> kept 384 385 388 389 -> targets 385 (384, 388) and 388 (385, 389)
     assert kept == [f"{i:010d}" for i in (385, 388)]
@@ -202,8 +230,11 @@ def test_synth_heldout(tmp_path):
         src_depth = cv2.imread(str(src / "seq_02" / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
         got = cv2.imread(str(out / "seq_02" / f"{i:06d}_depth.png"), cv2.IMREAD_UNCHANGED)
         np.testing.assert_array_equal(got, src_depth[::2, ::2])
-        np.testing.assert_allclose(read_cam_txt(out / "seq_02" / f"{i:06d}_cam.txt"),
-                                   [[40.0, 0, 23.75], [0, 39.0, 15.75], [0, 0, 1]], atol=1e-9)
+        np.testing.assert_allclose(
+            read_cam_txt(out / "seq_02" / f"{i:06d}_cam.txt"),
+            [[40.0, 0, 23.75], [0, 39.0, 15.75], [0, 0, 1]],
+            atol=1e-9,
+        )
         assert cv2.imread(str(out / "seq_02" / f"{i:06d}.jpg")).shape == (32, 144, 3)
     assert not (out / "seq_00" / "000001_depth.png").exists()  # GT only for held-out samples
     with pytest.raises(GeoNetInputError, match="--heldout"):
@@ -264,8 +295,27 @@ def test_bad_inputs_are_skipped_and_named(tmp_path, capsys):
     src = tmp_path / "src"
     files = _bad_tree(src)
     out = tmp_path / "out"
-    assert P.main(["--kind", "synth", "--src", str(src), "--out", str(out), "--heldout", "0",
-                   "--height", "32", "--width", "48", "--workers", "2"]) == 1  # some inputs skipped
+    assert (
+        P.main(
+            [
+                "--kind",
+                "synth",
+                "--src",
+                str(src),
+                "--out",
+                str(out),
+                "--heldout",
+                "0",
+                "--height",
+                "32",
+                "--width",
+                "48",
+                "--workers",
+                "2",
+            ]
+        )
+        == 1
+    )  # some inputs skipped
     text = capsys.readouterr().out  # the printed summary lists every skip
     res = P.prepare(P.PrepareConfig("synth", src, out, heldout=0, height=32, width=48))  # resumes: same lists
     reasons = [str(s) for s in res.skipped]
@@ -291,9 +341,16 @@ def test_bad_inputs_are_skipped_and_named(tmp_path, capsys):
     assert_no_partial_files(out)
 
 
-@pytest.mark.parametrize("case, fragment", [("a_short", "too short"), ("b_gap", "unreadable"),
-                                             ("c_trunc", "decode"), ("d_mixed", "mixed resolutions"),
-                                             ("e_nokey", "'K'")])
+@pytest.mark.parametrize(
+    "case, fragment",
+    [
+        ("a_short", "too short"),
+        ("b_gap", "unreadable"),
+        ("c_trunc", "decode"),
+        ("d_mixed", "mixed resolutions"),
+        ("e_nokey", "'K'"),
+    ],
+)
 def test_strict_turns_skips_into_errors(tmp_path, case, fragment):
     src = tmp_path / "src"
     _bad_tree(src, cases=(case,))
@@ -325,8 +382,11 @@ def test_clear_errors_and_help(tmp_path, capsys):
 
 # --------------------------------------------------------------------------- CLI = library
 def tree_digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_cli_and_library_write_identical_files(tmp_path):
@@ -335,8 +395,27 @@ def test_cli_and_library_write_identical_files(tmp_path):
     for s in range(3):
         make_synth_seq(src / f"seq_{s:02d}", 5, seed=s)
     cli, lib = tmp_path / "cli", tmp_path / "lib"
-    cmd = [sys.executable, "-m", "training.prepare", "--kind", "synth", "--src", str(src), "--out", str(cli),
-           "--heldout", "1", "--height", "32", "--width", "48", "--val-fraction", "0.5", "--seed", "3"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "training.prepare",
+        "--kind",
+        "synth",
+        "--src",
+        str(src),
+        "--out",
+        str(cli),
+        "--heldout",
+        "1",
+        "--height",
+        "32",
+        "--width",
+        "48",
+        "--val-fraction",
+        "0.5",
+        "--seed",
+        "3",
+    ]
     run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     P.prepare(P.PrepareConfig("synth", src, lib, heldout=1, height=32, width=48, val_fraction=0.5, seed=3))
@@ -354,8 +433,10 @@ def test_unpadded_frame_numbers_are_cut_in_numeric_order(tmp_path):
     res = P.prepare(P.PrepareConfig("synth", tmp_path / "src", tmp_path / "out", heldout=0, height=32, width=48))
     assert sorted(res.train + res.val, key=lambda n: int(n.split()[1])) == [f"seq {i}" for i in range(1, 11)]
     strip = cv2.imread(str(tmp_path / "out" / "seq" / "10.jpg")).astype(float)  # frames 9, 10, 11
-    frames = {i: cv2.resize(cv2.imread(str(seq / "image" / f"{i}.png")), (48, 32), interpolation=cv2.INTER_AREA)
-              for i in range(12)}
+    frames = {
+        i: cv2.resize(cv2.imread(str(seq / "image" / f"{i}.png")), (48, 32), interpolation=cv2.INTER_AREA)
+        for i in range(12)
+    }
     for k, part in enumerate(np.split(strip, 3, axis=1)):
         err = {i: np.abs(part - f).mean() for i, f in frames.items()}
         assert min(err, key=err.get) == 9 + k
@@ -369,8 +450,22 @@ def test_video_of_a_real_dashcam_clip_scales_the_calibration(realdata, tmp_path)
     clip = realdata / "udacity_dashcam" / "test_video.mp4"
     calib = realdata / "udacity_dashcam" / "calib_advanced_lane_lines.txt"
     out = tmp_path / "dash"
-    rc = P.main(["--kind", "video", "--src", str(clip), "--calib", str(calib), "--crop", "0,229,1280,394",
-                 "--out", str(out), "--static-threshold", "0"])
+    rc = P.main(
+        [
+            "--kind",
+            "video",
+            "--src",
+            str(clip),
+            "--calib",
+            str(calib),
+            "--crop",
+            "0,229,1280,394",
+            "--out",
+            str(out),
+            "--static-threshold",
+            "0",
+        ]
+    )
     assert rc == 0
     fx, fy, cx, cy = DASHCAM_CALIB_K
     # by hand: crop moves the principal point up by 229 rows; 1280x394 -> 416x128 scales x and y
@@ -406,8 +501,22 @@ def test_frames_drop_static_frames_and_keep_snippets_consecutive(tmp_path):
         cv2.imwrite(str(src / f"{i:04d}.png"), f)
     (tmp_path / "K.txt").write_text("100 0 104\n0 100 32\n0 0 1\n")
     out = tmp_path / "out"
-    rc = P.main(["--kind", "frames", "--src", str(src), "--calib", str(tmp_path / "K.txt"), "--out", str(out),
-                 "--height", "64", "--width", "208"])
+    rc = P.main(
+        [
+            "--kind",
+            "frames",
+            "--src",
+            str(src),
+            "--calib",
+            str(tmp_path / "K.txt"),
+            "--out",
+            str(out),
+            "--height",
+            "64",
+            "--width",
+            "208",
+        ]
+    )
     assert rc == 0
     kept = sorted((out / P.FRAME_CACHE / "frames").glob("*.png"))
     assert len(kept) == 6  # the three repeats are dropped
@@ -421,8 +530,23 @@ def test_video_needs_a_calibration_and_a_crop_that_fits(realdata, tmp_path, caps
     calib = realdata / "udacity_dashcam" / "calib_advanced_lane_lines.txt"
     assert P.main(["--kind", "video", "--src", str(clip), "--out", str(tmp_path / "a")]) == 2
     assert "--calib" in capsys.readouterr().err
-    assert P.main(["--kind", "video", "--src", str(clip), "--calib", str(calib), "--crop", "0,500,1280,394",
-                   "--out", str(tmp_path / "b")]) == 2
+    assert (
+        P.main(
+            [
+                "--kind",
+                "video",
+                "--src",
+                str(clip),
+                "--calib",
+                str(calib),
+                "--crop",
+                "0,500,1280,394",
+                "--out",
+                str(tmp_path / "b"),
+            ]
+        )
+        == 2
+    )
     assert "does not fit" in capsys.readouterr().err
     assert P.main(["--kind", "synth", "--src", str(tmp_path), "--calib", str(calib), "--out", str(tmp_path / "c")]) == 2
     assert "only applies" in capsys.readouterr().err

@@ -6,6 +6,7 @@ flow, pure translation at constant depth -> (fx tx / Z, fy ty / Z), a general
 pose against an independent float64 numpy projection, and parity with torch
 on real KITTI frames (skipped without the sample data).
 """
+
 from __future__ import annotations
 
 import math
@@ -19,10 +20,10 @@ import torch
 
 from export.to_onnx import OPSET, check_graph, export_graph, op_types
 from export.verify import compare_graph
-from geonet_infer.preprocess import InputSpec
 from export.wrappers import RigidFlowExport, example_inputs, io_spec
 from geonet_infer import conventions
 from geonet_infer.io import list_images, read_calib_K, read_image
+from geonet_infer.preprocess import InputSpec
 from geonet_infer.session import make_session
 
 H, W = 48, 64
@@ -34,8 +35,13 @@ KITTI = REPO.parent / "shared" / "realdata" / "kitti_raw_2011_09_26_sfnd"
 @pytest.fixture(scope="module")
 def graph(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("rigid") / "rigidflow.onnx"
-    export_graph(RigidFlowExport(), example_inputs("rigidflow", H, W, 3, batch=1), io_spec("rigidflow", H, W, 3),
-                 path, {"geonet.graph": "rigidflow"})
+    export_graph(
+        RigidFlowExport(),
+        example_inputs("rigidflow", H, W, 3, batch=1),
+        io_spec("rigidflow", H, W, 3),
+        path,
+        {"geonet.graph": "rigidflow"},
+    )
     return path
 
 
@@ -45,8 +51,12 @@ def K_matrix(batch: int = 1) -> np.ndarray:
 
 def run(graph: Path, depth, pose, K, target, source) -> dict[str, np.ndarray]:
     session = make_session(graph)
-    feed = dict(zip(["depth", "pose", "intrinsics", "target", "source"],
-                    [np.ascontiguousarray(x, dtype=np.float32) for x in (depth, pose, K, target, source)]))
+    feed = dict(
+        zip(
+            ["depth", "pose", "intrinsics", "target", "source"],
+            [np.ascontiguousarray(x, dtype=np.float32) for x in (depth, pose, K, target, source)],
+        )
+    )
     return dict(zip(["rigid_flow", "warped", "error"], session.run(None, feed)))
 
 
@@ -97,7 +107,7 @@ def test_pure_translation_at_constant_depth(graph):
     assert np.abs(flow[1] - expected_v).max() <= 1e-4
     # integer flow (2, -1): warped(u, v) = source(u + 2, v - 1) wherever that pixel exists
     warped = out["warped"][0]
-    assert np.abs(warped[:, 1:, :W - 2] - source[0, :, :H - 1, 2:]).max() <= 1e-4
+    assert np.abs(warped[:, 1:, : W - 2] - source[0, :, : H - 1, 2:]).max() <= 1e-4
     # outside the source (zero padding): last two columns and first row read zeros
     assert np.abs(warped[:, :, W - 1]).max() <= 1e-4 and np.abs(warped[:, 0, :]).max() <= 1e-4
 

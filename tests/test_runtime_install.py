@@ -2,6 +2,7 @@
 
 Skipped in the development venv; scripts/test_runtime.sh sets GEONET_RUNTIME_ONLY=1.
 """
+
 import importlib.util
 import os
 import shutil
@@ -16,8 +17,9 @@ from geonet_infer.models import DEFAULT_MODEL, bundled_models
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.skipif(os.environ.get("GEONET_RUNTIME_ONLY") != "1",
-                                reason="runs in the runtime-only venv of scripts/test_runtime.sh")
+pytestmark = pytest.mark.skipif(
+    os.environ.get("GEONET_RUNTIME_ONLY") != "1", reason="runs in the runtime-only venv of scripts/test_runtime.sh"
+)
 
 
 def test_imported_from_the_installed_package_not_the_source_tree():

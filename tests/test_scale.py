@@ -4,15 +4,16 @@ Golden values are independent of the code under test: a plane's depth map writte
 closed form (z = h / (n . K^-1 [u, v, 1])), and KITTI's documented camera mounting
 height (1.65 m above the road, KITTI setup page) checked on projected Velodyne scans.
 """
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from geonet_infer import GeoNetInputError
+from geonet_infer.io.calib import read_camera
 from geonet_infer.scale import fit_ground_plane, metric_depth
 from geonet_infer.velodyne import velodyne_to_depth_map
-from geonet_infer.io.calib import read_camera
 
 H, W = 128, 416
 K = np.array([[0.58 * W, 0, 0.5 * W], [0, 1.92 * H, 0.5 * H], [0, 0, 1.0]])
@@ -29,7 +30,7 @@ def road_scene(height_m: float, pitch_deg: float, with_car: bool = True) -> np.n
     ground = denom > 1e-6
     depth[ground] = np.minimum(height_m / denom[ground], 80.0)
     if with_car:  # a box 8 m ahead covering a quarter of the road pixels
-        depth[int(0.55 * H):int(0.8 * H), int(0.35 * W):int(0.6 * W)] = 8.0
+        depth[int(0.55 * H) : int(0.8 * H), int(0.35 * W) : int(0.6 * W)] = 8.0
     return depth
 
 
@@ -113,14 +114,39 @@ def test_camera_height_needs_a_camera_and_a_positive_height(sample):
 
 
 def test_predict_cli_camera_height(tmp_path, capsys):
-    from geonet_infer.cli import main
-    from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
     import json
 
-    rc = main(["predict", str(SAMPLE_FRAMES), "--out", str(tmp_path / "rel"), "--calib", str(SAMPLE_CALIB),
-               "--tasks", "depth", "--no-progress"])
-    rc2 = main(["predict", str(SAMPLE_FRAMES), "--out", str(tmp_path / "met"), "--calib", str(SAMPLE_CALIB),
-                "--tasks", "depth", "--no-progress", "--camera-height", "1.65"])
+    from geonet_infer.cli import main
+    from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
+
+    rc = main(
+        [
+            "predict",
+            str(SAMPLE_FRAMES),
+            "--out",
+            str(tmp_path / "rel"),
+            "--calib",
+            str(SAMPLE_CALIB),
+            "--tasks",
+            "depth",
+            "--no-progress",
+        ]
+    )
+    rc2 = main(
+        [
+            "predict",
+            str(SAMPLE_FRAMES),
+            "--out",
+            str(tmp_path / "met"),
+            "--calib",
+            str(SAMPLE_CALIB),
+            "--tasks",
+            "depth",
+            "--no-progress",
+            "--camera-height",
+            "1.65",
+        ]
+    )
     capsys.readouterr()
     assert rc == rc2 == 0
     summary = json.loads((tmp_path / "met" / "summary.json").read_text())

@@ -6,6 +6,7 @@
 * moving-object pixels: GT flow != rigid flow, and the motion mask marks exactly them;
 * the written folder reads back through geonet_infer.io.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -53,8 +54,13 @@ def test_warping_by_gt_flow_explains_the_next_frame(seq):
         I0 = seq["image"][t].astype(np.float32)
         I1 = seq["image"][t + 1].astype(np.float32)
         f, noc = seq["flow"][t], seq["flow_noc"][t]
-        warped = cv2.remap(I1, (u + f[..., 0]).astype(np.float32), (v + f[..., 1]).astype(np.float32),
-                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        warped = cv2.remap(
+            I1,
+            (u + f[..., 0]).astype(np.float32),
+            (v + f[..., 1]).astype(np.float32),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+        )
         err_none = np.abs(I1 - I0).mean(-1)[noc].mean()
         err_warp = np.abs(warped - I0).mean(-1)[noc].mean()
         factor = err_none / err_warp
@@ -165,10 +171,32 @@ def test_written_layout_reads_back_and_is_independent_of_workers(tmp_path, capsy
     before = os.stat(tmp_path / "b" / "seq_0000" / "poses.txt").st_mtime_ns
     assert synth.main(["--out", str(tmp_path / "b"), *args[:1], "3", *args[2:]]) == 0
     assert os.stat(tmp_path / "b" / "seq_0000" / "poses.txt").st_mtime_ns == before
-    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == ["seq_0000", "seq_0001", "seq_0002", "synth_config.json"]
+    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == [
+        "seq_0000",
+        "seq_0001",
+        "seq_0002",
+        "synth_config.json",
+    ]
     capsys.readouterr()
-    assert synth.main(["--out", str(tmp_path / "b"), "--sequences", "2", "--frames", "5", "--seed", "3",
-                       "--height", str(h), "--width", str(w)]) == 2  # other settings than the folder's
+    assert (
+        synth.main(
+            [
+                "--out",
+                str(tmp_path / "b"),
+                "--sequences",
+                "2",
+                "--frames",
+                "5",
+                "--seed",
+                "3",
+                "--height",
+                str(h),
+                "--width",
+                str(w),
+            ]
+        )
+        == 2
+    )  # other settings than the folder's
     err = capsys.readouterr().err.strip()
     assert "synth_config.json" in err and "frames=3" in err and len(err.splitlines()) == 1
 

@@ -1,4 +1,5 @@
 """geonet_infer.viz: Middlebury flow colours, depth colour maps, side-by-side panels."""
+
 from __future__ import annotations
 
 import cv2
@@ -49,8 +50,8 @@ def test_side_by_side_resizes_to_one_height_and_keeps_the_pixels():
     assert out.dtype == np.uint8 and out.shape[0] == 40
     gap = out.shape[1] - 60 - 40
     assert gap > 0  # a small gap between the panels
-    assert (out[:, :60] == [255, 0, 0]).all() and (out[:, 60 + gap:] == [0, 0, 255]).all()
-    assert out[:, 60:60 + gap].max() < 64  # dark gap
+    assert (out[:, :60] == [255, 0, 0]).all() and (out[:, 60 + gap :] == [0, 0, 255]).all()
+    assert out[:, 60 : 60 + gap].max() < 64  # dark gap
     out = viz.side_by_side([red, blue], height=10)
     assert out.shape[0] == 10 and out.shape[1] == 15 + 10 + gap
 

@@ -4,6 +4,7 @@ Augmentation follows the official data loader (spec §6) with two documented dif
 one random draw per *sample* (the official draws once per batch), and the intrinsics are
 scaled by the exact resize ratio (out_w / W) rather than by the drawn factor.
 """
+
 from __future__ import annotations
 
 import random
@@ -31,8 +32,9 @@ GAIN_RANGE = (0.8, 1.2)
 
 
 # --------------------------------------------------------------------------- augmentation
-def random_scale_crop(frames: np.ndarray, K: np.ndarray, rng: np.random.Generator
-                      ) -> tuple[np.ndarray, np.ndarray, dict]:
+def random_scale_crop(
+    frames: np.ndarray, K: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, dict]:
     """Scale x and y independently by U[1, 1.15], then crop back to the input size.
 
     One draw is shared by all frames, so the geometry between them is unchanged.
@@ -53,7 +55,7 @@ def random_scale_crop(frames: np.ndarray, K: np.ndarray, rng: np.random.Generato
     scaled = np.stack([cv2.resize(f, (out_w, out_h), interpolation=cv2.INTER_LINEAR) for f in frames])
     y0 = int(rng.integers(0, out_h - h + 1))
     x0 = int(rng.integers(0, out_w - w + 1))
-    cropped = scaled[:, y0:y0 + h, x0:x0 + w]
+    cropped = scaled[:, y0 : y0 + h, x0 : x0 + w]
     # Exact ratios of the resize that was done (the official uses the drawn factor; < 0.3 % apart).
     sx, sy = out_w / w, out_h / h
     K = scale_intrinsics(K, sx, sy)
@@ -82,8 +84,9 @@ def random_color(frames: np.ndarray, rng: np.random.Generator, share_gain: bool)
     return np.clip(out, 0.0, 1.0).astype(np.float32)
 
 
-def augment(frames: np.ndarray, K: np.ndarray, rng: np.random.Generator, share_gain: bool
-            ) -> tuple[np.ndarray, np.ndarray]:
+def augment(
+    frames: np.ndarray, K: np.ndarray, rng: np.random.Generator, share_gain: bool
+) -> tuple[np.ndarray, np.ndarray]:
     """Official training augmentation: scale + crop (always), colour with p = 0.5.
 
     Args:
@@ -137,8 +140,17 @@ class SequenceDataset(Dataset):
     are refused for "train" and "val".
     """
 
-    def __init__(self, root, split: str = "train", seq_length: int = 3, height: int = REFERENCE_HEIGHT,
-                 width: int = REFERENCE_WIDTH, augment: bool = True, share_color_gain: bool = False, seed: int = 0):
+    def __init__(
+        self,
+        root,
+        split: str = "train",
+        seq_length: int = 3,
+        height: int = REFERENCE_HEIGHT,
+        width: int = REFERENCE_WIDTH,
+        augment: bool = True,
+        share_color_gain: bool = False,
+        seed: int = 0,
+    ):
         if split not in SPLITS:
             raise GeoNetInputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
         if seq_length < 3 or seq_length % 2 == 0:
@@ -160,15 +172,19 @@ class SequenceDataset(Dataset):
             raise GeoNetInputError(list_path, f"no {split}.txt in the dataset folder", hint)
         self.names = read_list(list_path)
         if not self.names:
-            raise GeoNetInputError(list_path, f"the {split} split is empty",
-                                   "prepare more data or a larger --val-fraction; " + PREPARE_CMD)
+            raise GeoNetInputError(
+                list_path, f"the {split} split is empty", "prepare more data or a larger --val-fraction; " + PREPARE_CMD
+            )
         heldout_path = self.root / "heldout.txt"
         if split != "heldout" and heldout_path.is_file():
             leaked = set(self.names) & set(read_list(heldout_path))
             if leaked:
-                raise GeoNetInputError(list_path, f"{len(leaked)} samples are also in heldout.txt "
-                                                  f"(e.g. {sorted(leaked)[0]!r}); held-out data must never be trained on",
-                                       "re-run python -m training.prepare into a fresh folder")
+                raise GeoNetInputError(
+                    list_path,
+                    f"{len(leaked)} samples are also in heldout.txt "
+                    f"(e.g. {sorted(leaked)[0]!r}); held-out data must never be trained on",
+                    "re-run python -m training.prepare into a fresh folder",
+                )
 
     def __len__(self) -> int:
         return len(self.names)
@@ -184,11 +200,18 @@ class SequenceDataset(Dataset):
         img = read_image(jpg)  # raises GeoNetInputError naming the file if missing/corrupt
         h, w = self.height, self.width
         if img.shape[:2] != (h, self.seq_length * w):
-            held = f"it holds {img.shape[1] // w} frames of width {w}; " if img.shape[1] % w == 0 and img.shape[0] == h else ""
-            raise GeoNetInputError(jpg, f"snippet is {img.shape[1]}x{img.shape[0]} but seq_length={self.seq_length} at "
-                                        f"{h}x{w} needs {self.seq_length * w}x{h}",
-                                   f"{held}pass the seq_length/height/width used by training.prepare, "
-                                   f"or re-run it with --seq-length {self.seq_length}")
+            held = (
+                f"it holds {img.shape[1] // w} frames of width {w}; "
+                if img.shape[1] % w == 0 and img.shape[0] == h
+                else ""
+            )
+            raise GeoNetInputError(
+                jpg,
+                f"snippet is {img.shape[1]}x{img.shape[0]} but seq_length={self.seq_length} at "
+                f"{h}x{w} needs {self.seq_length * w}x{h}",
+                f"{held}pass the seq_length/height/width used by training.prepare, "
+                f"or re-run it with --seq-length {self.seq_length}",
+            )
         frames = img.reshape(h, self.seq_length, w, 3).transpose(1, 0, 2, 3)  # split the horizontal strip
         frames = frames.astype(np.float32) / 255.0
         return frames, read_cam(self.root / folder / f"{frame}_cam.txt")
@@ -213,8 +236,11 @@ class SequenceDataset(Dataset):
             if depth_path.is_file():
                 depth = read_depth_kitti(depth_path)
                 if depth.shape != (self.height, self.width):
-                    raise GeoNetInputError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, "
-                                                       f"expected {self.width}x{self.height}", PREPARE_CMD)
+                    raise GeoNetInputError(
+                        depth_path,
+                        f"depth is {depth.shape[1]}x{depth.shape[0]}, expected {self.width}x{self.height}",
+                        PREPARE_CMD,
+                    )
                 item["depth_gt"] = torch.from_numpy(depth[None].astype(np.float32))
         return item
 
@@ -224,14 +250,21 @@ def _seed_worker(worker_id: int) -> None:
     """Seed the global RNGs of a loader worker from torch's per-worker seed (for any code that
     uses them; our augmentation has its own per-item RNG) and keep OpenCV single-threaded so
     workers do not oversubscribe the CPU."""
-    seed = torch.initial_seed() % 2 ** 32
+    seed = torch.initial_seed() % 2**32
     np.random.seed(seed)
     random.seed(seed)
     cv2.setNumThreads(1)
 
 
-def make_loader(dataset: Dataset, batch_size: int, shuffle: bool, num_workers: int = 0, seed: int = 0,
-                drop_last: bool = False, sampler=None) -> DataLoader:
+def make_loader(
+    dataset: Dataset,
+    batch_size: int,
+    shuffle: bool,
+    num_workers: int = 0,
+    seed: int = 0,
+    drop_last: bool = False,
+    sampler=None,
+) -> DataLoader:
     """DataLoader whose shuffling order is fixed by ``seed`` (seeded torch.Generator).
 
     ``sampler`` (an iterable of indices, e.g. a DistributedSampler's) replaces shuffling; pass
@@ -240,5 +273,13 @@ def make_loader(dataset: Dataset, batch_size: int, shuffle: bool, num_workers: i
     """
     generator = torch.Generator()
     generator.manual_seed(seed)
-    return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, sampler=sampler, num_workers=num_workers,
-                      generator=generator, worker_init_fn=_seed_worker, drop_last=drop_last)
+    return DataLoader(
+        dataset,
+        batch_size=batch_size,
+        shuffle=shuffle,
+        sampler=sampler,
+        num_workers=num_workers,
+        generator=generator,
+        worker_init_fn=_seed_worker,
+        drop_last=drop_last,
+    )

@@ -12,12 +12,13 @@ normalisation, outputs mapped back to the input size), so any layout works, KITT
 ``evaluate_depth`` / ``evaluate_flow`` keep the summary format that ``export`` and
 ``training.model_card`` read (held-out synthetic sequences, with the trivial baselines).
 """
+
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -39,8 +40,9 @@ def heldout_sequences(prepared_dir: str | Path) -> list[str]:
     """Sequence folders listed in ``<prepared_dir>/heldout.txt`` (never trained on)."""
     path = Path(prepared_dir) / "heldout.txt"
     if not path.is_file():
-        raise GeoNetInputError(path, "no held-out list",
-                               "prepare synthetic data with `python -m training.prepare --kind synth`")
+        raise GeoNetInputError(
+            path, "no held-out list", "prepare synthetic data with `python -m training.prepare --kind synth`"
+        )
     return read_heldout(path)
 
 
@@ -49,8 +51,9 @@ def _mean(rows: list[dict], keys) -> dict:
     return metrics.aggregate([{k: r.get(k, np.nan) for k in keys} for r in rows])
 
 
-def evaluate_depth(predict_depth: DepthFn, synth_dir: str | Path, sequences: list[str],
-                   stride: int = 1, crop: str | None = None) -> dict:
+def evaluate_depth(
+    predict_depth: DepthFn, synth_dir: str | Path, sequences: list[str], stride: int = 1, crop: str | None = None
+) -> dict:
     """{"model": means, "constant_baseline": means, "frames": n} on held-out synthetic sequences.
 
     ``crop``: None (every pixel with ground truth) or a crop name of :func:`geonet_infer.metrics.crop_mask`.
@@ -64,8 +67,18 @@ def evaluate_depth(predict_depth: DepthFn, synth_dir: str | Path, sequences: lis
 
 
 def _flow_summary(rows: list[dict], which: str) -> dict:
-    return _mean([{"epe": r[f"epe_{which}"], "fl": r[f"fl_{which}"], "acc": 1.0 - r[f"fl_{which}"],
-                   "n_valid": r.get(f"n_valid_{which}", np.nan)} for r in rows], ("epe", "fl", "acc", "n_valid"))
+    return _mean(
+        [
+            {
+                "epe": r[f"epe_{which}"],
+                "fl": r[f"fl_{which}"],
+                "acc": 1.0 - r[f"fl_{which}"],
+                "n_valid": r.get(f"n_valid_{which}", np.nan),
+            }
+            for r in rows
+        ],
+        ("epe", "fl", "acc", "n_valid"),
+    )
 
 
 def evaluate_flow(predict_flow: FlowFn, synth_dir: str | Path, sequences: list[str], stride: int = 1) -> dict:
@@ -75,13 +88,18 @@ def evaluate_flow(predict_flow: FlowFn, synth_dir: str | Path, sequences: list[s
         predict_flow = _needs_K(predict_flow)
     model = evaluation.evaluate_flow(predict_flow, data)["items"]
     zero = evaluation.evaluate_flow(baselines.zero_flow, data)["items"]
-    return {"noc": _flow_summary(model, "noc"), "occ": _flow_summary(model, "all"),
-            "zero_flow_baseline_noc": _flow_summary(zero, "noc"), "pairs": len(model)}
+    return {
+        "noc": _flow_summary(model, "noc"),
+        "occ": _flow_summary(model, "all"),
+        "zero_flow_baseline_noc": _flow_summary(zero, "noc"),
+        "pairs": len(model),
+    }
 
 
 def _needs_K(fn):
     def predict(frames, K):
         return fn(frames, K)
+
     predict.needs_intrinsics = True
     return predict
 
@@ -111,6 +129,7 @@ def torch_depth_predictor(model: GeoNet, height: int, width: int) -> DepthFn:
     def predict(rgb: np.ndarray) -> np.ndarray:
         disp = model.depth_net(tm.normalised(rgb))[0][0, 0].numpy()
         return disparity_to_input(disp, rgb.shape[:2])[0]
+
     return predict
 
 
@@ -127,6 +146,7 @@ def torch_flow_predictor(model: GeoNet, height: int, width: int) -> FlowFn:
         K_t = torch.from_numpy(graph_intrinsics(K, frames[1].shape[:2], tm.spec)).unsqueeze(0)
         fwd_full, _, _, _ = model.flow_forward(target, sources, K_t)
         return flow_to_input(fwd_full[0][1].numpy(), frames[1].shape[:2])  # row 1 = source t+1
+
     predict.needs_intrinsics = True
     return predict
 
@@ -161,13 +181,17 @@ def onnx_flow_fn(predictor) -> FlowFn:
 def checkpoint_methods(model: GeoNet, cfg: dict, tasks: list[str], label: str) -> dict[str, tuple[str, Callable]]:
     """{task: (row label, fn)} of a loaded checkpoint; flow only if it has ResFlowNet."""
     makers = {"depth": torch_depth_predictor, "flow": torch_flow_predictor, "pose": torch_pose_predictor}
-    return {t: (label, makers[t](model, cfg["height"], cfg["width"])) for t in tasks
-            if t != "flow" or model.flow_net is not None}
+    return {
+        t: (label, makers[t](model, cfg["height"], cfg["width"]))
+        for t in tasks
+        if t != "flow" or model.flow_net is not None
+    }
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m training.evaluate", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m training.evaluate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--checkpoint", required=True, help="a last.pt / best.pt from training.train")
     p.add_argument("--data", type=Path, help="dataset folder, any layout of `geonet-infer eval --help`")
     p.add_argument("--layout", default="auto", choices=["auto"] + sorted({n for v in LAYOUTS.values() for n in v}))
@@ -175,8 +199,12 @@ def main(argv=None) -> int:
     p.add_argument("--synth-dir", type=Path, help="older form: output of training.synth (= --data)")
     p.add_argument("--prepared-dir", type=Path, help="older form: output of training.prepare (its heldout.txt)")
     p.add_argument("--task", choices=["depth", "flow", "pose", "all"], default="all")
-    p.add_argument("--crop", choices=["auto", "none", "garg", "eigen"], default="auto",
-                   help="depth crop (auto: Garg on KITTI, every GT pixel on synthetic)")
+    p.add_argument(
+        "--crop",
+        choices=["auto", "none", "garg", "eigen"],
+        default="auto",
+        help="depth crop (auto: Garg on KITTI, every GT pixel on synthetic)",
+    )
     p.add_argument("--max-depth", type=float, default=MAX_DEPTH, help="depth cap in metres (default 80)")
     p.add_argument("--stride", type=int, default=1, help="evaluate every n-th item")
     p.add_argument("--out", "--json", dest="out", help="write the JSON result here too")
@@ -185,8 +213,13 @@ def main(argv=None) -> int:
         data = args.data or args.synth_dir
         if data is None:
             raise GeoNetInputError(None, "no data", "pass --data DIR (or --synth-dir with --prepared-dir)")
-        sequences = (read_heldout(args.heldout) if args.heldout else
-                     heldout_sequences(args.prepared_dir) if args.prepared_dir else None)
+        sequences = (
+            read_heldout(args.heldout)
+            if args.heldout
+            else heldout_sequences(args.prepared_dir)
+            if args.prepared_dir
+            else None
+        )
         ckpt = load_checkpoint(args.checkpoint)
         model = model_from_checkpoint(ckpt)
         tasks = ["depth", "flow", "pose"] if args.task == "all" else [args.task]
@@ -194,8 +227,11 @@ def main(argv=None) -> int:
         results = []
         for task, (row, fn) in checkpoint_methods(model, ckpt["config"], tasks, label).items():
             dataset = load_dataset(task, data, args.layout, sequences=sequences, stride=args.stride)
-            kwargs = ({"crop": None if args.crop == "none" else args.crop, "max_depth": args.max_depth}
-                      if task == "depth" else {})
+            kwargs = (
+                {"crop": None if args.crop == "none" else args.crop, "max_depth": args.max_depth}
+                if task == "depth"
+                else {}
+            )
             results.append((row, evaluation.EVALUATORS[task](fn, dataset, method=row, **kwargs)))
     except GeoNetInputError as err:
         print(f"error: {err}", file=sys.stderr)
@@ -203,8 +239,9 @@ def main(argv=None) -> int:
     for _, result in results:
         print(evaluation.format_table([(result["method"], result)]))
     if args.out:
-        evaluation.write_json(args.out, {"checkpoint": str(args.checkpoint), "step": ckpt["step"],
-                                         "results": [r for _, r in results]})
+        evaluation.write_json(
+            args.out, {"checkpoint": str(args.checkpoint), "step": ckpt["step"], "results": [r for _, r in results]}
+        )
     errors = [e for _, r in results for e in r["errors"]]
     for e in errors:
         print(f"error: {e['item']}: {e['problem']}", file=sys.stderr)

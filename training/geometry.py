@@ -9,6 +9,7 @@ pixels, channel 0 = x (u), channel 1 = y (v).
 Everything here is export-safe: no ``torch.inverse`` (ONNX has no matrix
 inverse); the pinhole K and rigid transforms are inverted in closed form.
 """
+
 from __future__ import annotations
 
 import math
@@ -37,9 +38,15 @@ def euler_to_rotation(angles: torch.Tensor) -> torch.Tensor:
     cz, sz = torch.cos(rz), torch.sin(rz)
     # Closed-form product Rx @ Ry @ Rz, written out so the graph is elementwise.
     rows = [
-        cy * cz, -cy * sz, sy,
-        cx * sz + sx * sy * cz, cx * cz - sx * sy * sz, -sx * cy,
-        sx * sz - cx * sy * cz, sx * cz + cx * sy * sz, cx * cy,
+        cy * cz,
+        -cy * sz,
+        sy,
+        cx * sz + sx * sy * cz,
+        cx * cz - sx * sy * sz,
+        -sx * cy,
+        sx * sz - cx * sy * cz,
+        sx * cz + cx * sy * sz,
+        cx * cy,
     ]
     return torch.stack(rows, dim=-1).reshape(angles.shape[0], 3, 3)
 
@@ -88,9 +95,15 @@ def invert_intrinsics(K: torch.Tensor) -> torch.Tensor:
     fy, cy = K[:, 1, 1], K[:, 1, 2]
     zero, one = torch.zeros_like(fx), torch.ones_like(fx)
     rows = [
-        1.0 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy),
-        zero, 1.0 / fy, -cy / fy,
-        zero, zero, one,
+        1.0 / fx,
+        -s / (fx * fy),
+        (s * cy - cx * fy) / (fx * fy),
+        zero,
+        1.0 / fy,
+        -cy / fy,
+        zero,
+        zero,
+        one,
     ]
     return torch.stack(rows, dim=-1).reshape(-1, 3, 3)
 
@@ -105,7 +118,7 @@ def intrinsics_at_scale(K: torch.Tensor, scale: int) -> torch.Tensor:
     Returns:
         (B, 3, 3) at H / 2**scale.
     """
-    factor = INTRINSICS.per_scale_divisor ** scale
+    factor = INTRINSICS.per_scale_divisor**scale
     row_scale = K.new_tensor([1.0 / factor, 1.0 / factor, 1.0]).reshape(1, 3, 1)
     return K * row_scale
 
@@ -157,8 +170,9 @@ def project(points_cam: torch.Tensor, K: torch.Tensor, T: torch.Tensor) -> torch
     return (xy / (z + DEPTH_EPS)).reshape(B, 2, H, W)
 
 
-def rigid_flow(depth: torch.Tensor, T: torch.Tensor, K: torch.Tensor,
-               K_inv: torch.Tensor | None = None) -> torch.Tensor:
+def rigid_flow(
+    depth: torch.Tensor, T: torch.Tensor, K: torch.Tensor, K_inv: torch.Tensor | None = None
+) -> torch.Tensor:
     """Optical flow induced by camera motion on a static scene.
 
     Args:
@@ -213,8 +227,9 @@ def flow_warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     norm_x = coords[:, 0] * (2.0 / max(W - 1, 1)) - 1.0
     norm_y = coords[:, 1] * (2.0 / max(H - 1, 1)) - 1.0
     grid_BxHxWx2 = torch.stack([norm_x, norm_y], dim=-1)
-    return F.grid_sample(image, grid_BxHxWx2, mode="bilinear",
-                         padding_mode=SAMPLER.padding, align_corners=SAMPLER.align_corners)
+    return F.grid_sample(
+        image, grid_BxHxWx2, mode="bilinear", padding_mode=SAMPLER.padding, align_corners=SAMPLER.align_corners
+    )
 
 
 def in_view_mask(flow: torch.Tensor) -> torch.Tensor:
@@ -227,8 +242,7 @@ def in_view_mask(flow: torch.Tensor) -> torch.Tensor:
     """
     _, _, H, W = flow.shape
     coords = sample_points(flow)
-    inside = ((coords[:, 0] >= 0) & (coords[:, 0] <= W - 1)
-              & (coords[:, 1] >= 0) & (coords[:, 1] <= H - 1))
+    inside = (coords[:, 0] >= 0) & (coords[:, 0] <= W - 1) & (coords[:, 1] >= 0) & (coords[:, 1] <= H - 1)
     return inside.unsqueeze(1).to(flow.dtype)
 
 
@@ -243,8 +257,9 @@ def l2_norm(x: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(((x.abs() + 1e-10) ** 2).sum(dim=1, keepdim=True))
 
 
-def flow_consistency(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, scale: int,
-                     alpha: float = 3.0, beta: float = 0.05):
+def flow_consistency(
+    flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, scale: int, alpha: float = 3.0, beta: float = 0.05
+):
     """Forward-backward consistency of a flow pair at pyramid level ``scale``.
 
     A pixel is consistent when ``||df|| * 2^s < max(alpha, beta * ||f|| * 2^s)``,
@@ -259,7 +274,7 @@ def flow_consistency(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, scale: int,
         Call again with the arguments swapped for frame b.
     """
     diff = (flow_warp(flow_bwd, flow_fwd) + flow_fwd).abs()
-    level = 2.0 ** scale
+    level = 2.0**scale
     bound = torch.clamp(beta * l2_norm(flow_fwd) * level, min=alpha).detach()
     mask = (l2_norm(diff) * level < bound).float()
     return diff, mask

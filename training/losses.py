@@ -3,6 +3,7 @@
 All images here are network-range ([-1, 1]); the SSIM constants tuned for
 [0, 1] images are kept as in the official code.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -10,8 +11,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-SSIM_C1 = 0.01 ** 2
-SSIM_C2 = 0.03 ** 2
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
 
 
 @dataclass(frozen=True)
@@ -42,11 +43,11 @@ def ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         (B, C, H, W) SSIM; equals 1 where x == y.
     """
     mu_x, mu_y = _mean_3x3(x), _mean_3x3(y)
-    sigma_x = _mean_3x3(x * x) - mu_x ** 2
-    sigma_y = _mean_3x3(y * y) - mu_y ** 2
+    sigma_x = _mean_3x3(x * x) - mu_x**2
+    sigma_y = _mean_3x3(y * y) - mu_y**2
     sigma_xy = _mean_3x3(x * y) - mu_x * mu_y
     numerator = (2 * mu_x * mu_y + SSIM_C1) * (2 * sigma_xy + SSIM_C2)
-    denominator = (mu_x ** 2 + mu_y ** 2 + SSIM_C1) * (sigma_x + sigma_y + SSIM_C2)
+    denominator = (mu_x**2 + mu_y**2 + SSIM_C1) * (sigma_x + sigma_y + SSIM_C2)
     return numerator / denominator
 
 
@@ -55,8 +56,9 @@ def dssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return torch.clamp((1.0 - ssim(x, y)) / 2.0, 0.0, 1.0)
 
 
-def photometric_error(warped: torch.Tensor, reference: torch.Tensor,
-                      alpha: float = LossWeights.alpha_recon) -> torch.Tensor:
+def photometric_error(
+    warped: torch.Tensor, reference: torch.Tensor, alpha: float = LossWeights.alpha_recon
+) -> torch.Tensor:
     """``alpha * DSSIM + (1 - alpha) * |warped - reference|`` per channel.
 
     Args:

@@ -23,6 +23,7 @@ Random-init (timing-only) model directories are refused unless
 ``--allow-random-init`` is given (development only; the card then carries a
 warning at the top). Bad input: a one-line message naming the path, exit 2.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,8 +35,8 @@ import re
 import shlex
 import subprocess
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -121,14 +122,18 @@ def kitti_frames(kitti_dir: str | Path, n_frames: int) -> list[tuple[Path, Path]
     root = _require_dir(kitti_dir, "KITTI raw folder", "expected image_02/, velodyne_points/ and the calibration")
     for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
         if not (root / name).is_file():
-            raise GeoNetInputError(root / name, "KITTI calibration file not found",
-                                   "the drive folder must hold the date's calibration files")
+            raise GeoNetInputError(
+                root / name,
+                "KITTI calibration file not found",
+                "the drive folder must hold the date's calibration files",
+            )
     images = list_images(_require_dir(root / "image_02" / "data", "KITTI image folder"))
     velo_dir = _require_dir(root / "velodyne_points" / "data", "KITTI Velodyne folder")
     pairs = [(img, velo_dir / f"{img.stem}.bin") for img in images if (velo_dir / f"{img.stem}.bin").is_file()]
     if len(pairs) < n_frames:
-        raise GeoNetInputError(velo_dir, f"only {len(pairs)} frames have a Velodyne scan, {n_frames} requested",
-                               "lower --kitti-frames")
+        raise GeoNetInputError(
+            velo_dir, f"only {len(pairs)} frames have a Velodyne scan, {n_frames} requested", "lower --kitti-frames"
+        )
     return pairs[:n_frames]
 
 
@@ -158,14 +163,18 @@ def zero_flow(triplet: list, K: np.ndarray) -> np.ndarray:
 def pose_method(seq_length: int) -> str:
     """How the model's 5-frame snippet trajectories are obtained (sentence for the card)."""
     if seq_length == SNIPPET:
-        return ("PoseNet run once on each 5-frame snippet (target = middle frame), its 4 target→source "
-                "poses turned into first-frame coordinates with `metrics.snippet_poses_to_global` "
-                "(the paper's protocol)")
-    return (f"the model takes {seq_length}-frame snippets, so each held-out sequence is run once through "
-            "`Predictor.predict_sequence` (each frame's pose to the next one from the snippet centred on "
-            "it, with its real neighbours; only a sequence's first and last frames see replicated "
-            "ends) and, for every 5-frame snippet, the 4 consecutive frame-to-next poses inside it are "
-            "chained from the snippet's first frame (G₀ = I, Gᵢ₊₁ = Gᵢ · T⁻¹ᵢ→ᵢ₊₁)")
+        return (
+            "PoseNet run once on each 5-frame snippet (target = middle frame), its 4 target→source "
+            "poses turned into first-frame coordinates with `metrics.snippet_poses_to_global` "
+            "(the paper's protocol)"
+        )
+    return (
+        f"the model takes {seq_length}-frame snippets, so each held-out sequence is run once through "
+        "`Predictor.predict_sequence` (each frame's pose to the next one from the snippet centred on "
+        "it, with its real neighbours; only a sequence's first and last frames see replicated "
+        "ends) and, for every 5-frame snippet, the 4 consecutive frame-to-next poses inside it are "
+        "chained from the snippet's first frame (G₀ = I, Gᵢ₊₁ = Gᵢ · T⁻¹ᵢ→ᵢ₊₁)"
+    )
 
 
 def chain_snippet(pose_to_next: Sequence[np.ndarray]) -> np.ndarray:
@@ -195,8 +204,10 @@ def ate_rows(gt_xyz: np.ndarray, pred_xyz: np.ndarray) -> dict:
     prediction stands still, as the identity baseline does)."""
     gt_xyz = gt_xyz - gt_xyz[0]
     pred_xyz = pred_xyz - pred_xyz[0]
-    return {"ate_snippet": metrics.ate_snippet(gt_xyz, pred_xyz),
-            "ate_rmse_true": metrics.ate_rmse_true(gt_xyz, pred_xyz)}
+    return {
+        "ate_snippet": metrics.ate_snippet(gt_xyz, pred_xyz),
+        "ate_rmse_true": metrics.ate_rmse_true(gt_xyz, pred_xyz),
+    }
 
 
 def _summary(rows: list[dict]) -> dict:
@@ -204,8 +215,9 @@ def _summary(rows: list[dict]) -> dict:
     return {key: {"mean": mean[key], "std": std[key]} for key in rows[0]} | {"count": len(rows)}
 
 
-def evaluate_pose(predictors: dict[str, Predictor], synth_dir: Path, sequences: list[str], stride: int,
-                  progress: Progress) -> dict:
+def evaluate_pose(
+    predictors: dict[str, Predictor], synth_dir: Path, sequences: list[str], stride: int, progress: Progress
+) -> dict:
     """ATE of each predictor and of the identity pose on the 5-frame snippets of the held-out sequences."""
     rows: dict[str, list] = {p: [] for p in predictors}
     rows["identity_baseline"] = []
@@ -215,8 +227,11 @@ def evaluate_pose(predictors: dict[str, Predictor], synth_dir: Path, sequences: 
         frames = list_images(seq / "image")
         gt_c2w = read_kitti_poses(seq / "poses.txt")
         if len(gt_c2w) != len(frames):
-            raise GeoNetInputError(seq / "poses.txt", f"{len(gt_c2w)} poses for {len(frames)} frames",
-                                   "regenerate the sequence with training.synth")
+            raise GeoNetInputError(
+                seq / "poses.txt",
+                f"{len(gt_c2w)} poses for {len(frames)} frames",
+                "regenerate the sequence with training.synth",
+            )
         starts = snippet_starts(len(frames), stride)
         if not starts:
             continue
@@ -230,13 +245,13 @@ def evaluate_pose(predictors: dict[str, Predictor], synth_dir: Path, sequences: 
                 result = predictor.predict_sequence(frames, K)
                 model_traj[precision] = [f.pose_to_next for f in result.frames]
         for s in starts:
-            gt_xyz = gt_snippet(gt_c2w[s:s + SNIPPET])[:, :3, 3]
+            gt_xyz = gt_snippet(gt_c2w[s : s + SNIPPET])[:, :3, 3]
             for precision, predictor in predictors.items():
                 if model_traj[precision] is None:
-                    mats = predictor.pose(frames[s:s + SNIPPET]).matrices
+                    mats = predictor.pose(frames[s : s + SNIPPET]).matrices
                     pred = metrics.snippet_poses_to_global(mats, target_index=SNIPPET // 2)
                 else:
-                    pred = chain_snippet(model_traj[precision][s:s + SNIPPET - 1])
+                    pred = chain_snippet(model_traj[precision][s : s + SNIPPET - 1])
                 rows[precision].append(ate_rows(gt_xyz, pred[:, :3, 3]))
                 static[precision] += int(not np.any(pred[:, :3, 3] - pred[0, :3, 3]))
             rows["identity_baseline"].append(ate_rows(gt_xyz, np.zeros_like(gt_xyz)))
@@ -248,8 +263,9 @@ def evaluate_pose(predictors: dict[str, Predictor], synth_dir: Path, sequences: 
     return out | {"snippets": len(rows["identity_baseline"])}
 
 
-def evaluate_kitti_depth(predictors: dict[str, Predictor], pairs: list[tuple[Path, Path]], calib_dir: Path,
-                         progress: Progress) -> dict:
+def evaluate_kitti_depth(
+    predictors: dict[str, Predictor], pairs: list[tuple[Path, Path]], calib_dir: Path, progress: Progress
+) -> dict:
     """Eigen-protocol depth (Garg crop, 80 m, median scaling) on KITTI frames with Velodyne GT."""
     per_frame = []
     model_rows: dict[str, list] = {p: [] for p in predictors}
@@ -279,8 +295,13 @@ def evaluate_kitti_depth(predictors: dict[str, Predictor], pairs: list[tuple[Pat
 # ----------------------------------------------------------------------------- run
 def _git_commit() -> str | None:
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10,
-                             cwd=Path(__file__).resolve().parents[1])
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            cwd=Path(__file__).resolve().parents[1],
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() or None
@@ -291,16 +312,30 @@ def model_info(manifest: Manifest, model_dir: Path) -> dict:
     for precision in manifest.precisions:
         for name in manifest.graph_names(precision):
             entry = manifest.graph(name, precision)
-            files.append({"precision": precision, "graph": name, "file": entry.file,
-                          "bytes": (model_dir / entry.file).stat().st_size, "sha256": entry.sha256,
-                          "file_precision": entry.precision, "opset": entry.opset})
+            files.append(
+                {
+                    "precision": precision,
+                    "graph": name,
+                    "file": entry.file,
+                    "bytes": (model_dir / entry.file).stat().st_size,
+                    "sha256": entry.sha256,
+                    "file_precision": entry.precision,
+                    "opset": entry.opset,
+                }
+            )
     quant = manifest.quantization
     return {
-        "dir": str(model_dir), "arch": manifest.arch, "height": manifest.height, "width": manifest.width,
-        "seq_length": manifest.seq_length, "random_init": manifest.random_init,
-        "precisions": list(manifest.precisions), "graphs": list(manifest.graph_names("fp32")),
+        "dir": str(model_dir),
+        "arch": manifest.arch,
+        "height": manifest.height,
+        "width": manifest.width,
+        "seq_length": manifest.seq_length,
+        "random_init": manifest.random_init,
+        "precisions": list(manifest.precisions),
+        "graphs": list(manifest.graph_names("fp32")),
         "provenance": dataclasses.asdict(manifest.provenance),
-        "metrics": manifest.metrics, "files": files,
+        "metrics": manifest.metrics,
+        "files": files,
         "quantization": None if quant is None else json.loads(json.dumps(dataclasses.asdict(quant), default=list)),
     }
 
@@ -310,8 +345,11 @@ def run(args, command: str, progress: Progress) -> dict:
     model_dir = _require_dir(args.model, "model directory", "pass a directory written by `python -m export`")
     manifest = load_manifest(model_dir)
     if manifest.random_init and not args.allow_random_init:
-        raise GeoNetInputError(model_dir / MANIFEST_NAME, "this model directory holds random-init (timing-only) "
-                               "graphs", "export a trained --checkpoint (--allow-random-init is for development)")
+        raise GeoNetInputError(
+            model_dir / MANIFEST_NAME,
+            "this model directory holds random-init (timing-only) graphs",
+            "export a trained --checkpoint (--allow-random-init is for development)",
+        )
     synth_dir = _require_dir(args.synth_dir, "synthetic data folder", "generate it with `python -m training.synth`")
     _require_dir(args.prepared_dir, "prepared data folder", "prepare it with `python -m training.prepare`")
     sequences = heldout_sequences(args.prepared_dir)
@@ -321,8 +359,7 @@ def run(args, command: str, progress: Progress) -> dict:
     pairs = kitti_frames(kitti_dir, args.kitti_frames)
 
     precisions = [p for p in ("fp32", "int8") if p in manifest.precisions]
-    predictors = {p: Predictor(model_dir, precision=p, threads=args.threads, manifest=manifest)
-                  for p in precisions}
+    predictors = {p: Predictor(model_dir, precision=p, threads=args.threads, manifest=manifest) for p in precisions}
 
     depth, flow = {}, {}
     for p, predictor in predictors.items():
@@ -347,14 +384,30 @@ def run(args, command: str, progress: Progress) -> dict:
         "git_commit": _git_commit(),
         "allow_random_init": bool(args.allow_random_init),
         "model": model_info(manifest, model_dir),
-        "synthetic": {"synth_dir": str(args.synth_dir), "prepared_dir": str(args.prepared_dir),
-                      "sequences": sequences, "stride": args.stride,
-                      "synth_config": _synth_config(synth_dir),
-                      "depth": depth, "flow": flow, "pose": pose},
-        "kitti": {"dir": str(args.kitti), "frames": [img.stem for img, _ in pairs], "crop": KITTI_CROP,
-                  "min_depth": MIN_DEPTH, "max_depth": MAX_DEPTH, "depth": kitti},
-        "settings": {"max_depth": MAX_DEPTH, "snippet_length": SNIPPET, "flow_seq_length": manifest.seq_length,
-                     "threads": args.threads},
+        "synthetic": {
+            "synth_dir": str(args.synth_dir),
+            "prepared_dir": str(args.prepared_dir),
+            "sequences": sequences,
+            "stride": args.stride,
+            "synth_config": _synth_config(synth_dir),
+            "depth": depth,
+            "flow": flow,
+            "pose": pose,
+        },
+        "kitti": {
+            "dir": str(args.kitti),
+            "frames": [img.stem for img, _ in pairs],
+            "crop": KITTI_CROP,
+            "min_depth": MIN_DEPTH,
+            "max_depth": MAX_DEPTH,
+            "depth": kitti,
+        },
+        "settings": {
+            "max_depth": MAX_DEPTH,
+            "snippet_length": SNIPPET,
+            "flow_seq_length": manifest.seq_length,
+            "threads": args.threads,
+        },
     }
     result["int8_delta"] = int8_deltas(result) if "int8" in predictors else []
     return result
@@ -383,8 +436,17 @@ def int8_deltas(result: dict) -> list[dict]:
         fp32, int8 = _flatten(block["fp32"]), _flatten(block["int8"])
         for key in keys:
             delta = int8[key] - fp32[key]
-            rows.append({"data": where, "task": task, "metric": key, "fp32": fp32[key], "int8": int8[key],
-                         "delta": delta, "relative": delta / fp32[key] if fp32[key] else None})
+            rows.append(
+                {
+                    "data": where,
+                    "task": task,
+                    "metric": key,
+                    "fp32": fp32[key],
+                    "int8": int8[key],
+                    "delta": delta,
+                    "relative": delta / fp32[key] if fp32[key] else None,
+                }
+            )
     return rows
 
 
@@ -399,8 +461,13 @@ def _data_synth(result: dict) -> str:
 def _data_kitti(result: dict) -> str:
     k = result["kitti"]
     frames = k["frames"]
-    span = frames[0] if len(frames) == 1 else f"{int(frames[0])}–{int(frames[-1])}" if all(
-        f.isdigit() for f in frames) else f"{frames[0]}…{frames[-1]}"
+    span = (
+        frames[0]
+        if len(frames) == 1
+        else f"{int(frames[0])}–{int(frames[-1])}"
+        if all(f.isdigit() for f in frames)
+        else f"{frames[0]}…{frames[-1]}"
+    )
     pf = k["depth"]["per_frame"][0]
     return f"KITTI raw `{Path(k['dir']).name}`, frames {span} ({len(frames)}, {pf['width']}×{pf['height']})"
 
@@ -422,8 +489,17 @@ def _flow_table(block: dict, data: str) -> list[str]:
             continue
         label = PRECISION_LABEL.get(key, "zero flow (baseline)")
         b = block[key]
-        rows.append([label, data, sig3(b["noc"]["epe"]), sig3(b["occ"]["epe"]), sig3(b["noc"]["fl"]),
-                     sig3(b["occ"]["fl"]), sig3(b["noc"]["count"])])
+        rows.append(
+            [
+                label,
+                data,
+                sig3(b["noc"]["epe"]),
+                sig3(b["occ"]["epe"]),
+                sig3(b["noc"]["fl"]),
+                sig3(b["occ"]["fl"]),
+                sig3(b["noc"]["count"]),
+            ]
+        )
     return _table(["predictor", "data", "EPE noc (px)", "EPE occ (px)", "Fl noc", "Fl occ", "pairs"], rows)
 
 
@@ -434,10 +510,16 @@ def _pose_table(block: dict, data: str) -> list[str]:
             continue
         label = PRECISION_LABEL.get(key, "identity pose / no motion (baseline)")
         b = block[key]
-        rows.append([label, data, f"{sig3(b['ate_snippet']['mean'])} ± {sig3(b['ate_snippet']['std'])}",
-                     f"{sig3(b['ate_rmse_true']['mean'])} ± {sig3(b['ate_rmse_true']['std'])}", sig3(b["count"])])
-    return _table(["predictor", "data", "ATE, paper (÷N) mean ± std", "ATE, true RMSE mean ± std", "snippets"],
-                  rows)
+        rows.append(
+            [
+                label,
+                data,
+                f"{sig3(b['ate_snippet']['mean'])} ± {sig3(b['ate_snippet']['std'])}",
+                f"{sig3(b['ate_rmse_true']['mean'])} ± {sig3(b['ate_rmse_true']['std'])}",
+                sig3(b["count"]),
+            ]
+        )
+    return _table(["predictor", "data", "ATE, paper (÷N) mean ± std", "ATE, true RMSE mean ± std", "snippets"], rows)
 
 
 def _compare(model: float, baseline: float, lower_is_better: bool = True) -> str:
@@ -459,16 +541,27 @@ def render_card(result: dict) -> str:
     synth_data, kitti_data = _data_synth(result), _data_kitti(result)
     name = Path(m["dir"]).name
     L: list[str] = [f"# Model card: `{name}`", ""]
-    L += ["Regenerate this file (from the repository root; every number below comes from that run, "
-          "none is typed by hand):", "", "```bash", result["command"], "```", "",
-          f"Generated {result['generated_utc']} at git commit `{(result['git_commit'] or 'unknown')[:12]}` "
-          "by `training/model_card.py`. All models run through the pip runtime "
-          "(`geonet_infer.predictor.Predictor` on onnxruntime), exactly as users run them.", ""]
+    L += [
+        "Regenerate this file (from the repository root; every number below comes from that run, "
+        "none is typed by hand):",
+        "",
+        "```bash",
+        result["command"],
+        "```",
+        "",
+        f"Generated {result['generated_utc']} at git commit `{(result['git_commit'] or 'unknown')[:12]}` "
+        "by `training/model_card.py`. All models run through the pip runtime "
+        "(`geonet_infer.predictor.Predictor` on onnxruntime), exactly as users run them.",
+        "",
+    ]
     if m["random_init"]:
-        L += ["> **⚠️ WARNING: RANDOM-INIT MODEL. This card was generated with `--allow-random-init` for a "
-              "model directory whose graphs hold random, untrained weights (`random_init: true` in the "
-              "manifest). Its accuracy numbers measure noise and say nothing about GeoNet. Do not publish "
-              "or compare them; regenerate the card from a trained export.**", ""]
+        L += [
+            "> **⚠️ WARNING: RANDOM-INIT MODEL. This card was generated with `--allow-random-init` for a "
+            "model directory whose graphs hold random, untrained weights (`random_init: true` in the "
+            "manifest). Its accuracy numbers measure noise and say nothing about GeoNet. Do not publish "
+            "or compare them; regenerate the card from a trained export.**",
+            "",
+        ]
 
     # ------------------------------------------------------------ what
     L += ["## The model", ""]
@@ -476,82 +569,131 @@ def render_card(result: dict) -> str:
     stage = prov.get("checkpoint_stage")
     stages = (f"`{stage}`, initialised from `{init}`" if init else f"`{stage}`") if stage else "n/a"
     rows = [
-        ["architecture", f"`{m['arch']}` (DepthNet, PoseNet" + (", ResFlowNet" if "resflownet" in m["graphs"]
-                                                               else "; no ResFlowNet: flow = rigid flow") + ")"],
+        [
+            "architecture",
+            f"`{m['arch']}` (DepthNet, PoseNet"
+            + (", ResFlowNet" if "resflownet" in m["graphs"] else "; no ResFlowNet: flow = rigid flow")
+            + ")",
+        ],
         ["graphs", ", ".join(f"`{g}`" for g in m["graphs"])],
         ["input size", f"{m['height']}×{m['width']}, snippets of {m['seq_length']} frames (target in the middle)"],
         ["precisions", ", ".join(m["precisions"])],
         ["random init", str(m["random_init"])],
         ["training data", f"`{prov['data_dir']}`" if prov.get("data_dir") else "n/a"],
         ["training stage", stages],
-        ["training steps (this stage)", sig3(prov["checkpoint_step"]) if prov.get("checkpoint_step") is not None
-         else "n/a"],
+        [
+            "training steps (this stage)",
+            sig3(prov["checkpoint_step"]) if prov.get("checkpoint_step") is not None else "n/a",
+        ],
         ["training command", f"`{prov['training_command']}`" if prov.get("training_command") else "n/a"],
-        ["checkpoint", (f"`{prov['checkpoint']}` (sha256 `{prov['checkpoint_sha256'][:12]}…`)"
-                        if prov.get("checkpoint") and prov.get("checkpoint_sha256") else "n/a")],
+        [
+            "checkpoint",
+            (
+                f"`{prov['checkpoint']}` (sha256 `{prov['checkpoint_sha256'][:12]}…`)"
+                if prov.get("checkpoint") and prov.get("checkpoint_sha256")
+                else "n/a"
+            ),
+        ],
         ["exported", f"{prov.get('export_date')} at git commit `{(prov.get('git_commit') or 'unknown')[:12]}`"],
         ["exporter", prov.get("exporter") or "n/a"],
         ["versions", ", ".join(f"{k_} {v}" for k_, v in sorted(prov.get("versions", {}).items())) or "n/a"],
     ]
     L += _table(["", ""], rows) + [""]
     if m["metrics"]:
-        L += ["Checkpoint metrics recorded by training (from the manifest; validation split of the "
-              "training data, not the held-out sequences):", ""]
-        L += _table(["metric", "value"], [[f"`{k_}`", sig3(v) if isinstance(v, (int, float)) else str(v)]
-                                          for k_, v in _flatten(m["metrics"]).items()]) + [""]
+        L += [
+            "Checkpoint metrics recorded by training (from the manifest; validation split of the "
+            "training data, not the held-out sequences):",
+            "",
+        ]
+        L += _table(
+            ["metric", "value"],
+            [
+                [f"`{k_}`", sig3(v) if isinstance(v, (int, float)) else str(v)]
+                for k_, v in _flatten(m["metrics"]).items()
+            ],
+        ) + [""]
     q = m["quantization"]
     if q:
-        L += ["INT8 quantisation (from the manifest): "
-              f"{q.get('method')}, activations {q.get('activation_type')}, weights {q.get('weight_type')}, "
-              f"per-channel {q.get('per_channel')}, reduce-range {q.get('reduce_range')}, calibration "
-              f"`{q.get('calibrate_method')}` on `{q.get('calibration_data')}` "
-              f"({', '.join(f'{g}: {n}' for g, n in (q.get('calibration_samples') or {}).items())} inputs); "
-              f"graphs kept in FP32: {', '.join(q.get('fp32_graphs') or []) or 'none'}.", ""]
+        L += [
+            "INT8 quantisation (from the manifest): "
+            f"{q.get('method')}, activations {q.get('activation_type')}, weights {q.get('weight_type')}, "
+            f"per-channel {q.get('per_channel')}, reduce-range {q.get('reduce_range')}, calibration "
+            f"`{q.get('calibrate_method')}` on `{q.get('calibration_data')}` "
+            f"({', '.join(f'{g}: {n}' for g, n in (q.get('calibration_samples') or {}).items())} inputs); "
+            f"graphs kept in FP32: {', '.join(q.get('fp32_graphs') or []) or 'none'}.",
+            "",
+        ]
 
     # ------------------------------------------------------------ files
-    L += ["## Files", "", f"Model directory `{m['dir']}`; sha256 from `manifest.json` (checked against the "
-          "files when the model was loaded).", ""]
-    L += _table(["precision", "graph", "file", "size", "sha256 (prefix)"],
-                [[f["precision"], f["graph"], f"`{f['file']}`" + (" (FP32)" if f["file_precision"] != f["precision"]
-                                                                 else ""), _mib(f["bytes"]), f"`{f['sha256'][:12]}`"]
-                 for f in m["files"]]) + [""]
+    L += [
+        "## Files",
+        "",
+        f"Model directory `{m['dir']}`; sha256 from `manifest.json` (checked against the "
+        "files when the model was loaded).",
+        "",
+    ]
+    L += _table(
+        ["precision", "graph", "file", "size", "sha256 (prefix)"],
+        [
+            [
+                f["precision"],
+                f["graph"],
+                f"`{f['file']}`" + (" (FP32)" if f["file_precision"] != f["precision"] else ""),
+                _mib(f["bytes"]),
+                f"`{f['sha256'][:12]}`",
+            ]
+            for f in m["files"]
+        ],
+    ) + [""]
     totals = {}
     for f in m["files"]:
         totals.setdefault(f["precision"], 0)
         totals[f["precision"]] += f["bytes"]
-    L += ["Total per precision (a precision's set includes the shared FP32 `rigidflow`): "
-          + ", ".join(f"{p} {_mib(b)}" for p, b in totals.items()) + ".", ""]
+    L += [
+        "Total per precision (a precision's set includes the shared FP32 `rigidflow`): "
+        + ", ".join(f"{p} {_mib(b)}" for p, b in totals.items())
+        + ".",
+        "",
+    ]
 
     # ------------------------------------------------------------ data and protocol
     seqs = s["sequences"]
-    L += ["## What was measured", "",
-          f"* **Synthetic held-out**: {synth_data}: sequences {', '.join(f'`{x}`' for x in seqs)} listed in "
-          f"`{s['prepared_dir']}/heldout.txt`, generated by `training.synth` and never trained on"
-          + (f"; one frame / pair / snippet in {s['stride']} (`--stride {s['stride']}`)" if s["stride"] > 1 else "")
-          + ". Depth: every pixel with ground truth (no crop), per-image median scaling, clamp to "
-          f"[{MIN_DEPTH:g}, {result['settings']['max_depth']:g}] m "
-          "(`training.evaluate.evaluate_depth`). Flow t→t+1 from the snippet "
-          + ("[t−1, t, t+1]" if result["settings"]["flow_seq_length"] == 3 else
-             "pair [t, t+1] (padded by the runtime; `evaluate_flow` passes triplets only)")
-          + ", EPE and Fl (EPE > 3 px and > 5 %) on non-occluded (noc) and all in-view (occ) pixels "
-          "(`training.evaluate.evaluate_flow`).",
-          f"* **Pose**: ATE on {SNIPPET}-frame snippets (every target t = 2 … N−3"
-          + (f", stride {s['stride']}" if s["stride"] > 1 else "") + ") against the synthetic ground-truth "
-          "poses (`poses.txt`, camera-to-world, inverted to world→camera and put in the snippet's first-frame "
-          f"coordinates with `metrics.snippet_poses_to_global`). Model trajectory: {s['pose']['method']}. "
-          "`ATE, paper` is `metrics.ate_snippet`, the SfMLearner/GeoNet value with its quirk kept: "
-          "√(Σ‖e‖²)/N, i.e. the true RMSE ÷ √5, with only a scale (no rotation) fitted per snippet. "
-          "`ATE, true RMSE` is `metrics.ate_rmse_true` after the same alignment. Units are the synthetic "
-          "world's metres.",
-          f"* **Real KITTI**: {kitti_data} with Velodyne scans, never trained on. Ground truth: the scans "
-          "projected by `training.kitti_depth.velodyne_to_depth_map` (camera 2, Velodyne forward distance). "
-          f"Eigen protocol: {KITTI_CROP.capitalize()} crop, {k['min_depth']:g} < GT < {k['max_depth']:g} m, "
-          "per-image median scaling, then clamp; the runtime returns depth at the input resolution.",
-          "* **Baselines**: *constant depth* predicts one value per image; after median scaling that is the "
-          "image's median GT depth. *Zero flow* predicts no motion. *Identity pose* predicts no camera "
-          "motion; its ATE is the snippet's own extent. The per-snippet least-squares scale can shrink any "
-          "prediction to zero, so a model's ATE can never exceed the identity baseline's on the same snippet: "
-          "the baseline is an upper bound, and the gap to it is what the pose network contributes.", ""]
+    L += [
+        "## What was measured",
+        "",
+        f"* **Synthetic held-out**: {synth_data}: sequences {', '.join(f'`{x}`' for x in seqs)} listed in "
+        f"`{s['prepared_dir']}/heldout.txt`, generated by `training.synth` and never trained on"
+        + (f"; one frame / pair / snippet in {s['stride']} (`--stride {s['stride']}`)" if s["stride"] > 1 else "")
+        + ". Depth: every pixel with ground truth (no crop), per-image median scaling, clamp to "
+        f"[{MIN_DEPTH:g}, {result['settings']['max_depth']:g}] m "
+        "(`training.evaluate.evaluate_depth`). Flow t→t+1 from the snippet "
+        + (
+            "[t−1, t, t+1]"
+            if result["settings"]["flow_seq_length"] == 3
+            else "pair [t, t+1] (padded by the runtime; `evaluate_flow` passes triplets only)"
+        )
+        + ", EPE and Fl (EPE > 3 px and > 5 %) on non-occluded (noc) and all in-view (occ) pixels "
+        "(`training.evaluate.evaluate_flow`).",
+        f"* **Pose**: ATE on {SNIPPET}-frame snippets (every target t = 2 … N−3"
+        + (f", stride {s['stride']}" if s["stride"] > 1 else "")
+        + ") against the synthetic ground-truth "
+        "poses (`poses.txt`, camera-to-world, inverted to world→camera and put in the snippet's first-frame "
+        f"coordinates with `metrics.snippet_poses_to_global`). Model trajectory: {s['pose']['method']}. "
+        "`ATE, paper` is `metrics.ate_snippet`, the SfMLearner/GeoNet value with its quirk kept: "
+        "√(Σ‖e‖²)/N, i.e. the true RMSE ÷ √5, with only a scale (no rotation) fitted per snippet. "
+        "`ATE, true RMSE` is `metrics.ate_rmse_true` after the same alignment. Units are the synthetic "
+        "world's metres.",
+        f"* **Real KITTI**: {kitti_data} with Velodyne scans, never trained on. Ground truth: the scans "
+        "projected by `training.kitti_depth.velodyne_to_depth_map` (camera 2, Velodyne forward distance). "
+        f"Eigen protocol: {KITTI_CROP.capitalize()} crop, {k['min_depth']:g} < GT < {k['max_depth']:g} m, "
+        "per-image median scaling, then clamp; the runtime returns depth at the input resolution.",
+        "* **Baselines**: *constant depth* predicts one value per image; after median scaling that is the "
+        "image's median GT depth. *Zero flow* predicts no motion. *Identity pose* predicts no camera "
+        "motion; its ATE is the snippet's own extent. The per-snippet least-squares scale can shrink any "
+        "prediction to zero, so a model's ATE can never exceed the identity baseline's on the same snippet: "
+        "the baseline is an upper bound, and the gap to it is what the pose network contributes.",
+        "",
+    ]
 
     # ------------------------------------------------------------ tables
     d = s["depth"]
@@ -561,9 +703,13 @@ def render_card(result: dict) -> str:
     L += _depth_table(k["depth"], kitti_data, "frames") + [""]
     L += ["Per KITTI frame (AbsRel):", ""]
     keys = [p for p in ("fp32", "int8") if p in k["depth"]] + ["constant_baseline"]
-    L += _table(["frame"] + [PRECISION_LABEL.get(p, "constant depth") for p in keys] + ["GT pixels"],
-                [[f["frame"]] + [sig3(f[p]["abs_rel"]) for p in keys] + [sig3(f["constant_baseline"]["n_valid"])]
-                 for f in k["depth"]["per_frame"]]) + [""]
+    L += _table(
+        ["frame"] + [PRECISION_LABEL.get(p, "constant depth") for p in keys] + ["GT pixels"],
+        [
+            [f["frame"]] + [sig3(f[p]["abs_rel"]) for p in keys] + [sig3(f["constant_baseline"]["n_valid"])]
+            for f in k["depth"]["per_frame"]
+        ],
+    ) + [""]
     L += ["## Optical flow (synthetic held-out sequences)", ""]
     L += _flow_table(s["flow"], synth_data) + [""]
     L += ["## Camera pose (synthetic held-out sequences, 5-frame snippets)", ""]
@@ -571,35 +717,66 @@ def render_card(result: dict) -> str:
     for p in ("fp32", "int8"):
         n = s["pose"].get(p, {}).get("static_snippets", 0)
         if n:
-            L += [f"**{PRECISION_LABEL[p]}: in {n} of {s['pose']['snippets']} snippets the predicted camera "
-                  "does not move at all** (every chained position exactly 0), so there its ATE is the identity "
-                  "baseline's. The pose matrices this precision returns carry no motion there; check its "
-                  "PoseNet graph.", ""]
+            L += [
+                f"**{PRECISION_LABEL[p]}: in {n} of {s['pose']['snippets']} snippets the predicted camera "
+                "does not move at all** (every chained position exactly 0), so there its ATE is the identity "
+                "baseline's. The pose matrices this precision returns carry no motion there; check its "
+                "PoseNet graph.",
+                "",
+            ]
 
     # ------------------------------------------------------------ int8
     L += ["## INT8 versus FP32", ""]
     if result["int8_delta"]:
-        L += ["Difference INT8 − FP32 on the same frames (positive = INT8 larger; for δ<1.25 larger is "
-              "better, for the errors smaller is better):", ""]
-        names = {"abs_rel": "AbsRel", "sq_rel": "SqRel", "rmse": "RMSE", "rmse_log": "RMSElog", "a1": "δ<1.25",
-                 "noc.epe": "EPE noc", "occ.epe": "EPE occ", "noc.fl": "Fl noc", "occ.fl": "Fl occ",
-                 "ate_snippet.mean": "ATE paper (mean)", "ate_rmse_true.mean": "ATE true RMSE (mean)"}
-        L += _table(["data", "task", "metric", "FP32", "INT8", "INT8 − FP32", "relative"],
-                    [[synth_data if r["data"] == "synthetic" else kitti_data, r["task"], names[r["metric"]],
-                      sig3(r["fp32"]), sig3(r["int8"]), signed3(r["delta"]),
-                      "n/a" if r["relative"] is None else signed3(100 * r["relative"]) + " %"]
-                     for r in result["int8_delta"]]) + [""]
+        L += [
+            "Difference INT8 − FP32 on the same frames (positive = INT8 larger; for δ<1.25 larger is "
+            "better, for the errors smaller is better):",
+            "",
+        ]
+        names = {
+            "abs_rel": "AbsRel",
+            "sq_rel": "SqRel",
+            "rmse": "RMSE",
+            "rmse_log": "RMSElog",
+            "a1": "δ<1.25",
+            "noc.epe": "EPE noc",
+            "occ.epe": "EPE occ",
+            "noc.fl": "Fl noc",
+            "occ.fl": "Fl occ",
+            "ate_snippet.mean": "ATE paper (mean)",
+            "ate_rmse_true.mean": "ATE true RMSE (mean)",
+        }
+        L += _table(
+            ["data", "task", "metric", "FP32", "INT8", "INT8 − FP32", "relative"],
+            [
+                [
+                    synth_data if r["data"] == "synthetic" else kitti_data,
+                    r["task"],
+                    names[r["metric"]],
+                    sig3(r["fp32"]),
+                    sig3(r["int8"]),
+                    signed3(r["delta"]),
+                    "n/a" if r["relative"] is None else signed3(100 * r["relative"]) + " %",
+                ]
+                for r in result["int8_delta"]
+            ],
+        ) + [""]
     else:
-        L += ["This model directory has no INT8 graphs (the manifest lists only "
-              f"{', '.join(m['precisions'])}).", ""]
+        L += [f"This model directory has no INT8 graphs (the manifest lists only {', '.join(m['precisions'])}).", ""]
     if q and isinstance(q.get("accuracy_delta"), dict):
         acc = q["accuracy_delta"]
-        rows = [[f"`{k_}`", sig3(v["fp32"]), sig3(v["int8"]), signed3(v["delta"])] for k_, v in acc.items()
-                if isinstance(v, dict) and {"fp32", "int8", "delta"} <= set(v)]
+        rows = [
+            [f"`{k_}`", sig3(v["fp32"]), sig3(v["int8"]), signed3(v["delta"])]
+            for k_, v in acc.items()
+            if isinstance(v, dict) and {"fp32", "int8", "delta"} <= set(v)
+        ]
         if rows:
-            L += ["For comparison, the INT8 check the export itself recorded in the manifest "
-                  "(`quantization.accuracy_delta`, also through the runtime's Predictor; "
-                  f"data `{acc.get('synth_dir')}`, stride {acc.get('stride')}):", ""]
+            L += [
+                "For comparison, the INT8 check the export itself recorded in the manifest "
+                "(`quantization.accuracy_delta`, also through the runtime's Predictor; "
+                f"data `{acc.get('synth_dir')}`, stride {acc.get('stride')}):",
+                "",
+            ]
             L += _table(["metric", "FP32", "INT8", "INT8 − FP32"], rows) + [""]
     if q and q.get("accuracy_delta_reason"):
         L += [f"Export note on the INT8 check: {q['accuracy_delta_reason']}.", ""]
@@ -611,34 +788,38 @@ def render_card(result: dict) -> str:
     if m["random_init"]:
         L += ["* **The weights are random (development card).** Nothing below describes a trained model."]
     trained_on = f" (`{prov['data_dir']}`)" if prov.get("data_dir") else ""
-    L += [f"* **Synthetic training data.** The model is trained only on procedurally generated driving "
-          f"sequences{trained_on} (`training.synth`: boxes on a flat road, Lambertian shading, no sensor noise; see "
-          "`docs/synthetic_data.md`). The held-out synthetic numbers come from the same generator and "
-          "overstate what to expect on real video.",
-          f"* **Real-data depth is measured on {kd['frames']} KITTI frames only** (one drive, consecutive "
-          "frames, so they are far from independent). On them the FP32 model's AbsRel "
-          f"({sig3(kd[best]['abs_rel'])}) is {_compare(kd[best]['abs_rel'], kd['constant_baseline']['abs_rel'])} "
-          f"the constant-depth baseline ({sig3(kd['constant_baseline']['abs_rel'])}); on the synthetic held-out "
-          f"set it is {sig3(sd[best]['abs_rel'])} vs {sig3(sd['constant_baseline']['abs_rel'])} "
-          f"({_compare(sd[best]['abs_rel'], sd['constant_baseline']['abs_rel'])} the baseline). This is no "
-          "substitute for the 697-image Eigen split.",
-          "* **Relative scale.** Depth and camera translation are known only up to an unknown scale. Every "
-          "depth number uses per-image median scaling with the ground truth and every ATE a per-snippet "
-          "scale fit, so none of them measures metric scale; a user without ground truth gets depth in "
-          "arbitrary units.",
-          "* **Pose ATE on 5-frame snippets** hides drift and most rotation error, and the paper's value "
-          "divides by N (it is the true RMSE ÷ √5). There is no real-data pose or flow evaluation here "
-          "(the KITTI frames have no poses and no flow ground truth).",
-          f"* **Flow** was compared with zero flow only "
-          f"(FP32 EPE noc {sig3(s['flow'][best]['noc']['epe'])} px vs "
-          f"{sig3(s['flow']['zero_flow_baseline']['noc']['epe'])} px), on synthetic data only.", ""]
+    L += [
+        f"* **Synthetic training data.** The model is trained only on procedurally generated driving "
+        f"sequences{trained_on} (`training.synth`: boxes on a flat road, Lambertian shading, no sensor noise; see "
+        "`docs/synthetic_data.md`). The held-out synthetic numbers come from the same generator and "
+        "overstate what to expect on real video.",
+        f"* **Real-data depth is measured on {kd['frames']} KITTI frames only** (one drive, consecutive "
+        "frames, so they are far from independent). On them the FP32 model's AbsRel "
+        f"({sig3(kd[best]['abs_rel'])}) is {_compare(kd[best]['abs_rel'], kd['constant_baseline']['abs_rel'])} "
+        f"the constant-depth baseline ({sig3(kd['constant_baseline']['abs_rel'])}); on the synthetic held-out "
+        f"set it is {sig3(sd[best]['abs_rel'])} vs {sig3(sd['constant_baseline']['abs_rel'])} "
+        f"({_compare(sd[best]['abs_rel'], sd['constant_baseline']['abs_rel'])} the baseline). This is no "
+        "substitute for the 697-image Eigen split.",
+        "* **Relative scale.** Depth and camera translation are known only up to an unknown scale. Every "
+        "depth number uses per-image median scaling with the ground truth and every ATE a per-snippet "
+        "scale fit, so none of them measures metric scale; a user without ground truth gets depth in "
+        "arbitrary units.",
+        "* **Pose ATE on 5-frame snippets** hides drift and most rotation error, and the paper's value "
+        "divides by N (it is the true RMSE ÷ √5). There is no real-data pose or flow evaluation here "
+        "(the KITTI frames have no poses and no flow ground truth).",
+        f"* **Flow** was compared with zero flow only "
+        f"(FP32 EPE noc {sig3(s['flow'][best]['noc']['epe'])} px vs "
+        f"{sig3(s['flow']['zero_flow_baseline']['noc']['epe'])} px), on synthetic data only.",
+        "",
+    ]
     return "\n".join(L) + "\n"
 
 
 # ----------------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m training.model_card", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m training.model_card", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--model", required=True, help="model directory written by `python -m export`")
     p.add_argument("--synth-dir", required=True, help="output of training.synth")
     p.add_argument("--prepared-dir", required=True, help="output of training.prepare (has heldout.txt)")
@@ -648,8 +829,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stride", type=int, default=1, help="synthetic: every n-th frame / pair / snippet")
     p.add_argument("--kitti-frames", type=int, default=10, help="KITTI frames with Velodyne scans to use (first N)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all usable)")
-    p.add_argument("--allow-random-init", action="store_true",
-                   help="accept a random-init model directory (development only; the card says so loudly)")
+    p.add_argument(
+        "--allow-random-init",
+        action="store_true",
+        help="accept a random-init model directory (development only; the card says so loudly)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
 

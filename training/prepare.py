@@ -16,6 +16,7 @@ synthetic data; ``<frame>`` is the target frame's file stem.
 Every file goes through :func:`geonet_infer.io.atomic_write`, so an interrupted run never
 leaves half a sample; a re-run skips samples whose files all exist (resumable).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,17 +32,35 @@ from tqdm import tqdm
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, atomic_write, list_images, open_frames, read_calib_K,
-                             read_calib_file, read_camera, read_depth_kitti, read_image, require_key, write_cam_txt,
-                             write_depth_kitti, write_image)
+from geonet_infer.io import (
+    IMAGE_SUFFIXES,
+    VIDEO_SUFFIXES,
+    atomic_write,
+    list_images,
+    open_frames,
+    read_calib_file,
+    read_calib_K,
+    read_camera,
+    read_depth_kitti,
+    read_image,
+    require_key,
+    write_cam_txt,
+    write_depth_kitti,
+    write_image,
+)
 
 log = logging.getLogger(__name__)
 
 KINDS = ("synth", "kitti_raw", "kitti_odom", "video", "frames")
 SPLITS = ("eigen", "stereo", "odom", "none")
 DEFAULT_SPLIT = {"kitti_raw": "eigen", "kitti_odom": "odom", "synth": "none", "video": "none", "frames": "none"}
-VALID_SPLITS = {"kitti_raw": ("eigen", "stereo", "none"), "kitti_odom": ("odom", "none"), "synth": ("none",),
-                "video": ("none",), "frames": ("none",)}
+VALID_SPLITS = {
+    "kitti_raw": ("eigen", "stereo", "none"),
+    "kitti_odom": ("odom", "none"),
+    "synth": ("none",),
+    "video": ("none",),
+    "frames": ("none",),
+}
 FRAME_CACHE = ".frames"  # video/frames: the undistorted, cropped, resized, non-static frames
 LISTS_DIR = Path(__file__).with_name("kitti_lists")
 RAW_CAMS = ("02", "03")  # KITTI raw colour cameras: left, right
@@ -129,9 +148,11 @@ class PrepareResult:
     skipped: list[Skip] = field(default_factory=list)
 
     def summary(self) -> str:
-        lines = [f"prepare: {self.written} samples written, {self.existing} already present, "
-                 f"{len(self.skipped)} skipped -> {self.out}",
-                 f"  train {len(self.train)}, val {len(self.val)}, heldout {len(self.heldout)}"]
+        lines = [
+            f"prepare: {self.written} samples written, {self.existing} already present, "
+            f"{len(self.skipped)} skipped -> {self.out}",
+            f"  train {len(self.train)}, val {len(self.val)}, heldout {len(self.heldout)}",
+        ]
         if self.skipped:
             lines.append("  skipped:")
             lines += [f"    - {s}" for s in self.skipped]
@@ -238,8 +259,11 @@ def collect_kitti_raw(src: Path, split: str, skips: Skips) -> list[Sequence]:
     """One Sequence per (drive, camera 02/03); K = P_rect_0X[:3, :3] of calib_cam_to_cam.txt."""
     drives = _raw_drives(src)
     if not drives:
-        raise GeoNetInputError(src, "no KITTI raw drive found (no image_02/ or image_03/ folder here or 1-2 levels down)",
-                               "pass a KITTI raw root (<date>/<drive>/image_02/data/*.png) or one drive folder")
+        raise GeoNetInputError(
+            src,
+            "no KITTI raw drive found (no image_02/ or image_03/ folder here or 1-2 levels down)",
+            "pass a KITTI raw root (<date>/<drive>/image_02/data/*.png) or one drive folder",
+        )
     test_scenes = read_scene_list(f"test_scenes_{split}.txt") if split in ("eigen", "stereo") else set()
     seqs = []
     for drive in drives:
@@ -249,11 +273,15 @@ def collect_kitti_raw(src: Path, split: str, skips: Skips) -> list[Sequence]:
             log.info("exclude %s: test scene of the %s split", drive.name, split)
             continue
         # Calibration sits in the date folder of a raw root, or beside image_02 in a lone drive.
-        calib_path = next((p for p in (drive / "calib_cam_to_cam.txt", drive.parent / "calib_cam_to_cam.txt")
-                           if p.is_file()), None)
+        calib_path = next(
+            (p for p in (drive / "calib_cam_to_cam.txt", drive.parent / "calib_cam_to_cam.txt") if p.is_file()), None
+        )
         if calib_path is None:
-            skips.add(drive, "no calib_cam_to_cam.txt in the drive folder or its parent",
-                      "copy the date's calibration files next to the drive folders")
+            skips.add(
+                drive,
+                "no calib_cam_to_cam.txt in the drive folder or its parent",
+                "copy the date's calibration files next to the drive folders",
+            )
             continue
         calib = read_calib_file(calib_path)
         for cam in RAW_CAMS:
@@ -266,8 +294,15 @@ def collect_kitti_raw(src: Path, split: str, skips: Skips) -> list[Sequence]:
             except GeoNetInputError as err:
                 skips.add(calib_path, err.problem, f"camera {cam} of {drive.name} needs it")
                 continue
-            seqs.append(Sequence(folder=f"{drive.name}_{cam}", image_dir=image_dir, frames=list_frames(image_dir, skips),
-                                 K=np.asarray(P, dtype=np.float64).reshape(3, 4)[:, :3].copy(), scene=drive.name))
+            seqs.append(
+                Sequence(
+                    folder=f"{drive.name}_{cam}",
+                    image_dir=image_dir,
+                    frames=list_frames(image_dir, skips),
+                    K=np.asarray(P, dtype=np.float64).reshape(3, 4)[:, :3].copy(),
+                    scene=drive.name,
+                )
+            )
     return seqs
 
 
@@ -288,11 +323,17 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
         seq_dirs = [src]
     else:
         root = src / "sequences" if (src / "sequences").is_dir() else src
-        seq_dirs = [d for d in sorted(root.iterdir())
-                    if d.is_dir() and not d.name.startswith(".") and _has_any(d, ("image_2", "image_0"))]
+        seq_dirs = [
+            d
+            for d in sorted(root.iterdir())
+            if d.is_dir() and not d.name.startswith(".") and _has_any(d, ("image_2", "image_0"))
+        ]
     if not seq_dirs:
-        raise GeoNetInputError(src, "no KITTI odometry sequence found (expected sequences/XX/image_2 or image_0)",
-                               "pass the odometry root that holds sequences/")
+        raise GeoNetInputError(
+            src,
+            "no KITTI odometry sequence found (expected sequences/XX/image_2 or image_0)",
+            "pass the odometry root that holds sequences/",
+        )
     seqs = []
     for d in seq_dirs:
         if split == "odom" and d.name in ODOM_TEST_SEQS:
@@ -304,8 +345,10 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
         else:
             # Only greyscale frames: read_image expands them to 3 identical channels.
             image_dir, key = d / "image_0", "P0"
-            log.warning("sequence %s: no colour frames in image_2/, using greyscale image_0/ (P0) "
-                        "converted to 3 channels", d.name)
+            log.warning(
+                "sequence %s: no colour frames in image_2/, using greyscale image_0/ (P0) converted to 3 channels",
+                d.name,
+            )
         calib_path = d / "calib.txt"
         try:
             K = read_calib_K(calib_path, key)
@@ -322,15 +365,22 @@ def collect_synth(src: Path, heldout: int, skips: Skips) -> list[Sequence]:
         seq_dirs = [src]
     else:
         # Hidden folders are unfinished work (e.g. the generator's .tmp_seq_NNNN).
-        seq_dirs = [d for d in sorted(src.iterdir())
-                    if d.is_dir() and not d.name.startswith(".") and (d / "image").is_dir()]
+        seq_dirs = [
+            d for d in sorted(src.iterdir()) if d.is_dir() and not d.name.startswith(".") and (d / "image").is_dir()
+        ]
     if not seq_dirs:
-        raise GeoNetInputError(src, "no synthetic sequence found (expected <seq>/image/*.png and <seq>/calib.txt)",
-                               "pass the output root of the synthetic generator (training.synth)")
+        raise GeoNetInputError(
+            src,
+            "no synthetic sequence found (expected <seq>/image/*.png and <seq>/calib.txt)",
+            "pass the output root of the synthetic generator (training.synth)",
+        )
     if heldout >= len(seq_dirs):
-        raise GeoNetInputError(src, f"{len(seq_dirs)} sequences but --heldout {heldout}: nothing left to train on",
-                               "generate more sequences or lower --heldout")
-    held = {d.name for d in seq_dirs[len(seq_dirs) - heldout:]}
+        raise GeoNetInputError(
+            src,
+            f"{len(seq_dirs)} sequences but --heldout {heldout}: nothing left to train on",
+            "generate more sequences or lower --heldout",
+        )
+    held = {d.name for d in seq_dirs[len(seq_dirs) - heldout :]}
     seqs = []
     for d in seq_dirs:
         try:
@@ -338,8 +388,16 @@ def collect_synth(src: Path, heldout: int, skips: Skips) -> list[Sequence]:
         except GeoNetInputError as err:
             skips.add(err.path or d, err.problem, err.hint)
             continue
-        seqs.append(Sequence(folder=d.name, image_dir=d / "image", frames=list_frames(d / "image", skips), K=K,
-                             heldout=d.name in held, depth_dir=d / "depth"))
+        seqs.append(
+            Sequence(
+                folder=d.name,
+                image_dir=d / "image",
+                frames=list_frames(d / "image", skips),
+                K=K,
+                heldout=d.name in held,
+                depth_dir=d / "depth",
+            )
+        )
     return seqs
 
 
@@ -364,22 +422,26 @@ def crop_camera(camera, crop: tuple[int, int, int, int] | None, frame_size: tupl
         return K
     x, y, w, h = crop
     if x < 0 or y < 0 or w < 8 or h < 8 or x + w > frame_size[0] or y + h > frame_size[1]:
-        raise GeoNetInputError(None, f"--crop {x},{y},{w},{h} does not fit the {frame_size[0]}x{frame_size[1]} "
-                               "frames", "give X,Y,W,H inside the frame (after undistortion, same size)")
+        raise GeoNetInputError(
+            None,
+            f"--crop {x},{y},{w},{h} does not fit the {frame_size[0]}x{frame_size[1]} frames",
+            "give X,Y,W,H inside the frame (after undistortion, same size)",
+        )
     K[0, 2] -= x
     K[1, 2] -= y
     return K
 
 
-def collect_video(cfg: "PrepareConfig", skips: Skips) -> list[Sequence]:
+def collect_video(cfg: PrepareConfig, skips: Skips) -> list[Sequence]:
     """Decode each input, undistort, crop, resize to H x W and drop static frames into a cache.
 
     The cache (``OUT/.frames/<name>/NNNNNN.png``, numbered consecutively over the kept
     frames) becomes an ordinary sequence with K at H x W, so snippets are cut as for KITTI.
     """
     if cfg.calib is None:
-        raise GeoNetInputError(None, f"--kind {cfg.kind} needs --calib FILE",
-                               "a calibration with K (and distortion, if the lens has any)")
+        raise GeoNetInputError(
+            None, f"--kind {cfg.kind} needs --calib FILE", "a calibration with K (and distortion, if the lens has any)"
+        )
     camera = read_camera(cfg.calib)
     seqs = []
     for path in _video_inputs(Path(cfg.src), cfg.kind):
@@ -407,7 +469,7 @@ def collect_video(cfg: "PrepareConfig", skips: Skips) -> list[Sequence]:
                 rgb = cv2.undistort(rgb, cam_here.K, cam_here.dist)
             if cfg.crop:
                 x, y, w, h = cfg.crop
-                rgb = rgb[y:y + h, x:x + w]
+                rgb = rgb[y : y + h, x : x + w]
             small = resize(rgb, cfg.height, cfg.width)
             grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
             if last is not None and float(np.abs(grey - last).mean()) < cfg.static_threshold:
@@ -441,9 +503,12 @@ def check_frames(seq: Sequence, skips: Skips) -> bool:
             if first is None:
                 first = (p, size)
             elif size != first[1]:
-                skips.add(seq.image_dir, f"mixed resolutions: {p.name} is {size[0]}x{size[1]}, "
-                                         f"{first[0].name} is {first[1][0]}x{first[1][1]}; whole sequence skipped",
-                          "one calibration fits one resolution; split the sequence into separate folders")
+                skips.add(
+                    seq.image_dir,
+                    f"mixed resolutions: {p.name} is {size[0]}x{size[1]}, "
+                    f"{first[0].name} is {first[1][0]}x{first[1][1]}; whole sequence skipped",
+                    "one calibration fits one resolution; split the sequence into separate folders",
+                )
                 return False
         good.append(p)
     seq.frames = good
@@ -471,15 +536,17 @@ def make_snippets(seq: Sequence, seq_length: int, skips: Skips) -> list[Snippet]
     out = []
     for run in runs:
         for i in range(half, len(run) - half):
-            window = tuple(run[i - half:i + half + 1])
+            window = tuple(run[i - half : i + half + 1])
             tgt = window[half]
             depth = seq.depth_dir / f"{tgt.stem}.png" if seq.depth_dir is not None else None
             out.append(Snippet(seq.folder, tgt.stem, window, seq.K, seq.heldout, depth))
     if not out:
         longest = max((len(r) for r in runs), default=0)
-        skips.add(seq.image_dir, f"sequence too short: at most {longest} consecutive usable frames, "
-                                 f"a snippet needs {seq_length}",
-                  "add frames or use a shorter --seq-length")
+        skips.add(
+            seq.image_dir,
+            f"sequence too short: at most {longest} consecutive usable frames, a snippet needs {seq_length}",
+            "add frames or use a shorter --seq-length",
+        )
     return out
 
 
@@ -518,8 +585,11 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
     h0, w0 = frames[len(frames) // 2].shape[:2]
     for p, f in zip(snip.paths, frames):
         if f.shape[:2] != (h0, w0):
-            return "skipped", p, (f"frame is {f.shape[1]}x{f.shape[0]} but the target is {w0}x{h0} "
-                                  "(mixed resolutions in one snippet)")
+            return (
+                "skipped",
+                p,
+                (f"frame is {f.shape[1]}x{f.shape[0]} but the target is {w0}x{h0} (mixed resolutions in one snippet)"),
+            )
     strip = np.concatenate([resize(f, height, width) for f in frames], axis=1)  # (H, seq*W, 3)
     ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(strip, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     if not ok:
@@ -578,24 +648,38 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
     if cfg.kind == "video" and Path(cfg.src).is_file():
         pass
     elif not Path(cfg.src).is_dir():
-        raise GeoNetInputError(cfg.src, "source folder not found" if cfg.kind != "video" else
-                               "video file or folder not found", PREPARE_HINT)
+        raise GeoNetInputError(
+            cfg.src,
+            "source folder not found" if cfg.kind != "video" else "video file or folder not found",
+            PREPARE_HINT,
+        )
     video_only = {"calib": cfg.calib is not None, "crop": cfg.crop is not None}
     if cfg.kind not in ("video", "frames") and any(video_only.values()):
-        raise GeoNetInputError(None, f"--{next(k for k, v in video_only.items() if v)} only applies to "
-                               "--kind video|frames", "the KITTI and synthetic layouts carry their calibration")
+        raise GeoNetInputError(
+            None,
+            f"--{next(k for k, v in video_only.items() if v)} only applies to --kind video|frames",
+            "the KITTI and synthetic layouts carry their calibration",
+        )
     seq_length = cfg.seq_length or (5 if cfg.kind == "kitti_odom" else 3)
     if seq_length < 3 or seq_length % 2 == 0:
-        raise GeoNetInputError(None, f"--seq-length must be odd and >= 3, got {seq_length}", "use 3 (depth/flow) or 5 (pose)")
+        raise GeoNetInputError(
+            None, f"--seq-length must be odd and >= 3, got {seq_length}", "use 3 (depth/flow) or 5 (pose)"
+        )
     split = cfg.split or DEFAULT_SPLIT[cfg.kind]
     if split not in VALID_SPLITS[cfg.kind]:
-        raise GeoNetInputError(None, f"--split {split} does not apply to --kind {cfg.kind}",
-                               f"choose one of {', '.join(VALID_SPLITS[cfg.kind])}")
+        raise GeoNetInputError(
+            None,
+            f"--split {split} does not apply to --kind {cfg.kind}",
+            f"choose one of {', '.join(VALID_SPLITS[cfg.kind])}",
+        )
     if cfg.remove_static and cfg.kind != "kitti_raw":
         raise GeoNetInputError(None, "--remove-static only applies to --kind kitti_raw", "drop the flag")
     if cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
-        raise GeoNetInputError(None, f"need --height/--width >= 8 and --workers >= 1 (got {cfg.height}, "
-                               f"{cfg.width}, {cfg.workers})", PREPARE_HINT)
+        raise GeoNetInputError(
+            None,
+            f"need --height/--width >= 8 and --workers >= 1 (got {cfg.height}, {cfg.width}, {cfg.workers})",
+            PREPARE_HINT,
+        )
     return seq_length, split
 
 
@@ -612,7 +696,7 @@ def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Ski
         seqs = collect_synth(src, cfg.heldout, skips)
     if cfg.max_frames is not None:
         for seq in seqs:
-            seq.frames = seq.frames[:cfg.max_frames]
+            seq.frames = seq.frames[: cfg.max_frames]
     if cfg.remove_static:
         remove_static_frames(seqs)
     return [snip for seq in seqs if check_frames(seq, skips) for snip in make_snippets(seq, seq_length, skips)]
@@ -654,8 +738,9 @@ def prepare(cfg: PrepareConfig) -> PrepareResult:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise GeoNetInputError(out, f"cannot create the output folder ({exc.strerror or exc})",
-                               "choose a writable --out") from None
+        raise GeoNetInputError(
+            out, f"cannot create the output folder ({exc.strerror or exc})", "choose a writable --out"
+        ) from None
     done: list[Snippet] = []
     jobs = [(snip, out, cfg.height, cfg.width) for snip in snippets]
     for snip, status, where, reason in write_snippets(jobs, cfg.workers, f"prepare {cfg.kind}"):
@@ -667,8 +752,11 @@ def prepare(cfg: PrepareConfig) -> PrepareResult:
         result.existing += status == "exists"
     result.skipped = skips.items
     if not done:
-        raise GeoNetInputError(src, f"no sample could be made ({len(skips.items)} skipped)",
-                               "; ".join(str(s) for s in skips.items[:5]) or PREPARE_HINT)
+        raise GeoNetInputError(
+            src,
+            f"no sample could be made ({len(skips.items)} skipped)",
+            "; ".join(str(s) for s in skips.items[:5]) or PREPARE_HINT,
+        )
     result.heldout = sorted(s.name for s in done if s.heldout)
     result.train, result.val = split_train_val([s.name for s in done if not s.heldout], cfg.val_fraction, cfg.seed)
     write_list(out / "train.txt", result.train)
@@ -719,35 +807,65 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m training.prepare",
         description="Cut image sequences into GeoNet training samples: seq_length frames resized to "
-                    "HxW side by side in one JPEG, the target's intrinsics in <frame>_cam.txt, and "
-                    "train.txt / val.txt lists.",
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        "HxW side by side in one JPEG, the target's intrinsics in <frame>_cam.txt, and "
+        "train.txt / val.txt lists.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--kind", required=True, choices=KINDS, help="input layout (see below)")
     p.add_argument("--src", required=True, type=Path, help="input root (see below)")
     p.add_argument("--out", required=True, type=Path, help="output folder (created; re-running resumes)")
-    p.add_argument("--seq-length", type=int, default=D.seq_length,
-                   help="frames per sample, odd: 3 (default) or 5 (kitti_odom default)")
+    p.add_argument(
+        "--seq-length",
+        type=int,
+        default=D.seq_length,
+        help="frames per sample, odd: 3 (default) or 5 (kitti_odom default)",
+    )
     p.add_argument("--height", type=int, default=D.height, help="frame height (default %(default)s)")
     p.add_argument("--width", type=int, default=D.width, help="frame width (default %(default)s)")
-    p.add_argument("--split", choices=SPLITS, default=D.split,
-                   help="test scenes to leave out: eigen|stereo (kitti_raw, default eigen), odom "
-                        "(kitti_odom: sequences 09, 10; the default), none")
+    p.add_argument(
+        "--split",
+        choices=SPLITS,
+        default=D.split,
+        help="test scenes to leave out: eigen|stereo (kitti_raw, default eigen), odom "
+        "(kitti_odom: sequences 09, 10; the default), none",
+    )
     p.add_argument("--remove-static", action="store_true", help="kitti_raw: drop static frames first")
     p.add_argument("--workers", type=int, default=D.workers, help="processes (default %(default)s)")
-    p.add_argument("--val-fraction", type=float, default=D.val_fraction,
-                   help="probability of a sample going to val.txt (default %(default)s)")
-    p.add_argument("--seed", type=int, default=D.seed, help="seed of the train/val split (default: the official %(default)s)")
-    p.add_argument("--heldout", type=int, default=D.heldout,
-                   help="synth: last N sequences held out for evaluation (default %(default)s)")
-    p.add_argument("--max-frames", type=int, default=D.max_frames,
-                   help="use only the first N frames of each sequence (quick runs)")
+    p.add_argument(
+        "--val-fraction",
+        type=float,
+        default=D.val_fraction,
+        help="probability of a sample going to val.txt (default %(default)s)",
+    )
+    p.add_argument(
+        "--seed", type=int, default=D.seed, help="seed of the train/val split (default: the official %(default)s)"
+    )
+    p.add_argument(
+        "--heldout",
+        type=int,
+        default=D.heldout,
+        help="synth: last N sequences held out for evaluation (default %(default)s)",
+    )
+    p.add_argument(
+        "--max-frames", type=int, default=D.max_frames, help="use only the first N frames of each sequence (quick runs)"
+    )
     p.add_argument("--strict", action="store_true", help="stop at the first bad input instead of skipping it")
     p.add_argument("--calib", type=Path, default=D.calib, help="video/frames: the camera calibration file")
-    p.add_argument("--crop", type=_crop, default=D.crop, metavar="X,Y,W,H",
-                   help="video/frames: the region kept after undistortion, in input pixels")
-    p.add_argument("--static-threshold", type=float, default=D.static_threshold,
-                   help="video/frames: drop frames whose mean grey difference to the last kept one is "
-                        "below this, in levels of 255 at HxW (default %(default)s; 0 keeps every frame)")
+    p.add_argument(
+        "--crop",
+        type=_crop,
+        default=D.crop,
+        metavar="X,Y,W,H",
+        help="video/frames: the region kept after undistortion, in input pixels",
+    )
+    p.add_argument(
+        "--static-threshold",
+        type=float,
+        default=D.static_threshold,
+        help="video/frames: drop frames whose mean grey difference to the last kept one is "
+        "below this, in levels of 255 at HxW (default %(default)s; 0 keeps every frame)",
+    )
     return p
 
 

@@ -8,6 +8,7 @@ concats and the spatial mean are NOT counted (same rule as
 cpu_latency_anchors.md). BN contributes its beta to the parameter count, which
 equals the conv bias of a BN-folded (deploy) model.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -83,10 +84,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     print("| network | variant | input (B,C,H,W) | params (M) | conv GMACs |")
     print("|---|---|---|---|---|")
     for name, variant, shape, params, macs in rows:
-        print(f"| {name} | {variant} | {'x'.join(map(str, shape))} | {params / 1e6:.3f} "
-              f"| {macs / 1e9:.3f} |")
-    print("conv MACs only (out_elems * in_ch/groups * kh * kw); elementwise, pooling, "
-          "resize and mean ops are not counted.")
+        print(f"| {name} | {variant} | {'x'.join(map(str, shape))} | {params / 1e6:.3f} | {macs / 1e9:.3f} |")
+    print(
+        "conv MACs only (out_elems * in_ch/groups * kh * kw); elementwise, pooling, "
+        "resize and mean ops are not counted."
+    )
     return 0
 
 

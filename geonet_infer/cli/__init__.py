@@ -4,6 +4,7 @@ One module per subcommand; each has ``add_parser(subparsers)`` and ``run(args) -
 Exit codes, for every subcommand: 0 all good, 1 some items failed (recorded in the
 output), 2 bad usage or input (one line on stderr naming the item).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,9 +22,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="geonet-infer",
         description="GeoNet (CVPR 2018) monocular depth, optical flow and camera pose on CPU with onnxruntime. "
-                    "Start with `geonet-infer demo`; run `geonet-infer COMMAND --help` for each command.",
+        "Start with `geonet-infer demo`; run `geonet-infer COMMAND --help` for each command.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="exit codes: 0 all good, 1 some frames failed (see summary.json), 2 bad usage or input")
+        epilog="exit codes: 0 all good, 1 some frames failed (see summary.json), 2 bad usage or input",
+    )
     parser.add_argument("--version", action="version", version=f"geonet-infer {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in SUBCOMMANDS:

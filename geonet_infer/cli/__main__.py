@@ -1,4 +1,5 @@
 """``python -m geonet_infer.cli``: the same as the ``geonet-infer`` console script."""
+
 import sys
 
 from geonet_infer.cli import main

@@ -1,4 +1,5 @@
 """``geonet-infer batch``: many sequences into one folder, on a process pool or Ray Data."""
+
 from __future__ import annotations
 
 import argparse
@@ -24,10 +25,10 @@ relative paths are relative to the list file's folder). Each sequence gets
 stem or drive name; inputs sharing a name become <name>__<parent folder>).
 
 Next to the sequences:
-  {'OUT/<sequence>/' + MARKER_NAME:<22} written last: the sequence is complete
-  {'OUT/' + FAILURES_NAME:<22} one JSON object a line: sequence, input, frame (null = whole
-  {'':<22} sequence), reason; a failure never stops the job
-  {'OUT/' + SUMMARY_NAME:<22} sequences done/failed/skipped, frames, frames/s, engine, workers
+  {"OUT/<sequence>/" + MARKER_NAME:<22} written last: the sequence is complete
+  {"OUT/" + FAILURES_NAME:<22} one JSON object a line: sequence, input, frame (null = whole
+  {"":<22} sequence), reason; a failure never stops the job
+  {"OUT/" + SUMMARY_NAME:<22} sequences done/failed/skipped, frames, frames/s, engine, workers
 
 Every file is written to a temporary name and renamed. After a crash, Ctrl-C or a
 kill, run the same command with --resume: complete sequences are skipped, the
@@ -52,28 +53,57 @@ examples:
 
 
 def add_parser(sub) -> None:
-    parser = sub.add_parser("batch", help="many sequences (folders, videos, KITTI drives, lists) on many CPUs",
-                            description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("inputs", type=Path, nargs="+", metavar="INPUTS",
-                        help="sequence folders, videos, KITTI drives, or .txt files listing them")
+    parser = sub.add_parser(
+        "batch",
+        help="many sequences (folders, videos, KITTI drives, lists) on many CPUs",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "inputs",
+        type=Path,
+        nargs="+",
+        metavar="INPUTS",
+        help="sequence folders, videos, KITTI drives, or .txt files listing them",
+    )
     parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
     run = parser.add_argument_group("workers")
-    run.add_argument("--engine", choices=ENGINES, default="local", help="local process pool or Ray Data (default: local)")
-    run.add_argument("--workers", type=positive_int, default=None,
-                     help="worker processes / Ray actors (default: usable CPUs / threads, at most one per sequence)")
-    run.add_argument("--threads-per-worker", type=positive_int, default=None, metavar="T",
-                     help="onnxruntime threads of each worker (default: usable CPUs / workers)")
-    run.add_argument("--ray-address", default=None, metavar="ADDR",
-                     help="join this Ray cluster (e.g. auto, HOST:6379, ray://HOST:10001); default: start a local one")
-    run.add_argument("--resume", action="store_true",
-                     help="skip the sequences OUT already has complete; redo the others")
+    run.add_argument(
+        "--engine", choices=ENGINES, default="local", help="local process pool or Ray Data (default: local)"
+    )
+    run.add_argument(
+        "--workers",
+        type=positive_int,
+        default=None,
+        help="worker processes / Ray actors (default: usable CPUs / threads, at most one per sequence)",
+    )
+    run.add_argument(
+        "--threads-per-worker",
+        type=positive_int,
+        default=None,
+        metavar="T",
+        help="onnxruntime threads of each worker (default: usable CPUs / workers)",
+    )
+    run.add_argument(
+        "--ray-address",
+        default=None,
+        metavar="ADDR",
+        help="join this Ray cluster (e.g. auto, HOST:6379, ray://HOST:10001); default: start a local one",
+    )
+    run.add_argument(
+        "--resume", action="store_true", help="skip the sequences OUT already has complete; redo the others"
+    )
     add_model_args(parser, threads=False)
     add_camera_args(parser)
-    parser.add_argument("--tasks", default=",".join(TASKS),
-                        help="comma list of depth,pose,flow (default: all; flow needs intrinsics: --calib, "
-                             "--intrinsics, or a KITTI drive's own calibration)")
-    parser.add_argument("--batch-size", type=positive_int, default=4,
-                        help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)")
+    parser.add_argument(
+        "--tasks",
+        default=",".join(TASKS),
+        help="comma list of depth,pose,flow (default: all; flow needs intrinsics: --calib, "
+        "--intrinsics, or a KITTI drive's own calibration)",
+    )
+    parser.add_argument(
+        "--batch-size", type=positive_int, default=4, help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)"
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(run=run_command)
 
@@ -89,29 +119,49 @@ def run_command(args: argparse.Namespace) -> int:
     camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own
     if "flow" in tasks and camera is None:
         from geonet_infer.batch import expand_inputs
+
         lacking = [p for p in expand_inputs(args.inputs) if needs_own_calib(p)]
         if lacking:
             more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
-            raise GeoNetInputError(lacking[0], f"flow needs camera intrinsics and this input has none{more}",
-                                   "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)")
+            raise GeoNetInputError(
+                lacking[0],
+                f"flow needs camera intrinsics and this input has none{more}",
+                "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
+            )
     # SIGTERM (a scheduler stopping the job) is handled like Ctrl-C: workers stopped, summary written.
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
     try:
-        summary = run_batch(args.inputs, args.out, engine=args.engine, workers=args.workers,
-                            threads=args.threads_per_worker, model=args.model, precision=args.precision, backend=args.backend,
-                            tasks=tasks, batch_size=args.batch_size, camera=camera, resume=args.resume,
-                            ray_address=args.ray_address, progress=not args.no_progress)
+        summary = run_batch(
+            args.inputs,
+            args.out,
+            engine=args.engine,
+            workers=args.workers,
+            threads=args.threads_per_worker,
+            model=args.model,
+            precision=args.precision,
+            backend=args.backend,
+            tasks=tasks,
+            batch_size=args.batch_size,
+            camera=camera,
+            resume=args.resume,
+            ray_address=args.ray_address,
+            progress=not args.no_progress,
+        )
     finally:
         if main_thread:
             with contextlib.suppress(Exception):
                 signal.signal(signal.SIGTERM, previous)
     seqs = summary["sequences"]
-    print(f"{seqs['done']} sequences done, {seqs['failed']} failed, {seqs['skipped']} skipped (complete already); "
-          f"{summary['frames']} frames, {summary['frames_per_s']:.1f} frames/s "
-          f"({summary['engine']}: {summary['workers']} workers x {summary['threads_per_worker']} threads) "
-          f"-> {args.out}; details in {args.out / SUMMARY_NAME}")
+    print(
+        f"{seqs['done']} sequences done, {seqs['failed']} failed, {seqs['skipped']} skipped (complete already); "
+        f"{summary['frames']} frames, {summary['frames_per_s']:.1f} frames/s "
+        f"({summary['engine']}: {summary['workers']} workers x {summary['threads_per_worker']} threads) "
+        f"-> {args.out}; details in {args.out / SUMMARY_NAME}"
+    )
     if summary["failures"]:
-        print(f"{summary['failures']} failures (sequences or frames) listed in {args.out / FAILURES_NAME}",
-              file=sys.stderr)
+        print(
+            f"{summary['failures']} failures (sequences or frames) listed in {args.out / FAILURES_NAME}",
+            file=sys.stderr,
+        )
     return summary["exit_code"]

@@ -14,7 +14,8 @@ sequence       per-frame cost of ``Predictor.iter_sequence`` (depth computed onc
 
 Modes (``--modes``):
 
-* ``graph``: the engines only (onnxruntime sessions or OpenVINO compiled models), on prepared inputs (normalised, graph size);
+* ``graph``: the engines only (onnxruntime sessions or OpenVINO compiled models), on prepared
+  inputs (normalised, graph size);
   the chained tasks (flow, sequence) pass each graph's outputs to the next one.
 * ``e2e``: from uint8 frames at ``--input-size`` (default 1242x375, KITTI raw) to outputs
   at that size, through the runtime: ``Predictor.depth`` / ``pose`` / ``flow`` /
@@ -28,6 +29,7 @@ Inputs are fixed: the bundled sample frames (``geonet_infer.samples``), resized 
 ``--input-size``, with their intrinsics scaled alike. Timing: ``geonet_infer.timing``
 (warm-up, GC off, block-interleaved over all cases of one precision and batch).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -62,50 +64,102 @@ TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
 MODES = ("graph", "e2e")
 DEFAULT_INPUT_SIZE = (1242, 375)  # (W, H) of KITTI raw frames
 # Graphs each task needs; flow and sequence also use resflownet when the model has it.
-TASK_GRAPHS = {"depth": ("depthnet",), "pose": ("posenet",), "rigid_flow": ("rigidflow",),
-               "resflow": ("resflownet",), "flow": ("depthnet", "posenet", "rigidflow"),
-               "sequence": ("depthnet", "posenet", "rigidflow")}
+TASK_GRAPHS = {
+    "depth": ("depthnet",),
+    "pose": ("posenet",),
+    "rigid_flow": ("rigidflow",),
+    "resflow": ("resflownet",),
+    "flow": ("depthnet", "posenet", "rigidflow"),
+    "sequence": ("depthnet", "posenet", "rigidflow"),
+}
 PER_SNIPPET_TASKS = ("pose", "flow")  # e2e: Predictor.pose/flow take one snippet (batch 1 only)
-CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile",
-             "amx_int8", "amx_bf16")
-THREAD_ENV = ("ORT_INTRA_OP_NUM_THREADS", "ORT_INTER_OP_NUM_THREADS", "OMP_NUM_THREADS", "OMP_WAIT_POLICY",
-              "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+CPU_FLAGS = (
+    "avx2",
+    "fma",
+    "avx512f",
+    "avx512bw",
+    "avx512_vnni",
+    "avx_vnni",
+    "avx512_bf16",
+    "amx_tile",
+    "amx_int8",
+    "amx_bf16",
+)
+THREAD_ENV = (
+    "ORT_INTRA_OP_NUM_THREADS",
+    "ORT_INTER_OP_NUM_THREADS",
+    "OMP_NUM_THREADS",
+    "OMP_WAIT_POLICY",
+    "MKL_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+)
 
 
 def add_parser(sub) -> None:
     parser = sub.add_parser(
-        "bench", help="latency of each stage (network only and end to end), table + JSON",
+        "bench",
+        help="latency of each stage (network only and end to end), table + JSON",
         description="Time DepthNet, PoseNet, the rigid-flow op, ResFlowNet, the flow cascade for one pair and "
-                    "the per-frame cost of a sequence, each network-only ('graph') and end to end from uint8 "
-                    "frames ('e2e'), on the bundled sample frames. Reports p50/p90/p99, mean +- std (ms) and "
-                    "items/s after warm-up; cases of one precision and batch are timed block-interleaved.",
+        "the per-frame cost of a sequence, each network-only ('graph') and end to end from uint8 "
+        "frames ('e2e'), on the bundled sample frames. Reports p50/p90/p99, mean +- std (ms) and "
+        "items/s after warm-up; cases of one precision and batch are timed block-interleaved.",
         epilog="e2e pose and flow exist for batch 1 only (Predictor.pose/flow take one snippet). "
-               "sequence rows are per frame. Bad input (unknown task, precision, backend; a model without "
-               "the needed graph; --iters < 1) -> one line on stderr, exit 2.",
-        conflict_handler="resolve")
+        "sequence rows are per frame. Bad input (unknown task, precision, backend; a model without "
+        "the needed graph; --iters < 1) -> one line on stderr, exit 2.",
+        conflict_handler="resolve",
+    )
     add_model_args(parser)
     group = parser.add_argument_group("benchmark")
     # Replaces add_model_args' single --precision (conflict_handler="resolve").
-    group.add_argument("--precision", default=None, metavar="LIST",
-                       help=f"comma list of {', '.join(PRECISIONS)} (default: every precision the model has)")
+    group.add_argument(
+        "--precision",
+        default=None,
+        metavar="LIST",
+        help=f"comma list of {', '.join(PRECISIONS)} (default: every precision the model has)",
+    )
     group.add_argument("--batch", default="1", metavar="LIST", help="comma list of batch sizes (default: 1)")
-    group.add_argument("--tasks", default=None, metavar="LIST",
-                       help=f"comma list of {', '.join(TASKS)} (default: all the model's graphs allow)")
-    group.add_argument("--modes", default=",".join(MODES), metavar="LIST",
-                       help="graph (network only), e2e (with pre/post-processing) or both (default)")
-    group.add_argument("--backend", default=BACKENDS[0], metavar="LIST",
-                       help=f"comma list of inference backends: {', '.join(BACKENDS)} (default: {BACKENDS[0]}; "
-                            "openvino needs the [openvino] extra; auto keeps the faster engine per graph)")
+    group.add_argument(
+        "--tasks",
+        default=None,
+        metavar="LIST",
+        help=f"comma list of {', '.join(TASKS)} (default: all the model's graphs allow)",
+    )
+    group.add_argument(
+        "--modes",
+        default=",".join(MODES),
+        metavar="LIST",
+        help="graph (network only), e2e (with pre/post-processing) or both (default)",
+    )
+    group.add_argument(
+        "--backend",
+        default=BACKENDS[0],
+        metavar="LIST",
+        help=f"comma list of inference backends: {', '.join(BACKENDS)} (default: {BACKENDS[0]}; "
+        "openvino needs the [openvino] extra; auto keeps the faster engine per graph)",
+    )
     group.add_argument("--warmup", type=int, default=3, help="untimed calls per case before timing (default: 3)")
     group.add_argument("--iters", type=int, default=20, help="timed calls per case (default: 20)")
-    group.add_argument("--block", type=int, default=4,
-                       help="timed back-to-back calls per case per interleaving round (default: 4)")
-    group.add_argument("--rewarm-ms", type=float, default=50.0,
-                       help="untimed re-warm calls before each block, for at least this long (default: 50; 0 = none)")
-    group.add_argument("--input-size", default=f"{DEFAULT_INPUT_SIZE[0]}x{DEFAULT_INPUT_SIZE[1]}", metavar="WxH",
-                       help="frame size for e2e, or 'graph' for the graphs' own size (default: 1242x375)")
-    group.add_argument("--seq-frames", type=int, default=8,
-                       help="frames per timed sequence call (default: 8; the last frame has no flow)")
+    group.add_argument(
+        "--block", type=int, default=4, help="timed back-to-back calls per case per interleaving round (default: 4)"
+    )
+    group.add_argument(
+        "--rewarm-ms",
+        type=float,
+        default=50.0,
+        help="untimed re-warm calls before each block, for at least this long (default: 50; 0 = none)",
+    )
+    group.add_argument(
+        "--input-size",
+        default=f"{DEFAULT_INPUT_SIZE[0]}x{DEFAULT_INPUT_SIZE[1]}",
+        metavar="WxH",
+        help="frame size for e2e, or 'graph' for the graphs' own size (default: 1242x375)",
+    )
+    group.add_argument(
+        "--seq-frames",
+        type=int,
+        default=8,
+        help="frames per timed sequence call (default: 8; the last frame has no flow)",
+    )
     out = parser.add_argument_group("output")
     out.add_argument("--json", type=Path, default=None, metavar="FILE", help="write the results as JSON")
     out.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
@@ -117,8 +171,9 @@ def _parse_list(text: str, allowed: tuple, what: str) -> list[str]:
     items = [t.strip() for t in str(text).split(",") if t.strip()]
     bad = [t for t in items if t not in allowed]
     if bad or not items:
-        raise GeoNetInputError(None, f"unknown {what} {', '.join(bad) if bad else repr(text)}",
-                               f"choose from {', '.join(allowed)}")
+        raise GeoNetInputError(
+            None, f"unknown {what} {', '.join(bad) if bad else repr(text)}", f"choose from {', '.join(allowed)}"
+        )
     return list(dict.fromkeys(items))
 
 
@@ -141,7 +196,9 @@ def _parse_size(text: str) -> tuple[int, int] | None:
     try:
         w, h = (int(v) for v in str(text).lower().split("x"))
     except ValueError:
-        raise GeoNetInputError(None, f"--input-size {text!r} is not WxH", "e.g. --input-size 1242x375, or 'graph'") from None
+        raise GeoNetInputError(
+            None, f"--input-size {text!r} is not WxH", "e.g. --input-size 1242x375, or 'graph'"
+        ) from None
     if w < 8 or h < 8:
         raise GeoNetInputError(None, f"--input-size {text!r} is too small", "frames need at least 8x8 pixels")
     return w, h
@@ -160,8 +217,11 @@ def _check_args(args) -> dict:
         raise GeoNetInputError(None, f"--seq-frames must be >= 2, got {args.seq_frames}", "a sequence needs a pair")
     backends = _parse_list(args.backend, BACKENDS, "backend")
     if "openvino" in backends and not openvino_available():
-        raise GeoNetInputError(None, "--backend openvino needs the OpenVINO runtime, which is not installed",
-                               "pip install 'geonet-infer[openvino]'")
+        raise GeoNetInputError(
+            None,
+            "--backend openvino needs the OpenVINO runtime, which is not installed",
+            "pip install 'geonet-infer[openvino]'",
+        )
     model_dir = resolve_model(args.model)
     manifest = load_manifest(model_dir)
     where = Path(manifest.root or model_dir) / MANIFEST_NAME
@@ -171,9 +231,11 @@ def _check_args(args) -> dict:
         precisions = _parse_list(args.precision, PRECISIONS, "precision")
         for p in precisions:
             if p not in manifest.graphs:
-                raise GeoNetInputError(where, f"no {p} graphs in this model directory",
-                                       f"precisions present: {', '.join(manifest.graphs)}; "
-                                       "export with --precision fp32,int8")
+                raise GeoNetInputError(
+                    where,
+                    f"no {p} graphs in this model directory",
+                    f"precisions present: {', '.join(manifest.graphs)}; export with --precision fp32,int8",
+                )
     explicit_tasks = args.tasks is not None
     tasks = _parse_list(args.tasks, TASKS, "task") if explicit_tasks else list(TASKS)
     tasks = [t for t in TASKS if t in tasks]  # canonical order
@@ -184,16 +246,30 @@ def _check_args(args) -> dict:
             if not missing:
                 continue
             if explicit_tasks:
-                hint = ("resflownet needs a stage 'flow' checkpoint at export time" if "resflownet" in missing
-                        else f"graphs present: {', '.join(manifest.graphs[p])}")
-                raise GeoNetInputError(where, f"task {task} needs the {', '.join(missing)} graph, which the "
-                                       f"{p} set of this model lacks", hint)
+                hint = (
+                    "resflownet needs a stage 'flow' checkpoint at export time"
+                    if "resflownet" in missing
+                    else f"graphs present: {', '.join(manifest.graphs[p])}"
+                )
+                raise GeoNetInputError(
+                    where,
+                    f"task {task} needs the {', '.join(missing)} graph, which the {p} set of this model lacks",
+                    hint,
+                )
             tasks.remove(task)
             skipped.append({"task": task, "precision": p, "reason": f"model has no {', '.join(missing)} graph"})
             break
-    return {"model_dir": model_dir, "manifest": manifest, "precisions": precisions, "tasks": tasks,
-            "modes": _parse_list(args.modes, MODES, "mode"), "batches": _parse_batches(args.batch),
-            "backends": backends, "input_size": _parse_size(args.input_size), "skipped": skipped}
+    return {
+        "model_dir": model_dir,
+        "manifest": manifest,
+        "precisions": precisions,
+        "tasks": tasks,
+        "modes": _parse_list(args.modes, MODES, "mode"),
+        "batches": _parse_batches(args.batch),
+        "backends": backends,
+        "input_size": _parse_size(args.input_size),
+        "skipped": skipped,
+    }
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -205,8 +281,9 @@ def _pingpong(n: int, count: int) -> list[int]:
     return [cycle[i % len(cycle)] for i in range(count)]
 
 
-def bench_frames(input_size: tuple[int, int] | None, graph_size: tuple[int, int], count: int
-                 ) -> tuple[list[np.ndarray], Camera]:
+def bench_frames(
+    input_size: tuple[int, int] | None, graph_size: tuple[int, int], count: int
+) -> tuple[list[np.ndarray], Camera]:
     """``count`` consecutive uint8 RGB frames of the bundled sample at ``input_size`` (W, H) and their camera.
 
     ``input_size`` None = the graphs' size (H, W given as ``graph_size``): no resize at all.
@@ -243,20 +320,31 @@ def snippet_feeds(x: np.ndarray, targets: list[int], n: int, L: int) -> dict[str
     """Prepared network inputs for the pairs target t -> t+1 (frames x: (n, 3, h, w) normalised)."""
     orders = [snippet_indices(t, n, L) for t in targets]
     src = next_source_position(L)
-    return {"target": _c(x[[o[0] for o in orders]]), "source": _c(x[[o[1 + src] for o in orders]]),
-            "snippet": _c(np.stack([np.concatenate([x[i] for i in o]) for o in orders]))}
+    return {
+        "target": _c(x[[o[0] for o in orders]]),
+        "source": _c(x[[o[1 + src] for o in orders]]),
+        "snippet": _c(np.stack([np.concatenate([x[i] for i in o]) for o in orders])),
+    }
 
 
-def net_cascade(g: Graphs, feeds: dict, K_graph: np.ndarray, src_pos: int, disparity: np.ndarray | None = None
-                ) -> dict[str, np.ndarray]:
+def net_cascade(
+    g: Graphs, feeds: dict, K_graph: np.ndarray, src_pos: int, disparity: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """depth -> pose -> rigid-flow op -> ResFlowNet on prepared feeds; returns every intermediate."""
     if disparity is None:
         disparity = g("depthnet", image=feeds["target"])["disparity"]
     pose = _c(g("posenet", snippet=feeds["snippet"])["pose"][:, src_pos])
-    rigid = g("rigidflow", depth=1.0 / disparity, pose=pose, intrinsics=K_graph,
-              target=feeds["target"], source=feeds["source"])
-    flow_input = np.concatenate([feeds["target"], feeds["source"], rigid["warped"], rigid["rigid_flow"],
-                                 rigid["error"]], axis=1)
+    rigid = g(
+        "rigidflow",
+        depth=1.0 / disparity,
+        pose=pose,
+        intrinsics=K_graph,
+        target=feeds["target"],
+        source=feeds["source"],
+    )
+    flow_input = np.concatenate(
+        [feeds["target"], feeds["source"], rigid["warped"], rigid["rigid_flow"], rigid["error"]], axis=1
+    )
     out = {"disparity": disparity, "pose": pose, "flow_input": flow_input, **rigid}
     if "resflownet" in g:
         out.update(g("resflownet", flow_input=flow_input))
@@ -264,8 +352,15 @@ def net_cascade(g: Graphs, feeds: dict, K_graph: np.ndarray, src_pos: int, dispa
 
 
 # ----------------------------------------------------------------------------- cases
-def build_cases(predictor: Predictor, tasks: list[str], modes: list[str], batch: int, frames: list[np.ndarray],
-                camera: Camera, seq_frames: int) -> tuple[list[tuple[str, str, Case, dict]], list[dict]]:
+def build_cases(
+    predictor: Predictor,
+    tasks: list[str],
+    modes: list[str],
+    batch: int,
+    frames: list[np.ndarray],
+    camera: Camera,
+    seq_frames: int,
+) -> tuple[list[tuple[str, str, Case, dict]], list[dict]]:
     """The timed callables for one predictor and batch -> ([(task, mode, case, extra)], skipped)."""
     g = Graphs(predictor)
     spec = predictor.spec
@@ -278,8 +373,13 @@ def build_cases(predictor: Predictor, tasks: list[str], modes: list[str], batch:
     feeds = snippet_feeds(x, targets, n, L)
     K_graph = _c(np.repeat(graph_intrinsics(camera.K, size, spec)[None], batch, axis=0))
     ref = net_cascade(g, feeds, K_graph, src_pos)  # realistic inputs of the single-graph cases
-    rigid_feeds = {"depth": _c(1.0 / ref["disparity"]), "pose": ref["pose"], "intrinsics": K_graph,
-                   "target": feeds["target"], "source": feeds["source"]}
+    rigid_feeds = {
+        "depth": _c(1.0 / ref["disparity"]),
+        "pose": ref["pose"],
+        "intrinsics": K_graph,
+        "target": feeds["target"],
+        "source": feeds["source"],
+    }
     flow_input = _c(ref["flow_input"])
     tgt_frames = [frames[snippet_indices(t, n, L)[0]] for t in targets]
     src_frames = [frames[snippet_indices(t, n, L)[1 + src_pos]] for t in targets]
@@ -328,22 +428,38 @@ def build_cases(predictor: Predictor, tasks: list[str], modes: list[str], batch:
         ("flow", "graph"): lambda: net_cascade(g, feeds, K_graph, src_pos),
         ("flow", "e2e"): lambda: predictor.flow(snippet, camera),
         ("sequence", "graph"): sequence_graph,
-        ("sequence", "e2e"): lambda: collections.deque(predictor.iter_sequence(seq, camera, batch_size=batch),
-                                                       maxlen=0),
+        ("sequence", "e2e"): lambda: collections.deque(
+            predictor.iter_sequence(seq, camera, batch_size=batch), maxlen=0
+        ),
     }
-    graphs_of = {"depth": ["depthnet"], "pose": ["posenet"], "rigid_flow": ["rigidflow"],
-                 "resflow": ["resflownet"], "flow": flow_graphs, "sequence": flow_graphs}
+    graphs_of = {
+        "depth": ["depthnet"],
+        "pose": ["posenet"],
+        "rigid_flow": ["rigidflow"],
+        "resflow": ["resflownet"],
+        "flow": flow_graphs,
+        "sequence": flow_graphs,
+    }
     cases, skipped = [], []
     for task in tasks:
         for mode in modes:
             if mode == "e2e" and task in PER_SNIPPET_TASKS and batch > 1:
-                skipped.append({"task": task, "mode": mode, "batch": batch,
-                                "reason": f"Predictor.{task}() takes one snippet (batch 1); batched {task} "
-                                          "runs inside the sequence task"})
+                skipped.append(
+                    {
+                        "task": task,
+                        "mode": mode,
+                        "batch": batch,
+                        "reason": f"Predictor.{task}() takes one snippet (batch 1); batched {task} "
+                        "runs inside the sequence task",
+                    }
+                )
                 continue
             items = seq_frames if task == "sequence" else batch
-            extra = {"graphs": graphs_of[task], "items_per_call": items,
-                     "unit": "frame" if task == "sequence" else "call"}
+            extra = {
+                "graphs": graphs_of[task],
+                "items_per_call": items,
+                "unit": "frame" if task == "sequence" else "call",
+            }
             if task == "sequence":
                 extra.update(frames=seq_frames, pairs=seq_frames - 1)
             cases.append((task, mode, Case(f"{task}/{mode}", calls[(task, mode)], items), extra))
@@ -367,8 +483,9 @@ def _git_commit() -> str | None:
     if not (root / ".git").exists():
         return None
     try:
-        out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                             timeout=5, check=False)
+        out = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False
+        )
         return out.stdout.strip() or None
     except (OSError, subprocess.SubprocessError):
         return None
@@ -376,7 +493,7 @@ def _git_commit() -> str | None:
 
 def _graph_files_mib(manifest, precision: str) -> float:
     files = {g.file for g in manifest.graphs[precision].values()}
-    return sum((manifest.root / f).stat().st_size for f in files) / 2 ** 20
+    return sum((manifest.root / f).stat().st_size for f in files) / 2**20
 
 
 # ----------------------------------------------------------------------------- output
@@ -395,26 +512,36 @@ def _row(task: str, mode: str, precision: str, backend: str, batch: int, case: C
 
 
 def format_table(results: list[dict]) -> str:
-    head = (f"{'task':<11} {'mode':<5} {'prec':<4} {'backend':<11} {'batch':>5} {'p50 ms':>9} {'p90 ms':>9} "
-            f"{'p99 ms':>9} {'mean +- std ms':>17} {'ms/item':>9} {'items/s':>8}")
+    head = (
+        f"{'task':<11} {'mode':<5} {'prec':<4} {'backend':<11} {'batch':>5} {'p50 ms':>9} {'p90 ms':>9} "
+        f"{'p99 ms':>9} {'mean +- std ms':>17} {'ms/item':>9} {'items/s':>8}"
+    )
     lines = [head, "-" * len(head)]
     for r in results:
         unit = "/frame" if r["unit"] == "frame" else ""
-        lines.append(f"{r['task']:<11} {r['mode']:<5} {r['precision']:<4} {r['backend']:<11} {r['batch']:>5} "
-                     f"{r['p50_ms']:>9.2f} {r['p90_ms']:>9.2f} {r['p99_ms']:>9.2f} "
-                     f"{r['mean_ms']:>8.2f} +- {r['std_ms']:<6.2f} {r['per_item_p50_ms']:>9.2f} {r['fps']:>8.1f}"
-                     + (f"  ({unit})" if unit else ""))
+        lines.append(
+            f"{r['task']:<11} {r['mode']:<5} {r['precision']:<4} {r['backend']:<11} {r['batch']:>5} "
+            f"{r['p50_ms']:>9.2f} {r['p90_ms']:>9.2f} {r['p99_ms']:>9.2f} "
+            f"{r['mean_ms']:>8.2f} +- {r['std_ms']:<6.2f} {r['per_item_p50_ms']:>9.2f} {r['fps']:>8.1f}"
+            + (f"  ({unit})" if unit else "")
+        )
     return "\n".join(lines)
 
 
 def paper_line(results: list[dict], precision: str, backend: str) -> str | None:
     """'per example' like the paper (batch 1, p50): depth, flow per pair in a sequence, pose."""
-    pick = {(r["task"], r["mode"]): r for r in results
-            if r["precision"] == precision and r["backend"] == backend and r["batch"] == 1}
+    pick = {
+        (r["task"], r["mode"]): r
+        for r in results
+        if r["precision"] == precision and r["backend"] == backend and r["batch"] == 1
+    }
     parts = []
-    for label, key, field in (("depth", ("depth", "e2e"), "p50_ms"), ("flow/pair (sequence)", ("sequence", "e2e"),
-                                                                        "per_pair_p50_ms"),
-                              ("flow (one pair)", ("flow", "e2e"), "p50_ms"), ("pose", ("pose", "e2e"), "p50_ms")):
+    for label, key, field in (
+        ("depth", ("depth", "e2e"), "p50_ms"),
+        ("flow/pair (sequence)", ("sequence", "e2e"), "per_pair_p50_ms"),
+        ("flow (one pair)", ("flow", "e2e"), "p50_ms"),
+        ("pose", ("pose", "e2e"), "p50_ms"),
+    ):
         if key in pick:
             parts.append(f"{label} {pick[key][field]:.1f} ms")
     return f"per example, {precision}, {backend}, batch 1, e2e p50: " + ", ".join(parts) if parts else None
@@ -428,18 +555,31 @@ def run(args: argparse.Namespace) -> int:
     log = (lambda msg: None) if args.quiet else (lambda msg: print(f"bench: {msg}", file=sys.stderr, flush=True))
     env = environment()
     load_start = load_average()
-    env.update({
-        "cpu_flags": cpu_flags(), "load_average_start": load_start, "git_commit": _git_commit(),
-        "thread_env": {k: os.environ.get(k) for k in THREAD_ENV}, "command": ["geonet-infer", *sys.argv[1:]],
-        "model": model_summary(plan["model_dir"]),
-        "input_size": list(plan["input_size"]) if plan["input_size"] else [manifest.width, manifest.height],
-        "sample_frames": str(SAMPLE_FRAMES),
-        "timing": {"warmup": args.warmup, "iters": args.iters, "block": args.block, "rewarm_ms": args.rewarm_ms,
-                   "quiet_wait": True, "gc_disabled": True, "clock": "perf_counter_ns",
-                   "interleaved": "all cases of one (precision, backend, batch), rotating order",
-                   "seq_frames": args.seq_frames},
-        "rss_at_start_mib": current_rss_mib(), "memory": {},
-    })
+    env.update(
+        {
+            "cpu_flags": cpu_flags(),
+            "load_average_start": load_start,
+            "git_commit": _git_commit(),
+            "thread_env": {k: os.environ.get(k) for k in THREAD_ENV},
+            "command": ["geonet-infer", *sys.argv[1:]],
+            "model": model_summary(plan["model_dir"]),
+            "input_size": list(plan["input_size"]) if plan["input_size"] else [manifest.width, manifest.height],
+            "sample_frames": str(SAMPLE_FRAMES),
+            "timing": {
+                "warmup": args.warmup,
+                "iters": args.iters,
+                "block": args.block,
+                "rewarm_ms": args.rewarm_ms,
+                "quiet_wait": True,
+                "gc_disabled": True,
+                "clock": "perf_counter_ns",
+                "interleaved": "all cases of one (precision, backend, batch), rotating order",
+                "seq_frames": args.seq_frames,
+            },
+            "rss_at_start_mib": current_rss_mib(),
+            "memory": {},
+        }
+    )
     cpus = env["usable_cpus"]
     if load_start and load_start[0] > 0.5 * cpus:
         env["busy_warning"] = f"1-min load average {load_start[0]} on {cpus} usable CPUs: other work was running"
@@ -463,38 +603,56 @@ def run(args: argparse.Namespace) -> int:
             if ort_engines:
                 env.setdefault("session_options", ort_engines[0].describe())
             for batch in plan["batches"]:
-                cases, skip = build_cases(predictor, plan["tasks"], plan["modes"], batch, frames, camera,
-                                          args.seq_frames)
+                cases, skip = build_cases(
+                    predictor, plan["tasks"], plan["modes"], batch, frames, camera, args.seq_frames
+                )
                 skipped += [{**s, "precision": precision, "backend": backend} for s in skip]
-                log(f"{backend} {precision} batch {batch}: {len(cases)} cases x ({args.warmup} warm-up + "
-                    f"{args.iters} timed calls)")
-                time_interleaved([c for _, _, c, _ in cases], warmup=args.warmup, iters=args.iters,
-                                 block=args.block, rewarm_ms=args.rewarm_ms)
+                log(
+                    f"{backend} {precision} batch {batch}: {len(cases)} cases x ({args.warmup} warm-up + "
+                    f"{args.iters} timed calls)"
+                )
+                time_interleaved(
+                    [c for _, _, c, _ in cases],
+                    warmup=args.warmup,
+                    iters=args.iters,
+                    block=args.block,
+                    rewarm_ms=args.rewarm_ms,
+                )
                 results += [_row(t, m, precision, backend, batch, c, x) for t, m, c, x in cases]
             env.setdefault("engines", {})[f"{backend}/{precision}"] = {
-                name: {**predictor.engine(name).describe(), **({"auto": predictor.backend_choice[name]}
-                                                               if name in predictor.backend_choice else {})}
-                for name in predictor.graphs}
+                name: {
+                    **predictor.engine(name).describe(),
+                    **({"auto": predictor.backend_choice[name]} if name in predictor.backend_choice else {}),
+                }
+                for name in predictor.graphs
+            }
             peak = peak_rss_mib()
             env["memory"][f"{backend}/{precision}"] = {
-                "load_s": round(load_s, 3), "graph_files_mib": round(graphs_mib, 2),
-                "rss_before_load_mib": rss_before, "rss_after_load_mib": rss_loaded,
+                "load_s": round(load_s, 3),
+                "graph_files_mib": round(graphs_mib, 2),
+                "rss_before_load_mib": rss_before,
+                "rss_after_load_mib": rss_loaded,
                 "rss_load_delta_mib": (rss_loaded - rss_before) if rss_loaded and rss_before else None,
                 "peak_rss_mib": peak,
                 "peak_rss_over_graph_files": round(peak / graphs_mib, 2) if peak and graphs_mib else None,
                 "first_in_process": not env["memory"],
                 "note": "process figures (getrusage peak is monotonic, freed memory is reused, not returned): "
-                        "only the first predictor of a process has clean numbers; run one precision per process"}
+                "only the first predictor of a process has clean numbers; run one precision per process",
+            }
             del predictor, cases  # the cases' closures hold the sessions
     env["peak_rss_mib"] = peak_rss_mib()
     env["load_average_end"] = load_average()
     env["wall_s"] = round(time.perf_counter() - started, 2)
     model = env["model"]
-    print(f"geonet-infer bench: {model['dir']} (arch {model['arch']}, graphs {manifest.height}x{manifest.width}"
-          f"{', RANDOM WEIGHTS' if manifest.random_init else ''}); e2e input {env['input_size'][0]}x"
-          f"{env['input_size'][1]}; {env.get('threads')} threads; {env['cpu']} ({cpus} usable CPUs)")
-    print(f"{args.iters} timed calls per case after {args.warmup} warm-up, block-interleaved; "
-          f"sequence rows per frame ({args.seq_frames} frames per call)")
+    print(
+        f"geonet-infer bench: {model['dir']} (arch {model['arch']}, graphs {manifest.height}x{manifest.width}"
+        f"{', RANDOM WEIGHTS' if manifest.random_init else ''}); e2e input {env['input_size'][0]}x"
+        f"{env['input_size'][1]}; {env.get('threads')} threads; {env['cpu']} ({cpus} usable CPUs)"
+    )
+    print(
+        f"{args.iters} timed calls per case after {args.warmup} warm-up, block-interleaved; "
+        f"sequence rows per frame ({args.seq_frames} frames per call)"
+    )
     print(format_table(results))
     for backend in plan["backends"]:
         for precision in plan["precisions"]:
@@ -503,12 +661,16 @@ def run(args: argparse.Namespace) -> int:
                 print(line)
     for key, mem in env["memory"].items():
         nan = float("nan")
-        print(f"memory {key}: graph files {mem['graph_files_mib']:.1f} MiB, RSS after load "
-              f"{mem['rss_after_load_mib'] or nan:.1f} MiB, process peak {mem['peak_rss_mib'] or nan:.1f} MiB"
-              + ("" if mem["first_in_process"] else " (not the first predictor of this process)"))
+        print(
+            f"memory {key}: graph files {mem['graph_files_mib']:.1f} MiB, RSS after load "
+            f"{mem['rss_after_load_mib'] or nan:.1f} MiB, process peak {mem['peak_rss_mib'] or nan:.1f} MiB"
+            + ("" if mem["first_in_process"] else " (not the first predictor of this process)")
+        )
     for s in skipped:
-        print(f"skipped {s['task']}{'/' + s['mode'] if 'mode' in s else ''} {s.get('precision', '')} "
-              f"batch {s.get('batch', '-')}: {s['reason']}")
+        print(
+            f"skipped {s['task']}{'/' + s['mode'] if 'mode' in s else ''} {s.get('precision', '')} "
+            f"batch {s.get('batch', '-')}: {s['reason']}"
+        )
     if args.json is not None:
         with atomic_write(args.json) as tmp:
             tmp.write_text(json.dumps({"environment": env, "results": results, "skipped": skipped}, indent=2) + "\n")

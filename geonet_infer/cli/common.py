@@ -1,4 +1,5 @@
 """Options and helpers shared by the subcommands."""
+
 from __future__ import annotations
 
 import argparse
@@ -27,18 +28,33 @@ def positive_int(text: str) -> int:
 def add_model_args(parser: argparse.ArgumentParser, threads: bool = True) -> None:
     """--model, --precision, --backend and (unless ``threads=False``: batch has per-worker threads) --threads."""
     group = parser.add_argument_group("model")
-    group.add_argument("--model", default=None,
-                       help=f"bundled model name or a model directory from `python -m export` "
-                            f"(default: the bundled {DEFAULT_MODEL!r})")
-    group.add_argument("--precision", default="fp32", choices=PRECISIONS,
-                       help="fp32, or int8 (quantised ConvNets, faster on CPUs with VNNI) (default: fp32)")
-    group.add_argument("--backend", default=BACKENDS[0], choices=BACKENDS,
-                       help="inference engine: onnxruntime; openvino (pip install 'geonet-infer[openvino]', 2-4x "
-                            "faster int8 on VNNI CPUs); auto (times both per graph at load, keeps the faster) "
-                            f"(default: {BACKENDS[0]})")
+    group.add_argument(
+        "--model",
+        default=None,
+        help=f"bundled model name or a model directory from `python -m export` "
+        f"(default: the bundled {DEFAULT_MODEL!r})",
+    )
+    group.add_argument(
+        "--precision",
+        default="fp32",
+        choices=PRECISIONS,
+        help="fp32, or int8 (quantised ConvNets, faster on CPUs with VNNI) (default: fp32)",
+    )
+    group.add_argument(
+        "--backend",
+        default=BACKENDS[0],
+        choices=BACKENDS,
+        help="inference engine: onnxruntime; openvino (pip install 'geonet-infer[openvino]', 2-4x "
+        "faster int8 on VNNI CPUs); auto (times both per graph at load, keeps the faster) "
+        f"(default: {BACKENDS[0]})",
+    )
     if threads:
-        group.add_argument("--threads", type=positive_int, default=None,
-                           help="inference threads per graph (default: the CPUs this process may use)")
+        group.add_argument(
+            "--threads",
+            type=positive_int,
+            default=None,
+            help="inference threads per graph (default: the CPUs this process may use)",
+        )
 
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
@@ -47,13 +63,21 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
 
 def add_camera_args(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("camera (needed for flow)").add_mutually_exclusive_group()
-    group.add_argument("--calib", type=Path, default=None,
-                       help="calibration file: KITTI calib_cam_to_cam.txt (P_rect_02), KITTI odometry calib.txt "
-                            "(P2), a 3x3 text matrix, `K: ...` files, key/value files with K and dist, or an "
-                            "EuRoC sensor.yaml; lens distortion, where given, is removed before inference "
-                            "(default: the KITTI drive's own calibration, if INPUT is one)")
-    group.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY",
-                       help="pinhole intrinsics in pixels at the input frames' resolution")
+    group.add_argument(
+        "--calib",
+        type=Path,
+        default=None,
+        help="calibration file: KITTI calib_cam_to_cam.txt (P_rect_02), KITTI odometry calib.txt "
+        "(P2), a 3x3 text matrix, `K: ...` files, key/value files with K and dist, or an "
+        "EuRoC sensor.yaml; lens distortion, where given, is removed before inference "
+        "(default: the KITTI drive's own calibration, if INPUT is one)",
+    )
+    group.add_argument(
+        "--intrinsics",
+        default=None,
+        metavar="FX,FY,CX,CY",
+        help="pinhole intrinsics in pixels at the input frames' resolution",
+    )
 
 
 def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None) -> Camera | None:
@@ -62,9 +86,14 @@ def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None
         try:
             fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
         except ValueError:
-            raise GeoNetInputError(None, f"--intrinsics {args.intrinsics!r} is not four numbers",
-                                   "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9") from None
-        return Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None, None, "--intrinsics").validate("--intrinsics")
+            raise GeoNetInputError(
+                None,
+                f"--intrinsics {args.intrinsics!r} is not four numbers",
+                "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9",
+            ) from None
+        return Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None, None, "--intrinsics").validate(
+            "--intrinsics"
+        )
     path = args.calib if args.calib is not None else default_calib
     if path is None:
         return None

@@ -1,4 +1,5 @@
 """``geonet-infer demo``: predict on the bundled sample sequence and draw one frame's results."""
+
 from __future__ import annotations
 
 import argparse
@@ -17,10 +18,12 @@ PANELS = ("frame", "depth", "flow", "rigid flow", "residual flow")
 
 def add_parser(sub) -> None:
     parser = sub.add_parser(
-        "demo", help="run on the bundled sample and write demo.png",
+        "demo",
+        help="run on the bundled sample and write demo.png",
         description="Run `predict` on the bundled sample sequence (synthetic frames made by our own "
-                    "generator), write a side-by-side demo.png (frame | depth | flow | rigid | residual) "
-                    "for the middle frame and print the per-stage latency table.")
+        "generator), write a side-by-side demo.png (frame | depth | flow | rigid | residual) "
+        "for the middle frame and print the per-stage latency table.",
+    )
     parser.add_argument("--out", type=Path, default=Path("geonet_demo"), help="output folder (default: geonet_demo)")
     add_model_args(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -30,15 +33,20 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     predictor = load_predictor(args)
     camera = read_camera(SAMPLE_CALIB)
-    summary = predict_to_dir(predictor, open_frames(SAMPLE_FRAMES), args.out, camera=camera,
-                             progress=not args.no_progress)
+    summary = predict_to_dir(
+        predictor, open_frames(SAMPLE_FRAMES), args.out, camera=camera, progress=not args.no_progress
+    )
     frames = list_images(SAMPLE_FRAMES)
     mid = len(frames) // 2
-    snippet = frames[mid - predictor.seq_length // 2: mid + predictor.seq_length // 2 + 1]
+    snippet = frames[mid - predictor.seq_length // 2 : mid + predictor.seq_length // 2 + 1]
     result = predictor.flow(snippet, camera)
     max_flow = float(max(abs(result.flow).max(), 1e-6))
-    panels = [read_image(frames[mid]), depth_to_color(result.depth), flow_to_color(result.flow, max_flow),
-              flow_to_color(result.rigid_flow, max_flow)]
+    panels = [
+        read_image(frames[mid]),
+        depth_to_color(result.depth),
+        flow_to_color(result.flow, max_flow),
+        flow_to_color(result.rigid_flow, max_flow),
+    ]
     labels = list(PANELS[:4])
     if result.residual_flow is not None:
         panels.append(flow_to_color(result.residual_flow))

@@ -1,4 +1,5 @@
 """``geonet-infer eval``: score a model (ONNX) or a classical baseline in the paper's terms."""
+
 from __future__ import annotations
 
 import argparse
@@ -60,32 +61,58 @@ examples:
 
 
 def add_parser(sub) -> None:
-    parser = sub.add_parser("eval", help="accuracy against ground truth (model or baselines), paper's tables",
-                            description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = sub.add_parser(
+        "eval",
+        help="accuracy against ground truth (model or baselines), paper's tables",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("task", choices=TASKS, help="what to score")
     parser.add_argument("--data", type=Path, required=True, help="dataset folder (see layouts above)")
-    parser.add_argument("--layout", default="auto",
-                        choices=["auto"] + sorted({name for names in LAYOUTS.values() for name in names}),
-                        help="data layout (default: detected from the folder)")
-    parser.add_argument("--method", default="model",
-                        help="comma list: model, or a baseline (see above) (default: model)")
+    parser.add_argument(
+        "--layout",
+        default="auto",
+        choices=["auto"] + sorted({name for names in LAYOUTS.values() for name in names}),
+        help="data layout (default: detected from the folder)",
+    )
+    parser.add_argument(
+        "--method", default="model", help="comma list: model, or a baseline (see above) (default: model)"
+    )
     add_model_args(parser)
     group = parser.add_argument_group("selection")
-    group.add_argument("--heldout", type=Path, default=None,
-                       help="synth layout: score only the sequences listed in this heldout.txt")
+    group.add_argument(
+        "--heldout", type=Path, default=None, help="synth layout: score only the sequences listed in this heldout.txt"
+    )
     group.add_argument("--stride", type=positive_int, default=1, help="score every n-th item (default: 1)")
     group.add_argument("--limit", type=positive_int, default=None, help="score at most this many items")
     group = parser.add_argument_group("protocol")
-    group.add_argument("--max-depth", type=float, default=evaluation.MAX_DEPTH,
-                       help="depth cap in metres, GT mask and clamp (default: 80; the paper also reports 50)")
-    group.add_argument("--crop", default="auto", choices=["auto", "garg", "eigen", "none"],
-                       help="depth crop (default auto: Garg on KITTI, none on synthetic)")
-    group.add_argument("--no-median-scaling", action="store_true",
-                       help="depth: score raw depths (metric or stereo-scaled models only)")
-    group.add_argument("--multiview", type=Path, default=None,
-                       help="kitti flow: folder of the multi-view extension holding NNNNNN_09.png")
-    group.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY",
-                       help="flow with a model on data without calibration (Middlebury): K at the frames' size")
+    group.add_argument(
+        "--max-depth",
+        type=float,
+        default=evaluation.MAX_DEPTH,
+        help="depth cap in metres, GT mask and clamp (default: 80; the paper also reports 50)",
+    )
+    group.add_argument(
+        "--crop",
+        default="auto",
+        choices=["auto", "garg", "eigen", "none"],
+        help="depth crop (default auto: Garg on KITTI, none on synthetic)",
+    )
+    group.add_argument(
+        "--no-median-scaling", action="store_true", help="depth: score raw depths (metric or stereo-scaled models only)"
+    )
+    group.add_argument(
+        "--multiview",
+        type=Path,
+        default=None,
+        help="kitti flow: folder of the multi-view extension holding NNNNNN_09.png",
+    )
+    group.add_argument(
+        "--intrinsics",
+        default=None,
+        metavar="FX,FY,CX,CY",
+        help="flow with a model on data without calibration (Middlebury): K at the frames' size",
+    )
     parser.add_argument("--json", type=Path, default=None, help="also write every result and item here")
     parser.set_defaults(run=run)
 
@@ -129,9 +156,14 @@ def run(args: argparse.Namespace) -> int:
     results = []
     for label, fn in methods_for(args.task, args.method, args):
         if args.task == "depth":
-            result = evaluation.evaluate_depth(fn, dataset, method=label, max_depth=args.max_depth,
-                                               crop=None if args.crop == "none" else args.crop,
-                                               median_scaling=not args.no_median_scaling)
+            result = evaluation.evaluate_depth(
+                fn,
+                dataset,
+                method=label,
+                max_depth=args.max_depth,
+                crop=None if args.crop == "none" else args.crop,
+                median_scaling=not args.no_median_scaling,
+            )
         elif args.task == "flow":
             result = evaluation.evaluate_flow(fn, dataset, method=label, intrinsics=K)
         else:

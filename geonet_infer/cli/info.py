@@ -1,4 +1,5 @@
 """``geonet-infer info``: versions, CPU and threads, and a model's manifest summary."""
+
 from __future__ import annotations
 
 import argparse
@@ -17,11 +18,15 @@ from geonet_infer.session import usable_cpus
 
 
 def add_parser(sub) -> None:
-    parser = sub.add_parser("info", help="versions, CPU, threads and the model's manifest",
-                            description="Print versions, onnxruntime providers, the CPU and the threads "
-                                        "geonet-infer would use, and a summary of a model's manifest.")
-    parser.add_argument("--model", default=None,
-                        help=f"bundled model name or model directory (default: {DEFAULT_MODEL!r})")
+    parser = sub.add_parser(
+        "info",
+        help="versions, CPU, threads and the model's manifest",
+        description="Print versions, onnxruntime providers, the CPU and the threads "
+        "geonet-infer would use, and a summary of a model's manifest.",
+    )
+    parser.add_argument(
+        "--model", default=None, help=f"bundled model name or model directory (default: {DEFAULT_MODEL!r})"
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     parser.set_defaults(run=run)
 
@@ -37,26 +42,55 @@ def cpu_model() -> str:
 
 
 def environment() -> dict:
-    return {"geonet_infer": __version__, "python": platform.python_version(), "onnxruntime": ort.__version__,
-            "numpy": np.__version__, "opencv": cv2.__version__, "providers": ort.get_available_providers(),
-            "platform": platform.platform(), "cpu": cpu_model(), "usable_cpus": usable_cpus(),
-            "default_threads": usable_cpus(), "bundled_models": list(bundled_models())}
+    return {
+        "geonet_infer": __version__,
+        "python": platform.python_version(),
+        "onnxruntime": ort.__version__,
+        "numpy": np.__version__,
+        "opencv": cv2.__version__,
+        "providers": ort.get_available_providers(),
+        "platform": platform.platform(),
+        "cpu": cpu_model(),
+        "usable_cpus": usable_cpus(),
+        "default_threads": usable_cpus(),
+        "bundled_models": list(bundled_models()),
+    }
 
 
 def model_summary(model) -> dict:
     manifest = load_manifest(resolve_model(model))
-    graphs = {p: {name: {"file": g.file, "sha256": g.sha256[:16], "opset": g.opset,
-                         "mib": round((manifest.root / g.file).stat().st_size / 2 ** 20, 2)}
-                  for name, g in manifest.graphs[p].items()} for p in manifest.graphs}
+    graphs = {
+        p: {
+            name: {
+                "file": g.file,
+                "sha256": g.sha256[:16],
+                "opset": g.opset,
+                "mib": round((manifest.root / g.file).stat().st_size / 2**20, 2),
+            }
+            for name, g in manifest.graphs[p].items()
+        }
+        for p in manifest.graphs
+    }
     prov = manifest.provenance
-    return {"dir": str(manifest.root), "arch": manifest.arch, "size": [manifest.height, manifest.width],
-            "seq_length": manifest.seq_length, "random_init": manifest.random_init,
-            "precisions": list(manifest.graphs), "graphs": graphs,
-            "provenance": {"checkpoint_stage": prov.checkpoint_stage, "checkpoint_step": prov.checkpoint_step,
-                           "training_command": prov.training_command, "data_dir": prov.data_dir,
-                           "git_commit": prov.git_commit, "export_date": prov.export_date},
-            "metrics": manifest.metrics,
-            "int8_accuracy_delta": manifest.quantization.accuracy_delta if manifest.quantization else None}
+    return {
+        "dir": str(manifest.root),
+        "arch": manifest.arch,
+        "size": [manifest.height, manifest.width],
+        "seq_length": manifest.seq_length,
+        "random_init": manifest.random_init,
+        "precisions": list(manifest.graphs),
+        "graphs": graphs,
+        "provenance": {
+            "checkpoint_stage": prov.checkpoint_stage,
+            "checkpoint_step": prov.checkpoint_step,
+            "training_command": prov.training_command,
+            "data_dir": prov.data_dir,
+            "git_commit": prov.git_commit,
+            "export_date": prov.export_date,
+        },
+        "metrics": manifest.metrics,
+        "int8_accuracy_delta": manifest.quantization.accuracy_delta if manifest.quantization else None,
+    }
 
 
 def run(args: argparse.Namespace) -> int:
@@ -65,15 +99,19 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(info, indent=2))
         return 0
     env, model = info["environment"], info["model"]
-    print(f"geonet-infer {env['geonet_infer']}  python {env['python']}  onnxruntime {env['onnxruntime']}  "
-          f"numpy {env['numpy']}  opencv {env['opencv']}")
+    print(
+        f"geonet-infer {env['geonet_infer']}  python {env['python']}  onnxruntime {env['onnxruntime']}  "
+        f"numpy {env['numpy']}  opencv {env['opencv']}"
+    )
     print(f"providers: {', '.join(env['providers'])}")
     print(f"cpu: {env['cpu']}; usable CPUs {env['usable_cpus']} (default threads per graph)")
     print(f"bundled models: {', '.join(env['bundled_models']) or 'none'}")
     print(f"model: {model['dir']}")
-    print(f"  arch {model['arch']}, graphs {model['size'][0]}x{model['size'][1]}, snippet {model['seq_length']} "
-          f"frames, precisions {', '.join(model['precisions'])}" + ("  [RANDOM WEIGHTS: timing only]"
-                                                                     if model["random_init"] else ""))
+    print(
+        f"  arch {model['arch']}, graphs {model['size'][0]}x{model['size'][1]}, snippet {model['seq_length']} "
+        f"frames, precisions {', '.join(model['precisions'])}"
+        + ("  [RANDOM WEIGHTS: timing only]" if model["random_init"] else "")
+    )
     for precision, graphs in model["graphs"].items():
         for name, g in graphs.items():
             print(f"  {precision:5s} {name:11s} {g['file']:24s} {g['mib']:6.2f} MiB  sha256 {g['sha256']}")

@@ -1,12 +1,19 @@
 """``geonet-infer predict``: depth, flow and poses for a video, a folder of frames or a KITTI drive."""
+
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
 
-from geonet_infer.cli.common import (add_camera_args, add_model_args, camera_from_args, load_predictor,
-                                     positive_int, stage_table)
+from geonet_infer.cli.common import (
+    add_camera_args,
+    add_model_args,
+    camera_from_args,
+    load_predictor,
+    positive_int,
+    stage_table,
+)
 from geonet_infer.io.frames import open_frames
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks, predict_to_dir
 
@@ -37,19 +44,30 @@ examples:
 
 
 def add_parser(sub) -> None:
-    parser = sub.add_parser("predict", help="depth, flow and poses for a video or a folder of frames",
-                            description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = sub.add_parser(
+        "predict",
+        help="depth, flow and poses for a video or a folder of frames",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("input", type=Path, metavar="INPUT", help="video file, folder of frames or KITTI drive")
     parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
     add_model_args(parser)
     add_camera_args(parser)
-    parser.add_argument("--tasks", default=",".join(TASKS),
-                        help="comma list of depth,pose,flow (default: all; flow needs intrinsics)")
-    parser.add_argument("--batch-size", type=positive_int, default=4,
-                        help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)")
-    parser.add_argument("--camera-height", type=float, default=None, metavar="METRES",
-                        help="camera height above a flat road: depth and pose translations in metres, from a "
-                             "ground plane fitted to each frame's depth (needs intrinsics; e.g. 1.65 for KITTI)")
+    parser.add_argument(
+        "--tasks", default=",".join(TASKS), help="comma list of depth,pose,flow (default: all; flow needs intrinsics)"
+    )
+    parser.add_argument(
+        "--batch-size", type=positive_int, default=4, help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)"
+    )
+    parser.add_argument(
+        "--camera-height",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="camera height above a flat road: depth and pose translations in metres, from a "
+        "ground plane fitted to each frame's depth (needs intrinsics; e.g. 1.65 for KITTI)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(run=run)
 
@@ -59,11 +77,20 @@ def run(args: argparse.Namespace) -> int:
     source = open_frames(args.input)
     camera = camera_from_args(args, source.default_calib)
     predictor = load_predictor(args)
-    summary = predict_to_dir(predictor, source, args.out, camera=camera, tasks=tasks,
-                             batch_size=args.batch_size, progress=not args.no_progress,
-                             camera_height=args.camera_height)
-    print(f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
-          f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}")
+    summary = predict_to_dir(
+        predictor,
+        source,
+        args.out,
+        camera=camera,
+        tasks=tasks,
+        batch_size=args.batch_size,
+        progress=not args.no_progress,
+        camera_height=args.camera_height,
+    )
+    print(
+        f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
+        f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}"
+    )
     print(stage_table(summary["timings_ms_per_frame"], summary["frames"]))
     for failure in summary["failures"]:
         print(f"failed: {failure['frame']}: {failure['reason']}", file=sys.stderr)

@@ -25,35 +25,92 @@ Encodings (see ``docs/synthetic_data.md``):
 * GeoNet ``<frame>_cam.txt``: one line ``fx,0.,cx,0.,fy,cy,0.,0.,1.``.
 * Camera distortion: OpenCV order ``k1 k2 p1 p2 [k3 ...]``.
 """
+
 from __future__ import annotations
 
 from geonet_infer.io.atomic import atomic_write, save_npy_atomic
-from geonet_infer.io.calib import (CAMERA_FORMATS, Camera, cam_txt_line, read_calib_file, read_calib_K,
-                                   read_cam_txt, read_camera, require_key, write_cam_txt, write_calib_K)
+from geonet_infer.io.calib import (
+    CAMERA_FORMATS,
+    Camera,
+    cam_txt_line,
+    read_calib_file,
+    read_calib_K,
+    read_cam_txt,
+    read_camera,
+    require_key,
+    write_calib_K,
+    write_cam_txt,
+)
 from geonet_infer.io.depth import DEPTH_SCALE, read_depth_kitti, write_depth_kitti
-from geonet_infer.io.flow import (FLO_MAGIC, FLOW_OFFSET, FLOW_SCALE, decode_flow_kitti, encode_flow_kitti,
-                                  read_flo, read_flow_kitti, write_flo, write_flow_kitti)
+from geonet_infer.io.flow import (
+    FLO_MAGIC,
+    FLOW_OFFSET,
+    FLOW_SCALE,
+    decode_flow_kitti,
+    encode_flow_kitti,
+    read_flo,
+    read_flow_kitti,
+    write_flo,
+    write_flow_kitti,
+)
 from geonet_infer.io.frames import KITTI_CALIB_NAME, VIDEO_SUFFIXES, Frame, FrameSource, open_frames
 from geonet_infer.io.images import IMAGE_SUFFIXES, list_images, read_image, read_mask, write_image, write_mask
-from geonet_infer.io.poses import (quaternion_to_rotation, read_kitti_poses, read_tum_poses, rotation_to_quaternion,
-                                   write_kitti_poses, write_tum_poses)
+from geonet_infer.io.poses import (
+    quaternion_to_rotation,
+    read_kitti_poses,
+    read_tum_poses,
+    rotation_to_quaternion,
+    write_kitti_poses,
+    write_tum_poses,
+)
 
 __all__ = [
     # atomic
-    "atomic_write", "save_npy_atomic",
+    "atomic_write",
+    "save_npy_atomic",
     # images
-    "IMAGE_SUFFIXES", "list_images", "read_image", "write_image", "read_mask", "write_mask",
+    "IMAGE_SUFFIXES",
+    "list_images",
+    "read_image",
+    "write_image",
+    "read_mask",
+    "write_mask",
     # flow
-    "FLOW_SCALE", "FLOW_OFFSET", "FLO_MAGIC", "encode_flow_kitti", "decode_flow_kitti",
-    "write_flow_kitti", "read_flow_kitti", "write_flo", "read_flo",
+    "FLOW_SCALE",
+    "FLOW_OFFSET",
+    "FLO_MAGIC",
+    "encode_flow_kitti",
+    "decode_flow_kitti",
+    "write_flow_kitti",
+    "read_flow_kitti",
+    "write_flo",
+    "read_flo",
     # depth
-    "DEPTH_SCALE", "write_depth_kitti", "read_depth_kitti",
+    "DEPTH_SCALE",
+    "write_depth_kitti",
+    "read_depth_kitti",
     # poses
-    "read_kitti_poses", "write_kitti_poses", "rotation_to_quaternion", "quaternion_to_rotation",
-    "write_tum_poses", "read_tum_poses",
+    "read_kitti_poses",
+    "write_kitti_poses",
+    "rotation_to_quaternion",
+    "quaternion_to_rotation",
+    "write_tum_poses",
+    "read_tum_poses",
     # calib
-    "CAMERA_FORMATS", "Camera", "read_camera", "read_calib_file", "require_key", "read_calib_K",
-    "write_calib_K", "cam_txt_line", "write_cam_txt", "read_cam_txt",
+    "CAMERA_FORMATS",
+    "Camera",
+    "read_camera",
+    "read_calib_file",
+    "require_key",
+    "read_calib_K",
+    "write_calib_K",
+    "cam_txt_line",
+    "write_cam_txt",
+    "read_cam_txt",
     # frames
-    "VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames",
+    "VIDEO_SUFFIXES",
+    "KITTI_CALIB_NAME",
+    "Frame",
+    "FrameSource",
+    "open_frames",
 ]

@@ -1,11 +1,12 @@
 """Atomic writes: a crash never leaves a half-written file where a reader would trust it."""
+
 from __future__ import annotations
 
 import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 

@@ -6,6 +6,7 @@
   (:func:`write_cam_txt` / :func:`read_cam_txt`), as written by ``training.prepare``.
 * :func:`read_camera` recognises the formats in :data:`CAMERA_FORMATS` and returns a :class:`Camera`.
 """
+
 from __future__ import annotations
 
 import re
@@ -18,8 +19,18 @@ from geonet_infer.conventions import scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.atomic import atomic_write
 
-__all__ = ["CAMERA_FORMATS", "Camera", "read_camera", "read_calib_file", "require_key", "read_calib_K",
-           "write_calib_K", "cam_txt_line", "write_cam_txt", "read_cam_txt"]
+__all__ = [
+    "CAMERA_FORMATS",
+    "Camera",
+    "read_camera",
+    "read_calib_file",
+    "require_key",
+    "read_calib_K",
+    "write_calib_K",
+    "cam_txt_line",
+    "write_cam_txt",
+    "read_cam_txt",
+]
 
 CAMERA_FORMATS = (
     "KITTI raw calib_cam_to_cam.txt (P_rect_02, size from S_rect_02)",
@@ -74,7 +85,7 @@ class Camera:
         """True if any distortion coefficient is non-zero."""
         return self.dist is not None and bool(np.any(self.dist != 0))
 
-    def scaled_to(self, width: int, height: int) -> "Camera":
+    def scaled_to(self, width: int, height: int) -> Camera:
         """The camera for images resized to ``width`` x ``height``.
 
         (fx, cx) scale by width / size[0] and (fy, cy) by height / size[1]
@@ -89,7 +100,7 @@ class Camera:
         K = scale_intrinsics(self.K, width / self.size[0], height / self.size[1])
         return Camera(K, self.dist, (int(width), int(height)), self.source)
 
-    def validate(self, path=None) -> "Camera":
+    def validate(self, path=None) -> Camera:
         """Check the values; returns ``self``.
 
         Raises:
@@ -101,24 +112,38 @@ class Camera:
         K = self.K
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         if not np.isfinite(K).all():
-            raise GeoNetInputError(path, f"intrinsics contain NaN or infinity (fx={fx}, fy={fy}, cx={cx}, cy={cy})",
-                                   "check the calibration values")
+            raise GeoNetInputError(
+                path,
+                f"intrinsics contain NaN or infinity (fx={fx}, fy={fy}, cx={cx}, cy={cy})",
+                "check the calibration values",
+            )
         if not (fx > 0 and fy > 0):
-            raise GeoNetInputError(path, f"focal lengths must be positive, got fx={fx:g}, fy={fy:g}", "check the calibration values")
+            raise GeoNetInputError(
+                path, f"focal lengths must be positive, got fx={fx:g}, fy={fy:g}", "check the calibration values"
+            )
         if not (np.isfinite(cx) and np.isfinite(cy)):
-            raise GeoNetInputError(path, f"principal point is not finite (cx={cx}, cy={cy})", "check the calibration values")
+            raise GeoNetInputError(
+                path, f"principal point is not finite (cx={cx}, cy={cy})", "check the calibration values"
+            )
         if not np.allclose(K[2], (0.0, 0.0, 1.0), rtol=0, atol=1e-9) or abs(K[1, 0]) > 1e-9:
-            raise GeoNetInputError(path, f"not a pinhole K: rows 2-3 are {K[1].tolist()} {K[2].tolist()}",
-                                   "expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+            raise GeoNetInputError(
+                path,
+                f"not a pinhole K: rows 2-3 are {K[1].tolist()} {K[2].tolist()}",
+                "expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]",
+            )
         if self.dist is not None:
             if not np.isfinite(self.dist).all():
                 raise GeoNetInputError(path, "distortion coefficients are not finite", "check the calibration values")
             if self.dist.size not in OPENCV_DIST_LENGTHS:
-                raise GeoNetInputError(path, f"{self.dist.size} distortion coefficients",
-                                       "OpenCV takes k1 k2 p1 p2 [k3 [k4 k5 k6 ...]]: 4, 5, 8, 12 or 14 numbers")
+                raise GeoNetInputError(
+                    path,
+                    f"{self.dist.size} distortion coefficients",
+                    "OpenCV takes k1 k2 p1 p2 [k3 [k4 k5 k6 ...]]: 4, 5, 8, 12 or 14 numbers",
+                )
         if self.size is not None and (self.size[0] <= 0 or self.size[1] <= 0):
-            raise GeoNetInputError(path, f"image size must be positive, got {self.size[0]}x{self.size[1]}",
-                                   "check the calibration values")
+            raise GeoNetInputError(
+                path, f"image size must be positive, got {self.size[0]}x{self.size[1]}", "check the calibration values"
+            )
         return self
 
 
@@ -142,8 +167,11 @@ def read_calib_file(path) -> dict[str, np.ndarray | str]:
         key, sep, value = line.partition(":")
         key = key.strip()
         if not sep or not key:
-            raise GeoNetInputError(path, f"line {lineno} is not 'key: values' ({line.strip()[:60]!r})",
-                                   "KITTI calibration files have one 'key: v1 v2 ...' per line")
+            raise GeoNetInputError(
+                path,
+                f"line {lineno} is not 'key: values' ({line.strip()[:60]!r})",
+                "KITTI calibration files have one 'key: v1 v2 ...' per line",
+            )
         try:
             out[key] = np.array([float(v) for v in value.split()], dtype=np.float64)
         except ValueError:
@@ -154,8 +182,9 @@ def read_calib_file(path) -> dict[str, np.ndarray | str]:
 def require_key(calib: dict, key: str, path) -> np.ndarray:
     """``calib[key]`` or GeoNetInputError naming the file and the missing key."""
     if key not in calib:
-        raise GeoNetInputError(path, f"missing calibration key '{key}'",
-                               f"keys present: {', '.join(sorted(calib)) or 'none'}")
+        raise GeoNetInputError(
+            path, f"missing calibration key '{key}'", f"keys present: {', '.join(sorted(calib)) or 'none'}"
+        )
     return calib[key]
 
 
@@ -175,9 +204,10 @@ def read_calib_K(path, key: str = "K") -> np.ndarray:
     calib = read_calib_file(path)
     v = require_key(calib, key, path)
     if isinstance(v, str) or v.size not in (9, 12):
-        raise GeoNetInputError(path, f"'{key}' must hold 9 (3x3) or 12 (3x4) numbers", "e.g. 'K: fx 0 cx 0 fy cy 0 0 1'")
+        raise GeoNetInputError(
+            path, f"'{key}' must hold 9 (3x3) or 12 (3x4) numbers", "e.g. 'K: fx 0 cx 0 fy cy 0 0 1'"
+        )
     return v.reshape(3, -1)[:, :3].copy()
-
 
 
 # --------------------------------------------------------------------------- GeoNet <frame>_cam.txt
@@ -221,8 +251,7 @@ def _floats(values, path, key: str, counts: tuple[int, ...]) -> np.ndarray:
         arr = None
     if arr is None or arr.size not in counts:
         want = " or ".join(str(c) for c in counts)
-        raise GeoNetInputError(path, f"'{key}' must hold {want} numbers, got {' '.join(values)[:80]!r}",
-                               _FORMATS_HINT)
+        raise GeoNetInputError(path, f"'{key}' must hold {want} numbers, got {' '.join(values)[:80]!r}", _FORMATS_HINT)
     return arr
 
 
@@ -299,15 +328,20 @@ def _camera_from_euroc_yaml(text: str, path: Path) -> Camera | None:
         return None
     model = _yaml_scalar(text, "camera_model")
     if model is not None and model != "pinhole":
-        raise GeoNetInputError(path, f"camera_model '{model}' is not a pinhole camera", "only pinhole models are supported")
+        raise GeoNetInputError(
+            path, f"camera_model '{model}' is not a pinhole camera", "only pinhole models are supported"
+        )
     fu, fv, cu, cv = _floats(intr, path, "intrinsics", (4,))
     dist = None
     coeffs = _yaml_list(text, "distortion_coefficients")
     if coeffs is not None:
         dist_model = _yaml_scalar(text, "distortion_model")
         if dist_model is not None and dist_model not in ("radial-tangential", "radtan", "plumb_bob"):
-            raise GeoNetInputError(path, f"distortion_model '{dist_model}' is not OpenCV's radial-tangential "
-                                   "(k1 k2 p1 p2)", "undistort the frames with the matching model first")
+            raise GeoNetInputError(
+                path,
+                f"distortion_model '{dist_model}' is not OpenCV's radial-tangential (k1 k2 p1 p2)",
+                "undistort the frames with the matching model first",
+            )
         dist = _floats(coeffs, path, "distortion_coefficients", OPENCV_DIST_LENGTHS)
     size = None
     res = _yaml_list(text, "resolution")

@@ -1,4 +1,5 @@
 """KITTI depth PNG: 16-bit grey, round(depth_m * 256); 0 = no measurement."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -36,6 +37,9 @@ def read_depth_kitti(path) -> np.ndarray:
     """Read KITTI depth PNG -> (H, W) float32 metres, 0 = no measurement."""
     img = _imread(path)
     if img.dtype != np.uint16 or img.ndim != 2:
-        raise GeoNetInputError(path, f"not a KITTI depth PNG (need 16-bit 1-channel, got {img.dtype} shape {img.shape})",
-                               "KITTI depth is stored as 16-bit grey PNG of depth*256")
+        raise GeoNetInputError(
+            path,
+            f"not a KITTI depth PNG (need 16-bit 1-channel, got {img.dtype} shape {img.shape})",
+            "KITTI depth is stored as 16-bit grey PNG of depth*256",
+        )
     return img.astype(np.float32) / DEPTH_SCALE

@@ -1,4 +1,5 @@
 """Optical flow files: KITTI flow PNG (16-bit) and Middlebury ``.flo``."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,11 +10,20 @@ from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.images import _imread, _imwrite
 
-__all__ = ["FLOW_SCALE", "FLOW_OFFSET", "FLO_MAGIC", "encode_flow_kitti", "decode_flow_kitti",
-           "write_flow_kitti", "read_flow_kitti", "write_flo", "read_flo"]
+__all__ = [
+    "FLOW_SCALE",
+    "FLOW_OFFSET",
+    "FLO_MAGIC",
+    "encode_flow_kitti",
+    "decode_flow_kitti",
+    "write_flow_kitti",
+    "read_flow_kitti",
+    "write_flo",
+    "read_flo",
+]
 
 FLOW_SCALE = 64.0  # KITTI flow: 1/64 px steps
-FLOW_OFFSET = 2 ** 15
+FLOW_OFFSET = 2**15
 FLO_MAGIC = 202021.25
 
 
@@ -64,8 +74,11 @@ def read_flow_kitti(path) -> tuple[np.ndarray, np.ndarray]:
     """Read KITTI flow PNG -> (flow (H, W, 2) float32 px, valid (H, W) bool)."""
     img = _imread(path)
     if img.dtype != np.uint16 or img.ndim != 3 or img.shape[2] != 3:
-        raise GeoNetInputError(path, f"not a KITTI flow PNG (need 16-bit 3-channel, got {img.dtype} shape {img.shape})",
-                               "KITTI flow is stored as 16-bit RGB PNG (flow_occ / flow_noc)")
+        raise GeoNetInputError(
+            path,
+            f"not a KITTI flow PNG (need 16-bit 3-channel, got {img.dtype} shape {img.shape})",
+            "KITTI flow is stored as 16-bit RGB PNG (flow_occ / flow_noc)",
+        )
     return decode_flow_kitti(img[..., ::-1])  # BGR -> RGB
 
 
@@ -95,8 +108,12 @@ def read_flo(path) -> np.ndarray:
         raise GeoNetInputError(path, "file too short for a .flo header", "is it a Middlebury .flo file?")
     magic = np.frombuffer(raw, dtype="<f4", count=1)[0]
     if magic != np.float32(FLO_MAGIC):
-        raise GeoNetInputError(path, f"bad .flo magic {magic!r} (expected {FLO_MAGIC})", "is it a Middlebury .flo file?")
+        raise GeoNetInputError(
+            path, f"bad .flo magic {magic!r} (expected {FLO_MAGIC})", "is it a Middlebury .flo file?"
+        )
     w, h = (int(x) for x in np.frombuffer(raw, dtype="<i4", count=2, offset=4))
     if w <= 0 or h <= 0 or len(raw) != 12 + 8 * w * h:
-        raise GeoNetInputError(path, f".flo header says {w}x{h} but file has {len(raw)} bytes", "the file is truncated or corrupt")
+        raise GeoNetInputError(
+            path, f".flo header says {w}x{h} but file has {len(raw)} bytes", "the file is truncated or corrupt"
+        )
     return np.frombuffer(raw, dtype="<f4", offset=12).reshape(h, w, 2).astype(np.float32)

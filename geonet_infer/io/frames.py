@@ -3,13 +3,14 @@
 :func:`open_frames` picks the source from the path; iterating it yields :class:`Frame` objects
 lazily (one decoded frame in memory at a time), in temporal order.
 """
+
 from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
@@ -67,8 +68,15 @@ class FrameSource:
             ``calib_cam_to_cam.txt``), or None.
     """
 
-    def __init__(self, path: Path, name: str, kind: str, frame_names: list[str] | None = None,
-                 fps: float | None = None, default_calib: Path | None = None):
+    def __init__(
+        self,
+        path: Path,
+        name: str,
+        kind: str,
+        frame_names: list[str] | None = None,
+        fps: float | None = None,
+        default_calib: Path | None = None,
+    ):
         self.path = path
         self.name = name
         self.kind = kind
@@ -94,8 +102,11 @@ class _ImageFolderSource(FrameSource):
         stems = [p.stem for p in self.files]
         if len(set(stems)) != len(stems):
             dup = sorted({s for s in stems if stems.count(s) > 1})
-            raise GeoNetInputError(folder, f"several images share the frame name '{dup[0]}'",
-                                   "keep one file per frame (outputs are named after the frame)")
+            raise GeoNetInputError(
+                folder,
+                f"several images share the frame name '{dup[0]}'",
+                "keep one file per frame (outputs are named after the frame)",
+            )
         super().__init__(path, name, kind, stems, None, default_calib)
 
     def __iter__(self) -> Iterator[Frame]:
@@ -123,8 +134,9 @@ class _VideoSource(FrameSource):
             cap.release()
         if first is None:
             why = "OpenCV decoded no frame" if ok else "OpenCV could not open it"
-            raise GeoNetInputError(path, f"cannot open this video ({why})",
-                                   f"is it a valid video file ({' '.join(VIDEO_SUFFIXES)})?")
+            raise GeoNetInputError(
+                path, f"cannot open this video ({why})", f"is it a valid video file ({' '.join(VIDEO_SUFFIXES)})?"
+            )
         self._count = max(count, 1)
         super().__init__(path, path.stem, "video", None, fps if fps > 0 else None, None)
 
@@ -143,11 +155,16 @@ class _VideoSource(FrameSource):
             cap.release()
         # Only reached when read to the end (not when the caller stopped early).
         if not names:
-            raise GeoNetInputError(self.path, "cannot open this video (OpenCV decoded no frame)",
-                                   "the file changed since it was opened?")
+            raise GeoNetInputError(
+                self.path, "cannot open this video (OpenCV decoded no frame)", "the file changed since it was opened?"
+            )
         if len(names) < self._count:
-            log.warning("%s: decoded %d frames, the container lists %d (truncated or partly unreadable)",
-                        self.path, len(names), self._count)
+            log.warning(
+                "%s: decoded %d frames, the container lists %d (truncated or partly unreadable)",
+                self.path,
+                len(names),
+                self._count,
+            )
         self.frame_names = names
 
     def __len__(self) -> int:
@@ -190,8 +207,11 @@ def open_frames(path) -> FrameSource:
         if p.suffix.lower() in VIDEO_SUFFIXES:
             return _VideoSource(given)
         what = "a single image" if p.suffix.lower() in IMAGE_SUFFIXES else "not a video"
-        raise GeoNetInputError(given, f"{what}: expected a video ({' '.join(VIDEO_SUFFIXES)}) or a folder of frames",
-                               "put the frames in a folder and pass the folder")
+        raise GeoNetInputError(
+            given,
+            f"{what}: expected a video ({' '.join(VIDEO_SUFFIXES)}) or a folder of frames",
+            "put the frames in a folder and pass the folder",
+        )
     if (p / _KITTI_IMAGES).is_dir():
         drive = p
     elif p.name == _KITTI_IMAGES.name and p.parent.name == _KITTI_IMAGES.parent.name:

@@ -1,4 +1,5 @@
 """8-bit RGB images, 0/255 masks and image folders (OpenCV's BGR order only inside this module)."""
+
 from __future__ import annotations
 
 import re
@@ -18,7 +19,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm")  # compared lower-cas
 def _imwrite(path: Path, array: np.ndarray) -> None:
     """cv2.imwrite that raises instead of returning False."""
     if not cv2.imwrite(str(path), array):
-        raise GeoNetInputError(path, "OpenCV could not write this image", "check the suffix and that the folder is writable")
+        raise GeoNetInputError(
+            path, "OpenCV could not write this image", "check the suffix and that the folder is writable"
+        )
 
 
 def _imread(path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
@@ -50,11 +53,17 @@ def list_images(folder) -> list[Path]:
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise GeoNetInputError(folder, "image folder not found" if not folder.exists() else "not a folder",
-                               "pass a folder of frames")
-    files = sorted((p for p in folder.iterdir()
-                    if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()),
-                   key=lambda p: natural_key(p.name))
+        raise GeoNetInputError(
+            folder, "image folder not found" if not folder.exists() else "not a folder", "pass a folder of frames"
+        )
+    files = sorted(
+        (
+            p
+            for p in folder.iterdir()
+            if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()
+        ),
+        key=lambda p: natural_key(p.name),
+    )
     if not files:
         raise GeoNetInputError(folder, "no images in this folder", f"expected {' '.join(IMAGE_SUFFIXES)} files")
     return files
@@ -75,7 +84,9 @@ def write_image(path, rgb: np.ndarray) -> None:
     """Write (H, W, 3) uint8 RGB (or (H, W) grey) atomically; format from the suffix."""
     rgb = np.asarray(rgb)
     if rgb.dtype != np.uint8:
-        raise GeoNetInputError(path, f"image to write must be uint8, got {rgb.dtype}", "convert with np.clip(x, 0, 255).astype(np.uint8)")
+        raise GeoNetInputError(
+            path, f"image to write must be uint8, got {rgb.dtype}", "convert with np.clip(x, 0, 255).astype(np.uint8)"
+        )
     out = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else rgb
     with atomic_write(path) as tmp:
         _imwrite(tmp, out)

@@ -1,4 +1,5 @@
 """Camera trajectories: KITTI odometry poses (3x4 per line) and TUM trajectories, quaternion helpers."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,8 +9,14 @@ import numpy as np
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.atomic import atomic_write
 
-__all__ = ["read_kitti_poses", "write_kitti_poses", "rotation_to_quaternion", "quaternion_to_rotation",
-           "write_tum_poses", "read_tum_poses"]
+__all__ = [
+    "read_kitti_poses",
+    "write_kitti_poses",
+    "rotation_to_quaternion",
+    "quaternion_to_rotation",
+    "write_tum_poses",
+    "read_tum_poses",
+]
 
 
 def _to_4x4(mats34: np.ndarray) -> np.ndarray:
@@ -30,8 +37,11 @@ def read_kitti_poses(path) -> np.ndarray:
     except ValueError as err:
         raise GeoNetInputError(path, f"could not parse poses ({err})", "expected 12 numbers per line") from None
     if vals.size == 0 or vals.shape[1] != 12:
-        raise GeoNetInputError(path, f"expected 12 numbers per line, got shape {vals.shape}",
-                               "KITTI odometry poses are row-major 3x4 camera-to-world matrices")
+        raise GeoNetInputError(
+            path,
+            f"expected 12 numbers per line, got shape {vals.shape}",
+            "KITTI odometry poses are row-major 3x4 camera-to-world matrices",
+        )
     return _to_4x4(vals.reshape(-1, 3, 4))
 
 
@@ -79,11 +89,20 @@ def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     x, y, z, w = np.moveaxis(q, -1, 0)
-    R = np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    ], axis=-1)
+    R = np.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - z * w),
+            2 * (x * z + y * w),
+            2 * (x * y + z * w),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - x * w),
+            2 * (x * z - y * w),
+            2 * (y * z + x * w),
+            1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
     return R.reshape(q.shape[:-1] + (3, 3))
 
 
@@ -124,7 +143,9 @@ def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
         except ValueError:
             vals = []
         if len(vals) != 8:
-            raise GeoNetInputError(path, f"line {lineno}: expected 8 numbers 'time tx ty tz qx qy qz qw'", "is this a TUM trajectory?")
+            raise GeoNetInputError(
+                path, f"line {lineno}: expected 8 numbers 'time tx ty tz qx qy qz qw'", "is this a TUM trajectory?"
+            )
         rows.append(vals)
     if not rows:
         raise GeoNetInputError(path, "no poses in file", "is this a TUM trajectory?")
@@ -133,4 +154,3 @@ def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
     poses[:, :3, :3] = quaternion_to_rotation(a[:, 4:8])
     poses[:, :3, 3] = a[:, 1:4]
     return a[:, 0], poses
-

@@ -2,6 +2,7 @@
 
 Made by ``scripts/build_bundled_model.sh`` from a held-out synthetic sequence (never trained on).
 """
+
 from pathlib import Path
 
 SAMPLE_DIR = Path(__file__).resolve().parent / "synth_seq"

@@ -2,6 +2,7 @@
 
 Layer details: docs/networks.md and ../shared/reference/geonet_spec.md (1-3).
 """
+
 from __future__ import annotations
 
 import torch.nn as nn
@@ -32,8 +33,15 @@ def build_network(kind: str, arch: str, **kwargs) -> nn.Module:
 
 
 __all__ = [
-    "BN_EPS", "BN_MOMENTUM", "BatchNormNoScale",
-    "DEPTH_ARCHS", "POSE_ARCHS", "FLOW_ARCHS", "NETWORK_ARCHS",
-    "DepthNet", "PoseNet", "ResFlowNet",
+    "BN_EPS",
+    "BN_MOMENTUM",
+    "BatchNormNoScale",
+    "DEPTH_ARCHS",
+    "POSE_ARCHS",
+    "FLOW_ARCHS",
+    "NETWORK_ARCHS",
+    "DepthNet",
+    "PoseNet",
+    "ResFlowNet",
     "build_network",
 ]

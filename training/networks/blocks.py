@@ -13,10 +13,11 @@ Everything here exports to ONNX (Conv, BatchNormalization, Relu, Pad, MaxPool,
 Resize(nearest), Gather, Concat): no in-place ops on views, no data-dependent
 control flow (the only branches depend on static tensor sizes).
 """
+
 from __future__ import annotations
 
 import math
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn as nn
@@ -45,8 +46,14 @@ class BatchNormNoScale(nn.BatchNorm2d):
             self.num_batches_tracked.add_(1)
         use_batch_stats = self.training or not self.track_running_stats
         return F.batch_norm(
-            x, self.running_mean, self.running_var, None, self.bias,
-            use_batch_stats, self.momentum, self.eps,
+            x,
+            self.running_mean,
+            self.running_var,
+            None,
+            self.bias,
+            use_batch_stats,
+            self.momentum,
+            self.eps,
         )
 
 
@@ -57,6 +64,7 @@ def tf_same_pads(in_h: int, in_w: int, kernel: int, stride: int) -> tuple[int, i
     TF puts total // 2 before and the rest after, so for stride 2 the extra
     pixel goes to the bottom / right (e.g. k3 s2 on an even size pads (0, 1)).
     """
+
     def one_dim(size: int) -> tuple[int, int]:
         out = -(-size // stride)
         total = max((out - 1) * stride + kernel - size, 0)
@@ -75,13 +83,11 @@ class Conv2dSame(nn.Conv2d):
     on the static input size, so the ONNX graph gets constant Pad values.
     """
 
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1,
-                 bias: bool = True):
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1, bias: bool = True):
         super().__init__(in_channels, out_channels, kernel_size, stride, padding=0, bias=bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        left, right, top, bottom = tf_same_pads(x.shape[-2], x.shape[-1], self.kernel_size[0],
-                                                self.stride[0])
+        left, right, top, bottom = tf_same_pads(x.shape[-2], x.shape[-1], self.kernel_size[0], self.stride[0])
         if left == right and top == bottom:
             return F.conv2d(x, self.weight, self.bias, self.stride, (top, left))
         x = F.pad(x, (left, right, top, bottom))
@@ -96,13 +102,19 @@ class ConvBlock(nn.Module):
     padding="same": TF 'SAME' (slim.conv2d default), see :class:`Conv2dSame`.
     """
 
-    def __init__(self, in_ch: int, out_ch: int, kernel: int, stride: int = 1,
-                 bn_momentum: float = BN_MOMENTUM, relu: bool = True,
-                 padding: str = "symmetric"):
+    def __init__(
+        self,
+        in_ch: int,
+        out_ch: int,
+        kernel: int,
+        stride: int = 1,
+        bn_momentum: float = BN_MOMENTUM,
+        relu: bool = True,
+        padding: str = "symmetric",
+    ):
         super().__init__()
         if padding == "symmetric":
-            self.conv = nn.Conv2d(in_ch, out_ch, kernel, stride, padding=(kernel - 1) // 2,
-                                  bias=False)
+            self.conv = nn.Conv2d(in_ch, out_ch, kernel, stride, padding=(kernel - 1) // 2, bias=False)
         elif padding == "same":
             self.conv = Conv2dSame(in_ch, out_ch, kernel, stride, bias=False)
         else:
@@ -272,7 +284,6 @@ class ResNet50Encoder(_StemStagesEncoder):
         self.stages = nn.ModuleList(stages)
 
 
-
 class SmallResNetEncoder(_StemStagesEncoder):
     """Encoder of the ``small`` nets: same pyramid as :class:`ResNet50Encoder`, far cheaper.
 
@@ -307,7 +318,6 @@ class SmallResNetEncoder(_StemStagesEncoder):
         self.stages = nn.ModuleList(stages)
 
 
-
 class UpconvDecoder(nn.Module):
     """GeoNet decoder (ResNet and VGG flavours), coarse to fine.
 
@@ -334,9 +344,16 @@ class UpconvDecoder(nn.Module):
 
     num_preds = 4
 
-    def __init__(self, in_ch: int, skip_channels: Sequence[int], widths: Sequence[int],
-                 make_head: Callable[[int], nn.Module], pred_channels: int,
-                 pred_upsample: str = "nearest", bn_momentum: float = BN_MOMENTUM):
+    def __init__(
+        self,
+        in_ch: int,
+        skip_channels: Sequence[int],
+        widths: Sequence[int],
+        make_head: Callable[[int], nn.Module],
+        pred_channels: int,
+        pred_upsample: str = "nearest",
+        bn_momentum: float = BN_MOMENTUM,
+    ):
         super().__init__()
         skips_coarse_to_fine = list(skip_channels)[::-1] + [0]
         if len(widths) != len(skips_coarse_to_fine):

@@ -7,6 +7,7 @@ Archs:
   decoder, TF legacy bilinear pred upsampling), heads 10 * sigmoid + 0.01.
 * ``small``: our CPU-trainable variant (see docs/networks.md), heads as resnet50.
 """
+
 from __future__ import annotations
 
 import torch
@@ -64,10 +65,12 @@ class VGGEncoder(nn.Module):
         super().__init__()
         pairs = []
         for kernel, ch in self.spec:
-            pairs.append(nn.Sequential(
-                ConvBlock(in_ch, ch, kernel, 2, bn_momentum, padding="same"),
-                ConvBlock(ch, ch, kernel, 1, bn_momentum, padding="same"),
-            ))
+            pairs.append(
+                nn.Sequential(
+                    ConvBlock(in_ch, ch, kernel, 2, bn_momentum, padding="same"),
+                    ConvBlock(ch, ch, kernel, 1, bn_momentum, padding="same"),
+                )
+            )
             in_ch = ch
         self.pairs = nn.ModuleList(pairs)
 
@@ -111,9 +114,15 @@ class DepthNet(nn.Module):
         else:
             self.encoder = VGGEncoder(3, bn_momentum)
             widths, pred_upsample = VGG_DECODER_WIDTHS, "bilinear_tf_legacy"
-        self.decoder = UpconvDecoder(self.encoder.out_channels, self.encoder.skip_channels,
-                                     widths, make_head, pred_channels=1,
-                                     pred_upsample=pred_upsample, bn_momentum=bn_momentum)
+        self.decoder = UpconvDecoder(
+            self.encoder.out_channels,
+            self.encoder.skip_channels,
+            widths,
+            make_head,
+            pred_channels=1,
+            pred_upsample=pred_upsample,
+            bn_momentum=bn_momentum,
+        )
         init_xavier(self)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:

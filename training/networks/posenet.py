@@ -6,6 +6,7 @@ Archs:
 * ``small``: same 7-conv topology and kernels with narrower layers (see
   docs/networks.md).
 """
+
 from __future__ import annotations
 
 import torch

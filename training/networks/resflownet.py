@@ -11,6 +11,7 @@ to t (3), rigid flow t->s (2, pixels, scale 0), rigid photometric error (1)];
 in_channels=6 is the "direct" ablation (first 6 channels only). Building that
 input (and adding the rigid flow to get the full flow) is the trainer's job.
 """
+
 from __future__ import annotations
 
 import torch
@@ -54,8 +55,7 @@ class ResFlowNet(nn.Module):
     channel 0 is the x (column) displacement, channel 1 the y (row) one.
     """
 
-    def __init__(self, arch: str = "resnet50", bn_momentum: float = BN_MOMENTUM,
-                 in_channels: int = 12):
+    def __init__(self, arch: str = "resnet50", bn_momentum: float = BN_MOMENTUM, in_channels: int = 12):
         super().__init__()
         if arch not in FLOW_ARCHS:
             raise ValueError(f"ResFlowNet arch must be one of {FLOW_ARCHS}, got {arch!r}")
@@ -67,9 +67,15 @@ class ResFlowNet(nn.Module):
         else:
             self.encoder = SmallResNetEncoder(in_channels, bn_momentum)
             widths = SMALL_DECODER_WIDTHS
-        self.decoder = UpconvDecoder(self.encoder.out_channels, self.encoder.skip_channels,
-                                     widths, FlowPredHead, pred_channels=2,
-                                     pred_upsample="nearest", bn_momentum=bn_momentum)
+        self.decoder = UpconvDecoder(
+            self.encoder.out_channels,
+            self.encoder.skip_channels,
+            widths,
+            FlowPredHead,
+            pred_channels=2,
+            pred_upsample="nearest",
+            bn_momentum=bn_momentum,
+        )
         init_xavier(self)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:

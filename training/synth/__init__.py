@@ -31,16 +31,26 @@ Modules: ``scene`` (road, trajectory, boxes), ``textures`` (material tiles, mip 
 (frames, files, whole folders: :class:`SynthConfig` + :func:`generate`), ``cli``
 (``python -m training.synth --help``).
 """
+
 from training.synth.cli import build_parser, main
 from training.synth.sequence import (
-                                     GENERATOR_VERSION,
-                                     SynthConfig,
-                                     generate,
-                                     generate_sequence,
-                                     iter_frames,
-                                     sequence_name,
-                                     write_sequence,
+    GENERATOR_VERSION,
+    SynthConfig,
+    generate,
+    generate_sequence,
+    iter_frames,
+    sequence_name,
+    write_sequence,
 )
 
-__all__ = ["GENERATOR_VERSION", "SynthConfig", "build_parser", "generate", "generate_sequence", "iter_frames",
-           "main", "sequence_name", "write_sequence"]
+__all__ = [
+    "GENERATOR_VERSION",
+    "SynthConfig",
+    "build_parser",
+    "generate",
+    "generate_sequence",
+    "iter_frames",
+    "main",
+    "sequence_name",
+    "write_sequence",
+]

@@ -1,4 +1,5 @@
 """``python -m training.synth``: flags -> :class:`SynthConfig` -> :func:`generate`, with a progress bar."""
+
 from __future__ import annotations
 
 import argparse
@@ -15,20 +16,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m training.synth",
         description="Generate synthetic KITTI-like driving sequences with exact depth, optical-flow, "
-                    "motion-mask and camera-pose ground truth, written in KITTI encodings. "
-                    "Each sequence goes to OUT/seq_NNNN/ (image/, depth/, flow_occ/, flow_noc/, "
-                    "motion_mask/, poses.txt, calib.txt); see docs/synthetic_data.md.",
+        "motion-mask and camera-pose ground truth, written in KITTI encodings. "
+        "Each sequence goes to OUT/seq_NNNN/ (image/, depth/, flow_occ/, flow_noc/, "
+        "motion_mask/, poses.txt, calib.txt); see docs/synthetic_data.md.",
         epilog="Deterministic: the same --seed gives identical files for any --workers. Resumable: "
-               "complete sequences are skipped, interrupted ones (OUT/.tmp_seq_NNNN) are redone. "
-               "Exit codes: 0 written, 2 bad usage or settings (one line naming the item).")
+        "complete sequences are skipped, interrupted ones (OUT/.tmp_seq_NNNN) are redone. "
+        "Exit codes: 0 written, 2 bad usage or settings (one line naming the item).",
+    )
     p.add_argument("--out", required=True, type=Path, help="output folder (created)")
     p.add_argument("--sequences", type=int, default=D.sequences, help="number of sequences (default %(default)s)")
     p.add_argument("--frames", type=int, default=D.frames, help="frames per sequence, >= 2 (default %(default)s)")
     p.add_argument("--seed", type=int, default=D.seed, help="master seed (default %(default)s)")
     p.add_argument("--height", type=int, default=D.height, help="image height (default %(default)s)")
     p.add_argument("--width", type=int, default=D.width, help="image width (default %(default)s)")
-    p.add_argument("--workers", type=int, default=D.workers,
-                   help="processes, one sequence each (default %(default)s)")
+    p.add_argument("--workers", type=int, default=D.workers, help="processes, one sequence each (default %(default)s)")
     return p
 
 

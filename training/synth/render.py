@@ -4,6 +4,7 @@ Rays are ``D = R_cw @ K^-1 [u, v, 1]``, so the ray parameter of a hit *is* its z
 Geometry is cast at the output pixel centres in float64; colour on a 2x2 supersampled
 grid in float32, then area-downsampled.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -141,7 +142,7 @@ class Renderer:
             o = (C - sc.sky_centre).astype(dt)
             b = o[0] * D[0] + o[1] * D[1] + o[2] * D[2]
             a = D[0] * D[0] + D[1] * D[1] + D[2] * D[2]
-            c = dt(o @ o - sc.sky_radius ** 2)
+            c = dt(o @ o - sc.sky_radius**2)
             tsky = (-b + np.sqrt(b * b - a * c)) / a  # camera is inside the sphere: far root
             depth = np.minimum(tg, tsky)
             ids = np.where(tg < tsky, GROUND, SKY).astype(np.int32)
@@ -240,9 +241,19 @@ class Renderer:
         """Boxes: hit point in the box frame -> face, normal, face texture coordinates, shading."""
         sc = self.scene
         # One row gather of a per-box float32 table (np.take) is much cheaper than one per field.
-        table = np.concatenate([centre, np.cos(yaw)[:, None], np.sin(yaw)[:, None], sc.box_half,
-                                sc.box_texoff, (1 / TEXEL_M)[sc.box_mat][:, None], sc.box_mat[:, None],
-                                sc.box_tint], axis=1).astype(np.float32)
+        table = np.concatenate(
+            [
+                centre,
+                np.cos(yaw)[:, None],
+                np.sin(yaw)[:, None],
+                sc.box_half,
+                sc.box_texoff,
+                (1 / TEXEL_M)[sc.box_mat][:, None],
+                sc.box_mat[:, None],
+                sc.box_tint,
+            ],
+            axis=1,
+        ).astype(np.float32)
         cx_, cy0, cz_, cy_, sy_, ex, ey, ez, offa, offb, inv_texel, bm, tr, tg_, tbl = np.take(table, box, axis=0).T
         px, py, pz = _flat(P[0])[bi] - cx_, _flat(P[1])[bi] - cy0, _flat(P[2])[bi] - cz_
         lx = cy_ * px - sy_ * pz  # R_y(yaw)^T (P - c)
@@ -291,7 +302,8 @@ def _paint_markings(rgb: np.ndarray, shade: np.ndarray, ground: _GroundFootprint
 
 def _dash_coverage(z: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Fraction of [z - w/2, z + w/2] covered by dashes [k P, k P + L): exact box filter via the integral."""
+
     def F(x):
         return np.floor(x / DASH_PERIOD) * DASH_LEN + np.minimum(np.mod(x, DASH_PERIOD), DASH_LEN)
-    return (F(z + w / 2) - F(z - w / 2)) / w
 
+    return (F(z + w / 2) - F(z - w / 2)) / w

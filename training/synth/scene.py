@@ -2,6 +2,7 @@
 
 World frame ("road world"): x right, y down, z forward, the ground is y = 0.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -37,8 +38,11 @@ ROAD_HALF = 9.5  # 2 lanes each way (to 7 m) + parking strip
 SIDEWALK_OUT = 13.5
 EGO_LANE = 1.75
 # (|d| from, |d| to, dashed, RGB): double centre line, dashed lane divider, solid edge line.
-MARKINGS = ((0.07, 0.17, False, (0.85, 0.72, 0.25)), (3.44, 3.56, True, (0.88, 0.88, 0.85)),
-            (6.90, 7.05, False, (0.88, 0.88, 0.85)))
+MARKINGS = (
+    (0.07, 0.17, False, (0.85, 0.72, 0.25)),
+    (3.44, 3.56, True, (0.88, 0.88, 0.85)),
+    (6.90, 7.05, False, (0.88, 0.88, 0.85)),
+)
 DASH_LEN, DASH_PERIOD = 3.0, 9.0
 
 
@@ -92,7 +96,6 @@ class Road:
         z = np.asarray(z, dtype=np.float64)
         return np.arctan(sum(a * f * np.cos(f * z + p) for a, f, p in zip(self.amp, self.freq, self.phase)))
 
-
     def place(self, z, d) -> np.ndarray:
         """[x, yaw] of the point at lateral offset d (metres, + = right) from the centre line at z."""
         return np.array([self.centre(z) + d, self.heading(z)])
@@ -143,16 +146,32 @@ class _BoxList:
         self.rows = []
 
     def add(self, centre, yaw, half, mat, tint, texoff=(0.0, 0.0), group=-1):
-        self.rows.append((np.asarray(centre, float), float(yaw), np.asarray(half, float), int(mat),
-                          np.asarray(tint, float), np.asarray(texoff, float), int(group)))
+        self.rows.append(
+            (
+                np.asarray(centre, float),
+                float(yaw),
+                np.asarray(half, float),
+                int(mat),
+                np.asarray(tint, float),
+                np.asarray(texoff, float),
+                int(group),
+            )
+        )
 
     def arrays(self):
         if not self.rows:
             z3 = np.zeros((0, 3))
             return z3, np.zeros(0), z3, np.zeros(0, int), z3, np.zeros((0, 2)), np.zeros(0, int)
         cols = list(zip(*self.rows))
-        return (np.stack(cols[0]), np.array(cols[1]), np.stack(cols[2]), np.array(cols[3]),
-                np.stack(cols[4]), np.stack(cols[5]), np.array(cols[6]))
+        return (
+            np.stack(cols[0]),
+            np.array(cols[1]),
+            np.stack(cols[2]),
+            np.array(cols[3]),
+            np.stack(cols[4]),
+            np.stack(cols[5]),
+            np.array(cols[6]),
+        )
 
 
 def _smooth_noise(rng: np.random.Generator, n: int, amp: float, periods=(40, 160)) -> np.ndarray:
@@ -194,8 +213,18 @@ def _pastel(rng, lo=0.55, hi=1.0):
     return rng.uniform(lo, hi, 3)
 
 
-CAR_COLOURS = np.array([[0.9, 0.9, 0.9], [0.15, 0.15, 0.17], [0.6, 0.62, 0.65], [0.7, 0.1, 0.1],
-                        [0.15, 0.25, 0.6], [0.85, 0.8, 0.6], [0.2, 0.45, 0.25], [0.9, 0.6, 0.1]])
+CAR_COLOURS = np.array(
+    [
+        [0.9, 0.9, 0.9],
+        [0.15, 0.15, 0.17],
+        [0.6, 0.62, 0.65],
+        [0.7, 0.1, 0.1],
+        [0.15, 0.25, 0.6],
+        [0.85, 0.8, 0.6],
+        [0.2, 0.45, 0.25],
+        [0.9, 0.6, 0.1],
+    ]
+)
 
 
 def add_car(boxes: _BoxList, rng, centre_xz, yaw, group=-1):
@@ -212,13 +241,14 @@ def add_car(boxes: _BoxList, rng, centre_xz, yaw, group=-1):
         origin, R, yaw0 = np.array([centre_xz[0], 0.0, centre_xz[1]]), rot_y(yaw), yaw
     off = rng.uniform(0, 5, 2)
     hb = rng.uniform(0.95, 1.15)  # body top
-    parts = ((0.0, 0.45 / 2, (0.45 * Wd, 0.45 / 2, 0.42 * L), M_TYRE, (1, 1, 1)),
-             (0.0, 0.35 + (hb - 0.35) / 2, (Wd / 2, (hb - 0.35) / 2, L / 2), M_PAINT, tint),
-             (-0.08 * L, hb + 0.23, (0.43 * Wd, 0.23, 0.27 * L), M_GLASS, tint))
+    parts = (
+        (0.0, 0.45 / 2, (0.45 * Wd, 0.45 / 2, 0.42 * L), M_TYRE, (1, 1, 1)),
+        (0.0, 0.35 + (hb - 0.35) / 2, (Wd / 2, (hb - 0.35) / 2, L / 2), M_PAINT, tint),
+        (-0.08 * L, hb + 0.23, (0.43 * Wd, 0.23, 0.27 * L), M_GLASS, tint),
+    )
     for dz, yc, half, mat, tn in parts:
         c = origin + R @ np.array([0.0, -yc, dz])
         boxes.add(c, yaw0, half, mat, tn, off, group)
-
 
 
 def make_scene(rng: np.random.Generator, frames: int, height: int, width: int) -> Scene:
@@ -246,8 +276,28 @@ def make_scene(rng: np.random.Generator, frames: int, height: int, width: int) -
     sun = np.array([np.cos(el) * np.sin(az), -np.sin(el), np.cos(el) * np.cos(az)])
     atlas, y0 = build_mip_atlas(make_tiles(rng))
     ambient, gain = rng.uniform(0.35, 0.5), rng.uniform(0.9, 1.1)
-    return Scene(K, height, width, road, T_wc, centre, yaw, half, mat, tint, texoff, group, group_T,
-                 sky_c, 1000.0 + path, sun, ambient, gain, atlas, y0)
+    return Scene(
+        K,
+        height,
+        width,
+        road,
+        T_wc,
+        centre,
+        yaw,
+        half,
+        mat,
+        tint,
+        texoff,
+        group,
+        group_T,
+        sky_c,
+        1000.0 + path,
+        sun,
+        ambient,
+        gain,
+        atlas,
+        y0,
+    )
 
 
 def make_road(rng: np.random.Generator) -> Road:
@@ -308,8 +358,13 @@ def _add_street_furniture(boxes: _BoxList, rng, road: Road, side: int, z_lo: flo
             xa, yawa = place(z, side * (10.2 - 0.9))
             boxes.add((xa, -h + 0.08, z), yawa, (0.9, 0.06, 0.08), M_METAL, _pastel(rng, 0.6))
         elif r < 0.7:  # sign board
-            boxes.add((x, -2.6, z), yaw, (0.4, 0.35, 0.03), M_PAINT,
-                      rng.choice([(1.0, 0.25, 0.2), (0.2, 0.4, 0.9), (0.95, 0.85, 0.2), (0.9, 0.9, 0.9)]))
+            boxes.add(
+                (x, -2.6, z),
+                yaw,
+                (0.4, 0.35, 0.03),
+                M_PAINT,
+                rng.choice([(1.0, 0.25, 0.2), (0.2, 0.4, 0.9), (0.95, 0.85, 0.2), (0.9, 0.9, 0.9)]),
+            )
         if rng.random() < 0.35:
             _add_tree(boxes, rng, place, z + rng.uniform(4, 8), side * 11.6)
         z += rng.uniform(15, 35)
@@ -337,8 +392,14 @@ def _add_backdrop(boxes: _BoxList, rng, road: Road, side: int, z_end: float) -> 
         x, yaw = road.place(z + L / 2, side * (dist + 10))
         mat = rng.choice([M_HILL, M_CONCRETE, M_FACADE_A])
         tint = np.array([0.8, 0.85, 0.95]) * rng.uniform(0.8, 1.1)
-        boxes.add((x, -h / 2 + 0.5, z + L / 2), yaw + rng.uniform(-0.3, 0.3), (10, h / 2, L / 2), mat, tint,
-                  rng.uniform(0, 20, 2))
+        boxes.add(
+            (x, -h / 2 + 0.5, z + L / 2),
+            yaw + rng.uniform(-0.3, 0.3),
+            (10, h / 2, L / 2),
+            mat,
+            tint,
+            rng.uniform(0, 20, 2),
+        )
         z += L * rng.uniform(0.5, 1.2)
 
 
@@ -376,5 +437,11 @@ def _add_tree(boxes: _BoxList, rng, place, z, d):
     h = rng.uniform(1.8, 3.0)
     boxes.add((x, -h / 2, z), yaw, (0.15, h / 2, 0.15), M_BARK, (1, 1, 1), rng.uniform(0, 5, 2))
     r = rng.uniform(1.0, 2.2)
-    boxes.add((x, -h - r * 0.8, z), yaw + rng.uniform(-0.5, 0.5), (r, r * 0.8, r), M_FOLIAGE,
-              rng.uniform([0.7, 0.8, 0.6], [1.0, 1.1, 0.9]), rng.uniform(0, 5, 2))
+    boxes.add(
+        (x, -h - r * 0.8, z),
+        yaw + rng.uniform(-0.5, 0.5),
+        (r, r * 0.8, r),
+        M_FOLIAGE,
+        rng.uniform([0.7, 0.8, 0.6], [1.0, 1.1, 0.9]),
+        rng.uniform(0, 5, 2),
+    )

@@ -1,8 +1,9 @@
 """Sequences: render the frames of a scene, write them in KITTI encodings, generate a whole folder.
 
-    from training.synth import SynthConfig, generate
-    generate(SynthConfig(out=Path("data/synth"), sequences=4, frames=100))
+from training.synth import SynthConfig, generate
+generate(SynthConfig(out=Path("data/synth"), sequences=4, frames=100))
 """
+
 from __future__ import annotations
 
 import json
@@ -58,8 +59,9 @@ def sequence_rng(seed: int, index: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
 
 
-def iter_frames(seed: int, index: int, frames: int, height: int = REFERENCE_HEIGHT,
-                width: int = REFERENCE_WIDTH) -> Iterator[dict]:
+def iter_frames(
+    seed: int, index: int, frames: int, height: int = REFERENCE_HEIGHT, width: int = REFERENCE_WIDTH
+) -> Iterator[dict]:
     """Render one sequence frame by frame.
 
     Yields per frame t: image (H, W, 3) uint8, depth (H, W) float32 metres (sky ~1000 m),
@@ -76,16 +78,23 @@ def iter_frames(seed: int, index: int, frames: int, height: int = REFERENCE_HEIG
     prev = frame_geometry(r, 0)
     for t in range(frames):
         nxt = frame_geometry(r, t + 1) if t + 1 < frames else None
-        out = {"image": r.colour(t), "depth": prev.depth.astype(np.float32), "ids": prev.ids,
-               "motion_mask": prev.moving, "K": scene.K, "pose": poses[t]}
+        out = {
+            "image": r.colour(t),
+            "depth": prev.depth.astype(np.float32),
+            "ids": prev.ids,
+            "motion_mask": prev.moving,
+            "K": scene.K,
+            "pose": poses[t],
+        }
         if nxt is not None:
             out["flow"], out["flow_noc"], out["flow_occ"] = flow_gt(scene, t, prev, nxt)
         yield out
         prev = nxt
 
 
-def generate_sequence(seed: int, index: int, frames: int, height: int = REFERENCE_HEIGHT,
-                      width: int = REFERENCE_WIDTH) -> dict:
+def generate_sequence(
+    seed: int, index: int, frames: int, height: int = REFERENCE_HEIGHT, width: int = REFERENCE_WIDTH
+) -> dict:
     """Whole sequence in memory (for tests and small previews).
 
     Returns dict: image (M, H, W, 3) uint8, depth (M, H, W) float32, ids (M, H, W) int32,
@@ -149,22 +158,32 @@ def _worker(args):
 
 def check_config(cfg: SynthConfig) -> None:
     if cfg.frames < 2 or cfg.sequences < 1 or cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
-        raise GeoNetInputError(None, f"bad settings: frames {cfg.frames}, sequences {cfg.sequences}, "
-                               f"size {cfg.height}x{cfg.width}, workers {cfg.workers}",
-                               "need --frames >= 2, --sequences >= 1, --height/--width >= 8, --workers >= 1")
+        raise GeoNetInputError(
+            None,
+            f"bad settings: frames {cfg.frames}, sequences {cfg.sequences}, "
+            f"size {cfg.height}x{cfg.width}, workers {cfg.workers}",
+            "need --frames >= 2, --sequences >= 1, --height/--width >= 8, --workers >= 1",
+        )
 
 
 def _record_config(cfg: SynthConfig) -> None:
     """Refuse to mix sequences made with other settings in one folder (resuming needs the same ones)."""
-    config = {"generator_version": GENERATOR_VERSION, "seed": cfg.seed, "frames": cfg.frames, "height": cfg.height,
-              "width": cfg.width, "sequences": cfg.sequences}
+    config = {
+        "generator_version": GENERATOR_VERSION,
+        "seed": cfg.seed,
+        "frames": cfg.frames,
+        "height": cfg.height,
+        "width": cfg.width,
+        "sequences": cfg.sequences,
+    }
     path = Path(cfg.out) / "synth_config.json"
     if path.exists():
         old = json.loads(path.read_text())
         if any(old.get(k) != config[k] for k in RESUME_KEYS):
             settings = ", ".join(f"{k}={old.get(k)}" for k in RESUME_KEYS)
-            raise GeoNetInputError(path, f"folder was generated with {settings}",
-                                   "Use a new --out folder, or the same settings to resume")
+            raise GeoNetInputError(
+                path, f"folder was generated with {settings}", "Use a new --out folder, or the same settings to resume"
+            )
         config["sequences"] = max(config["sequences"], old.get("sequences", 0))
     with atomic_write(path) as tmp:
         tmp.write_text(json.dumps(config, indent=1) + "\n")
@@ -177,8 +196,9 @@ def open_folder(cfg: SynthConfig) -> None:
     try:
         Path(cfg.out).mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise GeoNetInputError(cfg.out, f"cannot create the output folder ({exc.strerror or exc})",
-                               "choose a writable --out") from None
+        raise GeoNetInputError(
+            cfg.out, f"cannot create the output folder ({exc.strerror or exc})", "choose a writable --out"
+        ) from None
     _record_config(cfg)
 
 
@@ -206,8 +226,9 @@ def generate(cfg: SynthConfig, on_sequence: Callable[[str], None] | None = None)
 
     # spawn: no fork-inherited state; the pool is terminated if a worker fails.
     # One OpenCV thread per worker process: the workers are the parallelism.
-    with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs)), initializer=cv2.setNumThreads,
-                                      initargs=(1,)) as pool:
+    with mp.get_context("spawn").Pool(
+        min(cfg.workers, len(jobs)), initializer=cv2.setNumThreads, initargs=(1,)
+    ) as pool:
         for status in pool.imap_unordered(_worker, jobs):
             record(status)
     return counts

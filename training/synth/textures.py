@@ -1,19 +1,36 @@
 """Material textures: tileable procedural tiles, their mip-mapped atlas and trilinear lookups (numpy + OpenCV)."""
+
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
 # ---------------------------------------------------------------------------- materials
-(M_ASPHALT, M_SIDEWALK, M_GRASS, M_FACADE_A, M_FACADE_B, M_BRICK, M_CONCRETE, M_PAINT, M_GLASS,
- M_TYRE, M_METAL, M_FOLIAGE, M_BARK, M_SKY, M_HILL) = range(15)
+(
+    M_ASPHALT,
+    M_SIDEWALK,
+    M_GRASS,
+    M_FACADE_A,
+    M_FACADE_B,
+    M_BRICK,
+    M_CONCRETE,
+    M_PAINT,
+    M_GLASS,
+    M_TYRE,
+    M_METAL,
+    M_FOLIAGE,
+    M_BARK,
+    M_SKY,
+    M_HILL,
+) = range(15)
 N_MAT = 15
 TILE = 128  # texels per tile side
 PAD = 2  # wrap padding around each tile in the atlas (bilinear needs 1)
 LMAX = 6  # mip levels 0..6 (128 -> 2 texels)
 # metres per texel; the sky is addressed directly in texels (1.0)
-TEXEL_M = np.array([0.03, 0.025, 0.02, 0.025, 0.025, 0.0125, 0.03, 0.02, 0.02, 0.02, 0.01, 0.015,
-                    0.01, 1.0, 0.4], dtype=np.float32)
+TEXEL_M = np.array(
+    [0.03, 0.025, 0.02, 0.025, 0.025, 0.0125, 0.03, 0.02, 0.02, 0.02, 0.01, 0.015, 0.01, 1.0, 0.4], dtype=np.float32
+)
 SKY_REPEATS = 8  # sky tile repeats around the horizon
 LOD_BIAS = 0.0  # added to every mip level: > 0 blurs textures slightly
 
@@ -44,7 +61,6 @@ def _rgba(rgb: np.ndarray, tintable) -> np.ndarray:
 
 def _grey(v: np.ndarray, rgb=(1.0, 1.0, 1.0)) -> np.ndarray:
     return v[..., None] * np.asarray(rgb, dtype=np.float32)
-
 
 
 def make_tiles(rng: np.random.Generator) -> np.ndarray:
@@ -165,12 +181,15 @@ def build_mip_atlas(tiles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         s = TILE >> l
         for m, t in enumerate(lev):
             x = m * (s + 2 * PAD)
-            atlas[y0[l]:y0[l] + s + 2 * PAD, x:x + s + 2 * PAD] = np.pad(t, ((PAD, PAD), (PAD, PAD), (0, 0)), mode="wrap")
+            atlas[y0[l] : y0[l] + s + 2 * PAD, x : x + s + 2 * PAD] = np.pad(
+                t, ((PAD, PAD), (PAD, PAD), (0, 0)), mode="wrap"
+            )
     return atlas, y0
 
 
-def sample_atlas(atlas: np.ndarray, y0: np.ndarray, mat: np.ndarray, ta: np.ndarray, tb: np.ndarray,
-                 lod: np.ndarray) -> np.ndarray:
+def sample_atlas(
+    atlas: np.ndarray, y0: np.ndarray, mat: np.ndarray, ta: np.ndarray, tb: np.ndarray, lod: np.ndarray
+) -> np.ndarray:
     """Trilinear (mip-mapped) texture lookup.
 
     Args:
@@ -198,4 +217,3 @@ def sample_atlas(atlas: np.ndarray, y0: np.ndarray, mat: np.ndarray, ta: np.ndar
         c = cv2.remap(atlas, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         out = c * w if out is None else out + c * w
     return out
-

@@ -7,6 +7,7 @@ visible in frame t+1: its depth there is not behind all four rendered depths aro
 landing point (on a plane inverse depth is linear in the image, so a visible point is
 never behind all four).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -75,4 +76,3 @@ def flow_gt(scene: Scene, t: int, g0: FrameGeom, g1: FrameGeom):
     noc = occ & (z <= dmax * (1 + VIS_REL_TOL))
     flow = np.where(occ[..., None], flow, 0.0).astype(np.float32)
     return flow, noc, occ
-
