@@ -80,15 +80,20 @@ def io_spec(graph: str, height: int, width: int, seq_length: int) -> IOSpec:
 class DepthExport(nn.Module):
     """image (B,3,H,W) normalised -> disparity, depth = 1 / disparity (B,1,H,W), scale 0.
 
-    The ``scale * sigmoid + 0.01`` head is part of DepthNet, so it is in the graph.
+    The ``scale * sigmoid + 0.01`` head is part of DepthNet, so it is in the graph. A model
+    trained with ``--scale-normalize`` saw each disparity map divided by its mean; the graph does
+    the same, so its depth has the scale the pose (and the rigid flow) was trained with.
     """
 
-    def __init__(self, depth_net: nn.Module):
+    def __init__(self, depth_net: nn.Module, scale_normalize: bool = False):
         super().__init__()
         self.depth_net = depth_net
+        self.scale_normalize = scale_normalize
 
     def forward(self, image: torch.Tensor):
         disparity = self.depth_net(image)[0]
+        if self.scale_normalize:
+            disparity = disparity / disparity.mean(dim=(1, 2, 3), keepdim=True)
         return disparity, 1.0 / disparity
 
 
@@ -146,7 +151,7 @@ class ResFlowExport(nn.Module):
 def build_wrapper(graph: str, model: GeoNet) -> nn.Module:
     """The export module of ``graph`` around ``model``'s (eval-mode) networks."""
     if graph == "depthnet":
-        wrapper = DepthExport(model.depth_net)
+        wrapper = DepthExport(model.depth_net, model.scale_normalize)
     elif graph == "posenet":
         wrapper = PoseExport(model.pose_net, model.num_source)
     elif graph == "rigidflow":

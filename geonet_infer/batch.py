@@ -428,23 +428,7 @@ def _work(unit: WorkUnit) -> dict:
     _WORKER["busy"] = unit
     try:
         if _WORKER["predictor"] is None:
-            exc = _WORKER["load_error"]
-            return {
-                "index": unit.index,
-                "sequence": unit.name,
-                "input": unit.path,
-                "status": "failed",
-                "frames": 0,
-                "wall_s": 0.0,
-                "failures": [
-                    {
-                        "sequence": unit.name,
-                        "input": unit.path,
-                        "frame": None,
-                        "reason": f"the worker could not load the model: {_reason(exc)}",
-                    }
-                ],
-            }
+            return _failed(unit, f"the worker could not load the model: {_reason(_WORKER['load_error'])}")
         return run_sequence(unit, _WORKER["config"], _WORKER["predictor"], _count_frame, _WORKER["options"])
     except _Stopped:
         if read_marker(out) is None:

@@ -576,3 +576,20 @@ def test_large_arch_depthnet_parity(arch, tmp_path):
     images = example_inputs("depthnet", h, w, 3, batch=2, generator=torch.Generator().manual_seed(1))[0].numpy()
     d = compare_graph(wrapper, tmp_path / "d.onnx", [images])
     assert d["depth"]["relative"] <= DEPTH_REL_TOL and d["disparity"]["relative"] <= DEPTH_REL_TOL
+
+
+def test_depth_graph_of_a_scale_normalized_model_normalizes_its_disparity():
+    """--scale-normalize trains on disparity / its mean; the exported depth must match that scale."""
+    from training.model import GeoNet
+
+    torch.manual_seed(0)
+    image = torch.rand(2, 3, 32, 96) * 2 - 1
+    plain = GeoNet("small", scale_normalize=False).eval()
+    normalized = GeoNet("small", scale_normalize=True).eval()
+    normalized.load_state_dict(plain.state_dict())
+    with torch.no_grad():
+        raw, _ = build_wrapper("depthnet", plain)(image)
+        disparity, depth = build_wrapper("depthnet", normalized)(image)
+    expected = raw / raw.mean(dim=(1, 2, 3), keepdim=True)  # the definition, per image
+    torch.testing.assert_close(disparity, expected)
+    torch.testing.assert_close(depth, 1.0 / expected)

@@ -1,36 +1,125 @@
-"""Trainer: the photometric loss falls on real frames, resume is exact, bad input is named."""
+"""Trainer: the photometric loss falls on real frames, resume is exact, checkpoints are
+weights only, devices and bad input are named."""
+
+import io
 import json
+import random
+import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from geonet_infer.errors import GeoNetInputError
-from training import prepare
+from tests.conftest import require_realdata
+from training import checkpoint, prepare, synth
+from training.checkpoint import (
+    build_model,
+    load_checkpoint,
+    model_from_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from training.config import TrainConfig, config_from_args
-from training.train import build_model, load_checkpoint, main, model_from_checkpoint, train
+from training.train import main, train
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
-KITTI_RAW = REALDATA / "kitti_raw_2011_09_26_sfnd"
-H, W = 64, 208  # CI-sized: a quarter of the 128x416 pixels
+H, W = 64, 208  # CI-sized real frames: a quarter of the 128x416 pixels
+SH, SW = 32, 96  # synthetic frames: only the mechanics are under test
 
 
 @pytest.fixture(scope="module")
 def kitti_prepared(tmp_path_factory):
-    if not KITTI_RAW.is_dir():
-        pytest.skip("../shared/realdata is not available")
+    src = require_realdata("kitti_raw_2011_09_26_sfnd")
     out = tmp_path_factory.mktemp("prepared")
-    prepare.main(["--kind", "kitti_raw", "--src", str(KITTI_RAW), "--out", str(out),
-                         "--split", "none", "--height", str(H), "--width", str(W),
-                         "--max-frames", "14", "--workers", "1", "--val-fraction", "0.2"])
+    prepare.main(
+        [
+            "--kind",
+            "kitti_raw",
+            "--src",
+            str(src),
+            "--out",
+            str(out),
+            "--split",
+            "none",
+            "--height",
+            str(H),
+            "--width",
+            str(W),
+            "--max-frames",
+            "14",
+            "--workers",
+            "1",
+            "--val-fraction",
+            "0.2",
+        ]
+    )
     assert (out / "train.txt").is_file()
     return out
 
 
+@pytest.fixture(scope="module")
+def synth_prepared(tmp_path_factory):
+    """2 synthetic sequences x 8 frames -> 12 samples (train and val), via the real tools."""
+    root = tmp_path_factory.mktemp("synth")
+    synth.main(
+        [
+            "--out",
+            str(root / "synth"),
+            "--sequences",
+            "2",
+            "--frames",
+            "8",
+            "--seed",
+            "1",
+            "--height",
+            str(SH),
+            "--width",
+            str(SW),
+        ]
+    )
+    prepare.main(
+        [
+            "--kind",
+            "synth",
+            "--src",
+            str(root / "synth"),
+            "--out",
+            str(root / "prepared"),
+            "--height",
+            str(SH),
+            "--width",
+            str(SW),
+            "--heldout",
+            "0",
+            "--workers",
+            "1",
+            "--val-fraction",
+            "0.2",
+        ]
+    )
+    return root / "prepared"
+
+
 def config(data_dir, out_dir, **overrides) -> TrainConfig:
-    base = dict(stage="rigid", arch="small", data_dir=str(data_dir), out_dir=str(out_dir),
-                height=H, width=W, batch_size=2, num_workers=0, augment=False, log_every=1,
-                save_every=1000, val_every=1000, val_batches=2, seed=3)
+    """Synthetic-sized by default; real-frame tests pass height=H, width=W."""
+    base = dict(
+        stage="rigid",
+        arch="small",
+        data_dir=str(data_dir),
+        out_dir=str(out_dir),
+        height=SH,
+        width=SW,
+        batch_size=2,
+        num_workers=0,
+        augment=False,
+        log_every=1,
+        save_every=1000,
+        val_every=1000,
+        val_batches=2,
+        seed=3,
+    )
     base.update(overrides)
     return TrainConfig(**base)
 
@@ -41,8 +130,9 @@ def read_log(path):
 
 def test_photometric_loss_falls_on_real_frames(kitti_prepared, tmp_path):
     # bn_momentum 0.1: a 40-step run is far too short for the official 0.001.
-    result = train(config(kitti_prepared, tmp_path, max_steps=40, lr=1e-3, bn_momentum=0.1),
-                   progress=False)
+    result = train(
+        config(kitti_prepared, tmp_path, max_steps=40, lr=1e-3, bn_momentum=0.1, height=H, width=W), progress=False
+    )
     rows = read_log(result["log"])
     first = sum(r["rigid_warp"] for r in rows[:5]) / 5
     last = sum(r["rigid_warp"] for r in rows[-5:]) / 5
@@ -51,11 +141,13 @@ def test_photometric_loss_falls_on_real_frames(kitti_prepared, tmp_path):
     assert {"rigid_warp", "disp_smooth", "total", "val_total"} <= set(rows[-1])
 
 
-def test_resume_continues_bit_for_bit(kitti_prepared, tmp_path):
-    straight = train(config(kitti_prepared, tmp_path / "a", max_steps=6, augment=True), progress=False)
-    train(config(kitti_prepared, tmp_path / "b", max_steps=3, save_every=3, augment=True), progress=False)
-    resumed = train(config(kitti_prepared, tmp_path / "b", max_steps=6, augment=True,
-                           resume=str(tmp_path / "b" / "last.pt")), progress=False)
+def test_resume_continues_bit_for_bit(synth_prepared, tmp_path):
+    straight = train(config(synth_prepared, tmp_path / "a", max_steps=6, augment=True), progress=False)
+    train(config(synth_prepared, tmp_path / "b", max_steps=3, save_every=3, augment=True), progress=False)
+    resumed = train(
+        config(synth_prepared, tmp_path / "b", max_steps=6, augment=True, resume=str(tmp_path / "b" / "last.pt")),
+        progress=False,
+    )
     a = load_checkpoint(straight["last"])["model"]
     b = load_checkpoint(resumed["last"])["model"]
     assert a.keys() == b.keys()
@@ -64,10 +156,12 @@ def test_resume_continues_bit_for_bit(kitti_prepared, tmp_path):
     assert read_log(straight["log"])[-1]["total"] == read_log(resumed["log"])[-1]["total"]
 
 
-def test_flow_stage_freezes_rigid_nets(kitti_prepared, tmp_path):
-    rigid = train(config(kitti_prepared, tmp_path / "rigid", max_steps=2), progress=False)
-    flow = train(config(kitti_prepared, tmp_path / "flow", stage="flow", max_steps=3,
-                        init_checkpoint=str(rigid["last"])), progress=False)
+def test_flow_stage_freezes_rigid_nets(synth_prepared, tmp_path):
+    rigid = train(config(synth_prepared, tmp_path / "rigid", max_steps=2), progress=False)
+    flow = train(
+        config(synth_prepared, tmp_path / "flow", stage="flow", max_steps=3, init_checkpoint=str(rigid["last"])),
+        progress=False,
+    )
     before = load_checkpoint(rigid["last"])["model"]
     after = load_checkpoint(flow["last"], expect_stage="flow")["model"]
     for key, value in before.items():  # weights and BN running stats untouched
@@ -78,19 +172,33 @@ def test_flow_stage_freezes_rigid_nets(kitti_prepared, tmp_path):
     assert model_from_checkpoint(load_checkpoint(flow["last"])).flow_net is not None
 
 
-def test_flow_stage_rejects_a_flow_checkpoint_as_init(kitti_prepared, tmp_path):
-    rigid = train(config(kitti_prepared, tmp_path / "rigid", max_steps=1), progress=False)
-    flow = train(config(kitti_prepared, tmp_path / "flow", stage="flow", max_steps=1,
-                        init_checkpoint=str(rigid["last"])), progress=False)
+def test_flow_stage_rejects_a_flow_checkpoint_as_init(synth_prepared, tmp_path):
+    rigid = train(config(synth_prepared, tmp_path / "rigid", max_steps=1), progress=False)
+    flow = train(
+        config(synth_prepared, tmp_path / "flow", stage="flow", max_steps=1, init_checkpoint=str(rigid["last"])),
+        progress=False,
+    )
     with pytest.raises(GeoNetInputError, match="stage 'flow', expected 'rigid'") as err:
-        train(config(kitti_prepared, tmp_path / "flow2", stage="flow", max_steps=1,
-                     init_checkpoint=str(flow["last"])), progress=False)
+        train(
+            config(synth_prepared, tmp_path / "flow2", stage="flow", max_steps=1, init_checkpoint=str(flow["last"])),
+            progress=False,
+        )
     assert str(flow["last"]) in str(err.value)
 
 
 def test_missing_data_dir_is_a_clear_error(tmp_path, capsys):
-    code = main(["--data-dir", str(tmp_path / "nowhere"), "--out-dir", str(tmp_path / "run"),
-                 "--arch", "small", "--max-steps", "1"])
+    code = main(
+        [
+            "--data-dir",
+            str(tmp_path / "nowhere"),
+            "--out-dir",
+            str(tmp_path / "run"),
+            "--arch",
+            "small",
+            "--max-steps",
+            "1",
+        ]
+    )
     assert code == 2
     message = capsys.readouterr().err
     assert str(tmp_path / "nowhere") in message and "training.prepare" in message
@@ -102,10 +210,9 @@ def test_empty_split_is_a_clear_error(tmp_path):
         train(config(tmp_path, tmp_path / "run", max_steps=1), progress=False)
 
 
-def test_corrupt_image_is_named(kitti_prepared, tmp_path):
-    import shutil
+def test_corrupt_image_is_named(synth_prepared, tmp_path):
     data = tmp_path / "data"
-    shutil.copytree(kitti_prepared, data)
+    shutil.copytree(synth_prepared, data)
     folder, frame = (data / "train.txt").read_text().split()[:2]
     victim = data / folder / f"{frame}.jpg"
     victim.write_bytes(b"not a jpeg")
@@ -134,3 +241,128 @@ def test_automask_drops_pixels_the_unwarped_source_explains_better():
     identity_error = torch.full((1, 3, 4, 6), 3.0)
     model = build_model(config_from_args(["--arch", "small", "--automask"]))
     assert model._photometric_mean(error, flow, identity_error).item() == pytest.approx(1.0)
+
+
+# ------------------------------------------------------------------ checkpoints
+def small_checkpoint(path: Path) -> Path:
+    cfg = TrainConfig(arch="small", height=SH, width=SW)
+    model = build_model(cfg)
+    save_checkpoint(path, model, torch.optim.Adam(model.parameters()), 7, cfg, {})
+    return path
+
+
+def test_checkpoint_loads_weights_only_and_rebuilds_the_model(tmp_path):
+    ckpt = load_checkpoint(small_checkpoint(tmp_path / "c.pt"))
+    assert ckpt["step"] == 7
+    # torch's own weights-only loader accepts the file: no pickled Python objects inside
+    torch.load(tmp_path / "c.pt", weights_only=True)
+    model = model_from_checkpoint(ckpt)
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in ckpt["model"].items())
+
+
+def test_a_checkpoint_that_runs_code_is_refused_and_the_code_never_runs(tmp_path):
+    marker = tmp_path / "code-ran"
+
+    class Payload:  # unpickling this calls open(marker, "w"), which creates the file
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    path = tmp_path / "evil.pt"
+    torch.save({"format": "geonet-checkpoint-v2", "model": Payload()}, path)
+    with pytest.raises(GeoNetInputError, match="refused") as err:
+        load_checkpoint(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize(
+    "content, problem",
+    [
+        (torch.zeros(3), "holds a Tensor"),
+        ({"state_dict": {"w": torch.zeros(1)}}, "keys ['state_dict']"),
+        ({"format": "geonet-checkpoint-v2", "model": {}}, "lacks stage"),
+    ],
+)
+def test_a_checkpoint_that_is_not_ours_is_named(tmp_path, content, problem):
+    path = tmp_path / "other.pt"
+    torch.save(content, path)
+    with pytest.raises(GeoNetInputError, match="not a|lacks") as err:
+        load_checkpoint(path)
+    assert str(path) in str(err.value) and problem in str(err.value)
+
+
+def test_an_old_checkpoint_is_refused_with_the_upgrade_command_and_upgrades(tmp_path):
+    path = small_checkpoint(tmp_path / "v1.pt")
+    old = torch.load(path, weights_only=True)
+    np_state = np.random.RandomState(5).get_state()
+    old.update(
+        format="geonet-checkpoint-v1",  # v1 pickled numpy's RNG state as is
+        rng={"torch": torch.get_rng_state(), "numpy": np_state, "python": random.Random(5).getstate()},
+    )
+    del old["grad_scaler"]
+    torch.save(old, path)
+    with pytest.raises(GeoNetInputError, match=r"numpy.*--upgrade"):
+        load_checkpoint(path)
+    assert checkpoint.main(["--upgrade", str(path)]) == 0
+    new = load_checkpoint(path)
+    assert np.array_equal(new["rng"]["numpy"]["keys"].numpy(), np_state[1])
+    assert all(torch.equal(v, new["model"][k]) for k, v in old["model"].items())
+
+
+def test_rng_states_round_trip_as_tensors():
+    buffer = io.BytesIO()
+    torch.save(rng_state(), buffer)
+    expected = (torch.rand(3), np.random.rand(3), random.random())
+    buffer.seek(0)
+    set_rng_state(torch.load(buffer, weights_only=True))  # tensors and plain values only
+    again = (torch.rand(3), np.random.rand(3), random.random())
+    assert torch.equal(expected[0], again[0])
+    assert np.array_equal(expected[1], again[1]) and expected[2] == again[2]
+
+
+# ------------------------------------------------------------------ devices
+def test_device_cuda_without_cuda_is_a_clear_error(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # also on a machine that has one
+    code = main(["--device", "cuda", "--data-dir", str(tmp_path), "--out-dir", str(tmp_path / "run")])
+    assert code == 2
+    message = capsys.readouterr().err
+    assert message.startswith("error: --device cuda:") and "--device cpu" in message
+    assert message.count("\n") == 1 and "Traceback" not in message
+
+
+@pytest.mark.parametrize(
+    "argv, problem",
+    [
+        (["--device", "gpu"], "--device 'gpu' is not a device"),
+        (["--amp", "fp16", "--device", "cpu"], "--amp fp16 needs a CUDA device"),
+    ],
+)
+def test_bad_device_options_are_clear_errors(tmp_path, capsys, argv, problem):
+    assert main([*argv, "--data-dir", str(tmp_path), "--out-dir", str(tmp_path / "run")]) == 2
+    assert problem in capsys.readouterr().err
+
+
+def test_bf16_autocast_trains_and_keeps_float32_weights(synth_prepared, tmp_path):
+    result = train(config(synth_prepared, tmp_path, max_steps=2, amp="bf16"), progress=False)
+    ckpt = load_checkpoint(result["last"])
+    assert all(v.dtype == torch.float32 for v in ckpt["model"].values() if v.is_floating_point())
+    assert all(np.isfinite(r["total"]) for r in read_log(result["log"]))
+
+
+# ------------------------------------------------------------------ scale_normalize
+def test_scale_normalize_divides_each_disparity_map_by_its_mean():
+    cfg = config_from_args(["--arch", "small", "--scale-normalize"])
+    normalized = build_model(cfg).train()
+    assert normalized.scale_normalize
+    plain = build_model(config_from_args(["--arch", "small"])).train()
+    plain.load_state_dict(normalized.state_dict())
+    g = torch.Generator().manual_seed(0)
+    target, sources = torch.rand(2, 3, SH, SW, generator=g), torch.rand(2, 2, 3, SH, SW, generator=g)
+    K = torch.tensor([[40.0, 0, SW / 2], [0, 40.0, SH / 2], [0, 0, 1]]).expand(2, 3, 3)
+    with torch.no_grad():
+        out_n, _, _ = normalized.rigid_forward(target, sources, K)
+        out_p, _, _ = plain.rigid_forward(target, sources, K)
+    for d_n, d_p in zip(out_n.disp, out_p.disp):  # every scale, every image (target and sources)
+        assert d_n.shape[0] == 6
+        torch.testing.assert_close(d_n.mean(dim=(1, 2, 3)), torch.ones(6))
+        torch.testing.assert_close(d_n * d_p.mean(dim=(1, 2, 3), keepdim=True), d_p)

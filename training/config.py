@@ -1,4 +1,5 @@
 """Training configuration: one dataclass, saved inside every checkpoint."""
+
 from __future__ import annotations
 
 import argparse
@@ -8,6 +9,7 @@ from training.losses import LossWeights
 
 STAGES = ("rigid", "flow")
 ARCHS = ("resnet50", "vgg", "small")
+AMP_MODES = ("off", "bf16", "fp16")
 
 
 @dataclass
@@ -35,6 +37,11 @@ class TrainConfig:
     mask_out_of_view: bool = False  # deviation: rigid loss ignores pixels warped from outside the source
     automask: bool = False  # deviation: rigid loss ignores pixels the unwarped source already explains
     channels_last: bool = True  # NHWC convolutions: ~2x faster on CPU for the small nets
+    scale_normalize: bool = False  # official option (its model_sn): each disparity map / its mean
+    device: str = "auto"  # auto | cpu | cuda | cuda:N (under torchrun: cuda = this rank's GPU)
+    amp: str = "off"  # mixed precision for the nets: off | bf16 | fp16 (fp16: CUDA, with a grad scaler)
+    compile: bool = False  # torch.compile the stage's loss
+    sync_bn: bool = False  # under torchrun: batch statistics over all ranks
     log_every: int = 10
     save_every: int = 500
     val_every: int = 500
@@ -49,7 +56,7 @@ class TrainConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
+    def from_dict(cls, d: dict) -> TrainConfig:
         d = dict(d)
         d["weights"] = LossWeights(**d.get("weights", {}))
         known = {f.name for f in fields(cls)}
@@ -63,43 +70,103 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m training.train",
         description="Train GeoNet stage-wise. Stage 'rigid' trains DepthNet+PoseNet from scratch; "
-                    "stage 'flow' loads a rigid checkpoint, freezes it (eval-mode BN) and trains "
-                    "ResFlowNet. Data: a folder made by `python -m training.prepare`.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        "stage 'flow' loads a rigid checkpoint, freezes it (eval-mode BN) and trains "
+        "ResFlowNet. Data: a folder made by `python -m training.prepare`.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     d = TrainConfig()
     p.add_argument("--stage", choices=STAGES, default=d.stage)
-    p.add_argument("--arch", choices=ARCHS, default=d.arch,
-                   help="DepthNet encoder; 'small' also selects the small PoseNet and ResFlowNet")
+    p.add_argument(
+        "--arch",
+        choices=ARCHS,
+        default=d.arch,
+        help="DepthNet encoder; 'small' also selects the small PoseNet and ResFlowNet",
+    )
     p.add_argument("--data-dir", default=d.data_dir, help="prepared data (train.txt, val.txt)")
     p.add_argument("--out-dir", default=d.out_dir, help="checkpoints and log.jsonl go here")
-    p.add_argument("--init-checkpoint", default=None,
-                   help="stage flow: rigid-stage checkpoint whose DepthNet/PoseNet are frozen")
-    p.add_argument("--resume", default=None, help="checkpoint of the same stage to continue exactly")
+    p.add_argument(
+        "--init-checkpoint",
+        default=d.init_checkpoint,
+        help="stage flow: rigid-stage checkpoint whose DepthNet/PoseNet are frozen",
+    )
+    p.add_argument("--resume", default=d.resume, help="checkpoint of the same stage to continue exactly")
     p.add_argument("--seq-length", type=int, default=d.seq_length, help="3 for depth/flow, 5 for pose")
     p.add_argument("--height", type=int, default=d.height)
     p.add_argument("--width", type=int, default=d.width)
-    p.add_argument("--batch-size", type=int, default=d.batch_size)
+    p.add_argument(
+        "--batch-size",
+        type=int,
+        default=d.batch_size,
+        help="per process; under torchrun the effective batch is this x the number of ranks",
+    )
     p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--beta1", type=float, default=d.beta1, help="Adam")
+    p.add_argument("--beta2", type=float, default=d.beta2, help="Adam")
     p.add_argument("--max-steps", type=int, default=d.max_steps)
-    p.add_argument("--max-minutes", type=float, default=None,
-                   help="stop (and save) once this much wall time has passed, even before --max-steps")
+    p.add_argument(
+        "--max-minutes",
+        type=float,
+        default=d.max_minutes,
+        help="stop (and save) once this much wall time has passed, even before --max-steps",
+    )
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--num-workers", type=int, default=d.num_workers, help="data-loading processes")
     p.add_argument("--no-augment", dest="augment", action="store_false")
-    p.add_argument("--share-color-gain", action="store_true",
-                   help="one colour gain for all frames of a sample (the official code draws one per frame)")
-    p.add_argument("--bn-momentum", type=float, default=d.bn_momentum,
-                   help="PyTorch BN momentum; 1e-3 = official TF decay 0.999 (slow for short runs)")
-    p.add_argument("--mask-out-of-view", action="store_true",
-                   help="leave pixels whose rigid flow lands outside the source frame out of the rigid "
-                        "photometric loss (not in the official code; stops far-depth artefacts at the "
-                        "image border on forward-moving sequences)")
-    p.add_argument("--automask", action="store_true",
-                   help="monodepth2's auto-mask: leave out pixels where the unwarped source matches the "
-                        "target better than the rigid warp (objects moving with the camera, sky); "
-                        "not in the official code")
-    p.add_argument("--nchw", dest="channels_last", action="store_false",
-                   help="keep NCHW memory format (default: channels_last, faster on CPU)")
+    p.add_argument(
+        "--share-color-gain",
+        action="store_true",
+        help="one colour gain for all frames of a sample (the official code draws one per frame)",
+    )
+    p.add_argument(
+        "--bn-momentum",
+        type=float,
+        default=d.bn_momentum,
+        help="PyTorch BN momentum; 1e-3 = official TF decay 0.999 (slow for short runs)",
+    )
+    p.add_argument(
+        "--mask-out-of-view",
+        action="store_true",
+        help="leave pixels whose rigid flow lands outside the source frame out of the rigid "
+        "photometric loss (not in the official code; stops far-depth artefacts at the "
+        "image border on forward-moving sequences)",
+    )
+    p.add_argument(
+        "--automask",
+        action="store_true",
+        help="monodepth2's auto-mask: leave out pixels where the unwarped source matches the "
+        "target better than the rigid warp (objects moving with the camera, sky); "
+        "not in the official code",
+    )
+    p.add_argument(
+        "--nchw",
+        dest="channels_last",
+        action="store_false",
+        help="keep NCHW memory format (default: channels_last, faster on CPU)",
+    )
+    p.add_argument(
+        "--scale-normalize",
+        action="store_true",
+        help="official option behind its released model_sn (not in the paper): divide each "
+        "predicted disparity map by its spatial mean before warping and smoothness",
+    )
+    p.add_argument(
+        "--device",
+        default=d.device,
+        help="auto (CUDA if present, else CPU), cpu, cuda or cuda:N; under torchrun each rank "
+        "takes the GPU of its LOCAL_RANK",
+    )
+    p.add_argument(
+        "--amp",
+        choices=AMP_MODES,
+        default=d.amp,
+        help="mixed precision for the nets (geometry and losses stay float32); fp16 needs CUDA and uses a grad scaler",
+    )
+    p.add_argument("--compile", action="store_true", help="torch.compile the stage's loss (slow first steps)")
+    p.add_argument(
+        "--sync-bn",
+        action="store_true",
+        help="under torchrun: BatchNorm statistics over the whole effective batch (all ranks)",
+    )
     p.add_argument("--log-every", type=int, default=d.log_every)
     p.add_argument("--save-every", type=int, default=d.save_every)
     p.add_argument("--val-every", type=int, default=d.val_every)

@@ -4,6 +4,7 @@ Batch layout follows the official code so every loss is a mean over the same
 elements: ``N`` sources are stacked along the batch i-major (source i occupies
 rows ``[i*B, (i+1)*B)``), and the target is tiled ``N`` times to match.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -13,10 +14,18 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from geonet_infer.conventions import IMAGE_NORM, NUM_SCALES
-from training.geometry import (flow_consistency, flow_warp, in_view_mask, intrinsics_at_scale,
-                               invert_intrinsics, invert_rigid, l2_norm, pose_vec_to_mat, rigid_flow)
-from training.losses import (LossWeights, edge_aware_smoothness, masked_mean,
-                             photometric_error)
+from training.geometry import (
+    flow_consistency,
+    flow_warp,
+    in_view_mask,
+    intrinsics_at_scale,
+    invert_intrinsics,
+    invert_rigid,
+    l2_norm,
+    pose_vec_to_mat,
+    rigid_flow,
+)
+from training.losses import LossWeights, edge_aware_smoothness, masked_mean, photometric_error
 from training.networks import DepthNet, PoseNet, ResFlowNet
 
 
@@ -29,12 +38,17 @@ def image_pyramid(image: torch.Tensor, num_scales: int = NUM_SCALES) -> list[tor
         list of (B, C, H // 2**s, W // 2**s), s = 0..num_scales-1.
     """
     _, _, H, W = image.shape
-    return [image] + [F.interpolate(image, size=(H // 2 ** s, W // 2 ** s), mode="area")
-                      for s in range(1, num_scales)]
+    return [image] + [F.interpolate(image, size=(H // 2**s, W // 2**s), mode="area") for s in range(1, num_scales)]
 
 
-def rigid_warp(depth: torch.Tensor, T: torch.Tensor, K: torch.Tensor,
-               frame_from: torch.Tensor, frame_to: torch.Tensor, alpha: float = LossWeights.alpha_recon):
+def rigid_warp(
+    depth: torch.Tensor,
+    T: torch.Tensor,
+    K: torch.Tensor,
+    frame_from: torch.Tensor,
+    frame_to: torch.Tensor,
+    alpha: float = LossWeights.alpha_recon,
+):
     """Rigid flow of ``frame_from``, ``frame_to`` warped onto it, and the photometric error.
 
     This is the op exported as ``rigidflow.onnx``.
@@ -91,13 +105,21 @@ class GeoNet(nn.Module):
     Inputs to every method are [0, 1] images; normalisation happens here once.
     """
 
-    def __init__(self, arch: str = "resnet50", num_source: int = 2, with_flow: bool = False,
-                 bn_momentum: float = 1e-3, weights: LossWeights = LossWeights(),
-                 mask_out_of_view: bool = False, automask: bool = False):
+    def __init__(
+        self,
+        arch: str = "resnet50",
+        num_source: int = 2,
+        with_flow: bool = False,
+        bn_momentum: float = 1e-3,
+        weights: LossWeights | None = None,
+        mask_out_of_view: bool = False,
+        automask: bool = False,
+        scale_normalize: bool = False,
+    ):
         super().__init__()
         self.arch = arch
         self.num_source = num_source
-        self.weights = weights
+        self.weights = weights if weights is not None else LossWeights()
         # Deviation (off by default = official): drop pixels whose rigid flow leaves the source
         # frame from the rigid photometric loss. Without it, zero-padded samples at the image
         # border reward far depth there (forward motion pushes border pixels out of view).
@@ -106,6 +128,9 @@ class GeoNet(nn.Module):
         # matches the target better than the rigid warp does (an object moving with the camera,
         # flat sky) is left out, so such objects do not teach infinite depth.
         self.automask = automask
+        # Official --scale_normalize (its released model_sn, not in the paper): every disparity
+        # map is divided by its own spatial mean before depth, warping and smoothness use it.
+        self.scale_normalize = scale_normalize
         self.depth_net = DepthNet(arch, bn_momentum=bn_momentum)
         pose_arch = "small" if arch == "small" else "standard"
         self.pose_net = PoseNet(num_source, arch=pose_arch, bn_momentum=bn_momentum)
@@ -113,8 +138,9 @@ class GeoNet(nn.Module):
         self.flow_net = ResFlowNet(flow_arch, bn_momentum=bn_momentum) if with_flow else None
 
     # ----------------------------------------------------------------- rigid
-    def rigid_forward(self, target: torch.Tensor, sources: torch.Tensor,
-                      K: torch.Tensor) -> tuple[RigidOutputs, list, list]:
+    def rigid_forward(
+        self, target: torch.Tensor, sources: torch.Tensor, K: torch.Tensor
+    ) -> tuple[RigidOutputs, list, list]:
         """Depth of every frame, poses, and rigid warps at every scale.
 
         Args:
@@ -129,6 +155,8 @@ class GeoNet(nn.Module):
         sources_n = IMAGE_NORM.apply(sources)
         source_rows = sources_n.transpose(0, 1).reshape(N * B, *sources_n.shape[2:])
         disp = self.depth_net(torch.cat([target_n, source_rows], dim=0))
+        if self.scale_normalize:
+            disp = [d / d.mean(dim=(1, 2, 3), keepdim=True) for d in disp]
         poses = self.pose_net(torch.cat([target_n, sources_n.flatten(1, 2)], dim=1))
 
         T_fwd = pose_vec_to_mat(poses.transpose(0, 1).reshape(N * B, 6))
@@ -140,11 +168,13 @@ class GeoNet(nn.Module):
         for s in range(NUM_SCALES):
             depth_s = 1.0 / disp[s]
             K_s = intrinsics_at_scale(K_rows, s)
-            flow, warp, err = rigid_warp(depth_s[:B].repeat(N, 1, 1, 1), T_fwd, K_s,
-                                         target_pyr[s], source_pyr[s], self.weights.alpha_recon)
+            flow, warp, err = rigid_warp(
+                depth_s[:B].repeat(N, 1, 1, 1), T_fwd, K_s, target_pyr[s], source_pyr[s], self.weights.alpha_recon
+            )
             out.fwd_flow.append(flow), out.fwd_warp.append(warp), out.fwd_error.append(err)
-            flow, warp, err = rigid_warp(depth_s[B:], T_bwd, K_s,
-                                         source_pyr[s], target_pyr[s], self.weights.alpha_recon)
+            flow, warp, err = rigid_warp(
+                depth_s[B:], T_bwd, K_s, source_pyr[s], target_pyr[s], self.weights.alpha_recon
+            )
             out.bwd_flow.append(flow), out.bwd_warp.append(warp), out.bwd_error.append(err)
         return out, target_pyr, source_pyr
 
@@ -157,20 +187,19 @@ class GeoNet(nn.Module):
         rigid_warp_loss = disp_smooth_loss = 0.0
         for s in range(NUM_SCALES):
             # Symmetric in its two images, so one map serves both directions.
-            identity_error = (photometric_error(source_pyr[s], target_pyr[s], w.alpha_recon)
-                              if self.automask else None)
+            identity_error = photometric_error(source_pyr[s], target_pyr[s], w.alpha_recon) if self.automask else None
             rigid_warp_loss = rigid_warp_loss + w.rigid_warp * N / 2 * (
                 self._photometric_mean(out.fwd_error[s], out.fwd_flow[s], identity_error)
-                + self._photometric_mean(out.bwd_error[s], out.bwd_flow[s], identity_error))
+                + self._photometric_mean(out.bwd_error[s], out.bwd_flow[s], identity_error)
+            )
             images_s = torch.cat([target_pyr[s][:B], source_pyr[s]], dim=0)
-            disp_smooth_loss = disp_smooth_loss + w.disp_smooth / 2 ** s * edge_aware_smoothness(
-                out.disp[s], images_s)
+            disp_smooth_loss = disp_smooth_loss + w.disp_smooth / 2**s * edge_aware_smoothness(out.disp[s], images_s)
         total = rigid_warp_loss + disp_smooth_loss
-        return StageLoss(total, _as_floats(rigid_warp=rigid_warp_loss, disp_smooth=disp_smooth_loss,
-                                           total=total))
+        return StageLoss(total, _as_floats(rigid_warp=rigid_warp_loss, disp_smooth=disp_smooth_loss, total=total))
 
-    def _photometric_mean(self, error: torch.Tensor, flow: torch.Tensor,
-                          identity_error: torch.Tensor | None = None) -> torch.Tensor:
+    def _photometric_mean(
+        self, error: torch.Tensor, flow: torch.Tensor, identity_error: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Mean rigid photometric error over the pixels the enabled masks keep.
 
         Args:
@@ -198,10 +227,8 @@ class GeoNet(nn.Module):
         """
         with torch.no_grad():
             rigid, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
-        fwd_in = flownet_input(target_pyr[0], source_pyr[0], rigid.fwd_warp[0],
-                               rigid.fwd_flow[0], rigid.fwd_error[0])
-        bwd_in = flownet_input(source_pyr[0], target_pyr[0], rigid.bwd_warp[0],
-                               rigid.bwd_flow[0], rigid.bwd_error[0])
+        fwd_in = flownet_input(target_pyr[0], source_pyr[0], rigid.fwd_warp[0], rigid.fwd_flow[0], rigid.fwd_error[0])
+        bwd_in = flownet_input(source_pyr[0], target_pyr[0], rigid.bwd_warp[0], rigid.bwd_flow[0], rigid.bwd_error[0])
         residual = self.flow_net(torch.cat([fwd_in, bwd_in], dim=0))
         NB = fwd_in.shape[0]
         fwd_full = [residual[s][:NB] + rigid.fwd_flow[s] for s in range(NUM_SCALES)]
@@ -218,19 +245,25 @@ class GeoNet(nn.Module):
             fwd_err = photometric_error(flow_warp(source_pyr[s], fwd_full[s]), target_pyr[s], w.alpha_recon)
             bwd_err = photometric_error(flow_warp(target_pyr[s], bwd_full[s]), source_pyr[s], w.alpha_recon)
             if w.flow_consistency > 0:
-                diff_fwd, mask_tgt = flow_consistency(fwd_full[s], bwd_full[s], s,
-                                                      w.consistency_alpha, w.consistency_beta)
-                diff_bwd, mask_src = flow_consistency(bwd_full[s], fwd_full[s], s,
-                                                      w.consistency_alpha, w.consistency_beta)
+                diff_fwd, mask_tgt = flow_consistency(
+                    fwd_full[s], bwd_full[s], s, w.consistency_alpha, w.consistency_beta
+                )
+                diff_bwd, mask_src = flow_consistency(
+                    bwd_full[s], fwd_full[s], s, w.consistency_alpha, w.consistency_beta
+                )
                 warp_loss = warp_loss + w.flow_warp * N / 2 * (
-                    masked_mean(fwd_err, mask_tgt) + masked_mean(bwd_err, mask_src))
+                    masked_mean(fwd_err, mask_tgt) + masked_mean(bwd_err, mask_src)
+                )
                 consistency_loss = consistency_loss + w.flow_consistency / 2 * (
-                    masked_mean(diff_fwd, mask_tgt) + masked_mean(diff_bwd, mask_src))
+                    masked_mean(diff_fwd, mask_tgt) + masked_mean(diff_bwd, mask_src)
+                )
             else:
                 warp_loss = warp_loss + w.flow_warp * N / 2 * (fwd_err.mean() + bwd_err.mean())
             smooth_loss = smooth_loss + w.flow_smooth / 2 ** (s + 1) * (
-                edge_aware_smoothness(fwd_full[s], target_pyr[s])
-                + edge_aware_smoothness(bwd_full[s], source_pyr[s]))
+                edge_aware_smoothness(fwd_full[s], target_pyr[s]) + edge_aware_smoothness(bwd_full[s], source_pyr[s])
+            )
         total = warp_loss + smooth_loss + consistency_loss
-        return StageLoss(total, _as_floats(flow_warp=warp_loss, flow_smooth=smooth_loss,
-                                           flow_consistency=consistency_loss, total=total))
+        return StageLoss(
+            total,
+            _as_floats(flow_warp=warp_loss, flow_smooth=smooth_loss, flow_consistency=consistency_loss, total=total),
+        )

@@ -1,0 +1,230 @@
+"""Checkpoints written by ``training.train``: save, load safely, rebuild the model.
+
+A checkpoint holds only tensors and plain Python values (RNG states included), so it
+loads with ``torch.load(weights_only=True)``: a file from elsewhere cannot run code when
+opened. Tensors are stored on the CPU, so a GPU run resumes and exports on a CPU machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import random
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from geonet_infer import conventions
+from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io import atomic_write
+from training.config import TrainConfig
+from training.model import GeoNet
+
+# v2: RNG states stored as tensors (v1 pickled numpy's state, which weights_only refuses).
+CHECKPOINT_FORMAT = "geonet-checkpoint-v2"
+OLD_FORMAT = "geonet-checkpoint-v1"
+REQUIRED_KEYS = ("format", "stage", "arch", "step", "config", "model", "optimizer", "rng", "metrics")
+WRITTEN_BY = "pass a .pt file written by training.train"
+
+
+# ------------------------------------------------------------------------ RNG states
+def rng_state() -> dict:
+    """torch (CPU and CUDA), numpy and Python RNG states as tensors and plain values."""
+    np_kind, np_keys, np_pos, np_has_gauss, np_gauss = np.random.get_state()
+    py_version, py_words, py_gauss = random.getstate()
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy": {
+            "kind": np_kind,
+            "keys": torch.from_numpy(np_keys.astype(np.int64)),
+            "pos": int(np_pos),
+            "has_gauss": int(np_has_gauss),
+            "gauss": float(np_gauss),
+        },
+        "python": {"version": py_version, "words": torch.tensor(py_words, dtype=torch.int64), "gauss": py_gauss},
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    """Inverse of :func:`rng_state` (CUDA states only where this machine has CUDA)."""
+    torch.set_rng_state(state["torch"])
+    n = state["numpy"]
+    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["gauss"]))
+    p = state["python"]
+    random.setstate((p["version"], tuple(int(w) for w in p["words"].tolist()), p["gauss"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _to_cpu(value):
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        return {k: _to_cpu(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_to_cpu(v) for v in value)
+    return value
+
+
+# ------------------------------------------------------------------------ save / load
+def save_checkpoint(
+    path: Path,
+    model: GeoNet,
+    optimizer,
+    step: int,
+    cfg: TrainConfig,
+    metrics: dict,
+    scaler: torch.amp.GradScaler | None = None,
+) -> None:
+    """Write atomically: a crash mid-save never leaves a truncated checkpoint."""
+    state = {
+        "format": CHECKPOINT_FORMAT,
+        "stage": cfg.stage,
+        "arch": cfg.arch,
+        "step": step,
+        "config": cfg.to_dict(),
+        "conventions": conventions.as_dict(),
+        "model": _to_cpu(model.state_dict()),
+        "optimizer": _to_cpu(optimizer.state_dict()),
+        "grad_scaler": scaler.state_dict() if scaler is not None else {},
+        "rng": rng_state(),
+        "metrics": metrics,
+        # module form, not argv[0]: argv[0] is this machine's absolute path to train.py
+        "command": "python -m training.train " + shlex.join(sys.argv[1:]),
+    }
+    with atomic_write(path) as tmp:
+        torch.save(state, tmp)
+
+
+def _refusal(path: Path, exc: Exception) -> GeoNetInputError:
+    """The weights-only unpickler refused the file: name what it wanted to import."""
+    try:
+        names = torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    except Exception:  # the refusal itself is what matters; the names are a courtesy
+        names = []
+    what = f" ({', '.join(names[:4])})" if names else f" ({str(exc).splitlines()[0][:120]})"
+    hint = WRITTEN_BY
+    if names and all(n.startswith("numpy") for n in names):  # what a v1 checkpoint's RNG state needs
+        hint = (
+            "a checkpoint of an older training.train (v1) holds numpy RNG state; if you trust the file, "
+            f"convert it once: python -m training.checkpoint --upgrade {path}"
+        )
+    return GeoNetInputError(
+        path,
+        f"refused: the file holds Python objects beyond tensors and plain values{what}, "
+        "which could run code when loaded",
+        hint,
+    )
+
+
+def load_checkpoint(path: str | Path, expect_stage: str | None = None, expect_arch: str | None = None) -> dict:
+    """Load (weights only, onto the CPU) and validate; errors name the file and the fix."""
+    path = Path(path)
+    if not path.is_file():
+        raise GeoNetInputError(path, "checkpoint not found", WRITTEN_BY)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise _refusal(path, exc) from None
+    except Exception as exc:  # torch raises many types for a corrupt file
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        raise GeoNetInputError(path, f"cannot read checkpoint ({exc.__class__.__name__}: {first})") from exc
+    if not isinstance(ckpt, dict):
+        raise GeoNetInputError(
+            path, f"not a GeoNet checkpoint: it holds a {type(ckpt).__name__}, not a dict", WRITTEN_BY
+        )
+    if ckpt.get("format") != CHECKPOINT_FORMAT:
+        found = f"format {ckpt['format']!r}" if "format" in ckpt else f"keys {sorted(map(str, ckpt))[:6]}"
+        raise GeoNetInputError(path, f"not a {CHECKPOINT_FORMAT} checkpoint ({found})", WRITTEN_BY)
+    missing = [k for k in REQUIRED_KEYS if k not in ckpt]
+    if missing:
+        raise GeoNetInputError(path, f"checkpoint lacks {', '.join(missing)}", WRITTEN_BY)
+    if expect_stage and ckpt["stage"] != expect_stage:
+        raise GeoNetInputError(
+            path,
+            f"checkpoint is from stage '{ckpt['stage']}', expected '{expect_stage}'",
+            "stage flow needs --init-checkpoint from a stage rigid run",
+        )
+    if expect_arch and ckpt["arch"] != expect_arch:
+        raise GeoNetInputError(
+            path, f"checkpoint arch is '{ckpt['arch']}', expected '{expect_arch}'", f"pass --arch {ckpt['arch']}"
+        )
+    return ckpt
+
+
+# ------------------------------------------------------------------------ model
+def build_model(cfg: TrainConfig) -> GeoNet:
+    return GeoNet(
+        cfg.arch,
+        cfg.num_source,
+        with_flow=cfg.stage == "flow",
+        bn_momentum=cfg.bn_momentum,
+        weights=cfg.weights,
+        mask_out_of_view=cfg.mask_out_of_view,
+        automask=cfg.automask,
+        scale_normalize=cfg.scale_normalize,
+    )
+
+
+def model_from_checkpoint(ckpt: dict) -> GeoNet:
+    """Rebuild the GeoNet a checkpoint came from, weights loaded, in eval mode."""
+    model = build_model(TrainConfig.from_dict(ckpt["config"]))
+    model.load_state_dict(ckpt["model"])
+    return model.eval()
+
+
+# ------------------------------------------------------------------------ upgrade
+def upgrade(path: str | Path) -> None:
+    """Rewrite a v1 checkpoint as v2 in place. Unpickles it fully: only for files you trust."""
+    path = Path(path)
+    if not path.is_file():
+        raise GeoNetInputError(path, "checkpoint not found", WRITTEN_BY)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise GeoNetInputError(path, f"cannot read checkpoint ({exc.__class__.__name__})") from exc
+    if not isinstance(ckpt, dict) or ckpt.get("format") != OLD_FORMAT:
+        found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise GeoNetInputError(path, f"not a {OLD_FORMAT} checkpoint ({found!r})", "nothing to upgrade")
+    np_state, py_state = ckpt["rng"]["numpy"], ckpt["rng"]["python"]
+    saved = (np.random.get_state(), random.getstate())
+    np.random.set_state(np_state)
+    random.setstate(py_state)
+    ckpt["rng"] = {**rng_state(), "torch": ckpt["rng"]["torch"]}  # numpy/python from the file, as tensors
+    np.random.set_state(saved[0])
+    random.setstate(saved[1])
+    ckpt["format"] = CHECKPOINT_FORMAT
+    ckpt.setdefault("grad_scaler", {})
+    with atomic_write(path) as tmp:
+        torch.save(ckpt, tmp)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m training.checkpoint",
+        description="Convert checkpoints of an older training.train to the "
+        "weights-only format (unpickles them: trusted files only).",
+    )
+    p.add_argument("--upgrade", nargs="+", required=True, metavar="FILE", help="v1 checkpoints, rewritten in place")
+    args = p.parse_args(argv)
+    failed = 0
+    for path in args.upgrade:
+        try:
+            upgrade(path)
+            print(f"upgraded {path}")
+        except GeoNetInputError as err:
+            print(f"error: {err}", file=sys.stderr)
+            failed += 1
+    if failed == len(args.upgrade):
+        return 2
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
