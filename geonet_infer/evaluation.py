@@ -13,6 +13,10 @@ A method is a plain numpy callable (model adapters below, baselines in
 Any callable may return ``(array, info_dict)``; ``info`` is kept with the item. A
 prediction holding NaN or infinity is *reported*: the item's metrics become NaN, so
 every mean over it is NaN too (never dropped), and ``errors`` names the item.
+Depth scaled by the camera height (``scaling="camera_height"``) can fail on a frame
+whose prediction shows no plausible ground plane: such a frame is *not scored* (never
+median-scaled instead); ``errors`` and ``ground_fit_failed`` name it, the means cover
+the other frames and ``count`` says how many those are.
 Broken data (missing file, size mismatch, no valid ground-truth pixel) raises
 :class:`~geonet_infer.errors.GeoNetInputError` naming the file.
 """
@@ -27,12 +31,14 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer import metrics
-from geonet_infer.datasets import SNIPPET, Dataset
+from geonet_infer.datasets import KITTI_CALIB, SNIPPET, Dataset
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import read_image
+from geonet_infer.io import read_camera, read_image
 from geonet_infer.io.atomic import atomic_write
+from geonet_infer.scale import check_camera_height, fit_ground_plane
 
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
+SCALINGS = ("median", "camera_height", "none")
 # Paper column order (Tables 1-3), then our extra columns. (header, key, format)
 COLUMNS = {
     "depth": [
@@ -103,13 +109,14 @@ def _result(
     task: str, method: str, dataset: Dataset, settings: dict, rows: list[dict], errors: list[dict], std: bool = False
 ) -> dict:
     keys = [k for _, k, _ in COLUMNS[task]]
-    values = [{k: r[k] for k in keys} for r in rows]
+    # Rows marked not scored (a failed ground fit) stay in items and errors but not in the means.
+    values = [{k: r[k] for k in keys} for r in rows if r.get("ground_fit") != "failed"]
     out = {
         "task": task,
         "method": method,
         "data": dataset.describe(),
         "settings": settings,
-        "metrics": metrics.aggregate(values),
+        "metrics": metrics.aggregate(values) if values else _nan_row(keys) | {"count": 0},
         "items": rows,
         "errors": errors,
     }
@@ -119,6 +126,25 @@ def _result(
 
 
 # ----------------------------------------------------------------------------- depth
+def depth_intrinsics(item, layout: str) -> np.ndarray:
+    """K at the image size of a depth item: ``calib.txt`` of a synthetic sequence, or KITTI raw
+    ``calib_cam_to_cam.txt`` (``P_rect_02``) in the drive folder or up to two levels up."""
+    if layout == "synth":
+        candidates = [item.image.parents[1] / "calib.txt"]
+    else:
+        drive = item.image.parents[2]  # DRIVE/image_02/data/frame.png
+        folders = [item.calib_dir] if item.calib_dir else []
+        candidates = [d / KITTI_CALIB[0] for d in folders + [drive, drive.parent, drive.parent.parent]]
+    for path in candidates:
+        if path.is_file():
+            return read_camera(path).K
+    raise GeoNetInputError(
+        candidates[0],
+        "no camera intrinsics for this frame",
+        "scaling by camera height needs K: add the calibration file or pass --intrinsics FX,FY,CX,CY",
+    )
+
+
 def evaluate_depth(
     fn: Callable,
     dataset: Dataset,
@@ -127,19 +153,33 @@ def evaluate_depth(
     max_depth: float = MAX_DEPTH,
     min_depth: float = MIN_DEPTH,
     crop: str | None = "auto",
-    median_scaling: bool = True,
+    scaling: str = "median",
+    camera_height: float | None = None,
+    intrinsics: np.ndarray | None = None,
     observe: Callable | None = None,
 ) -> dict:
     """Eigen depth metrics of ``fn`` on every item, averaged per image.
 
     crop: "garg", "eigen", None, or "auto" (Garg on KITTI, none on synthetic frames, which have
-    no bonnet or empty sky band to crop). ``observe(item, rgb, gt, pred, row)`` sees each scored
-    frame (figures). Returns the result dict (see module docstring).
+    no bonnet or empty sky band to crop).
+    scaling: "median" (per image, median GT / median prediction: the paper's protocol), "none"
+    (raw depths: metric or stereo-scaled models), or "camera_height": per image, the factor that
+    puts the ground plane fitted to the prediction (:func:`geonet_infer.scale.fit_ground_plane`)
+    ``camera_height`` metres below the camera, no ground truth used. ``intrinsics``: K at the
+    image size for that fit; default the item's calibration (:func:`depth_intrinsics`). A frame
+    without a plausible ground plane is not scored: named in ``errors`` and ``ground_fit_failed``.
+    ``observe(item, rgb, gt, pred, row)`` sees each scored frame; ``pred`` is resized to the GT
+    but not scaled (``row["scale"]`` is the factor applied). Returns the result dict (see module
+    docstring).
     """
+    if scaling not in SCALINGS:
+        raise GeoNetInputError(None, f"unknown depth scaling {scaling!r}", f"choose one of {', '.join(SCALINGS)}")
+    if scaling == "camera_height":
+        check_camera_height(camera_height)
     if crop == "auto":
         crop = "garg" if dataset.layout == "kitti-raw" else None
     keys = [k for _, k, _ in COLUMNS["depth"]]
-    rows, errors = [], []
+    rows, errors, fit_failed = [], [], []
     for item in dataset.items:
         rgb = read_image(item.image)
         gt = item.load_gt(rgb.shape[:2])
@@ -164,11 +204,28 @@ def evaluate_depth(
             rows.append(row | _nan_row(keys) | info)
             continue
         pred = metrics.resize_depth_to(pred, gt.shape)
+        scale = 1.0
+        if scaling == "camera_height":
+            K = np.asarray(intrinsics, np.float64) if intrinsics is not None else depth_intrinsics(item, dataset.layout)
+            try:  # the runtime's own fit (what `predict --camera-height` applies), on the depth at GT size
+                fit = fit_ground_plane(pred, K)
+            except GeoNetInputError as err:  # the prediction shows no road: the method's failure on this frame
+                problem = f"ground plane fit failed: {err.problem}"
+                errors.append({"item": item.name, "problem": problem})
+                fit_failed.append(item.name)
+                rows.append(row | _nan_row(keys) | {"ground_fit": "failed", "problem": problem} | info)
+                continue
+            scale = fit.scale_for(camera_height)
+            info = {"ground_height": fit.height, "ground_inliers": fit.inlier_fraction} | info
         try:
-            scores = metrics.depth_metrics(gt, pred, min_depth, max_depth, crop=crop, median_scaling=median_scaling)
+            scores = metrics.depth_metrics(
+                gt, pred * scale, min_depth, max_depth, crop=crop, median_scaling=scaling == "median"
+            )
         except GeoNetInputError as err:  # e.g. non-positive median prediction: the method's fault
             errors.append({"item": item.name, "problem": err.problem})
             scores = _nan_row(keys)
+        if scaling == "camera_height":
+            scores["scale"] = scale
         rows.append(row | scores | info)
         if observe is not None:
             observe(item, rgb, gt, pred, rows[-1])
@@ -176,10 +233,15 @@ def evaluate_depth(
         "min_depth": min_depth,
         "max_depth": max_depth,
         "crop": crop,
-        "median_scaling": median_scaling,
+        "scaling": scaling,
         "resize": "prediction depth resized to GT size, cv2 bilinear",
     }
-    return _result("depth", method, dataset, settings, rows, errors)
+    if scaling == "camera_height":
+        settings["camera_height"] = camera_height
+    result = _result("depth", method, dataset, settings, rows, errors)
+    if scaling == "camera_height":
+        result["ground_fit_failed"] = fit_failed
+    return result
 
 
 # ----------------------------------------------------------------------------- flow
@@ -316,16 +378,19 @@ def refuse_random_init(predictor) -> None:
         )
 
 
-def model_depth_fn(predictor) -> Callable:
-    """Depth of a :class:`~geonet_infer.predictor.Predictor` at the input resolution."""
-    refuse_random_init(predictor)
+def model_depth_fn(predictor, allow_random_init: bool = False) -> Callable:
+    """Depth of a :class:`~geonet_infer.predictor.Predictor` at the input resolution.
+    ``allow_random_init`` (every adapter): score random weights (development cards only)."""
+    if not allow_random_init:
+        refuse_random_init(predictor)
     return lambda rgb: predictor.depth(rgb).depth
 
 
-def model_flow_fn(predictor) -> Callable:
+def model_flow_fn(predictor, allow_random_init: bool = False) -> Callable:
     """Full flow t -> t+1; a 3-frame model gets [t-1, t, t+1] when the item has it, any other
     case the pair [t, t+1] (the runtime pads it as at a video start)."""
-    refuse_random_init(predictor)
+    if not allow_random_init:
+        refuse_random_init(predictor)
 
     def predict(frames, K):
         if len(frames) == predictor.seq_length:
@@ -357,16 +422,18 @@ def snippet_from_pose_calls(pose_fn: Callable, frames: list, seq_length: int) ->
     return np.stack([np.eye(4), G1, G2, G3, G3 @ metrics.rigid_inverse(T34)])
 
 
-def model_pose_fn(predictor) -> Callable:
+def model_pose_fn(predictor, allow_random_init: bool = False) -> Callable:
     """Snippet poses from the runtime's PoseNet (:func:`snippet_from_pose_calls`)."""
-    refuse_random_init(predictor)
+    if not allow_random_init:
+        refuse_random_init(predictor)
     return lambda frames, K: snippet_from_pose_calls(
         lambda f: predictor.pose(list(f)).matrices, frames, predictor.seq_length
     )
 
 
-def model_fn(task: str, predictor) -> Callable:
-    return {"depth": model_depth_fn, "flow": model_flow_fn, "pose": model_pose_fn}[task](predictor)
+def model_fn(task: str, predictor, allow_random_init: bool = False) -> Callable:
+    adapter = {"depth": model_depth_fn, "flow": model_flow_fn, "pose": model_pose_fn}[task]
+    return adapter(predictor, allow_random_init)
 
 
 # ----------------------------------------------------------------------------- baselines
@@ -412,7 +479,8 @@ def table_rows(result: dict, label: str, data_label: str | None = None) -> list[
         if "std" in result:
             cell += " ± " + _fmt(result["std"].get(key), fmt)
         cells.append(cell)
-    cells.append(str(result["metrics"]["count"]))
+    failed = len(result.get("ground_fit_failed", []))
+    cells.append(str(result["metrics"]["count"]) + (f" (+{failed} not scored: no ground plane)" if failed else ""))
     return ["| " + " | ".join(cells) + " |"]
 
 

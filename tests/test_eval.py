@@ -224,6 +224,25 @@ def test_synth_baselines_hand_computed(tmp_path):
     assert pose["std"]["ate_snippet"] == pytest.approx(0.0, abs=1e-12) and pose["metrics"]["count"] == 2
 
 
+def test_gt_snippet_and_ate_rows_against_hand_values():
+    """A snippet not starting at the identity: GT snippet poses = inv(C_0) C_i; the GT trajectory scores
+    ATE 0; the still camera scores ||gt|| / N (paper) and the RMS distance (true RMSE)."""
+    rng = np.random.default_rng(1)
+    c2w = []
+    for i in range(5):
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rng.normal(scale=0.2, size=3))[0]
+        T[:3, 3] = rng.normal(size=3) + [0, 0, 2.0 * i]
+        c2w.append(T)
+    gt = evaluation.gt_snippet(np.stack(c2w))
+    np.testing.assert_allclose(gt, [np.linalg.inv(c2w[0]) @ c for c in c2w], atol=1e-12)
+    xyz = gt[:, :3, 3]
+    assert evaluation.ate_rows(xyz, 0.5 * xyz)["ate_snippet"] < 1e-12  # any scale is fitted away
+    still = evaluation.ate_rows(xyz, np.zeros_like(xyz))
+    assert still["ate_snippet"] == pytest.approx(np.sqrt(np.sum(xyz**2)) / 5, rel=1e-12)
+    assert still["ate_rmse_true"] == pytest.approx(np.sqrt(np.mean(np.sum(xyz**2, axis=1))), rel=1e-12)
+
+
 def test_snippet_from_three_frame_pose_calls_recovers_trajectory():
     """A seq-3 PoseNet's two triplet calls chained through frame 2 give the true snippet poses."""
     rng = np.random.default_rng(0)
@@ -267,6 +286,108 @@ def test_orb_vo_recovers_direction_of_a_rendered_plane_motion():
     assert info["failed_pairs"] == 0
     direction = poses[4, :3, 3] / np.linalg.norm(poses[4, :3, 3])
     assert direction[0] > 0.95  # camera moved along +x
+
+
+# ----------------------------------------------------------------------------- depth scaled by camera height
+CAM_H, FX, CY = 1.5, 100.0, 32.0  # camera 1.5 m above a flat road, level; 64x208 frames, principal row 32
+
+
+def road_and_box(h: int = 64, w: int = 208) -> np.ndarray:
+    """Depth of a level camera CAM_H above a flat road, by hand: a ground pixel in row v sees the road at
+    z = CAM_H * fy / (v - cy); a box face 8 m ahead (columns 80-129, 1.2 m tall) hides the road behind it;
+    0 (no ground truth) at and above the horizon row."""
+    v = np.arange(h, dtype=np.float64)[:, None].repeat(w, axis=1)
+    depth = np.zeros((h, w))
+    below = v > CY
+    depth[below] = CAM_H * FX / (v[below] - CY)
+    box = np.zeros((h, w), bool)
+    box[:, 80:130] = True
+    box &= (v >= CY + FX * (CAM_H - 1.2) / 8) & (depth > 8)  # the face's rows, in front of the road
+    depth[box] = 8.0
+    return depth
+
+
+def make_road(root: Path, frames: int = 2) -> Path:
+    """A synth-layout sequence whose GT is :func:`road_and_box` (stored as KITTI depth PNGs, 1/256 m)."""
+    seq = root / "seq_0000"
+    (seq / "image").mkdir(parents=True)
+    for t in range(frames):
+        cv2.imwrite(str(seq / "image" / f"{t:06d}.png"), texture(t))
+        write_depth_png(seq / "depth" / f"{t:06d}.png", road_and_box())
+    (seq / "calib.txt").write_text(f"K: {FX} 0 104 0 {FX} {CY} 0 0 1\n")
+    return seq
+
+
+def scaled_road(rgb: np.ndarray) -> np.ndarray:
+    """The exact scene in unknown units (x 0.37); 50 units of sky where the GT has none."""
+    depth = road_and_box()
+    return np.where(depth > 0, 0.37 * depth, 50.0).astype(np.float32)
+
+
+def test_camera_height_scaling_recovers_metres_of_a_road_and_box_scene(tmp_path):
+    make_road(tmp_path)
+    data = depth_dataset(tmp_path)
+    r = evaluation.evaluate_depth(scaled_road, data, scaling="camera_height", camera_height=CAM_H)
+    assert r["errors"] == [] and r["ground_fit_failed"] == [] and r["metrics"]["count"] == 2
+    # metric again: the only error left is the PNG's 1/256 m grid
+    assert r["metrics"]["abs_rel"] < 1e-3 and r["metrics"]["a1"] == 1.0
+    for row in r["items"]:
+        assert row["scale"] == pytest.approx(1 / 0.37, rel=1e-4)
+        assert row["ground_height"] == pytest.approx(0.37 * CAM_H, rel=1e-4)
+    assert r["settings"]["scaling"] == "camera_height" and r["settings"]["camera_height"] == CAM_H
+    # unscaled, every depth is 0.37 of the truth: AbsRel = 1 - 0.37 by hand
+    raw = evaluation.evaluate_depth(scaled_road, data, scaling="none")
+    assert raw["metrics"]["abs_rel"] == pytest.approx(0.63, abs=1e-3)
+    # a wrong camera height scales every depth by the same ratio: AbsRel = |1 - 1.65 / 1.5|
+    # (cap above the farthest road point, 150 m, so that no prediction is clamped)
+    wrong = evaluation.evaluate_depth(scaled_road, data, scaling="camera_height", camera_height=1.65, max_depth=200)
+    assert wrong["metrics"]["abs_rel"] == pytest.approx(0.1, abs=1e-3)
+
+
+def test_camera_height_frame_without_ground_is_counted_named_and_not_median_scaled(tmp_path, monkeypatch, capsys):
+    make_road(tmp_path, frames=3)
+    calls = {"n": 0}
+
+    def road_then_wall(rgb):  # frame 000001: a constant depth, a wall facing the camera, no road
+        calls["n"] += 1
+        return np.full(rgb.shape[:2], 5.0, np.float32) if calls["n"] == 2 else scaled_road(rgb)
+
+    r = evaluation.evaluate_depth(road_then_wall, depth_dataset(tmp_path), scaling="camera_height", camera_height=CAM_H)
+    assert r["ground_fit_failed"] == ["seq_0000/000001"]
+    assert [e["item"] for e in r["errors"]] == ["seq_0000/000001"] and "ground plane" in r["errors"][0]["problem"]
+    failed = r["items"][1]
+    assert failed["ground_fit"] == "failed" and math.isnan(failed["abs_rel"])
+    # the mean covers the 2 frames with a road (both ~0), not a median-scaled wall (AbsRel > 0.3 here)
+    assert r["metrics"]["count"] == 2 and r["metrics"]["abs_rel"] < 1e-3
+    # CLI: exit 1, the frame named on stderr, the table's count says what was left out
+    calls["n"] = 0
+    monkeypatch.setattr(baselines, "constant_depth", road_then_wall)
+    out = tmp_path / "r.json"
+    args = ["eval", "depth", "--data", str(tmp_path), "--method", "constant", "--camera-height", "1.5"]
+    assert cli_main([*args, "--json", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert "seq_0000/000001: ground plane fit failed" in captured.err
+    assert "| 2 (+1 not scored: no ground plane) |" in captured.out
+    assert "no ground plane in 1 of 3 frames (seq_0000/000001)" in captured.out
+    result = json.loads(out.read_text())["results"][0]
+    assert result["ground_fit_failed"] == ["seq_0000/000001"] and result["items"][1]["abs_rel"] is None
+
+
+def test_camera_height_bad_input(tmp_path, capsys):
+    seq = make_road(tmp_path)
+    base = ["eval", "depth", "--data", str(tmp_path), "--method", "constant"]
+    assert cli_main([*base, "--camera-height", "0"]) == 2
+    assert "camera height must be a positive number" in capsys.readouterr().err
+    assert cli_main([*base, "--camera-height", "1.5", "--no-median-scaling"]) == 2  # one scaling at a time
+    assert "not allowed with argument --camera-height" in capsys.readouterr().err
+    assert cli_main(["eval", "flow", "--data", str(tmp_path), "--method", "zero", "--camera-height", "1.5"]) == 2
+    assert "--camera-height is for depth" in capsys.readouterr().err
+    (seq / "calib.txt").unlink()
+    assert cli_main([*base, "--camera-height", "1.5"]) == 2
+    err = capsys.readouterr().err
+    assert str(seq / "calib.txt") in err and "--intrinsics" in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(GeoNetInputError, match="unknown depth scaling 'mean'"):
+        evaluation.evaluate_depth(baselines.constant_depth, depth_dataset(tmp_path), scaling="mean")
 
 
 # ----------------------------------------------------------------------------- bad input

@@ -25,7 +25,6 @@ from onnx import TensorProto, helper, numpy_helper
 
 from export.wrappers import io_spec
 from geonet_infer import conventions
-from geonet_infer.io import read_kitti_poses
 from geonet_infer.manifest import (
     GraphEntry,
     Manifest,
@@ -35,8 +34,8 @@ from geonet_infer.manifest import (
     file_sha256,
     write_manifest,
 )
-from training import kitti_depth
-from training.model_card import ate_rows, chain_snippet, gt_snippet, main, sig3
+from geonet_infer.velodyne import velodyne_to_depth_map
+from training.model_card import main, render_card, sig3
 
 ROOT = Path(__file__).resolve().parents[1]
 H, W = 32, 96  # graph size of the stand-in models
@@ -337,6 +336,18 @@ def test_card_has_every_table_and_finite_numbers(card3):
     assert syn["depth"]["frames"] == 6 and syn["flow"]["pairs"] == 4 and syn["pose"]["snippets"] == 2
     assert result["kitti"]["frames"] == ["0000000000", "0000000001"]
     assert {r["data"] for r in result["int8_delta"]} == {"synthetic", "kitti"}
+    # the KITTI rows scaled by the camera height sit beside the median-scaled ones, failed fits counted
+    ch = result["kitti"]["depth"]["camera_height"]
+    assert ch["camera_height_m"] == 1.65
+    for p in ("fp32", "int8"):
+        failed = ch[f"{p}_ground_fit_failed"]
+        row = next(
+            line for line in md.splitlines() if line.startswith(f"| model, {p.upper()}, scaled by camera height")
+        )
+        assert "1.65 m (no median scaling)" in row and f"| {2 - len(failed)} of 2" in row
+        assert (ch[p] is None) == (len(failed) == 2)
+        for f in result["kitti"]["depth"]["per_frame"]:
+            assert (f[f"{p}_camera_height"].get("ground_fit") == "failed") == (f["frame"] in failed)
     # the stand-in INT8 differs from FP32 (depth head +0.01, residual flow +0.01 px)
     delta = {(r["data"], r["metric"]): r["delta"] for r in result["int8_delta"]}
     assert delta[("synthetic", "abs_rel")] != 0 and delta[("synthetic", "noc.epe")] != 0
@@ -352,12 +363,28 @@ def test_numbers_in_card_come_from_the_run(card3):
     assert f"{sig3(p['mean'])} ± {sig3(p['std'])}" in md
 
 
+def test_card_renders_a_partly_successful_camera_height_fit(card3):
+    """The stand-ins show no road; with one fitted frame injected, the row, count and text follow it."""
+    _, result = card3
+    result = json.loads(json.dumps(result))
+    depth = result["kitti"]["depth"]
+    depth["camera_height"]["fp32"] = dict(depth["fp32"], abs_rel=0.123, count=1)
+    depth["camera_height"]["fp32_ground_fit_failed"] = ["0000000001"]
+    depth["per_frame"][0]["fp32_camera_height"] = dict(depth["per_frame"][0]["fp32"], abs_rel=0.123)
+    md = render_card(result)
+    row = next(line for line in md.splitlines() if line.startswith("| model, FP32, scaled by camera height"))
+    assert "| 0.123 |" in row and row.endswith("| 1 of 2, ground fit failed on 1 |")
+    assert "**model, FP32: no ground plane in 1 of 2 frames** (0000000001)" in md
+    assert "found a ground plane in 1 of 2 KITTI frames (AbsRel 0.123 on those" in md
+    assert "| 0000000000 | " in md and "| 0.123 |" in md.split("Per KITTI frame")[1].splitlines()[4]
+
+
 def test_kitti_constant_baseline_equals_numpy(card3, kitti):
     """Constant-depth baseline abs_rel = that of the median GT depth as prediction (Garg crop, < 80 m)."""
     _, result = card3
     ours = []
     for stem in ("0000000000", "0000000001"):
-        gt = kitti_depth.velodyne_to_depth_map(kitti, kitti / "velodyne_points" / "data" / f"{stem}.bin", (375, 1242))
+        gt = velodyne_to_depth_map(kitti, kitti / "velodyne_points" / "data" / f"{stem}.bin", (375, 1242))
         h, w = gt.shape
         crop = np.zeros_like(gt, dtype=bool)
         crop[int(0.40810811 * h) : int(0.99189189 * h), int(0.03594771 * w) : int(0.96405229 * w)] = True
@@ -376,23 +403,11 @@ def test_pose_straight_ahead_model_beats_identity(card3):
     pose = result["synthetic"]["pose"]
     for key in ("ate_snippet", "ate_rmse_true"):
         assert pose["fp32"][key]["mean"] < 0.2 * pose["identity_baseline"][key]["mean"]
-    assert "predict_sequence" in pose["method"]
+    assert "snippet_from_pose_calls" in pose["method"]
     # The stand-in INT8 PoseNet's matrices carry no motion: flagged, and its ATE is the baseline's.
     assert pose["fp32"]["static_snippets"] == 0 and pose["int8"]["static_snippets"] == 2
     assert pose["int8"]["ate_snippet"] == pose["identity_baseline"]["ate_snippet"]
     assert "**model, INT8: in 2 of 2 snippets the predicted camera does not move at all**" in md
-
-
-def test_pose_helpers_with_ground_truth(synth):
-    """GT frame-to-next poses chained = GT snippet (ATE 0); identity = ||gt|| / N (paper) and RMS (true)."""
-    poses = read_kitti_poses(synth[0] / "seq_0000" / "poses.txt")[1:6]  # a snippet not starting at identity
-    to_next = [np.linalg.inv(poses[i + 1]) @ poses[i] for i in range(4)]
-    gt = gt_snippet(poses)[:, :3, 3]
-    assert ate_rows(gt, chain_snippet(to_next)[:, :3, 3])["ate_snippet"] < 1e-6
-    gt0 = gt - gt[0]
-    base = ate_rows(gt, np.zeros_like(gt))
-    assert base["ate_snippet"] == pytest.approx(np.sqrt(np.sum(gt0**2)) / 5, rel=1e-12)
-    assert base["ate_rmse_true"] == pytest.approx(np.sqrt(np.mean(np.sum(gt0**2, axis=1))), rel=1e-12)
 
 
 def test_five_frame_model_without_int8(tmp_path, synth, kitti):

@@ -9,8 +9,8 @@ INT8 twin are measured by one code path). Frames go through the runtime's own pr
 post-processing (:mod:`geonet_infer.preprocess`: area resize to the training size,
 normalisation, outputs mapped back to the input size), so any layout works, KITTI included.
 
-``evaluate_depth`` / ``evaluate_flow`` keep the summary format that ``export`` and
-``training.model_card`` read (held-out synthetic sequences, with the trivial baselines).
+``evaluate_depth`` / ``evaluate_flow`` keep the summary format that ``export`` reads
+(held-out synthetic sequences, with the trivial baselines).
 """
 
 from __future__ import annotations

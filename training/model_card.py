@@ -6,18 +6,21 @@
 
 Every number in the card comes from this run: the ONNX graphs are run through the
 runtime (:class:`geonet_infer.predictor.Predictor`), in fp32 and, when the manifest
-has them, INT8, and scored with the project's evaluation code:
+has them, INT8, and scored by the code ``geonet-infer eval`` uses (data from
+:mod:`geonet_infer.datasets`, scores from :mod:`geonet_infer.evaluation`, baselines
+from :mod:`geonet_infer.baselines`); this module only picks the data and renders:
 
 * held-out synthetic sequences (``heldout.txt`` of the prepared dir, never trained
-  on): depth (:func:`training.evaluate.evaluate_depth`; Eigen errors, per-image
-  median scaling, 80 m cap, every pixel with ground truth) against the
-  constant-depth baseline; flow EPE / Fl on noc and occ pixels
-  (:func:`training.evaluate.evaluate_flow`) against zero flow; pose ATE on
-  5-frame snippets (``metrics.ate_snippet``, the paper's divide-by-N value, and
-  ``metrics.ate_rmse_true``) against the identity pose (no motion);
+  on): depth (Eigen errors, per-image median scaling, 80 m cap, every pixel with
+  ground truth) against the constant-depth baseline; flow EPE / Fl on noc and occ
+  pixels against zero flow; pose ATE on 5-frame snippets (``metrics.ate_snippet``,
+  the paper's divide-by-N value, and ``metrics.ate_rmse_true``) against the
+  identity pose (no motion);
 * real KITTI raw frames with Velodyne scans (never trained on): depth against the
-  projected Velodyne ground truth (:mod:`training.kitti_depth`), Eigen protocol
-  with the Garg crop, 80 m cap and median scaling, at the frames' own resolution.
+  projected Velodyne ground truth, Eigen protocol with the Garg crop, 80 m cap and
+  median scaling, at the frames' own resolution; and the same frames scaled by the
+  camera height (1.65 m, ground plane fitted to the prediction, no ground truth),
+  counting and naming the frames where no ground plane is found.
 
 Random-init (timing-only) model directories are refused unless
 ``--allow-random-init`` is given (development only; the card then carries a
@@ -40,19 +43,17 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer import metrics
+from geonet_infer import baselines, evaluation, metrics
+from geonet_infer.datasets import SNIPPET, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import list_images, read_calib_K, read_image, read_kitti_poses
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest
 from geonet_infer.predictor import Predictor
-from training import kitti_depth
-from training.evaluate import MAX_DEPTH, evaluate_depth, evaluate_flow, heldout_sequences
 
-SNIPPET = 5  # frames per pose snippet (the paper's protocol)
 KITTI_CROP = "garg"
-MIN_DEPTH = 1e-3
-DEPTH_COLUMNS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+KITTI_CAMERA_HEIGHT = 1.65  # metres: KITTI's colour cameras above the road (Geiger et al., IJRR 2013)
+MIN_DEPTH, MAX_DEPTH = evaluation.MIN_DEPTH, evaluation.MAX_DEPTH
+DEPTH_KEYS = (*metrics.DEPTH_KEYS, "scale", "n_valid")
 DEPTH_HEADERS = ("AbsRel", "SqRel", "RMSE", "RMSElog", "δ<1.25", "δ<1.25²", "δ<1.25³")
 PRECISION_LABEL = {"fp32": "model, FP32", "int8": "model, INT8"}
 Progress = Callable[[str], None]
@@ -117,47 +118,29 @@ def _require_dir(path: str | Path, what: str, hint: str = "") -> Path:
     return path
 
 
-def kitti_frames(kitti_dir: str | Path, n_frames: int) -> list[tuple[Path, Path]]:
-    """The first ``n_frames`` (image_02 PNG, Velodyne .bin) pairs of a KITTI raw drive folder."""
-    root = _require_dir(kitti_dir, "KITTI raw folder", "expected image_02/, velodyne_points/ and the calibration")
-    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
-        if not (root / name).is_file():
-            raise GeoNetInputError(
-                root / name,
-                "KITTI calibration file not found",
-                "the drive folder must hold the date's calibration files",
-            )
-    images = list_images(_require_dir(root / "image_02" / "data", "KITTI image folder"))
-    velo_dir = _require_dir(root / "velodyne_points" / "data", "KITTI Velodyne folder")
-    pairs = [(img, velo_dir / f"{img.stem}.bin") for img in images if (velo_dir / f"{img.stem}.bin").is_file()]
-    if len(pairs) < n_frames:
-        raise GeoNetInputError(
-            velo_dir, f"only {len(pairs)} frames have a Velodyne scan, {n_frames} requested", "lower --kitti-frames"
-        )
-    return pairs[:n_frames]
+def _checked(result: dict, what: str, allowed: Sequence[str] = ()) -> dict:
+    """``result`` if no item outside ``allowed`` has an error (a NaN prediction would make the card's means NaN)."""
+    for error in result["errors"]:
+        if error["item"] not in allowed:
+            raise GeoNetInputError(error["item"], f"{what}: {error['problem']}", "the model produced NaN/inf")
+    return result
 
 
-# ----------------------------------------------------------------------------- predictors
-def depth_predictor(predictor: Predictor) -> Callable[[np.ndarray], np.ndarray]:
-    """``predict_depth(rgb) -> depth (H, W)`` at the input resolution (for evaluate_depth)."""
-    return lambda rgb: predictor.depth(rgb).depth
+def _means(rows: list[dict]) -> dict:
+    """Per-frame means of the depth errors, the applied scale and the GT pixel count, plus "count"."""
+    return metrics.aggregate([{k: r[k] for k in DEPTH_KEYS} for r in rows])
 
 
-def flow_predictor(predictor: Predictor) -> Callable[[list, np.ndarray], np.ndarray]:
-    """``predict_flow([t-1, t, t+1], K) -> flow t -> t+1`` (for evaluate_flow).
-
-    A 3-frame model gets the triplet as its snippet. evaluate_flow hands over
-    triplets only, so a model with longer snippets gets the pair [t, t+1]
-    (padded by the runtime as at a sequence start).
-    """
-    if predictor.seq_length == 3:
-        return lambda triplet, K: predictor.flow(list(triplet), K).flow
-    return lambda triplet, K: predictor.flow([triplet[1], triplet[2]], K).flow
-
-
-def zero_flow(triplet: list, K: np.ndarray) -> np.ndarray:
-    """The zero-flow baseline."""
-    return np.zeros(triplet[1].shape[:2] + (2,), np.float32)
+def _flow_block(result: dict) -> dict:
+    """{"noc": ..., "occ": ...} means of a flow result (KITTI's "occ" = evaluation's "all")."""
+    out = {}
+    for which, key in (("noc", "noc"), ("occ", "all")):
+        rows = [
+            {"epe": r[f"epe_{key}"], "fl": r[f"fl_{key}"], "acc": 1.0 - r[f"fl_{key}"], "n_valid": r[f"n_valid_{key}"]}
+            for r in result["items"]
+        ]
+        out[which] = metrics.aggregate(rows)
+    return out
 
 
 def pose_method(seq_length: int) -> str:
@@ -169,126 +152,98 @@ def pose_method(seq_length: int) -> str:
             "(the paper's protocol)"
         )
     return (
-        f"the model takes {seq_length}-frame snippets, so each held-out sequence is run once through "
-        "`Predictor.predict_sequence` (each frame's pose to the next one from the snippet centred on "
-        "it, with its real neighbours; only a sequence's first and last frames see replicated "
-        "ends) and, for every 5-frame snippet, the 4 consecutive frame-to-next poses inside it are "
-        "chained from the snippet's first frame (G₀ = I, Gᵢ₊₁ = Gᵢ · T⁻¹ᵢ→ᵢ₊₁)"
+        f"the model takes {seq_length}-frame snippets, so PoseNet runs on the snippet's triplets [0, 1, 2] "
+        "and [2, 3, 4] and the four poses are chained through frame 2 "
+        "(`evaluation.snippet_from_pose_calls`; only the snippet's own frames are used)"
     )
 
 
-def chain_snippet(pose_to_next: Sequence[np.ndarray]) -> np.ndarray:
-    """(n-1) frame→next transforms (target→source, mapping camera-i points to camera-(i+1))
-    -> (n, 4, 4) poses of each frame in the first frame's coordinates (first = identity)."""
-    poses = [np.eye(4)]
-    for T in pose_to_next:
-        poses.append(poses[-1] @ metrics.rigid_inverse(T))
-    return np.stack(poses)
+def evaluate_synthetic(
+    predictors: dict[str, Predictor],
+    synth_dir: Path,
+    sequences: list[str],
+    stride: int,
+    allow_random_init: bool,
+    progress: Progress,
+) -> tuple[dict, dict, dict]:
+    """Depth, flow and pose blocks of the card on the held-out sequences, with their trivial baselines."""
+    depth_data = depth_dataset(synth_dir, "synth", sequences, stride)
+    flow_data = flow_dataset(synth_dir, "synth", sequences, stride)
+    pose_data = pose_dataset(synth_dir, "synth", sequences, stride)
+    depth, flow, pose = {}, {}, {}
+    static = {}  # snippets where the model predicts no motion at all
+    for p, predictor in predictors.items():
+        progress(f"{p}: synthetic depth")
+        r = evaluation.evaluate_depth(evaluation.model_depth_fn(predictor, allow_random_init), depth_data)
+        depth[p] = _means(_checked(r, f"{p} depth")["items"])
+        progress(f"{p}: synthetic flow")
+        r = evaluation.evaluate_flow(evaluation.model_flow_fn(predictor, allow_random_init), flow_data)
+        flow[p] = _flow_block(_checked(r, f"{p} flow"))
+        progress(f"{p}: synthetic pose")
+        static[p] = 0
+
+        def count_static(item, gt, pred, row, p=p):
+            static[p] += int(not np.any(pred[:, :3, 3] - pred[0, :3, 3]))
+
+        r = evaluation.evaluate_pose(
+            evaluation.model_pose_fn(predictor, allow_random_init), pose_data, observe=count_static
+        )
+        pose[p] = _pose_block(_checked(r, f"{p} pose")) | {"static_snippets": static[p]}
+    progress("baselines")
+    depth["constant_baseline"] = _means(evaluation.evaluate_depth(baselines.constant_depth, depth_data)["items"])
+    depth["frames"] = len(depth_data.items)
+    flow["zero_flow_baseline"] = _flow_block(evaluation.evaluate_flow(baselines.zero_flow, flow_data))
+    flow["pairs"] = len(flow_data.items)
+    pose["identity_baseline"] = _pose_block(evaluation.evaluate_pose(baselines.identity_pose, pose_data))
+    pose["snippets"] = len(pose_data.items)
+    return depth, flow, pose
 
 
-def gt_snippet(camera_to_world: np.ndarray) -> np.ndarray:
-    """GT camera-to-world poses of a snippet -> poses in its first frame's coordinates,
-    through the official path (world→camera, then ``snippet_poses_to_global``)."""
-    return metrics.snippet_poses_to_global(metrics.rigid_inverse(camera_to_world))
-
-
-def snippet_starts(n_frames: int, stride: int) -> list[int]:
-    """First frames of the 5-frame snippets (targets 2 .. N-3, every ``stride``-th)."""
-    return list(range(0, n_frames - SNIPPET + 1, stride))
-
-
-def ate_rows(gt_xyz: np.ndarray, pred_xyz: np.ndarray) -> dict:
-    """Both ATEs of one snippet. Both trajectories start at the origin in theory; the first
-    positions are subtracted here so that they are exactly 0 (``inv(C_s) @ C_s`` leaves ~1e-16,
-    and ``metrics``' alignment would then fit a huge scale to that rounding noise when the
-    prediction stands still, as the identity baseline does)."""
-    gt_xyz = gt_xyz - gt_xyz[0]
-    pred_xyz = pred_xyz - pred_xyz[0]
-    return {
-        "ate_snippet": metrics.ate_snippet(gt_xyz, pred_xyz),
-        "ate_rmse_true": metrics.ate_rmse_true(gt_xyz, pred_xyz),
+def _pose_block(result: dict) -> dict:
+    keys = ("ate_snippet", "ate_rmse_true")
+    return {k: {"mean": result["metrics"][k], "std": result["std"][k]} for k in keys} | {
+        "count": result["metrics"]["count"]
     }
 
 
-def _summary(rows: list[dict]) -> dict:
-    mean, std = metrics.aggregate(rows), metrics.aggregate_std(rows)
-    return {key: {"mean": mean[key], "std": std[key]} for key in rows[0]} | {"count": len(rows)}
-
-
-def evaluate_pose(
-    predictors: dict[str, Predictor], synth_dir: Path, sequences: list[str], stride: int, progress: Progress
+def evaluate_kitti(
+    predictors: dict[str, Predictor], data, camera_height: float, allow_random_init: bool, progress: Progress
 ) -> dict:
-    """ATE of each predictor and of the identity pose on the 5-frame snippets of the held-out sequences."""
-    rows: dict[str, list] = {p: [] for p in predictors}
-    rows["identity_baseline"] = []
-    static = {p: 0 for p in predictors}  # snippets where the model predicts no motion at all
-    for name in sequences:
-        seq = synth_dir / name
-        frames = list_images(seq / "image")
-        gt_c2w = read_kitti_poses(seq / "poses.txt")
-        if len(gt_c2w) != len(frames):
-            raise GeoNetInputError(
-                seq / "poses.txt",
-                f"{len(gt_c2w)} poses for {len(frames)} frames",
-                "regenerate the sequence with training.synth",
+    """Eigen-protocol depth (Garg crop, 80 m) on KITTI frames: median-scaled (model and constant
+    depth) and scaled by the camera height (model only: a constant depth has no ground plane)."""
+    sizes = {}
+    per_frame: dict[str, dict] = {item.name: {} for item in data.items}
+
+    def keep_size(item, rgb, gt, pred, row):
+        sizes[item.name] = rgb.shape[:2]
+
+    out: dict = {}
+    by_camera_height: dict = {"camera_height_m": camera_height}
+    runs = [(p, evaluation.model_depth_fn(predictor, allow_random_init)) for p, predictor in predictors.items()]
+    for key, fn in [*runs, ("constant_baseline", baselines.constant_depth)]:
+        progress(f"{key}: KITTI depth")
+        r = _checked(evaluation.evaluate_depth(fn, data, crop=KITTI_CROP, observe=keep_size), f"{key} KITTI depth")
+        out[key] = _means(r["items"])
+        for row in r["items"]:
+            per_frame[row["name"]][key] = {k: row[k] for k in DEPTH_KEYS}
+    for p, fn in runs:
+        progress(f"{p}: KITTI depth scaled by camera height")
+        r = evaluation.evaluate_depth(fn, data, crop=KITTI_CROP, scaling="camera_height", camera_height=camera_height)
+        failed = _checked(r, f"{p} KITTI depth scaled by camera height", r["ground_fit_failed"])["ground_fit_failed"]
+        scored = [row for row in r["items"] if row["name"] not in failed]
+        by_camera_height[p] = _means(scored) if scored else None  # None: no frame had a ground plane
+        by_camera_height[f"{p}_ground_fit_failed"] = failed
+        for row in r["items"]:
+            per_frame[row["name"]][f"{p}_camera_height"] = (
+                {"ground_fit": "failed", "problem": row["problem"]}
+                if row["name"] in failed
+                else {k: row[k] for k in (*DEPTH_KEYS, "ground_height", "ground_inliers")}
             )
-        starts = snippet_starts(len(frames), stride)
-        if not starts:
-            continue
-        K = read_calib_K(seq / "calib.txt")
-        model_traj = {}
-        for precision, predictor in predictors.items():
-            progress(f"{precision}: pose, {name}")
-            if predictor.seq_length == SNIPPET:
-                model_traj[precision] = None  # per snippet below
-            else:
-                result = predictor.predict_sequence(frames, K)
-                model_traj[precision] = [f.pose_to_next for f in result.frames]
-        for s in starts:
-            gt_xyz = gt_snippet(gt_c2w[s : s + SNIPPET])[:, :3, 3]
-            for precision, predictor in predictors.items():
-                if model_traj[precision] is None:
-                    mats = predictor.pose(frames[s : s + SNIPPET]).matrices
-                    pred = metrics.snippet_poses_to_global(mats, target_index=SNIPPET // 2)
-                else:
-                    pred = chain_snippet(model_traj[precision][s : s + SNIPPET - 1])
-                rows[precision].append(ate_rows(gt_xyz, pred[:, :3, 3]))
-                static[precision] += int(not np.any(pred[:, :3, 3] - pred[0, :3, 3]))
-            rows["identity_baseline"].append(ate_rows(gt_xyz, np.zeros_like(gt_xyz)))
-    if not rows["identity_baseline"]:
-        raise GeoNetInputError(synth_dir, f"no held-out sequence has {SNIPPET} frames", "generate longer sequences")
-    out = {key: _summary(r) for key, r in rows.items()}
-    for p, n in static.items():
-        out[p]["static_snippets"] = n
-    return out | {"snippets": len(rows["identity_baseline"])}
-
-
-def evaluate_kitti_depth(
-    predictors: dict[str, Predictor], pairs: list[tuple[Path, Path]], calib_dir: Path, progress: Progress
-) -> dict:
-    """Eigen-protocol depth (Garg crop, 80 m, median scaling) on KITTI frames with Velodyne GT."""
-    per_frame = []
-    model_rows: dict[str, list] = {p: [] for p in predictors}
-    baseline_rows = []
-    for image_path, velo_path in pairs:
-        rgb = read_image(image_path)
-        gt = kitti_depth.velodyne_to_depth_map(calib_dir, velo_path, rgb.shape[:2], cam=2, vel_depth=True)
-        frame = {"frame": image_path.stem, "height": rgb.shape[0], "width": rgb.shape[1]}
-        for precision, predictor in predictors.items():
-            progress(f"{precision}: KITTI depth, frame {image_path.stem}")
-            pred = metrics.resize_depth_to(predictor.depth(rgb).depth, gt.shape)
-            row = metrics.depth_metrics(gt, pred, MIN_DEPTH, MAX_DEPTH, crop=KITTI_CROP)
-            model_rows[precision].append(row)
-            frame[precision] = row
-        # The constant-depth baseline: any constant, after median scaling = the frame's GT median.
-        row = metrics.depth_metrics(gt, np.ones_like(gt), MIN_DEPTH, MAX_DEPTH, crop=KITTI_CROP)
-        baseline_rows.append(row)
-        frame["constant_baseline"] = row
-        per_frame.append(frame)
-    out = {p: metrics.aggregate(r) for p, r in model_rows.items()}
-    out["constant_baseline"] = metrics.aggregate(baseline_rows)
-    out["frames"] = len(per_frame)
-    out["per_frame"] = per_frame
+    out["camera_height"] = by_camera_height
+    out["frames"] = len(data.items)
+    out["per_frame"] = [
+        {"frame": name, "height": sizes[name][0], "width": sizes[name][1]} | f for name, f in per_frame.items()
+    ]
     return out
 
 
@@ -351,32 +306,30 @@ def run(args, command: str, progress: Progress) -> dict:
             "export a trained --checkpoint (--allow-random-init is for development)",
         )
     synth_dir = _require_dir(args.synth_dir, "synthetic data folder", "generate it with `python -m training.synth`")
-    _require_dir(args.prepared_dir, "prepared data folder", "prepare it with `python -m training.prepare`")
-    sequences = heldout_sequences(args.prepared_dir)
+    prepared_dir = _require_dir(
+        args.prepared_dir, "prepared data folder", "prepare it with `python -m training.prepare`"
+    )
+    sequences = read_heldout(prepared_dir / "heldout.txt")
     for name in sequences:
         _require_dir(synth_dir / name, "held-out sequence folder", "--synth-dir and --prepared-dir must match")
-    kitti_dir = Path(args.kitti)
-    pairs = kitti_frames(kitti_dir, args.kitti_frames)
+    kitti_data = depth_dataset(
+        _require_dir(args.kitti, "KITTI raw folder", "expected image_02/, velodyne_points/ and the calibration"),
+        "kitti-raw",
+        limit=args.kitti_frames,
+    )
+    if len(kitti_data.items) < args.kitti_frames:
+        raise GeoNetInputError(
+            args.kitti,
+            f"only {len(kitti_data.items)} frames have ground truth, {args.kitti_frames} requested",
+            "lower --kitti-frames",
+        )
 
     precisions = [p for p in ("fp32", "int8") if p in manifest.precisions]
     predictors = {p: Predictor(model_dir, precision=p, threads=args.threads, manifest=manifest) for p in precisions}
-
-    depth, flow = {}, {}
-    for p, predictor in predictors.items():
-        progress(f"{p}: synthetic depth")
-        r = evaluate_depth(depth_predictor(predictor), synth_dir, sequences, args.stride)
-        depth[p] = r["model"]
-        depth["constant_baseline"], depth["frames"] = r["constant_baseline"], r["frames"]
-        progress(f"{p}: synthetic flow")
-        r = evaluate_flow(flow_predictor(predictor), synth_dir, sequences, args.stride)
-        flow[p] = {"noc": r["noc"], "occ": r["occ"]}
-        flow["pairs"] = r["pairs"]
-    progress("zero-flow baseline")
-    r = evaluate_flow(zero_flow, synth_dir, sequences, args.stride)
-    flow["zero_flow_baseline"] = {"noc": r["noc"], "occ": r["occ"]}
-    pose = evaluate_pose(predictors, synth_dir, sequences, args.stride, progress)
+    random_ok = bool(args.allow_random_init)
+    depth, flow, pose = evaluate_synthetic(predictors, synth_dir, sequences, args.stride, random_ok, progress)
     pose["method"] = pose_method(manifest.seq_length)
-    kitti = evaluate_kitti_depth(predictors, pairs, kitti_dir, progress)
+    kitti = evaluate_kitti(predictors, kitti_data, KITTI_CAMERA_HEIGHT, random_ok, progress)
 
     result = {
         "command": command,
@@ -396,7 +349,8 @@ def run(args, command: str, progress: Progress) -> dict:
         },
         "kitti": {
             "dir": str(args.kitti),
-            "frames": [img.stem for img, _ in pairs],
+            "frames": [item.name for item in kitti_data.items],
+            "ground_truth": kitti_data.items[0].gt_kind,
             "crop": KITTI_CROP,
             "min_depth": MIN_DEPTH,
             "max_depth": MAX_DEPTH,
@@ -472,14 +426,51 @@ def _data_kitti(result: dict) -> str:
     return f"KITTI raw `{Path(k['dir']).name}`, frames {span} ({len(frames)}, {pf['width']}×{pf['height']})"
 
 
+def _camera_height_label(p: str, camera_height: float) -> str:
+    return f"{PRECISION_LABEL[p]}, scaled by camera height {camera_height:g} m (no median scaling)"
+
+
 def _depth_table(block: dict, data: str, count_key: str) -> list[str]:
+    """Median-scaled rows; with a ``camera_height`` block, each precision's camera-height row beside it."""
     rows = []
+    by_height = block.get("camera_height")
     for key in ("fp32", "int8", "constant_baseline"):
         if key not in block:
             continue
         label = PRECISION_LABEL.get(key, "constant depth (baseline)")
-        rows.append([label, data] + [sig3(block[key][c]) for c in DEPTH_COLUMNS] + [sig3(block[key]["count"])])
+        rows.append([label, data] + [sig3(block[key][c]) for c in metrics.DEPTH_KEYS] + [sig3(block[key]["count"])])
+        if by_height and key in by_height:
+            means, failed = by_height[key], by_height[f"{key}_ground_fit_failed"]
+            scored = block["frames"] - len(failed)
+            count = f"{scored} of {block['frames']}" + (f", ground fit failed on {len(failed)}" if failed else "")
+            rows.append(
+                [_camera_height_label(key, by_height["camera_height_m"]), data]
+                + [sig3(means[c] if means else None) for c in metrics.DEPTH_KEYS]
+                + [count]
+            )
     return _table(["predictor", "data"] + list(DEPTH_HEADERS) + [count_key], rows)
+
+
+def _camera_height_text(block: dict) -> list[str]:
+    """What the camera-height rows did, with every frame whose ground fit failed."""
+    h = block["camera_height"]
+    out = [
+        f"Scaled by camera height: per frame, a ground plane is fitted to the predicted depth "
+        "(`geonet_infer.scale.fit_ground_plane`: RANSAC on the image below the horizon, normal within 20° of "
+        "the camera's down axis, at least 10 % of the points within 2 % of the plane's distance) and the depth "
+        f"is multiplied so that the plane lies {h['camera_height_m']:g} m below the camera (KITTI's colour "
+        'cameras); the ground truth is not used (`evaluation.evaluate_depth(..., scaling="camera_height")`, '
+        "`geonet-infer eval depth --camera-height`). A frame without such a plane is not scored and never "
+        "median-scaled instead: the means cover the other frames."
+    ]
+    for p in ("fp32", "int8"):
+        failed = h.get(f"{p}_ground_fit_failed")
+        if failed:
+            out.append(
+                f"**{PRECISION_LABEL[p]}: no ground plane in {len(failed)} of {block['frames']} frames** "
+                f"({', '.join(failed)})."
+            )
+    return [" ".join(out), ""]
 
 
 def _flow_table(block: dict, data: str) -> list[str]:
@@ -520,6 +511,21 @@ def _pose_table(block: dict, data: str) -> list[str]:
             ]
         )
     return _table(["predictor", "data", "ATE, paper (÷N) mean ± std", "ATE, true RMSE mean ± std", "snippets"], rows)
+
+
+def _camera_height_limitation(block: dict) -> str:
+    """How far metric depth from the camera height got on the KITTI frames (FP32)."""
+    h = block["camera_height"]
+    failed, n = len(h["fp32_ground_fit_failed"]), block["frames"]
+    if failed == n:
+        return (
+            f"Metric depth from the camera height ({h['camera_height_m']:g} m) found no ground plane in any of the "
+            f"{n} KITTI frames, so without ground truth this model gives depth in arbitrary units."
+        )
+    return (
+        f"Metric depth from the camera height ({h['camera_height_m']:g} m) found a ground plane in {n - failed} of "
+        f"{n} KITTI frames (AbsRel {sig3(h['fp32']['abs_rel'])} on those, without median scaling)."
+    )
 
 
 def _compare(model: float, baseline: float, lower_is_better: bool = True) -> str:
@@ -666,14 +672,14 @@ def render_card(result: dict) -> str:
         + (f"; one frame / pair / snippet in {s['stride']} (`--stride {s['stride']}`)" if s["stride"] > 1 else "")
         + ". Depth: every pixel with ground truth (no crop), per-image median scaling, clamp to "
         f"[{MIN_DEPTH:g}, {result['settings']['max_depth']:g}] m "
-        "(`training.evaluate.evaluate_depth`). Flow t→t+1 from the snippet "
+        "(`geonet_infer.evaluation.evaluate_depth`). Flow t→t+1 from the snippet "
         + (
             "[t−1, t, t+1]"
             if result["settings"]["flow_seq_length"] == 3
             else "pair [t, t+1] (padded by the runtime; `evaluate_flow` passes triplets only)"
         )
         + ", EPE and Fl (EPE > 3 px and > 5 %) on non-occluded (noc) and all in-view (occ) pixels "
-        "(`training.evaluate.evaluate_flow`).",
+        "(`geonet_infer.evaluation.evaluate_flow`).",
         f"* **Pose**: ATE on {SNIPPET}-frame snippets (every target t = 2 … N−3"
         + (f", stride {s['stride']}" if s["stride"] > 1 else "")
         + ") against the synthetic ground-truth "
@@ -681,12 +687,18 @@ def render_card(result: dict) -> str:
         f"coordinates with `metrics.snippet_poses_to_global`). Model trajectory: {s['pose']['method']}. "
         "`ATE, paper` is `metrics.ate_snippet`, the SfMLearner/GeoNet value with its quirk kept: "
         "√(Σ‖e‖²)/N, i.e. the true RMSE ÷ √5, with only a scale (no rotation) fitted per snippet. "
-        "`ATE, true RMSE` is `metrics.ate_rmse_true` after the same alignment. Units are the synthetic "
-        "world's metres.",
-        f"* **Real KITTI**: {kitti_data} with Velodyne scans, never trained on. Ground truth: the scans "
-        "projected by `training.kitti_depth.velodyne_to_depth_map` (camera 2, Velodyne forward distance). "
-        f"Eigen protocol: {KITTI_CROP.capitalize()} crop, {k['min_depth']:g} < GT < {k['max_depth']:g} m, "
-        "per-image median scaling, then clamp; the runtime returns depth at the input resolution.",
+        "`ATE, true RMSE` is `metrics.ate_rmse_true` after the same alignment "
+        "(`geonet_infer.evaluation.evaluate_pose`). Units are the synthetic world's metres.",
+        f"* **Real KITTI**: {kitti_data}, never trained on. Ground truth: "
+        + (
+            "the Velodyne scans projected by `geonet_infer.velodyne.velodyne_to_depth_map` (camera 2, Velodyne "
+            "forward distance)"
+            if k["ground_truth"] == "velodyne"
+            else "the sparse depth PNGs of `proj_depth/groundtruth/image_02`"
+        )
+        + f". Eigen protocol: {KITTI_CROP.capitalize()} crop, {k['min_depth']:g} < GT < "
+        f"{k['max_depth']:g} m, per-image median scaling (or the camera height, rows so labelled), then clamp; "
+        "the runtime returns depth at the input resolution.",
         "* **Baselines**: *constant depth* predicts one value per image; after median scaling that is the "
         "image's median GT depth. *Zero flow* predicts no motion. *Identity pose* predicts no camera "
         "motion; its ATE is the snippet's own extent. The per-snippet least-squares scale can shrink any "
@@ -701,12 +713,23 @@ def render_card(result: dict) -> str:
     L += _depth_table(d, synth_data, "frames") + [""]
     L += ["### Real KITTI (Velodyne ground truth)", ""]
     L += _depth_table(k["depth"], kitti_data, "frames") + [""]
+    L += _camera_height_text(k["depth"])
     L += ["Per KITTI frame (AbsRel):", ""]
-    keys = [p for p in ("fp32", "int8") if p in k["depth"]] + ["constant_baseline"]
+    keys = [c for p in ("fp32", "int8") if p in k["depth"] for c in (p, f"{p}_camera_height")]
+    keys.append("constant_baseline")
+
+    def label(key: str) -> str:
+        if key.endswith("_camera_height"):
+            return f"{PRECISION_LABEL[key[: -len('_camera_height')]].removeprefix('model, ')}, camera height"
+        return PRECISION_LABEL.get(key, "constant depth")
+
+    def cell(row: dict) -> str:
+        return "no ground plane" if row.get("ground_fit") == "failed" else sig3(row["abs_rel"])
+
     L += _table(
-        ["frame"] + [PRECISION_LABEL.get(p, "constant depth") for p in keys] + ["GT pixels"],
+        ["frame"] + [label(c) for c in keys] + ["GT pixels"],
         [
-            [f["frame"]] + [sig3(f[p]["abs_rel"]) for p in keys] + [sig3(f["constant_baseline"]["n_valid"])]
+            [f["frame"]] + [cell(f[c]) for c in keys] + [sig3(f["constant_baseline"]["n_valid"])]
             for f in k["depth"]["per_frame"]
         ],
     ) + [""]
@@ -801,9 +824,8 @@ def render_card(result: dict) -> str:
         f"({_compare(sd[best]['abs_rel'], sd['constant_baseline']['abs_rel'])} the baseline). This is no "
         "substitute for the 697-image Eigen split.",
         "* **Relative scale.** Depth and camera translation are known only up to an unknown scale. Every "
-        "depth number uses per-image median scaling with the ground truth and every ATE a per-snippet "
-        "scale fit, so none of them measures metric scale; a user without ground truth gets depth in "
-        "arbitrary units.",
+        "depth number except the camera-height rows uses per-image median scaling with the ground truth and "
+        "every ATE a per-snippet scale fit, so those do not measure metric scale. " + _camera_height_limitation(kd),
         "* **Pose ATE on 5-frame snippets** hides drift and most rotation error, and the paper's value "
         "divides by N (it is the true RMSE ÷ √5). There is no real-data pose or flow evaluation here "
         "(the KITTI frames have no poses and no flow ground truth).",

@@ -19,7 +19,10 @@ protocols, and print a table in the paper's column order (JSON with every item v
 
   depth  Eigen metrics AbsRel SqRel RMSE RMSElog δ<1.25 δ<1.25² δ<1.25³; per-image median
          scaling, then clamp to [0.001, --max-depth]; Garg crop on KITTI, every GT pixel on
-         synthetic frames (--crop to change).
+         synthetic frames (--crop to change). --camera-height M scales each frame instead so
+         the ground plane fitted to the prediction lies M metres below the camera (no ground
+         truth used; 1.65 for KITTI); a frame without a plausible ground plane is not scored,
+         named on stderr and counted in the table (exit code 1).
   flow   average end-point error on non-occluded (Noc) and all (All) GT pixels, and Fl
          (outliers: EPE > 3 px and > 5 %); predictions resized to the GT size (nearest,
          vectors scaled).
@@ -48,12 +51,14 @@ Layouts (--layout, default auto):
          kitti-odometry  sequences/XX with image_2/ (or image_0/), calib.txt, and poses.txt
                      there or poses/XX.txt two levels up; frames matched to poses by number
 
-exit codes: 0 done; 1 some predictions held NaN/inf (reported per item, means are NaN);
+exit codes: 0 done; 1 some predictions held NaN/inf (reported per item, means are NaN) or,
+with --camera-height, some frames had no ground plane (named, left out of the means);
 2 bad usage or data (one line naming the file)
 
 examples:
   geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd
   geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --max-depth 50 --precision int8
+  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --camera-height 1.65
   geonet-infer eval flow --data ../shared/realdata/middlebury_flow --method dis,zero
   geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 --method model,orb-vo,identity
   geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --json flow.json
@@ -98,8 +103,17 @@ def add_parser(sub) -> None:
         choices=["auto", "garg", "eigen", "none"],
         help="depth crop (default auto: Garg on KITTI, none on synthetic)",
     )
-    group.add_argument(
+    scaling = group.add_mutually_exclusive_group()
+    scaling.add_argument(
         "--no-median-scaling", action="store_true", help="depth: score raw depths (metric or stereo-scaled models only)"
+    )
+    scaling.add_argument(
+        "--camera-height",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="depth: scale each frame by the ground plane at this camera height instead of the GT median "
+        "(KITTI: 1.65); K from the data's calibration or --intrinsics",
     )
     group.add_argument(
         "--multiview",
@@ -111,7 +125,8 @@ def add_parser(sub) -> None:
         "--intrinsics",
         default=None,
         metavar="FX,FY,CX,CY",
-        help="flow with a model on data without calibration (Middlebury): K at the frames' size",
+        help="K at the frames' size for data without calibration: flow with a model (Middlebury), "
+        "depth with --camera-height",
     )
     parser.add_argument("--json", type=Path, default=None, help="also write every result and item here")
     parser.set_defaults(run=run)
@@ -147,6 +162,12 @@ def methods_for(task: str, text: str, args) -> list[tuple[str, object]]:
 def run(args: argparse.Namespace) -> int:
     if args.max_depth <= evaluation.MIN_DEPTH:
         raise GeoNetInputError(None, f"--max-depth {args.max_depth:g} must be above {evaluation.MIN_DEPTH:g} m")
+    if args.camera_height is not None and args.task != "depth":
+        raise GeoNetInputError(None, f"--camera-height is for depth, not {args.task}")
+    if args.camera_height is not None:
+        scaling = "camera_height"
+    else:
+        scaling = "none" if args.no_median_scaling else "median"
     sequences = read_heldout(args.heldout) if args.heldout else None
     options = {"sequences": sequences, "stride": args.stride, "limit": args.limit}
     if args.task == "flow":
@@ -162,7 +183,9 @@ def run(args: argparse.Namespace) -> int:
                 method=label,
                 max_depth=args.max_depth,
                 crop=None if args.crop == "none" else args.crop,
-                median_scaling=not args.no_median_scaling,
+                scaling=scaling,
+                camera_height=args.camera_height,
+                intrinsics=K,
             )
         elif args.task == "flow":
             result = evaluation.evaluate_flow(fn, dataset, method=label, intrinsics=K)
@@ -172,6 +195,13 @@ def run(args: argparse.Namespace) -> int:
     print(evaluation.format_table(results))
     for note in dataset.notes:
         print(f"note: {note}")
+    for label, result in results:
+        failed = result.get("ground_fit_failed", [])
+        if failed:
+            print(
+                f"note: {label}: no ground plane in {len(failed)} of {len(result['items'])} frames "
+                f"({', '.join(failed)}): not scored, the means cover the other {result['metrics']['count']}"
+            )
     if args.json:
         evaluation.write_json(args.json, {"task": args.task, "results": [r for _, r in results]})
         print(f"details: {args.json}")
