@@ -172,18 +172,52 @@ def test_flow_stage_freezes_rigid_nets(synth_prepared, tmp_path):
     assert model_from_checkpoint(load_checkpoint(flow["last"])).flow_net is not None
 
 
-def test_flow_stage_rejects_a_flow_checkpoint_as_init(synth_prepared, tmp_path):
+def test_init_checkpoint_fine_tunes_from_a_checkpoint_or_a_weights_file(synth_prepared, tmp_path):
+    """--init-checkpoint starts from given weights with a fresh optimizer (lr 0: weights stay put)."""
+    from training.checkpoint import WEIGHTS_FORMAT, load_checkpoint, save_weights
+
     rigid = train(config(synth_prepared, tmp_path / "rigid", max_steps=1), progress=False)
     flow = train(
         config(synth_prepared, tmp_path / "flow", stage="flow", max_steps=1, init_checkpoint=str(rigid["last"])),
         progress=False,
     )
-    with pytest.raises(GeoNetInputError, match="stage 'flow', expected 'rigid'") as err:
+    published = tmp_path / "weights.pt"
+    save_weights(load_checkpoint(flow["last"]), published)
+    assert torch.load(published, weights_only=True)["format"] == WEIGHTS_FORMAT
+    source = load_checkpoint(flow["last"])["model"]
+
+    def convs(state, prefix):
+        return {k: v for k, v in state.items() if k.startswith(prefix) and v.dim() == 4}
+
+    # stage rigid from the weights file: DepthNet/PoseNet start at the published (float16-stored) kernels
+    tuned = train(
+        config(synth_prepared, tmp_path / "tune", max_steps=1, lr=0.0, init_checkpoint=str(published)),
+        progress=False,
+    )
+    after = load_checkpoint(tuned["last"])
+    assert after["step"] == 1 and not any(k.startswith("flow_net.") for k in after["model"])
+    for k, v in convs(source, "depth_net.").items():
+        torch.testing.assert_close(after["model"][k], v, rtol=1e-3, atol=1e-4)
+    # stage flow from a flow checkpoint: its ResFlowNet is fine-tuned, not re-initialised
+    tuned_flow = train(
+        config(
+            synth_prepared, tmp_path / "tune_flow", stage="flow", max_steps=1, lr=0.0, init_checkpoint=str(flow["last"])
+        ),
+        progress=False,
+    )
+    after_flow = load_checkpoint(tuned_flow["last"])["model"]
+    for k, v in convs(source, "flow_net.").items():
+        assert torch.equal(after_flow[k], v), k
+
+
+def test_init_checkpoint_of_another_arch_is_refused(synth_prepared, tmp_path):
+    rigid = train(config(synth_prepared, tmp_path / "rigid", max_steps=1), progress=False)
+    with pytest.raises(GeoNetInputError, match="arch is 'small', expected 'vgg'") as err:
         train(
-            config(synth_prepared, tmp_path / "flow2", stage="flow", max_steps=1, init_checkpoint=str(flow["last"])),
+            config(synth_prepared, tmp_path / "x", arch="vgg", max_steps=1, init_checkpoint=str(rigid["last"])),
             progress=False,
         )
-    assert str(flow["last"]) in str(err.value)
+    assert str(rigid["last"]) in str(err.value)
 
 
 def test_missing_data_dir_is_a_clear_error(tmp_path, capsys):

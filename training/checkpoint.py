@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import pickle
 import random
+import re
 import shlex
 import sys
 from pathlib import Path
@@ -27,6 +28,8 @@ from training.model import GeoNet
 CHECKPOINT_FORMAT = "geonet-checkpoint-v2"
 OLD_FORMAT = "geonet-checkpoint-v1"
 REQUIRED_KEYS = ("format", "stage", "arch", "step", "config", "model", "optimizer", "rng", "metrics")
+# Weights only (no optimizer or RNG state): what is published beside a bundled model, to fine-tune from.
+WEIGHTS_FORMAT = "geonet-weights-v1"
 WRITTEN_BY = "pass a .pt file written by training.train"
 
 
@@ -158,6 +161,74 @@ def load_checkpoint(path: str | Path, expect_stage: str | None = None, expect_ar
     return ckpt
 
 
+# ------------------------------------------------------------------------ weights only
+def save_weights(ckpt: dict, path: str | Path, source: dict | None = None) -> None:
+    """A checkpoint's weights and config, without optimizer or RNG state (about a third of the size).
+
+    Conv kernels are stored as float16, which halves the file again; fine-tuning starts within
+    ~1e-3 relative of the original weights. Everything else (BN statistics, biases) stays float32.
+    """
+    model = {k: v.half() if v.is_floating_point() and v.dim() == 4 else v for k, v in _to_cpu(ckpt["model"]).items()}
+    state = {
+        "format": WEIGHTS_FORMAT,
+        "stage": ckpt["stage"],
+        "arch": ckpt["arch"],
+        "config": ckpt["config"],
+        "conventions": ckpt.get("conventions", conventions.as_dict()),
+        "model": model,
+        "source": source or {"step": ckpt["step"], "command": _portable_command(ckpt.get("command"))},
+    }
+    with atomic_write(Path(path)) as tmp:
+        torch.save(state, tmp)
+
+
+def combine_weights(depth_pose: str | Path, flow: str | Path, out: str | Path) -> None:
+    """Weights of a stage-flow model: DepthNet/PoseNet from ``depth_pose``, ResFlowNet from ``flow``.
+
+    How an adapted model keeps the published ResFlowNet: fine-tune DepthNet/PoseNet (stage
+    rigid), combine, then fine-tune the ResFlowNet on top (stage flow).
+    """
+    dp = load_weights(depth_pose)
+    fl = load_weights(flow, expect_arch=dp["arch"])
+    flow_state = {k: v for k, v in fl["model"].items() if k.startswith("flow_net.")}
+    if not flow_state:
+        raise GeoNetInputError(flow, "has no ResFlowNet weights", "pass a stage-flow checkpoint or weights file")
+    model = {k: v for k, v in dp["model"].items() if not k.startswith("flow_net.")} | flow_state
+    config = {**dp["config"], "stage": "flow"}
+    source = {"depth_pose": str(depth_pose), "flow": str(flow)}
+    save_weights({**dp, "stage": "flow", "config": config, "model": model}, out, source)
+
+
+def _portable_command(command: str | None) -> str | None:
+    """v1 checkpoints recorded argv[0], this machine's absolute path to train.py: keep the module form."""
+    return re.sub(r"^\S*training/train\.py", "python -m training.train", command) if command else command
+
+
+def load_weights(path: str | Path, expect_arch: str | None = None) -> dict:
+    """Weights to start training from: a weights-only file or a full checkpoint (float32 on return)."""
+    path = Path(path)
+    if not path.is_file():
+        raise GeoNetInputError(path, "weights file not found", WRITTEN_BY)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise _refusal(path, exc) from None
+    except Exception as exc:
+        raise GeoNetInputError(path, f"cannot read weights ({exc.__class__.__name__})") from exc
+    if isinstance(state, dict) and state.get("format") == CHECKPOINT_FORMAT:
+        state = load_checkpoint(path, expect_arch=expect_arch)
+    elif not isinstance(state, dict) or state.get("format") != WEIGHTS_FORMAT:
+        raise GeoNetInputError(
+            path, f"neither a {CHECKPOINT_FORMAT} checkpoint nor a {WEIGHTS_FORMAT} file", WRITTEN_BY
+        )
+    if expect_arch and state["arch"] != expect_arch:
+        raise GeoNetInputError(
+            path, f"weights arch is '{state['arch']}', expected '{expect_arch}'", f"pass --arch {state['arch']}"
+        )
+    model = {k: v.float() if v.is_floating_point() else v for k, v in state["model"].items()}
+    return {**state, "model": model}
+
+
 # ------------------------------------------------------------------------ model
 def build_model(cfg: TrainConfig) -> GeoNet:
     return GeoNet(
@@ -208,11 +279,32 @@ def upgrade(path: str | Path) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m training.checkpoint",
-        description="Convert checkpoints of an older training.train to the "
-        "weights-only format (unpickles them: trusted files only).",
+        description="Convert checkpoints of an older training.train to the format that loads with "
+        "torch.load(weights_only=True) (--upgrade: unpickles them, trusted files only), or write a "
+        "checkpoint's weights alone to fine-tune from (--weights-only).",
     )
-    p.add_argument("--upgrade", nargs="+", required=True, metavar="FILE", help="v1 checkpoints, rewritten in place")
+    mode = p.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--upgrade", nargs="+", metavar="FILE", help="v1 checkpoints, rewritten in place")
+    mode.add_argument("--weights-only", nargs=2, metavar=("CHECKPOINT", "OUT"), help="write CHECKPOINT's weights")
+    mode.add_argument(
+        "--combine",
+        nargs=3,
+        metavar=("DEPTH_POSE", "FLOW", "OUT"),
+        help="weights with DepthNet/PoseNet of DEPTH_POSE and ResFlowNet of FLOW (checkpoints or weights files)",
+    )
     args = p.parse_args(argv)
+    if args.weights_only or args.combine:
+        dst = (args.weights_only or args.combine)[-1]
+        try:
+            if args.weights_only:
+                save_weights(load_checkpoint(args.weights_only[0]), dst)
+            else:
+                combine_weights(*args.combine)
+        except GeoNetInputError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        print(f"wrote {dst} ({Path(dst).stat().st_size / 2**20:.1f} MiB)")
+        return 0
     failed = 0
     for path in args.upgrade:
         try:

@@ -18,7 +18,7 @@ class TrainConfig:
     arch: str = "resnet50"
     data_dir: str = "data/prepared"
     out_dir: str = "runs/rigid"
-    init_checkpoint: str | None = None  # stage flow: the rigid checkpoint to freeze
+    init_checkpoint: str | None = None  # weights to start from (rigid: fine-tune; flow: freeze depth/pose)
     resume: str | None = None  # checkpoint of this stage to continue exactly
     seq_length: int = 3
     height: int = 128
@@ -87,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--init-checkpoint",
         default=d.init_checkpoint,
-        help="stage flow: rigid-stage checkpoint whose DepthNet/PoseNet are frozen",
+        help="start from these weights (a checkpoint or a weights-only file), fresh optimizer: stage rigid "
+        "fine-tunes its DepthNet/PoseNet; stage flow freezes them (and fine-tunes its ResFlowNet, if any)",
     )
     p.add_argument("--resume", default=d.resume, help="checkpoint of the same stage to continue exactly")
     p.add_argument("--seq-length", type=int, default=d.seq_length, help="3 for depth/flow, 5 for pose")

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from geonet_infer.errors import GeoNetInputError
 from training import distributed
-from training.checkpoint import build_model, load_checkpoint, save_checkpoint, set_rng_state
+from training.checkpoint import build_model, load_checkpoint, load_weights, save_checkpoint, set_rng_state
 from training.config import TrainConfig, config_from_args
 from training.data import SequenceDataset, make_loader
 from training.model import GeoNet, StageLoss
@@ -140,6 +140,24 @@ def validate(model: GeoNet, cfg: TrainConfig, val_set: SequenceDataset | None, d
 
 
 # ------------------------------------------------------------------------ train
+def init_from(model: GeoNet, cfg: TrainConfig) -> None:
+    """Start from ``cfg.init_checkpoint`` (a checkpoint or a weights-only file) with a fresh optimizer.
+
+    Stage rigid: its DepthNet and PoseNet (fine-tuning, e.g. on your own footage). Stage flow:
+    its DepthNet and PoseNet, frozen, and its ResFlowNet too if it has one (else a new one).
+    """
+    init = load_weights(cfg.init_checkpoint, expect_arch=cfg.arch)
+    state = {k: v for k, v in init["model"].items() if cfg.stage == "flow" or not k.startswith("flow_net.")}
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.startswith("flow_net.")]
+    if missing or unexpected:
+        raise GeoNetInputError(
+            cfg.init_checkpoint,
+            f"weights do not fit this model (missing {missing[:3]}, unexpected {unexpected[:3]})",
+            "use weights of the same --arch and --seq-length",
+        )
+
+
 def train(cfg: TrainConfig, progress: bool = True) -> dict:
     """Run one stage; returns {'step', 'log', 'last', 'best', 'metrics'}.
 
@@ -188,10 +206,8 @@ def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
         )
 
     model = build_model(cfg)
-    if cfg.stage == "flow" and cfg.init_checkpoint and not cfg.resume:
-        rigid = load_checkpoint(cfg.init_checkpoint, expect_stage="rigid", expect_arch=cfg.arch)
-        rigid_state = {k: v for k, v in rigid["model"].items() if not k.startswith("flow_net.")}
-        model.load_state_dict(rigid_state, strict=False)
+    if cfg.init_checkpoint and not cfg.resume:
+        init_from(model, cfg)
     if cfg.sync_bn:
         distributed.convert_sync_bn(model)
     model = model.to(rt.device, memory_format=torch.channels_last if cfg.channels_last else torch.preserve_format)
