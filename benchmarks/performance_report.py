@@ -35,26 +35,54 @@ COMMANDS = """\
 ```bash
 mkdir -p runs/bench
 # 1. the runtime on the bundled model (int8 first: its memory figures are the clean ones)
-geonet-infer bench --precision int8,fp32 --json runs/bench/bench_small_synth.json
+geonet-infer bench --precision int8,fp32 --backend onnxruntime,openvino,auto \\
+    --json runs/bench/bench_small_synth.json
 # 2. the resnet50 timing export, then the runtime on it
 python -m export --arch resnet50 --random-init --out /tmp/geonet_r50 --precision fp32,int8 \\
     --calib-data ../shared/realdata/kitti_raw_2011_09_26_sfnd/image_02/data --calib-frames 8
-geonet-infer bench --model /tmp/geonet_r50 --precision int8,fp32 --json runs/bench/bench_r50.json
-# 3. the peers, one interleaved run per arch (pip install openvino into .venv first)
+geonet-infer bench --model /tmp/geonet_r50 --precision int8,fp32 --backend onnxruntime,openvino,auto \\
+    --json runs/bench/bench_r50.json
+# 3. the peers, one interleaved run per arch (pip install -e '.[openvino]' first)
 python benchmarks/peers.py --arch small --random-init --out runs/bench/peers_small
 python benchmarks/peers.py --arch resnet50 --random-init --onnx-dir /tmp/geonet_r50 --out runs/bench/peers_resnet50
-# 4. this page
+# 4. memory, one fresh process per configuration
+python benchmarks/memory.py --model /tmp/geonet_r50 --model small_synth --json runs/bench/memory.json
+# 5. this page
 python benchmarks/performance_report.py --bench-small runs/bench/bench_small_synth.json \\
     --bench-r50 runs/bench/bench_r50.json --peers runs/bench/peers_small.md runs/bench/peers_resnet50.md \\
-    --out docs/performance.md
+    --memory runs/bench/memory.json --out docs/performance.md
 ```"""
 
 
-def row(data: dict, task: str, mode: str, precision: str, batch: int = 1) -> dict | None:
+BACKEND_LABELS = {"onnxruntime": "ORT", "openvino": "OpenVINO", "auto": "auto"}
+
+
+LEVERS = """\
+**Levers tried** (the runs behind them are in issue 9's notes):
+- *OpenVINO for the same ONNX files* (`--backend openvino`, `auto`): adopted as an option; its
+  VNNI int8 kernels are where the large INT8 gains above come from. onnxruntime's INT8 graphs
+  barely beat its fp32 ones on these nets.
+- *`auto`*: per graph, the faster engine at load. It keeps onnxruntime for the rigid-flow op
+  (GridSample is slower in OpenVINO), OpenVINO for the ConvNets.
+- *onnxruntime's CPU memory arena off*: a lower peak for resnet50, a few % slower; kept on.
+  *Weight prepacking off*: about 3× slower; kept on.
+- *A gather-based bilinear warp instead of GridSample in the rigid op*: not faster in
+  onnxruntime; not adopted. The rigid op is the largest single cost of the small cascade and
+  the furthest from its target.
+- *Post-processing*: the residual flow at the input size is now flow − rigid flow (resizing is
+  linear), one bilinear resize less per frame."""
+
+
+def row(data: dict, task: str, mode: str, precision: str, batch: int = 1, backend: str = "onnxruntime") -> dict | None:
     for r in data["results"]:
-        if (r["task"], r["mode"], r["precision"], r["batch"]) == (task, mode, precision, batch):
+        if (r["task"], r["mode"], r["precision"], r["batch"], r["backend"]) == (task, mode, precision, batch, backend):
             return r
     return None
+
+
+def backends(data: dict) -> list[str]:
+    seen = {r["backend"] for r in data["results"]}
+    return [b for b in BACKEND_LABELS if b in seen]
 
 
 def fmt(value, digits: int = 1) -> str:
@@ -62,20 +90,20 @@ def fmt(value, digits: int = 1) -> str:
 
 
 def bench_table(data: dict) -> list[str]:
-    lines = [
-        "| task | mode | fp32 p50 | fp32 p90 | int8 p50 | int8 p90 | int8 / fp32 (p50) |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    """p50 (p90) ms per engine and precision, and the best engine's speed-up over ORT fp32."""
+    cols = [(b, p) for b in backends(data) for p in ("fp32", "int8")]
+    head = " | ".join(f"{BACKEND_LABELS[b]} {p}" for b, p in cols)
+    lines = [f"| task | mode | {head} | fastest vs ORT fp32 |", "|---|---|" + "---|" * (len(cols) + 1)]
     for task, label in TASK_LABELS.items():
         for mode in ("graph", "e2e"):
-            f, i = row(data, task, mode, "fp32"), row(data, task, mode, "int8")
-            if not f and not i:
+            cells = {c: row(data, task, mode, c[1], backend=c[0]) for c in cols}
+            if not any(cells.values()):
                 continue
-            ratio = f"{i['p50_ms'] / f['p50_ms']:.2f}" if f and i else "—"
-            lines.append(
-                f"| {label} | {mode} | {fmt(f and f['p50_ms'])} | {fmt(f and f['p90_ms'])} | "
-                f"{fmt(i and i['p50_ms'])} | {fmt(i and i['p90_ms'])} | {ratio} |"
-            )
+            text = [f"{r['p50_ms']:.1f} ({r['p90_ms']:.1f})" if r else "—" for r in cells.values()]
+            base = cells.get(("onnxruntime", "fp32"))
+            best = min((r["p50_ms"], c) for c, r in cells.items() if r)
+            speedup = f"{base['p50_ms'] / best[0]:.2f}× ({BACKEND_LABELS[best[1][0]]} {best[1][1]})" if base else "—"
+            lines.append(f"| {label} | {mode} | {' | '.join(text)} | {speedup} |")
     return lines
 
 
@@ -90,7 +118,23 @@ def memory_rows(label: str, data: dict) -> list[str]:
     return out
 
 
-def report(small: dict, r50: dict, peers: list[str]) -> str:
+def memory_table(rows: list[dict]) -> list[str]:
+    """benchmarks/memory.py: one fresh process per configuration."""
+    out = [
+        "| model | precision | engine | graph files MiB | RSS after load − before, MiB | peak − before, MiB "
+        "(load + a 4-frame sequence) | (peak − before) / graph files |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        out.append(
+            f"| {Path(r['model']).name} | {r['precision']} | {BACKEND_LABELS[r['backend']]} | "
+            f"{r['graph_files_mib']:.1f} | {r['rss_after_load_mib'] - r['rss_before_load_mib']:.0f} | "
+            f"{r['predictor_mib']:.0f} | {r['predictor_over_graph_files']:.2f}× |"
+        )
+    return out
+
+
+def report(small: dict, r50: dict, peers: list[str], memory: list[dict] | None = None) -> str:
     env = small["environment"]
     so = env.get("session_options", {})
     L = [
@@ -108,7 +152,8 @@ def report(small: dict, r50: dict, peers: list[str]) -> str:
         "|---|---|",
         f"| CPU | {env['cpu']}; flags {' '.join(env.get('cpu_flags', []))} |",
         f"| usable CPUs / threads per graph | {env['usable_cpus']} / {env.get('threads')} |",
-        f"| versions | Python {env['python']}, onnxruntime {env['onnxruntime']}, numpy {env['numpy']}, "
+        f"| versions | Python {env['python']}, onnxruntime {env['onnxruntime']}, "
+        f"OpenVINO {env.get('openvino') or r50['environment'].get('openvino')}, numpy {env['numpy']}, "
         f"OpenCV {env['opencv']} |",
         f"| session options | intra_op {so.get('intra_op_num_threads')}, inter_op {so.get('inter_op_num_threads')}, "
         f"{so.get('execution_mode')}, {so.get('graph_optimization_level')}, spinning "
@@ -130,7 +175,11 @@ def report(small: dict, r50: dict, peers: list[str]) -> str:
             "- `geonet-infer bench` (`geonet_infer/timing.py`): warm-up, then all cases of one precision "
             "and batch block-interleaved (rotating order, quiet-wait and ≥ 50 ms re-warm before each "
             "block), `perf_counter_ns`, GC off; p50/p90 of the wall time of one synchronous call.",
-            "- *graph* = the onnxruntime sessions only, on inputs prepared at 128×416; *e2e* = from uint8 "
+            "- Engines (`--backend`): *ORT* = onnxruntime, *OpenVINO* = the same ONNX files on OpenVINO's "
+            "CPU plugin (f32 inference precision forced), *auto* = the faster of the two per graph, "
+            "picked at load by timing both (the choices are in the JSON, `environment.engines`).",
+            "- Cells: p50 (p90) in ms. *graph* = the engines only, on inputs prepared at 128×416; "
+            "*e2e* = from uint8 "
             "frames at 1242×375 through `Predictor` (resize, normalise, intrinsics, output resizing). "
             "*sequence* rows are per frame of `iter_sequence` (depth computed once per frame).",
             "- The resnet50 export and the peer runs use random weights (latency only). INT8 accuracy "
@@ -148,15 +197,17 @@ def report(small: dict, r50: dict, peers: list[str]) -> str:
         + bench_table(r50)
     )
     for label, data in (("small_synth", small), ("resnet50 export", r50)):
-        ints = [row(data, t, "e2e", "int8") for t in ("depth", "pose")]
-        seq = row(data, "sequence", "e2e", "int8")
-        if all(ints) and seq:
-            L += [
-                "",
-                f"Paper-style line, {label} (batch 1, e2e p50, int8): depth {ints[0]['p50_ms']:.1f} ms, "
-                f"flow per pair in a sequence {seq.get('per_pair_p50_ms', float('nan')):.1f} ms, pose "
-                f"{ints[1]['p50_ms']:.1f} ms (paper, TitanXP GPU: 15 / 45 / 4 ms).",
-            ]
+        for backend in backends(data):
+            ints = [row(data, t, "e2e", "int8", backend=backend) for t in ("depth", "pose")]
+            seq = row(data, "sequence", "e2e", "int8", backend=backend)
+            if all(ints) and seq:
+                L += [
+                    "",
+                    f"Paper-style line, {label}, {BACKEND_LABELS[backend]} (batch 1, e2e p50, int8): depth "
+                    f"{ints[0]['p50_ms']:.1f} ms, flow per pair in a sequence "
+                    f"{seq.get('per_pair_p50_ms', float('nan')):.1f} ms, pose {ints[1]['p50_ms']:.1f} ms "
+                    "(paper, TitanXP GPU: 15 / 45 / 4 ms).",
+                ]
     L += (
         [
             "",
@@ -173,6 +224,19 @@ def report(small: dict, r50: dict, peers: list[str]) -> str:
         "The process itself (Python, numpy, OpenCV, onnxruntime) takes about "
         f"{env.get('rss_at_start_mib', 0):.0f} MiB before any model is loaded, which dominates for the small model.",
         "",
+    ]
+    if memory:
+        L += [
+            "### Memory, one fresh process per configuration (`benchmarks/memory.py`)",
+            "",
+            "What loading a predictor and running it adds to a process, measured alone (the figures "
+            "above are of one process that loads every configuration in turn). *auto* holds both "
+            "engines while it times them at load, hence its higher peak.",
+            "",
+            *memory_table(memory),
+            "",
+        ]
+    L += [
         "## `benchmarks/peers.py`: the same weights in every engine",
         "",
     ]
@@ -187,20 +251,43 @@ def report(small: dict, r50: dict, peers: list[str]) -> str:
     L += [
         "## Distance to the targets (issue 9)",
         "",
-        "| target | measured ms | target ms | distance (measured / target; ≤ 1 = met) |",
-        "|---|---|---|---|",
+        "Measured ms per engine, and the distance (measured / target; ≤ 1 = met) of the best engine.",
+        "",
+        "| target | target ms | " + " | ".join(BACKEND_LABELS.values()) + " | best distance |",
+        "|---|---|" + "---|" * (len(BACKEND_LABELS) + 1),
     ]
     for label, key, task, mode, precision, field, target in TARGETS:
-        r = row(data[key], task, mode, precision)
-        value = r.get(field) if r else None
-        L.append(f"| {label} | {fmt(value)} | ≤ {target:g} | {'—' if value is None else f'{value / target:.2f}×'} |")
+        values = {}
+        for backend in BACKEND_LABELS:
+            r = row(data[key], task, mode, precision, backend=backend)
+            values[backend] = r.get(field) if r else None
+        measured = [v for v in values.values() if v is not None]
+        best = f"{min(measured) / target:.2f}×" if measured else "—"
+        L.append(f"| {label} | ≤ {target:g} | {' | '.join(fmt(v) for v in values.values())} | {best} |")
+    # getrusage's peak only rises within a process: only its first predictor has a clean figure.
+    by_model: dict[str, dict[str, float]] = {}
+    for r in memory or []:
+        if r["precision"] == "int8":
+            by_model.setdefault(Path(r["model"]).name, {})[r["backend"]] = r["predictor_over_graph_files"]
+    for name, ratios in by_model.items():
+        cells = [f"{ratios[b]:.2f}×" if b in ratios else "—" for b in BACKEND_LABELS]
+        L.append(
+            f"| {name} int8: (peak − before) / graph files, own process | ≤ 1.5× | {' | '.join(cells)} | "
+            f"{min(ratios.values()):.2f}× |"
+        )
     for label, d in (("resnet50", r50), ("small", small)):
         for key, m in d["environment"].get("memory", {}).items():
             if m.get("first_in_process", True):
+                backend, precision = key.split("/")
+                cells = [
+                    f"{m['peak_rss_mib']:.0f} MiB / {m['graph_files_mib']:.0f} MiB" if b == backend else "—"
+                    for b in BACKEND_LABELS
+                ]
                 L.append(
-                    f"| {label} {key} peak RSS / graph files | {m['peak_rss_mib']:.0f} MiB / "
-                    f"{m['graph_files_mib']:.0f} MiB | ≤ 1.5× | {m['peak_rss_over_graph_files']:.2f}× |"
+                    f"| {label} {precision} peak RSS / graph files (first predictor of the process) | ≤ 1.5× | "
+                    f"{' | '.join(cells)} | {m['peak_rss_over_graph_files']:.2f}× |"
                 )
+    L += ["", LEVERS]
     L += ["", "## How the numbers were made", "", COMMANDS, ""]
     return "\n".join(L)
 
@@ -210,9 +297,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bench-small", type=Path, required=True)
     p.add_argument("--bench-r50", type=Path, required=True)
     p.add_argument("--peers", type=Path, nargs="+", required=True, help="peers_<arch>.md files")
+    p.add_argument("--memory", type=Path, default=None, help="benchmarks/memory.py --json output")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
-    for path in [args.bench_small, args.bench_r50, *args.peers]:
+    for path in [args.bench_small, args.bench_r50, *args.peers, *([args.memory] if args.memory else [])]:
         if not path.is_file():
             print(f"performance_report: error: {path}: not found (run the commands in its docstring)", file=sys.stderr)
             return 2
@@ -220,6 +308,7 @@ def main(argv: list[str] | None = None) -> int:
         json.loads(args.bench_small.read_text()),
         json.loads(args.bench_r50.read_text()),
         [p.read_text() for p in args.peers],
+        json.loads(args.memory.read_text()) if args.memory else None,
     )
     # Sections written by other benchmarks (batch_throughput.py) are kept as they are.
     old = args.out.read_text() if args.out.is_file() else ""

@@ -504,11 +504,9 @@ class Predictor:
         rigid = flow_to_input(parts["rigid_flow"][b], size)
         if "flow" not in parts:
             return {"flow": rigid, "rigid_flow": rigid, "residual_flow": None}
-        return {
-            "flow": flow_to_input(parts["flow"][b], size),
-            "rigid_flow": rigid,
-            "residual_flow": flow_to_input(parts["residual_flow"][b], size),
-        }
+        flow = flow_to_input(parts["flow"][b], size)
+        # flow = rigid + residual in the graph, and resizing is linear: one resize saved per frame
+        return {"flow": flow, "rigid_flow": rigid, "residual_flow": flow - rigid}
 
     # ------------------------------------------------------------------ sequences
     def iter_sequence(

@@ -41,11 +41,21 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def _openvino_version() -> str | None:
+    """The optional engine's version (``[openvino]`` extra), None when it is not installed."""
+    try:
+        import openvino
+    except ImportError:
+        return None
+    return openvino.__version__
+
+
 def environment() -> dict:
     return {
         "geonet_infer": __version__,
         "python": platform.python_version(),
         "onnxruntime": ort.__version__,
+        "openvino": _openvino_version(),
         "numpy": np.__version__,
         "opencv": cv2.__version__,
         "providers": ort.get_available_providers(),
@@ -104,6 +114,11 @@ def run(args: argparse.Namespace) -> int:
         f"numpy {env['numpy']}  opencv {env['opencv']}"
     )
     print(f"providers: {', '.join(env['providers'])}")
+    print(
+        f"openvino: {env['openvino']} (--backend openvino|auto)"
+        if env["openvino"]
+        else "openvino: not installed (pip install 'geonet-infer[openvino]' for --backend openvino|auto)"
+    )
     print(f"cpu: {env['cpu']}; usable CPUs {env['usable_cpus']} (default threads per graph)")
     print(f"bundled models: {', '.join(env['bundled_models']) or 'none'}")
     print(f"model: {model['dir']}")
