@@ -35,3 +35,23 @@ def require_realdata(rel: str = "") -> Path:
 def realdata() -> Path:
     """Path of ``../shared/realdata`` (fails on CI / skips elsewhere when it is missing)."""
     return require_realdata()
+
+
+@pytest.fixture(scope="session")
+def synth_prepared(tmp_path_factory) -> Path:
+    """2 synthetic sequences x 8 frames at 32x96, prepared (val fraction 0.2) by the real tools.
+
+    Trainer tests (single process and torchrun) share it; the training extra is imported here,
+    not at module level, so the runtime-only test run never needs it.
+    """
+    from training.prepare import PrepareConfig, prepare
+    from training.synth import SynthConfig, generate
+
+    root = tmp_path_factory.mktemp("synth")
+    generate(SynthConfig(out=root / "synth", sequences=2, frames=8, seed=1, height=32, width=96))
+    prepare(
+        PrepareConfig(
+            kind="synth", src=root / "synth", out=root / "prepared", height=32, width=96, heldout=0, val_fraction=0.2
+        )
+    )
+    return root / "prepared"

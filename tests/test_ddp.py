@@ -23,7 +23,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from training import prepare, synth
 from training.checkpoint import build_model, load_checkpoint
 from training.config import TrainConfig
 from training.train import seed_everything, train
@@ -64,44 +63,8 @@ def torchrun(out_dir: Path, data_dir: Path, **kw) -> Path:
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("ddp")
-    synth.main(
-        [
-            "--out",
-            str(root / "synth"),
-            "--sequences",
-            "2",
-            "--frames",
-            "8",
-            "--seed",
-            "1",
-            "--height",
-            str(H),
-            "--width",
-            str(W),
-        ]
-    )
-    prepare.main(
-        [
-            "--kind",
-            "synth",
-            "--src",
-            str(root / "synth"),
-            "--out",
-            str(root / "prepared"),
-            "--height",
-            str(H),
-            "--width",
-            str(W),
-            "--heldout",
-            "0",
-            "--workers",
-            "1",
-            "--val-fraction",
-            "0.2",
-        ]
-    )
+def data(synth_prepared) -> Path:
+    root = synth_prepared.parent
     n_train = len((root / "prepared" / "train.txt").read_text().split("\n")) - 1
     # 9 samples: 4 per rank, 2 steps per epoch, so a 4-step run crosses an epoch
     assert n_train // 2 // 2 == 2, n_train

@@ -13,7 +13,7 @@ import torch
 
 from geonet_infer.errors import GeoNetInputError
 from tests.conftest import require_realdata
-from training import checkpoint, prepare, synth
+from training import checkpoint, prepare
 from training.checkpoint import (
     build_model,
     load_checkpoint,
@@ -57,49 +57,6 @@ def kitti_prepared(tmp_path_factory):
     )
     assert (out / "train.txt").is_file()
     return out
-
-
-@pytest.fixture(scope="module")
-def synth_prepared(tmp_path_factory):
-    """2 synthetic sequences x 8 frames -> 12 samples (train and val), via the real tools."""
-    root = tmp_path_factory.mktemp("synth")
-    synth.main(
-        [
-            "--out",
-            str(root / "synth"),
-            "--sequences",
-            "2",
-            "--frames",
-            "8",
-            "--seed",
-            "1",
-            "--height",
-            str(SH),
-            "--width",
-            str(SW),
-        ]
-    )
-    prepare.main(
-        [
-            "--kind",
-            "synth",
-            "--src",
-            str(root / "synth"),
-            "--out",
-            str(root / "prepared"),
-            "--height",
-            str(SH),
-            "--width",
-            str(SW),
-            "--heldout",
-            "0",
-            "--workers",
-            "1",
-            "--val-fraction",
-            "0.2",
-        ]
-    )
-    return root / "prepared"
 
 
 def config(data_dir, out_dir, **overrides) -> TrainConfig:

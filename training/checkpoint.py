@@ -126,18 +126,23 @@ def _refusal(path: Path, exc: Exception) -> GeoNetInputError:
     )
 
 
-def load_checkpoint(path: str | Path, expect_stage: str | None = None, expect_arch: str | None = None) -> dict:
-    """Load (weights only, onto the CPU) and validate; errors name the file and the fix."""
-    path = Path(path)
+def _safe_load(path: Path, what: str):
+    """``torch.load(weights_only=True)`` onto the CPU; every failure names the file."""
     if not path.is_file():
-        raise GeoNetInputError(path, "checkpoint not found", WRITTEN_BY)
+        raise GeoNetInputError(path, f"{what} not found", WRITTEN_BY)
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         raise _refusal(path, exc) from None
     except Exception as exc:  # torch raises many types for a corrupt file
         first = str(exc).splitlines()[0] if str(exc) else ""
-        raise GeoNetInputError(path, f"cannot read checkpoint ({exc.__class__.__name__}: {first})") from exc
+        raise GeoNetInputError(path, f"cannot read {what} ({exc.__class__.__name__}: {first})") from exc
+
+
+def load_checkpoint(path: str | Path, expect_stage: str | None = None, expect_arch: str | None = None) -> dict:
+    """Load (weights only, onto the CPU) and validate; errors name the file and the fix."""
+    path = Path(path)
+    ckpt = _safe_load(path, "checkpoint")
     if not isinstance(ckpt, dict):
         raise GeoNetInputError(
             path, f"not a GeoNet checkpoint: it holds a {type(ckpt).__name__}, not a dict", WRITTEN_BY
@@ -207,14 +212,7 @@ def _portable_command(command: str | None) -> str | None:
 def load_weights(path: str | Path, expect_arch: str | None = None) -> dict:
     """Weights to start training from: a weights-only file or a full checkpoint (float32 on return)."""
     path = Path(path)
-    if not path.is_file():
-        raise GeoNetInputError(path, "weights file not found", WRITTEN_BY)
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
-        raise _refusal(path, exc) from None
-    except Exception as exc:
-        raise GeoNetInputError(path, f"cannot read weights ({exc.__class__.__name__})") from exc
+    state = _safe_load(path, "weights file")
     if isinstance(state, dict) and state.get("format") == CHECKPOINT_FORMAT:
         state = load_checkpoint(path, expect_arch=expect_arch)
     elif not isinstance(state, dict) or state.get("format") != WEIGHTS_FORMAT:
