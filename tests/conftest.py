@@ -32,6 +32,13 @@ def require_realdata(rel: str = "") -> Path:
 
 
 @pytest.fixture(scope="session")
+def require_real():
+    """:func:`require_realdata` as a fixture, for test files that run against the installed
+    package (the runtime-only venv cannot import ``tests.conftest``)."""
+    return require_realdata
+
+
+@pytest.fixture(scope="session")
 def realdata() -> Path:
     """Path of ``../shared/realdata`` (fails on CI / skips elsewhere when it is missing)."""
     return require_realdata()

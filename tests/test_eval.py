@@ -15,7 +15,6 @@ from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.cli import main as cli_main
 from geonet_infer.datasets import depth_dataset, flow_dataset, pose_dataset
 from geonet_infer.errors import GeoNetInputError
-from tests.conftest import require_realdata
 
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"
 ODOMETRY = "kitti_odometry_00"
@@ -77,8 +76,8 @@ def make_synth(root: Path, frames: int = 6, h: int = 64, w: int = 208) -> Path:
 
 
 # ----------------------------------------------------------------------------- readers on real files
-def test_kitti_odometry_reader_matches_poses_file():
-    seq = require_realdata(f"{ODOMETRY}/sequences/00")
+def test_kitti_odometry_reader_matches_poses_file(require_real):
+    seq = require_real(f"{ODOMETRY}/sequences/00")
     data = pose_dataset(seq)
     assert data.layout == "kitti-odometry"
     # frames 000000-000005 -> snippets starting at 0 and 1
@@ -94,8 +93,8 @@ def test_kitti_odometry_reader_matches_poses_file():
     assert gt[4, 2, 3] == pytest.approx(4 * 0.86, abs=0.1)
 
 
-def test_middlebury_reader_matches_flo_by_hand():
-    root = require_realdata(MIDDLEBURY)
+def test_middlebury_reader_matches_flo_by_hand(require_real):
+    root = require_real(MIDDLEBURY)
     data = flow_dataset(root)
     assert data.layout == "middlebury" and [i.name for i in data.items] == ["Grove3"]
     flow, valid = data.items[0].load_gt("occ")
@@ -105,8 +104,8 @@ def test_middlebury_reader_matches_flo_by_hand():
     assert np.sqrt((flow**2).sum(axis=2)).max() == pytest.approx(18.6, abs=0.05)  # README: max 18.6 px
 
 
-def test_kitti_raw_velodyne_reader():
-    root = require_realdata(KITTI_RAW)
+def test_kitti_raw_velodyne_reader(require_real):
+    root = require_real(KITTI_RAW)
     data = depth_dataset(root)
     assert data.layout == "kitti-raw" and len(data.items) == 10  # scans exist for frames 0-9 only
     item = data.items[3]
@@ -157,9 +156,9 @@ def _kitti2012_from_middlebury(root: Path, out: Path) -> list[tuple[np.ndarray, 
     return out_pairs
 
 
-def test_dis_on_kitti2012_layout_agrees_with_independent_epe(tmp_path, capsys):
+def test_dis_on_kitti2012_layout_agrees_with_independent_epe(require_real, tmp_path, capsys):
     """Substitute for real KITTI 2012 pairs (none in ../shared): Middlebury Grove3 in the KITTI 2012 layout."""
-    root = require_realdata(MIDDLEBURY)
+    root = require_real(MIDDLEBURY)
     data_dir = tmp_path / "kitti2012"
     pairs = _kitti2012_from_middlebury(root, data_dir)
     out = tmp_path / "dis.json"
@@ -187,8 +186,8 @@ def test_dis_on_kitti2012_layout_agrees_with_independent_epe(tmp_path, capsys):
     assert all("no _09" in item["snippet"] for item in results["DIS medium"]["items"])
 
 
-def test_kitti_layout_uses_09_and_calibration_for_the_model(tmp_path):
-    root = require_realdata(MIDDLEBURY)
+def test_kitti_layout_uses_09_and_calibration_for_the_model(require_real, tmp_path):
+    root = require_real(MIDDLEBURY)
     data_dir = tmp_path / "kitti2012"
     _kitti2012_from_middlebury(root, data_dir)
     cv2.imwrite(
@@ -460,8 +459,8 @@ def test_nonfinite_metric_means_propagate():
     assert math.isnan(metrics.aggregate(rows)["epe"])
 
 
-def test_intrinsics_needed_for_model_flow_without_calibration(tmp_path):
-    root = require_realdata(MIDDLEBURY)
+def test_intrinsics_needed_for_model_flow_without_calibration(require_real, tmp_path):
+    root = require_real(MIDDLEBURY)
     fn = evaluation._needs_K(lambda frames, K: np.zeros(frames[-1].shape[:2] + (2,), np.float32))
     with pytest.raises(GeoNetInputError, match="--intrinsics"):
         evaluation.evaluate_flow(fn, flow_dataset(root))
