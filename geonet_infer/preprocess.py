@@ -154,8 +154,11 @@ class InputSpec:
             rgb = cv2.resize(rgb, (self.width, self.height), interpolation=interp)
         if self.channel_order == "BGR":
             rgb = rgb[..., ::-1]
-        x = rgb.astype(np.float32).transpose(2, 0, 1) * np.float32(self.norm_scale / 255.0)
-        return x + np.float32(self.norm_offset)
+        # CHW while still uint8 (a quarter of the bytes to move), then scale in place: same values
+        x = np.ascontiguousarray(rgb.transpose(2, 0, 1)).astype(np.float32)
+        x *= np.float32(self.norm_scale / 255.0)
+        x += np.float32(self.norm_offset)
+        return x
 
 
 def check_image(image, name: str | Path | None = None) -> np.ndarray:
