@@ -95,6 +95,7 @@ class BatchConfig:
     tasks: tuple[str, ...] = TASKS
     batch_size: int = 4
     camera: Camera | None = None
+    vis: bool = True  # depth colour maps and flow colour wheels
 
     def options(self) -> dict:
         """What decides the outputs (stored in each ``.done``; a resume with other options is refused)."""
@@ -116,6 +117,7 @@ class BatchConfig:
             "tasks": list(self.tasks),
             "batch_size": self.batch_size,
             "camera": cam,
+            "vis": self.vis,
         }
 
 
@@ -301,7 +303,14 @@ def run_sequence(
         if on_frame is not None:
             source = _CountingSource(source, on_frame)
         summary = predict_to_dir(
-            predictor, source, out, camera=camera, tasks=config.tasks, batch_size=config.batch_size, progress=False
+            predictor,
+            source,
+            out,
+            camera=camera,
+            tasks=config.tasks,
+            batch_size=config.batch_size,
+            progress=False,
+            vis=config.vis,
         )
         failures = [
             {"sequence": unit.name, "input": unit.path, "frame": f["frame"], "reason": f["reason"]}
@@ -647,6 +656,7 @@ def run_batch(
     tasks: tuple[str, ...] = TASKS,
     batch_size: int = 4,
     camera: Camera | None = None,
+    vis: bool = True,
     resume: bool = False,
     ray_address: str | None = None,
     progress: bool = True,
@@ -683,6 +693,7 @@ def run_batch(
         tasks=tasks,
         batch_size=batch_size,
         camera=camera,
+        vis=vis,
     )
     options = probe.options()
     with _job_lock(out_dir):

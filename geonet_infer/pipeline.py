@@ -103,6 +103,7 @@ def predict_to_dir(
     batch_size: int = 4,
     progress: bool = True,
     camera_height: float | None = None,
+    vis: bool = True,
 ) -> dict:
     """Predict every frame of ``source`` into ``out_dir`` (layout in the module docstring).
 
@@ -113,6 +114,8 @@ def predict_to_dir(
         tasks: any of "depth", "pose", "flow".
         camera_height: metres above a flat road: metric depth and pose translations
             (:mod:`geonet_infer.scale`; needs ``camera``).
+        vis: also write the depth colour maps and flow colour wheels (PNG encoding of
+            pictures is most of the write time; fleets that only need the data skip it).
     Returns:
         The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad frames.
     Raises:
@@ -159,7 +162,7 @@ def predict_to_dir(
             )
         for result in results:
             t0 = time.perf_counter()
-            _write_frame(out_dir, result, tasks)
+            _write_frame(out_dir, result, tasks, vis)
             totals["write"] += (time.perf_counter() - t0) * 1e3
             poses.append(result.camera_to_world)
             if result.metric_scale is not None:
@@ -195,7 +198,7 @@ def predict_to_dir(
         "failures": frames.failures,
         "gaps": [{"frame": k, "skipped_before": v} for k, v in frames.skipped_before.items()],
         "tasks": list(tasks),
-        "outputs": _outputs(tasks),
+        "outputs": _outputs(tasks, vis),
         "model": {
             "dir": str(predictor.model_dir),
             "arch": predictor.manifest.arch,
@@ -233,12 +236,12 @@ def predict_to_dir(
     return summary
 
 
-def _outputs(tasks: tuple[str, ...]) -> list[str]:
+def _outputs(tasks: tuple[str, ...], vis: bool = True) -> list[str]:
     out = []
     if "depth" in tasks:
-        out += ["depth/*.npy", "depth/*.png"]
+        out += ["depth/*.npy"] + (["depth/*.png"] if vis else [])
     if "flow" in tasks:
-        out += ["flow/*.png", "flow_vis/*.png"]
+        out += ["flow/*.png"] + (["flow_vis/*.png"] if vis else [])
     if "pose" in tasks:
         out += ["poses_kitti.txt", "poses_tum.txt"]
     return out
@@ -286,10 +289,12 @@ def _depth_only(
         yield from flush()
 
 
-def _write_frame(out_dir: Path, result: FrameResult, tasks: tuple[str, ...]) -> None:
+def _write_frame(out_dir: Path, result: FrameResult, tasks: tuple[str, ...], vis: bool = True) -> None:
     if "depth" in tasks:
         save_npy_atomic(output_path(out_dir, "depth", result.name, ".npy"), result.depth)
-        write_image(output_path(out_dir, "depth", result.name, ".png"), depth_to_color(result.depth))
+        if vis:
+            write_image(output_path(out_dir, "depth", result.name, ".png"), depth_to_color(result.depth))
     if "flow" in tasks and result.flow is not None:
         write_flow_kitti(output_path(out_dir, "flow", result.name, ".png"), result.flow)
-        write_image(output_path(out_dir, "flow_vis", result.name, ".png"), flow_to_color(result.flow))
+        if vis:
+            write_image(output_path(out_dir, "flow_vis", result.name, ".png"), flow_to_color(result.flow))

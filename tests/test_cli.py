@@ -272,3 +272,22 @@ def test_output_path_refuses_names_that_leave_the_output_folder(tmp_path):
     for name in ("..", ".", "", "../x", "a/b", "..\\x"):
         with pytest.raises(GeoNetInputError):
             output_path(tmp_path, "depth", name, ".npy")
+
+
+def test_no_vis_writes_the_same_data_without_the_pictures(tmp_path, capsys):
+    src = sample_folder(tmp_path, 4)
+    common = ["--calib", str(SAMPLE_CALIB), "--no-progress"]
+    assert main(["predict", str(src), "--out", str(tmp_path / "full"), *common]) == 0
+    assert main(["predict", str(src), "--out", str(tmp_path / "lean"), "--no-vis", *common]) == 0
+    assert main(["batch", str(src), "--out", str(tmp_path / "batch"), "--no-vis", "--no-progress", *common[:2]]) == 0
+    capsys.readouterr()
+    full, lean, batch = tmp_path / "full", tmp_path / "lean", tmp_path / "batch" / src.name
+    for out in (lean, batch):
+        assert not list(out.glob("depth/*.png")) and not (out / "flow_vis").exists()
+        for npy in sorted(full.glob("depth/*.npy")):
+            np.testing.assert_array_equal(np.load(out / "depth" / npy.name), np.load(npy))
+        for png in sorted(full.glob("flow/*.png")):
+            assert (out / "flow" / png.name).read_bytes() == png.read_bytes()
+    assert len(list(full.glob("depth/*.png"))) == 4 and len(list(full.glob("flow_vis/*.png"))) == 3
+    summary = json.loads((lean / "summary.json").read_text())
+    assert "depth/*.png" not in summary["outputs"] and "flow_vis/*.png" not in summary["outputs"]

@@ -104,6 +104,11 @@ def add_parser(sub) -> None:
     parser.add_argument(
         "--batch-size", type=positive_int, default=4, help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)"
     )
+    parser.add_argument(
+        "--no-vis",
+        action="store_true",
+        help="skip the depth colour maps and flow colour wheels (the data files only; much faster writes)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(run=run_command)
 
@@ -144,6 +149,7 @@ def run_command(args: argparse.Namespace) -> int:
             tasks=tasks,
             batch_size=args.batch_size,
             camera=camera,
+            vis=not args.no_vis,
             resume=args.resume,
             ray_address=args.ray_address,
             progress=not args.no_progress,

@@ -68,6 +68,11 @@ def add_parser(sub) -> None:
         help="camera height above a flat road: depth and pose translations in metres, from a "
         "ground plane fitted to each frame's depth (needs intrinsics; e.g. 1.65 for KITTI)",
     )
+    parser.add_argument(
+        "--no-vis",
+        action="store_true",
+        help="skip the depth colour maps and flow colour wheels (the data files only; much faster writes)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(run=run)
 
@@ -86,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         progress=not args.no_progress,
         camera_height=args.camera_height,
+        vis=not args.no_vis,
     )
     print(
         f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
