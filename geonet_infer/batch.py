@@ -230,12 +230,12 @@ def plan_units(paths) -> list[WorkUnit]:
 
 def needs_own_calib(path) -> bool:
     """Whether the input has no calibration of its own (anything but a KITTI drive with its file)."""
-    from geonet_infer.io.frames import KITTI_CALIB_NAME
+    from geonet_infer.io.frames import find_kitti_calib
 
     root = _sequence_root(path)
     if not (root.is_dir() and (root / _KITTI[0] / _KITTI[1]).is_dir()):
         return True
-    return not any((d / KITTI_CALIB_NAME).is_file() for d in (root, root.parent, root.parent.parent))
+    return find_kitti_calib(root) is None
 
 
 # ----------------------------------------------------------------------------- one sequence

@@ -56,6 +56,7 @@ from geonet_infer.io import (
     read_flow_kitti,
     read_kitti_poses,
 )
+from geonet_infer.io.frames import find_up
 from geonet_infer.velodyne import velodyne_to_depth_map
 
 TASKS = ("depth", "flow", "pose")
@@ -184,13 +185,6 @@ class Dataset:
         }
 
 
-def _find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | None:
-    for candidate in [folder, *list(folder.parents)[:levels]]:
-        if all((candidate / n).is_file() for n in names):
-            return candidate
-    return None
-
-
 def depth_dataset(
     root, layout: str = "auto", sequences: list[str] | None = None, stride: int = 1, limit: int | None = None
 ) -> Dataset:
@@ -215,7 +209,7 @@ def depth_dataset(
             pairs = [(img, png_dir / img.name) for img in images if (png_dir / img.name).is_file()]
             kind, calib_dir, gt_what = "png", None, "sparse depth PNGs (proj_depth/groundtruth)"
         elif velo_dir.is_dir():
-            calib_dir = _find_up(root, KITTI_CALIB)
+            calib_dir = find_up(root, KITTI_CALIB)
             if calib_dir is None:
                 raise GeoNetInputError(
                     root / KITTI_CALIB[0],

@@ -35,6 +35,7 @@ from geonet_infer.datasets import KITTI_CALIB, SNIPPET, Dataset
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io import read_camera, read_image
 from geonet_infer.io.atomic import atomic_write
+from geonet_infer.io.frames import find_up
 from geonet_infer.scale import check_camera_height, fit_ground_plane
 
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
@@ -133,8 +134,8 @@ def depth_intrinsics(item, layout: str) -> np.ndarray:
         candidates = [item.image.parents[1] / "calib.txt"]
     else:
         drive = item.image.parents[2]  # DRIVE/image_02/data/frame.png
-        folders = [item.calib_dir] if item.calib_dir else []
-        candidates = [d / KITTI_CALIB[0] for d in folders + [drive, drive.parent, drive.parent.parent]]
+        found = item.calib_dir or find_up(drive, KITTI_CALIB[:1])
+        candidates = [(found or drive) / KITTI_CALIB[0]]
     for path in candidates:
         if path.is_file():
             return read_camera(path).K

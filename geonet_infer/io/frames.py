@@ -172,13 +172,22 @@ class _VideoSource(FrameSource):
         return len(self.frame_names) if self.frame_names is not None else self._count
 
 
-def _find_kitti_calib(drive: Path) -> Path | None:
-    """``calib_cam_to_cam.txt`` in the drive folder or up to two levels up (KITTI: ``<date>/``)."""
-    for folder in (drive, drive.parent, drive.parent.parent):
-        candidate = folder / KITTI_CALIB_NAME
-        if candidate.is_file():
+def find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | None:
+    """The first of ``folder`` and its ``levels`` parents that holds every file in ``names``.
+
+    KITTI raw keeps a date's calibration in ``<date>/``, beside its drive folders; extracts
+    often copy it into the drive folder itself.
+    """
+    for candidate in [folder, *list(folder.parents)[:levels]]:
+        if all((candidate / n).is_file() for n in names):
             return candidate
     return None
+
+
+def find_kitti_calib(drive: Path) -> Path | None:
+    """``calib_cam_to_cam.txt`` in the drive folder or up to two levels up (KITTI: ``<date>/``)."""
+    folder = find_up(drive, (KITTI_CALIB_NAME,))
+    return None if folder is None else folder / KITTI_CALIB_NAME
 
 
 def open_frames(path) -> FrameSource:
@@ -221,4 +230,4 @@ def open_frames(path) -> FrameSource:
     else:
         return _ImageFolderSource(given, given, p.name, "folder")
     images = drive / _KITTI_IMAGES
-    return _ImageFolderSource(given, images, drive.name, "kitti_drive", _find_kitti_calib(drive))
+    return _ImageFolderSource(given, images, drive.name, "kitti_drive", find_kitti_calib(drive))
