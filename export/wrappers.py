@@ -29,7 +29,7 @@ import torch.nn as nn
 from geonet_infer.conventions import IMAGE_NORM, kitti_like_K
 from training.geometry import l2_norm, pose_vec_to_mat
 from training.losses import LossWeights
-from training.model import GeoNet, rigid_warp
+from training.model import GeoNet, normalize_disparity_scale, rigid_warp
 
 GRAPH_NAMES = ("depthnet", "posenet", "rigidflow", "resflownet")
 RIGID_GRAPHS = ("depthnet", "posenet", "rigidflow")  # what a stage 'rigid' checkpoint can export
@@ -93,7 +93,7 @@ class DepthExport(nn.Module):
     def forward(self, image: torch.Tensor):
         disparity = self.depth_net(image)[0]
         if self.scale_normalize:
-            disparity = disparity / disparity.mean(dim=(1, 2, 3), keepdim=True)
+            disparity = normalize_disparity_scale(disparity)
         return disparity, 1.0 / disparity
 
 

@@ -66,6 +66,14 @@ def rigid_warp(
     return flow, warped, photometric_error(warped, frame_from, alpha)
 
 
+def normalize_disparity_scale(disp: torch.Tensor) -> torch.Tensor:
+    """Official ``--scale_normalize``: (B, 1, H, W) disparity divided by its own spatial mean.
+
+    Used in training and by the exported DepthNet graph, so depth keeps the scale pose learned.
+    """
+    return disp / disp.mean(dim=(1, 2, 3), keepdim=True)
+
+
 def flownet_input(frame_from, frame_to, warped, flow, error) -> torch.Tensor:
     """The 12 ResFlowNet channels, in the official order.
 
@@ -156,7 +164,7 @@ class GeoNet(nn.Module):
         source_rows = sources_n.transpose(0, 1).reshape(N * B, *sources_n.shape[2:])
         disp = self.depth_net(torch.cat([target_n, source_rows], dim=0))
         if self.scale_normalize:
-            disp = [d / d.mean(dim=(1, 2, 3), keepdim=True) for d in disp]
+            disp = [normalize_disparity_scale(d) for d in disp]
         poses = self.pose_net(torch.cat([target_n, sources_n.flatten(1, 2)], dim=1))
 
         T_fwd = pose_vec_to_mat(poses.transpose(0, 1).reshape(N * B, 6))
