@@ -36,7 +36,7 @@ from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.images import write_image
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.predictor import FrameResult, Predictor
-from geonet_infer.scale import SequenceScaler, check_camera_height
+from geonet_infer.scale import SequenceScaler, check_metric_request
 from geonet_infer.viz import depth_to_color, flow_to_color
 
 TASKS = ("depth", "pose", "flow")
@@ -132,14 +132,7 @@ def predict_to_dir(
             "flow needs camera intrinsics and none were found",
             "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
         )
-    if camera_height is not None:
-        check_camera_height(camera_height)
-        if camera is None:
-            raise GeoNetInputError(
-                source.path,
-                "--camera-height needs camera intrinsics and none were found",
-                "pass --calib FILE or --intrinsics FX,FY,CX,CY",
-            )
+    check_metric_request(camera_height, camera, source.path)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     totals: dict[str, float] = defaultdict(float)

@@ -43,7 +43,7 @@ from geonet_infer.preprocess import (
     next_source_position,
     snippet_indices,
 )
-from geonet_infer.scale import SequenceScaler, check_camera_height
+from geonet_infer.scale import SequenceScaler, check_metric_request
 from geonet_infer.session import usable_cpus
 
 ImageLike = np.ndarray | str | Path
@@ -176,19 +176,6 @@ class _Timer:
         out = {k: v * share for k, v in self.ms.items()}
         out["total"] = sum(out.values())
         return out
-
-
-# ----------------------------------------------------------------------------- metric scale
-def _check_camera_height(camera_height: float | None, camera) -> None:
-    if camera_height is None:
-        return
-    check_camera_height(camera_height)
-    if camera is None:
-        raise GeoNetInputError(
-            None,
-            "camera_height needs the camera intrinsics",
-            "pass camera= / K= (a Camera, a 3x3 K, or --calib / --intrinsics)",
-        )
 
 
 # ----------------------------------------------------------------------------- predictor
@@ -365,7 +352,7 @@ class Predictor:
         images = [image] if single else list(image)
         if not images:
             return []
-        _check_camera_height(camera_height, camera)
+        check_metric_request(camera_height, camera)
         timer = _Timer()
         rgbs = [self._read(img, timer, i)[0] for i, img in enumerate(images)]
         cameras = [self._camera(camera, r.shape[:2]) for r in rgbs]
@@ -545,7 +532,7 @@ class Predictor:
         size: tuple[int, int] | None = None
         n_read, exhausted = 0, False
         pose_world = np.eye(4)
-        _check_camera_height(camera_height, K)
+        check_metric_request(camera_height, K)
         scaler = SequenceScaler(camera_height) if camera_height is not None else None
         t0 = 0
         while True:

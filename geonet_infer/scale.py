@@ -146,6 +146,22 @@ class SequenceScaler:
         return self.last
 
 
+def check_metric_request(camera_height_m: float | None, camera, where=None) -> None:
+    """Before any work: a requested camera height must be valid and come with the camera's K.
+
+    ``camera_height_m`` None = relative depth, nothing to check; ``where`` names the input.
+    """
+    if camera_height_m is None:
+        return
+    check_camera_height(camera_height_m)
+    if camera is None:
+        raise GeoNetInputError(
+            where,
+            "camera_height needs the camera intrinsics",
+            "pass camera= / K= (a Camera or a 3x3 K), or --calib FILE / --intrinsics FX,FY,CX,CY",
+        )
+
+
 def check_camera_height(camera_height_m) -> None:
     if not isinstance(camera_height_m, (int, float)) or not np.isfinite(camera_height_m) or camera_height_m <= 0:
         raise GeoNetInputError(
