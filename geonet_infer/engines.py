@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Protocol
 
@@ -21,6 +20,7 @@ import numpy as np
 
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.session import make_session, make_session_options
+from geonet_infer.timing import Case, time_interleaved
 
 BACKENDS = ("onnxruntime", "openvino", "auto")
 ENGINES = ("onnxruntime", "openvino")  # what "auto" chooses between
@@ -73,16 +73,22 @@ class OrtEngine:
         return out
 
 
-def _import_openvino():
+def _openvino():
+    """The ``openvino`` module, or None when the ``[openvino]`` extra is not installed."""
     try:
         import openvino
-    except ImportError as exc:
-        raise GeoNetInputError(
-            None,
-            "backend 'openvino' needs the OpenVINO runtime, which is not installed",
-            "pip install 'geonet-infer[openvino]', or use backend='onnxruntime'",
-        ) from exc
+    except ImportError:
+        return None
     return openvino
+
+
+def openvino_available() -> bool:
+    return _openvino() is not None
+
+
+def openvino_version() -> str | None:
+    ov = _openvino()
+    return None if ov is None else ov.__version__
 
 
 class OpenVinoEngine:
@@ -95,7 +101,13 @@ class OpenVinoEngine:
     backend = "openvino"
 
     def __init__(self, path: str | Path, threads: int | None):
-        ov = _import_openvino()
+        ov = _openvino()
+        if ov is None:
+            raise GeoNetInputError(
+                None,
+                "backend 'openvino' needs the OpenVINO runtime, which is not installed",
+                "pip install 'geonet-infer[openvino]', or use backend='onnxruntime'",
+            )
         self.path = Path(path)
         if not self.path.is_file():
             raise GeoNetInputError(self.path, "ONNX model not found", "export models with `python -m export`")
@@ -151,14 +163,6 @@ class OpenVinoEngine:
         return out
 
 
-def openvino_available() -> bool:
-    try:
-        import openvino  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def timing_feeds(engine, seed: int = 0) -> dict[str, np.ndarray]:
     """Batch-1 inputs of realistic range for timing a graph: images ~N(0, 0.5), depth 10 m, zero pose,
     a pinhole K with fx = fy = W centred on the image."""
@@ -181,17 +185,6 @@ def timing_feeds(engine, seed: int = 0) -> dict[str, np.ndarray]:
     return feeds
 
 
-def median_ms(engine, feeds: dict[str, np.ndarray], warmup: int = 2, iters: int = 7) -> float:
-    for _ in range(warmup):
-        engine.run(feeds)
-    times = []
-    for _ in range(iters):
-        t0 = time.perf_counter()
-        engine.run(feeds)
-        times.append((time.perf_counter() - t0) * 1e3)
-    return float(np.median(times))
-
-
 def pick_fastest(path: str | Path, threads: int | None) -> tuple[Engine, dict]:
     """The faster engine for one graph on this machine (batch 1), and the timings behind the choice.
 
@@ -202,21 +195,18 @@ def pick_fastest(path: str | Path, threads: int | None) -> tuple[Engine, dict]:
     if not openvino_available():
         return ort_engine, {"chosen": "onnxruntime", "reason": "openvino not installed"}
     try:
-        ov_engine = OpenVinoEngine(path, threads)
+        engines = {"onnxruntime": ort_engine, "openvino": OpenVinoEngine(path, threads)}
         feeds = timing_feeds(ort_engine)
-        # interleave so both see the same background load
-        ms = {"onnxruntime": [], "openvino": []}
-        for _ in range(2):
-            ms["onnxruntime"].append(median_ms(ort_engine, feeds, warmup=1, iters=4))
-            ms["openvino"].append(median_ms(ov_engine, feeds, warmup=1, iters=4))
+        cases = [Case(name, lambda e=engine: e.run(feeds)) for name, engine in engines.items()]
+        # interleaved blocks, so both see the same background load; no quiet-wait at load time
+        time_interleaved(cases, warmup=2, iters=8, block=4, quiet=False, rewarm_ms=0)
     except GeoNetInputError:
         raise
     except Exception as exc:  # noqa: BLE001 -- any OpenVINO failure means: use onnxruntime
         return ort_engine, {"chosen": "onnxruntime", "reason": f"openvino failed: {str(exc).splitlines()[0][:200]}"}
-    best = {k: min(v) for k, v in ms.items()}
-    chosen = min(best, key=best.get)
-    info = {"chosen": chosen, "p50_ms_batch1": {k: round(v, 3) for k, v in best.items()}}
-    return (ort_engine if chosen == "onnxruntime" else ov_engine), info
+    p50 = {case.name: case.stats().p50_ms for case in cases}
+    chosen = min(p50, key=p50.get)
+    return engines[chosen], {"chosen": chosen, "p50_ms_batch1": {k: round(v, 3) for k, v in p50.items()}}
 
 
 def make_engine(path: str | Path, backend: str, threads: int | None) -> Engine:

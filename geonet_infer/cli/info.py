@@ -12,6 +12,7 @@ import numpy as np
 import onnxruntime as ort
 
 from geonet_infer import __version__
+from geonet_infer.engines import openvino_version
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import DEFAULT_MODEL, bundled_models, resolve_model
 from geonet_infer.session import usable_cpus
@@ -41,21 +42,12 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def _openvino_version() -> str | None:
-    """The optional engine's version (``[openvino]`` extra), None when it is not installed."""
-    try:
-        import openvino
-    except ImportError:
-        return None
-    return openvino.__version__
-
-
 def environment() -> dict:
     return {
         "geonet_infer": __version__,
         "python": platform.python_version(),
         "onnxruntime": ort.__version__,
-        "openvino": _openvino_version(),
+        "openvino": openvino_version(),
         "numpy": np.__version__,
         "opencv": cv2.__version__,
         "providers": ort.get_available_providers(),
