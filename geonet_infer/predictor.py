@@ -24,7 +24,6 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from geonet_infer.engines import BACKENDS, Engine, make_engine, pick_fastest
@@ -294,7 +293,7 @@ class Predictor:
     def _to_network(self, rgb: np.ndarray, camera: Camera | None, timer: _Timer) -> np.ndarray:
         with timer.stage("preprocess"):
             if camera is not None and camera.has_distortion:
-                rgb = cv2.undistort(rgb, camera.K, camera.dist)
+                rgb = camera.undistort(rgb)
             return self.spec.to_network(rgb)
 
     def _load_frames(self, frames: Sequence[ImageLike], camera_or_K, timer: _Timer, what: str):

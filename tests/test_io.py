@@ -505,3 +505,18 @@ def test_atomic_write_gives_the_mode_of_a_plain_open(tmp_path):
     with atomic_write(tmp_path / "atomic.txt") as tmp:
         tmp.write_text("x")
     assert (tmp_path / "atomic.txt").stat().st_mode & 0o777 == plain.stat().st_mode & 0o777
+
+
+def test_camera_undistort_equals_opencv_and_builds_its_maps_once(realdata):
+    from geonet_infer.io import calib
+
+    camera = read_camera(realdata / "udacity_dashcam" / "calib_advanced_lane_lines.txt")
+    cap = cv2.VideoCapture(str(realdata / "udacity_dashcam" / "test_video.mp4"))
+    frames = [cap.read()[1] for _ in range(2)]
+    before = calib._undistort_maps.cache_info()
+    for frame in frames:
+        assert np.array_equal(camera.undistort(frame), cv2.undistort(frame, camera.K, camera.dist))
+    after = calib._undistort_maps.cache_info()
+    assert after.hits - before.hits >= 1  # the second frame reused the first frame's maps
+    rectified = read_camera(realdata / "kitti_raw_2011_09_26_sfnd" / "calib_cam_to_cam.txt")
+    assert rectified.undistort(frames[0]) is frames[0]  # no distortion: nothing to do

@@ -415,9 +415,9 @@ def _video_inputs(src: Path, kind: str) -> list[Path]:
     return videos
 
 
-def crop_camera(camera, crop: tuple[int, int, int, int] | None, frame_size: tuple[int, int]) -> np.ndarray:
+def crop_intrinsics(K: np.ndarray, crop: tuple[int, int, int, int] | None, frame_size: tuple[int, int]) -> np.ndarray:
     """K of the cropped frames (cx, cy shift by the crop's corner); checks the crop fits."""
-    K = camera.scaled_to(*frame_size).K.copy()
+    K = K.copy()
     if crop is None:
         return K
     x, y, w, h = crop
@@ -458,15 +458,14 @@ def collect_video(cfg: PrepareConfig, skips: Skips) -> list[Sequence]:
             rgb = frame.rgb
             if size is None:
                 size = (rgb.shape[1], rgb.shape[0])
-                K_crop = crop_camera(camera, cfg.crop, size)
+                cam_here = camera.scaled_to(*size)
+                K_crop = crop_intrinsics(cam_here.K, cfg.crop, size)
                 crop_size = (cfg.crop[2], cfg.crop[3]) if cfg.crop else size
                 K_out = scale_intrinsics(K_crop, cfg.width / crop_size[0], cfg.height / crop_size[1])
-                cam_here = camera.scaled_to(*size)
             elif (rgb.shape[1], rgb.shape[0]) != size:
                 skips.add(path, f"frame {frame.name} is {rgb.shape[1]}x{rgb.shape[0]}, the first {size[0]}x{size[1]}")
                 continue
-            if cam_here.has_distortion:  # same K after undistortion (what the runtime does too)
-                rgb = cv2.undistort(rgb, cam_here.K, cam_here.dist)
+            rgb = cam_here.undistort(rgb)  # same K after undistortion (what the runtime does too)
             if cfg.crop:
                 x, y, w, h = cfg.crop
                 rgb = rgb[y : y + h, x : x + w]

@@ -9,10 +9,12 @@
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from geonet_infer.conventions import scale_intrinsics
@@ -45,6 +47,14 @@ OPENCV_DIST_LENGTHS = (4, 5, 8, 12, 14)  # k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s
 
 
 # --------------------------------------------------------------------------- Camera
+@functools.lru_cache(maxsize=8)
+def _undistort_maps(K_bytes: bytes, dist_bytes: bytes, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The fixed-point maps ``cv2.undistort`` builds internally (new camera matrix = K)."""
+    K = np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3)
+    dist = np.frombuffer(dist_bytes, dtype=np.float64)
+    return cv2.initUndistortRectifyMap(K, dist, None, K, (width, height), cv2.CV_16SC2)
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """Pinhole intrinsics, optional lens distortion and the image size they belong to.
@@ -99,6 +109,18 @@ class Camera:
             raise ValueError(f"target size must be positive, got {width}x{height}")
         K = scale_intrinsics(self.K, width / self.size[0], height / self.size[1])
         return Camera(K, self.dist, (int(width), int(height)), self.source)
+
+    def undistort(self, image: np.ndarray) -> np.ndarray:
+        """``image`` without lens distortion, same K: the pixels of ``cv2.undistort(image, K, dist)``.
+
+        The remap tables are built once per camera and image size (``cv2.undistort`` rebuilds
+        them on every call, about two thirds of its time on a 1280x720 frame).
+        """
+        if not self.has_distortion:
+            return image
+        h, w = image.shape[:2]
+        map1, map2 = _undistort_maps(self.K.tobytes(), self.dist.tobytes(), w, h)
+        return cv2.remap(image, map1, map2, cv2.INTER_LINEAR)
 
     def validate(self, path=None) -> Camera:
         """Check the values; returns ``self``.
