@@ -27,8 +27,7 @@ from geonet_infer.timing import current_rss_mib, peak_rss_mib
 
 model, precision, backend = sys.argv[1:4]
 manifest = load_manifest(resolve_model(model))
-files = {g.file for g in manifest.graphs[precision].values()}
-graph_mib = sum((manifest.root / f).stat().st_size for f in files) / 2**20
+graph_mib = manifest.files_mib(precision)
 before = current_rss_mib()
 predictor = load(model, precision=precision, backend=backend)
 loaded = current_rss_mib()

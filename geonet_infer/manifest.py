@@ -186,6 +186,11 @@ class Manifest:
             raise ValueError("manifest has no root directory; load it with load_manifest()")
         return self.root / self.graph(name, precision).file
 
+    def files_mib(self, precision: str = "fp32") -> float:
+        """Size of the graph files of one precision set on disk (a file shared by two graphs counts once)."""
+        files = {self.path(name, precision) for name in self._set(precision)}
+        return sum(f.stat().st_size for f in files) / 2**20
+
     def _set(self, precision: str) -> dict:
         if precision not in self.graphs:
             where = self.root / MANIFEST_NAME if self.root else None

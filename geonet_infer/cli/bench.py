@@ -491,11 +491,6 @@ def _git_commit() -> str | None:
         return None
 
 
-def _graph_files_mib(manifest, precision: str) -> float:
-    files = {g.file for g in manifest.graphs[precision].values()}
-    return sum((manifest.root / f).stat().st_size for f in files) / 2**20
-
-
 # ----------------------------------------------------------------------------- output
 def _row(task: str, mode: str, precision: str, backend: str, batch: int, case: Case, extra: dict) -> dict:
     stats = case.stats()
@@ -597,7 +592,7 @@ def run(args: argparse.Namespace) -> int:
             predictor = load(plan["model_dir"], precision=precision, threads=args.threads, backend=backend)
             load_s = time.perf_counter() - t0
             rss_loaded = current_rss_mib()
-            graphs_mib = _graph_files_mib(manifest, precision)
+            graphs_mib = manifest.files_mib(precision)
             env.setdefault("threads", predictor.threads)
             ort_engines = [predictor.engine(n) for n, e in predictor.engines.items() if e == "onnxruntime"]
             if ort_engines:
