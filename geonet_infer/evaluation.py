@@ -23,6 +23,7 @@ Broken data (missing file, size mismatch, no valid ground-truth pixel) raises
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Callable
@@ -127,6 +128,12 @@ def _result(
 
 
 # ----------------------------------------------------------------------------- depth
+@functools.lru_cache(maxsize=16)
+def _calibration_K(path: Path) -> np.ndarray:
+    """K of a calibration file, read once: every frame of a sequence shares it (read-only array)."""
+    return read_camera(path).K
+
+
 def depth_intrinsics(item, layout: str) -> np.ndarray:
     """K at the image size of a depth item: ``calib.txt`` of a synthetic sequence, or KITTI raw
     ``calib_cam_to_cam.txt`` (``P_rect_02``) in the drive folder or up to two levels up."""
@@ -138,7 +145,7 @@ def depth_intrinsics(item, layout: str) -> np.ndarray:
         candidates = [(found or drive) / KITTI_CALIB[0]]
     for path in candidates:
         if path.is_file():
-            return read_camera(path).K
+            return _calibration_K(path)
     raise GeoNetInputError(
         candidates[0],
         "no camera intrinsics for this frame",
