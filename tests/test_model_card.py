@@ -2,7 +2,8 @@
 
 The model directories here are built with ``onnx.helper``: stand-in graphs with the
 exact I/O contract of the exported ones (``export.wrappers.io_spec``), a valid
-manifest (``random_init: true``) and, for one of them, an INT8 set. A real
+manifest (``random_init: true``) and, for most of them, an INT8 set; a shifted
+stand-in plays the ``--before`` model. A real
 ``python -m export --random-init`` takes ~35 s even at 64x208, too slow for this
 file; the stand-ins make the numbers predictable instead (the "pose network" drives
 straight ahead, the "depth network" follows image brightness). The synthetic data is
@@ -142,8 +143,13 @@ def resflownet(seq_length: int, extra: float) -> onnx.ModelProto:
 BUILDERS = {"depthnet": depthnet, "posenet": posenet, "rigidflow": rigidflow, "resflownet": resflownet}
 
 
-def make_model_dir(out: Path, seq_length: int = 3, int8: bool = True, int8_static_pose: bool = False) -> Path:
-    """A model directory the runtime accepts (manifest checked by load_manifest on use)."""
+def make_model_dir(
+    out: Path, seq_length: int = 3, int8: bool = True, int8_static_pose: bool = False, shift: float = 0.0
+) -> Path:
+    """A model directory the runtime accepts (manifest checked by load_manifest on use).
+
+    ``shift`` is added to the depth head's disparity and to the residual flow: another model
+    with the same contract and other numbers (the "before" model)."""
     out.mkdir(parents=True)
     graphs = {"fp32": {}}
     if int8:
@@ -151,6 +157,7 @@ def make_model_dir(out: Path, seq_length: int = 3, int8: bool = True, int8_stati
         (out / "int8").mkdir()
     for name, build in BUILDERS.items():
         spec = io_spec(name, H, W, seq_length)
+        extra = shift if name in ("depthnet", "resflownet") else 0.0
 
         def entry(file: str, precision: str, extra: float, build=build, spec=spec) -> GraphEntry:
             onnx.save(build(seq_length, extra), str(out / file))
@@ -164,13 +171,15 @@ def make_model_dir(out: Path, seq_length: int = 3, int8: bool = True, int8_stati
                 exporter="tests/test_model_card.py onnx.helper stand-in",
             )
 
-        graphs["fp32"][name] = entry(f"{name}.onnx", "fp32", 0.0)
+        graphs["fp32"][name] = entry(f"{name}.onnx", "fp32", extra)
         if int8:
             # The INT8 set's rigidflow is the fp32 file, as in a real export.
             graphs["int8"][name] = (
                 graphs["fp32"][name]
                 if name == "rigidflow"
-                else entry(f"int8/{name}.onnx", "int8", -0.01 if name == "posenet" and int8_static_pose else 0.01)
+                else entry(
+                    f"int8/{name}.onnx", "int8", -0.01 if name == "posenet" and int8_static_pose else extra + 0.01
+                )
             )
     # arch "small": a real arch, so the manifest declares its disparity head (the runtime checks it).
     manifest = Manifest(
@@ -277,10 +286,12 @@ def _args(model: Path, synth: tuple[Path, Path], kitti: Path, out: Path, *extra:
 
 @pytest.fixture(scope="module")
 def card3(tmp_path_factory, synth, kitti):
-    """The card of a 3-frame stand-in with FP32 and INT8 graphs (INT8 pose matrices without motion)."""
+    """The card of a 3-frame stand-in with FP32 and INT8 graphs (INT8 pose matrices without motion),
+    with a shifted stand-in (INT8 pose moving) as the ``--before`` model."""
     out = tmp_path_factory.mktemp("card3")
     model = make_model_dir(out / "model", int8_static_pose=True)
-    assert main(_args(model, synth, kitti, out, "--allow-random-init")) == 0
+    before = make_model_dir(out / "before", shift=0.05)
+    assert main(_args(model, synth, kitti, out, "--allow-random-init", "--before", str(before))) == 0
     return (out / "models.md").read_text(), json.loads((out / "card.json").read_text())
 
 
@@ -303,6 +314,7 @@ def test_card_has_every_table_and_finite_numbers(card3):
     assert "WARNING: RANDOM-INIT MODEL" in md
     for heading in (
         "## The model",
+        "## Before / after",
         "## Files",
         "## What was measured",
         "## Depth",
@@ -319,7 +331,9 @@ def test_card_has_every_table_and_finite_numbers(card3):
         "| model, INT8 |",
         "| constant depth (baseline) |",
         "| zero flow (baseline) |",
+        "| DIS medium (baseline) |",
         "| identity pose / no motion (baseline) |",
+        "| ORB-VO (baseline) |",
     ):
         assert row in md, row
     assert md.count("| constant depth (baseline) |") == 2  # synthetic and KITTI
@@ -361,6 +375,139 @@ def test_numbers_in_card_come_from_the_run(card3):
     assert f"| {sig3(f['noc']['epe'])} | {sig3(f['occ']['epe'])} |" in md
     p = result["synthetic"]["pose"]["fp32"]["ate_snippet"]
     assert f"{sig3(p['mean'])} ± {sig3(p['std'])}" in md
+
+
+def _row(md: str, label: str) -> list[str]:
+    """The cells of the table row starting with ``label`` (the first such row)."""
+    line = next(line for line in md.splitlines() if line.startswith(f"| {label} |"))
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def _before_after_rows(md: str) -> dict[str, list[str]]:
+    """{row label: cells} of the before/after table."""
+    section = md.split("## Before / after\n")[1].split("\n## ")[0]
+    lines = [line for line in section.splitlines() if line.startswith("| ")][1:]  # not the header
+    cells = [[c.strip() for c in line.strip("|").split("|")] for line in lines]
+    return {c[0]: c[1:] for c in cells}
+
+
+def _headlines(result: dict) -> dict:
+    """Per before/after row: (number of one side and precision, baseline, its name, target met?), written
+    out here from the JSON blocks, independently of the card's own table."""
+    syn, kd = result["synthetic"], result["kitti"]["depth"]
+    return {
+        "real KITTI frames 0–1 depth AbsRel": (
+            lambda side, p: side["kitti"]["depth"][p]["abs_rel"],
+            kd["constant_baseline"]["abs_rel"],
+            "constant",
+            lambda m, b: m < b,
+        ),
+        "synthetic held-out depth AbsRel": (
+            lambda side, p: side["synthetic"]["depth"][p]["abs_rel"],
+            syn["depth"]["constant_baseline"]["abs_rel"],
+            "constant",
+            lambda m, b: m <= 0.15,
+        ),
+        "synthetic flow EPE-noc (px)": (
+            lambda side, p: side["synthetic"]["flow"][p]["noc"]["epe"],
+            syn["flow"]["dis_medium_baseline"]["noc"]["epe"],
+            "DIS medium",
+            lambda m, b: m < b,
+        ),
+        "synthetic pose ATE (paper ÷N, mean)": (
+            lambda side, p: side["synthetic"]["pose"][p]["ate_snippet"]["mean"],
+            syn["pose"]["orb_vo_baseline"]["ate_snippet"]["mean"],
+            "ORB-VO",
+            lambda m, b: m < b,
+        ),
+    }
+
+
+def test_classical_baseline_rows(card3):
+    """DIS medium and ORB-VO sit in the flow and pose tables beside the trivial baselines, from the run."""
+    md, result = card3
+    flow, pose = result["synthetic"]["flow"], result["synthetic"]["pose"]
+    dis, orb = flow["dis_medium_baseline"], pose["orb_vo_baseline"]
+    assert _row(md, "DIS medium (baseline)")[2:] == [
+        sig3(dis["noc"]["epe"]),
+        sig3(dis["occ"]["epe"]),
+        sig3(dis["noc"]["fl"]),
+        sig3(dis["occ"]["fl"]),
+        "4",
+    ]
+    assert dis["noc"]["epe"] != flow["zero_flow_baseline"]["noc"]["epe"]  # DIS finds motion
+    assert _row(md, "ORB-VO (baseline)")[2:] == [
+        f"{sig3(orb['ate_snippet']['mean'])} ± {sig3(orb['ate_snippet']['std'])}",
+        f"{sig3(orb['ate_rmse_true']['mean'])} ± {sig3(orb['ate_rmse_true']['std'])}",
+        "2",
+    ]
+    assert orb["pairs"] == 8 and 0 <= orb["failed_pairs"] <= 8
+    # no scale fit can make a trajectory worse than no motion (see the card's baselines text)
+    assert orb["ate_snippet"]["mean"] <= pose["identity_baseline"]["ate_snippet"]["mean"] + 1e-12
+    assert f"{orb['failed_pairs']} of its 8 pairs failed" in md
+    limitation = next(line for line in md.splitlines() if line.startswith("* **Flow**"))
+    assert "zero flow and OpenCV DIS" in limitation and f"{sig3(dis['noc']['epe'])} px for DIS medium" in limitation
+
+
+def test_before_after_table_holds_both_runs_numbers(card3, tmp_path):
+    md, result = card3
+    before = result["before"]
+    assert before["model"]["dir"].endswith("before") and result["model"]["dir"].endswith("model")
+    # the before model runs the same measurements, without the (model-independent) baselines
+    assert set(before["synthetic"]["flow"]) == {"fp32", "int8", "pairs"}
+    assert "constant_baseline" not in before["kitti"]["depth"]
+    assert before["synthetic"]["pose"]["method"] == result["synthetic"]["pose"]["method"]
+    rows = _before_after_rows(md)
+    assert list(rows) == list(_headlines(result))
+    for label, (number, baseline, name, meets) in _headlines(result).items():
+        sides = [number(side, p) for side in (before, result) for p in ("fp32", "int8")]
+        assert rows[label][:4] == [sig3(v) for v in sides], label
+        assert rows[label][4] == f"{sig3(baseline)} ({name})", label
+        assert rows[label][6] == ("yes" if meets(number(result, "fp32"), baseline) else "no"), label
+    assert [r[5] for r in rows.values()] == ["below constant", "≤ 0.15", "below DIS medium", "below ORB-VO"]
+    # the shifted stand-in differs from the model: a swapped side would show
+    assert rows["synthetic held-out depth AbsRel"][0] != rows["synthetic held-out depth AbsRel"][2]
+    assert rows["synthetic flow EPE-noc (px)"][0] != rows["synthetic flow EPE-noc (px)"][2]
+    assert before["synthetic"]["pose"]["int8"]["static_snippets"] == 0  # after's INT8 pose does not move
+    note = md.split("## Before / after\n")[1].split("\n## ")[0].strip().splitlines()[-1]
+    assert f"Before: `{before['model']['dir']}`" in note and f"after: `{result['model']['dir']}`" in note
+    assert "measured in this one run" in note
+
+
+@pytest.mark.parametrize(
+    ("row", "path", "value", "verdict"),
+    [
+        ("synthetic held-out depth AbsRel", ("depth", "abs_rel"), lambda dis: 0.15, "yes"),
+        ("synthetic held-out depth AbsRel", ("depth", "abs_rel"), lambda dis: 0.1501, "no"),
+        ("synthetic flow EPE-noc (px)", ("flow", "noc", "epe"), lambda dis: dis - 0.01, "yes"),
+        ("synthetic flow EPE-noc (px)", ("flow", "noc", "epe"), lambda dis: dis, "no"),
+    ],
+)
+def test_meets_target_judges_the_after_fp32_number(card3, row, path, value, verdict):
+    """The verdict follows the FP32 number across its threshold (≤ for the depth target, < for a
+    baseline); an INT8 number of 0, which would meet every target, does not change it."""
+    _, result = card3
+    result = json.loads(json.dumps(result))
+    task, *keys, key = path
+    for precision, number in (
+        ("fp32", value(result["synthetic"]["flow"]["dis_medium_baseline"]["noc"]["epe"])),
+        ("int8", 0.0),
+    ):
+        block = result["synthetic"][task][precision]
+        for name in keys:
+            block = block[name]
+        block[key] = number
+    assert _before_after_rows(render_card(result))[row][6] == verdict
+
+
+def test_before_without_int8_shows_na(card3):
+    _, result = card3
+    result = json.loads(json.dumps(result))
+    before = result["before"]
+    for block in (*before["synthetic"].values(), before["kitti"]["depth"]):
+        block.pop("int8", None)
+    for cells in _before_after_rows(render_card(result)).values():
+        assert cells[1] == "n/a" and cells[0] != "n/a" and cells[3] != "n/a"
 
 
 def test_card_renders_a_partly_successful_camera_height_fit(card3):
@@ -417,6 +564,7 @@ def test_five_frame_model_without_int8(tmp_path, synth, kitti):
     md = (tmp_path / "models.md").read_text()
     result = json.loads((tmp_path / "card.json").read_text())
     assert "| model, INT8 |" not in md and "has no INT8 graphs" in md and result["int8_delta"] == []
+    assert "## Before / after" not in md and result["before"] is None  # no --before: no such section
     pose = result["synthetic"]["pose"]
     assert "paper's protocol" in pose["method"]
     assert pose["fp32"]["ate_snippet"]["mean"] < 0.2 * pose["identity_baseline"]["ate_snippet"]["mean"]

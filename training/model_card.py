@@ -2,7 +2,7 @@
 
 ``python -m training.model_card --model geonet_infer/models/small_synth --synth-dir data/synth40
 --prepared-dir data/synth40_prepared --kitti ../shared/realdata/kitti_raw_2011_09_26_sfnd
---out docs/models.md [--json OUT.json] [--stride N] [--kitti-frames N]``
+--out docs/models.md [--json OUT.json] [--before DIR] [--stride N] [--kitti-frames N]``
 
 Every number in the card comes from this run: the ONNX graphs are run through the
 runtime (:class:`geonet_infer.predictor.Predictor`), in fp32 and, when the manifest
@@ -13,14 +13,18 @@ from :mod:`geonet_infer.baselines`); this module only picks the data and renders
 * held-out synthetic sequences (``heldout.txt`` of the prepared dir, never trained
   on): depth (Eigen errors, per-image median scaling, 80 m cap, every pixel with
   ground truth) against the constant-depth baseline; flow EPE / Fl on noc and occ
-  pixels against zero flow; pose ATE on 5-frame snippets (``metrics.ate_snippet``,
-  the paper's divide-by-N value, and ``metrics.ate_rmse_true``) against the
-  identity pose (no motion);
+  pixels against zero flow and OpenCV DIS (medium preset); pose ATE on 5-frame
+  snippets (``metrics.ate_snippet``, the paper's divide-by-N value, and
+  ``metrics.ate_rmse_true``) against the identity pose (no motion) and ORB-VO;
 * real KITTI raw frames with Velodyne scans (never trained on): depth against the
   projected Velodyne ground truth, Eigen protocol with the Garg crop, 80 m cap and
   median scaling, at the frames' own resolution; and the same frames scaled by the
   camera height (1.65 m, ground plane fitted to the prediction, no ground truth),
   counting and naming the frames where no ground plane is found.
+
+``--before DIR`` (the previously shipped model directory) runs the same measurements
+on that model in the same run and adds a "Before / after" table of the headline
+numbers, each with its baseline and target.
 
 Random-init (timing-only) model directories are refused unless
 ``--allow-random-init`` is given (development only; the card then carries a
@@ -34,17 +38,19 @@ import dataclasses
 import datetime as _dt
 import json
 import math
+import operator
 import re
 import shlex
 import subprocess
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from geonet_infer import baselines, evaluation, metrics
-from geonet_infer.datasets import SNIPPET, depth_dataset, flow_dataset, pose_dataset, read_heldout
+from geonet_infer import evaluation, metrics
+from geonet_infer.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest
@@ -56,6 +62,15 @@ MIN_DEPTH, MAX_DEPTH = evaluation.MIN_DEPTH, evaluation.MAX_DEPTH
 DEPTH_KEYS = (*metrics.DEPTH_KEYS, "scale", "n_valid")
 DEPTH_HEADERS = ("AbsRel", "SqRel", "RMSE", "RMSElog", "δ<1.25", "δ<1.25²", "δ<1.25³")
 PRECISION_LABEL = {"fp32": "model, FP32", "int8": "model, INT8"}
+BASELINE_LABEL = {
+    "constant_baseline": "constant depth (baseline)",
+    "zero_flow_baseline": "zero flow (baseline)",
+    "dis_medium_baseline": "DIS medium (baseline)",
+    "identity_baseline": "identity pose / no motion (baseline)",
+    "orb_vo_baseline": "ORB-VO (baseline)",
+}
+ROW_LABEL = PRECISION_LABEL | BASELINE_LABEL
+SYNTH_DEPTH_TARGET = 0.15  # the issue's target for the synthetic held-out AbsRel
 Progress = Callable[[str], None]
 
 
@@ -158,18 +173,27 @@ def pose_method(seq_length: int) -> str:
     )
 
 
+class SynthData(NamedTuple):
+    """The held-out sequences as frames (depth), pairs (flow) and 5-frame snippets (pose)."""
+
+    depth: Dataset
+    flow: Dataset
+    pose: Dataset
+
+
+def synth_data(synth_dir: Path, sequences: list[str], stride: int) -> SynthData:
+    return SynthData(
+        depth_dataset(synth_dir, "synth", sequences, stride),
+        flow_dataset(synth_dir, "synth", sequences, stride),
+        pose_dataset(synth_dir, "synth", sequences, stride),
+    )
+
+
 def evaluate_synthetic(
-    predictors: dict[str, Predictor],
-    synth_dir: Path,
-    sequences: list[str],
-    stride: int,
-    allow_random_init: bool,
-    progress: Progress,
+    predictors: dict[str, Predictor], data: SynthData, allow_random_init: bool, progress: Progress
 ) -> tuple[dict, dict, dict]:
-    """Depth, flow and pose blocks of the card on the held-out sequences, with their trivial baselines."""
-    depth_data = depth_dataset(synth_dir, "synth", sequences, stride)
-    flow_data = flow_dataset(synth_dir, "synth", sequences, stride)
-    pose_data = pose_dataset(synth_dir, "synth", sequences, stride)
+    """Depth, flow and pose blocks of the card on the held-out sequences (model rows and item counts)."""
+    depth_data, flow_data, pose_data = data
     depth, flow, pose = {}, {}, {}
     static = {}  # snippets where the model predicts no motion at all
     for p, predictor in predictors.items():
@@ -189,13 +213,36 @@ def evaluate_synthetic(
             evaluation.model_pose_fn(predictor, allow_random_init), pose_data, observe=count_static
         )
         pose[p] = _pose_block(_checked(r, f"{p} pose")) | {"static_snippets": static[p]}
-    progress("baselines")
-    depth["constant_baseline"] = _means(evaluation.evaluate_depth(baselines.constant_depth, depth_data)["items"])
     depth["frames"] = len(depth_data.items)
-    flow["zero_flow_baseline"] = _flow_block(evaluation.evaluate_flow(baselines.zero_flow, flow_data))
     flow["pairs"] = len(flow_data.items)
-    pose["identity_baseline"] = _pose_block(evaluation.evaluate_pose(baselines.identity_pose, pose_data))
     pose["snippets"] = len(pose_data.items)
+    return depth, flow, pose
+
+
+def _baseline(task: str, method: str) -> Callable:
+    """The one function of a ``geonet-infer eval --method`` baseline (``evaluation.baseline_fns``)."""
+    (fn,) = evaluation.baseline_fns(task, method).values()
+    return fn
+
+
+def synthetic_baselines(data: SynthData, progress: Progress) -> tuple[dict, dict, dict]:
+    """Baseline rows of the depth, flow and pose blocks: the trivial ones, and the classical ones the
+    issue's targets name (DIS medium flow, ORB-VO pose)."""
+    progress("baselines")
+    orb = evaluation.evaluate_pose(_baseline("pose", "orb-vo"), data.pose)
+    depth = {
+        "constant_baseline": _means(evaluation.evaluate_depth(_baseline("depth", "constant"), data.depth)["items"])
+    }
+    flow = {
+        "zero_flow_baseline": _flow_block(evaluation.evaluate_flow(_baseline("flow", "zero"), data.flow)),
+        "dis_medium_baseline": _flow_block(evaluation.evaluate_flow(_baseline("flow", "dis-medium"), data.flow)),
+    }
+    pose = {
+        "identity_baseline": _pose_block(evaluation.evaluate_pose(_baseline("pose", "identity"), data.pose)),
+        # a failed pair repeats the previous step: how often that happened tells how far ORB-VO really tracked
+        "orb_vo_baseline": _pose_block(orb)
+        | {"failed_pairs": sum(r["failed_pairs"] for r in orb["items"]), "pairs": (SNIPPET - 1) * len(orb["items"])},
+    }
     return depth, flow, pose
 
 
@@ -207,10 +254,16 @@ def _pose_block(result: dict) -> dict:
 
 
 def evaluate_kitti(
-    predictors: dict[str, Predictor], data, camera_height: float, allow_random_init: bool, progress: Progress
+    predictors: dict[str, Predictor],
+    data,
+    camera_height: float,
+    allow_random_init: bool,
+    progress: Progress,
+    constant_baseline: bool = True,
 ) -> dict:
-    """Eigen-protocol depth (Garg crop, 80 m) on KITTI frames: median-scaled (model and constant
-    depth) and scaled by the camera height (model only: a constant depth has no ground plane)."""
+    """Eigen-protocol depth (Garg crop, 80 m) on KITTI frames: median-scaled (model and, with
+    ``constant_baseline``, constant depth) and scaled by the camera height (model only: a constant
+    depth has no ground plane)."""
     sizes = {}
     per_frame: dict[str, dict] = {item.name: {} for item in data.items}
 
@@ -220,7 +273,8 @@ def evaluate_kitti(
     out: dict = {}
     by_camera_height: dict = {"camera_height_m": camera_height}
     runs = [(p, evaluation.model_depth_fn(predictor, allow_random_init)) for p, predictor in predictors.items()]
-    for key, fn in [*runs, ("constant_baseline", baselines.constant_depth)]:
+    methods = [*runs, ("constant_baseline", _baseline("depth", "constant"))] if constant_baseline else runs
+    for key, fn in methods:
         progress(f"{key}: KITTI depth")
         r = _checked(evaluation.evaluate_depth(fn, data, crop=KITTI_CROP, observe=keep_size), f"{key} KITTI depth")
         out[key] = _means(r["items"])
@@ -295,16 +349,49 @@ def model_info(manifest: Manifest, model_dir: Path) -> dict:
     }
 
 
-def run(args, command: str, progress: Progress) -> dict:
-    """Measure everything; returns the JSON-able result (raises GeoNetInputError on bad input)."""
-    model_dir = _require_dir(args.model, "model directory", "pass a directory written by `python -m export`")
+def load_model_dir(path: str | Path, allow_random_init: bool) -> tuple[Path, Manifest]:
+    model_dir = _require_dir(path, "model directory", "pass a directory written by `python -m export`")
     manifest = load_manifest(model_dir)
-    if manifest.random_init and not args.allow_random_init:
+    if manifest.random_init and not allow_random_init:
         raise GeoNetInputError(
             model_dir / MANIFEST_NAME,
             "this model directory holds random-init (timing-only) graphs",
             "export a trained --checkpoint (--allow-random-init is for development)",
         )
+    return model_dir, manifest
+
+
+def evaluate_model(
+    model_dir: Path,
+    manifest: Manifest,
+    synth: SynthData,
+    kitti_data: Dataset,
+    args,
+    progress: Progress,
+    with_baselines: bool,
+) -> dict:
+    """Every number of one model directory, FP32 and (when exported) INT8, laid out as in the card's
+    JSON; the one code path for the model and, with ``--before``, for the previous one."""
+    precisions = [p for p in ("fp32", "int8") if p in manifest.precisions]
+    predictors = {p: Predictor(model_dir, precision=p, threads=args.threads, manifest=manifest) for p in precisions}
+    random_ok = bool(args.allow_random_init)
+    depth, flow, pose = evaluate_synthetic(predictors, synth, random_ok, progress)
+    if with_baselines:
+        for block, rows in zip((depth, flow, pose), synthetic_baselines(synth, progress)):
+            block.update(rows)
+    pose["method"] = pose_method(manifest.seq_length)
+    kitti = evaluate_kitti(predictors, kitti_data, KITTI_CAMERA_HEIGHT, random_ok, progress, with_baselines)
+    return {
+        "model": model_info(manifest, model_dir),
+        "synthetic": {"depth": depth, "flow": flow, "pose": pose},
+        "kitti": {"depth": kitti},
+    }
+
+
+def run(args, command: str, progress: Progress) -> dict:
+    """Measure everything; returns the JSON-able result (raises GeoNetInputError on bad input)."""
+    model_dir, manifest = load_model_dir(args.model, args.allow_random_init)
+    before = load_model_dir(args.before, args.allow_random_init) if args.before else None
     synth_dir = _require_dir(args.synth_dir, "synthetic data folder", "generate it with `python -m training.synth`")
     prepared_dir = _require_dir(
         args.prepared_dir, "prepared data folder", "prepare it with `python -m training.prepare`"
@@ -324,29 +411,22 @@ def run(args, command: str, progress: Progress) -> dict:
             "lower --kitti-frames",
         )
 
-    precisions = [p for p in ("fp32", "int8") if p in manifest.precisions]
-    predictors = {p: Predictor(model_dir, precision=p, threads=args.threads, manifest=manifest) for p in precisions}
-    random_ok = bool(args.allow_random_init)
-    depth, flow, pose = evaluate_synthetic(predictors, synth_dir, sequences, args.stride, random_ok, progress)
-    pose["method"] = pose_method(manifest.seq_length)
-    kitti = evaluate_kitti(predictors, kitti_data, KITTI_CAMERA_HEIGHT, random_ok, progress)
-
+    synth = synth_data(synth_dir, sequences, args.stride)
+    after = evaluate_model(model_dir, manifest, synth, kitti_data, args, progress, with_baselines=True)
     result = {
         "command": command,
         "generated_utc": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
         "git_commit": _git_commit(),
         "allow_random_init": bool(args.allow_random_init),
-        "model": model_info(manifest, model_dir),
+        "model": after["model"],
         "synthetic": {
             "synth_dir": str(args.synth_dir),
             "prepared_dir": str(args.prepared_dir),
             "sequences": sequences,
             "stride": args.stride,
             "synth_config": _synth_config(synth_dir),
-            "depth": depth,
-            "flow": flow,
-            "pose": pose,
-        },
+        }
+        | after["synthetic"],
         "kitti": {
             "dir": str(args.kitti),
             "frames": [item.name for item in kitti_data.items],
@@ -354,8 +434,8 @@ def run(args, command: str, progress: Progress) -> dict:
             "crop": KITTI_CROP,
             "min_depth": MIN_DEPTH,
             "max_depth": MAX_DEPTH,
-            "depth": kitti,
-        },
+        }
+        | after["kitti"],
         "settings": {
             "max_depth": MAX_DEPTH,
             "snippet_length": SNIPPET,
@@ -363,7 +443,13 @@ def run(args, command: str, progress: Progress) -> dict:
             "threads": args.threads,
         },
     }
-    result["int8_delta"] = int8_deltas(result) if "int8" in predictors else []
+    result["int8_delta"] = int8_deltas(result) if "int8" in manifest.precisions else []
+    # the previous model on the same data; the baselines do not depend on the model, so they run once
+    result["before"] = (
+        evaluate_model(*before, synth, kitti_data, args, lambda msg: progress(f"before {msg}"), with_baselines=False)
+        if before
+        else None
+    )
     return result
 
 
@@ -412,18 +498,20 @@ def _data_synth(result: dict) -> str:
     return f"`{Path(s['synth_dir']).name}` held-out ({len(s['sequences'])} seq{size})"
 
 
+def _frame_span(frames: list[str]) -> str:
+    """The frames as a range: 0–9 for numbered frames, else the first and the last name."""
+    if len(frames) == 1:
+        return frames[0]
+    return f"{int(frames[0])}–{int(frames[-1])}" if all(f.isdigit() for f in frames) else f"{frames[0]}…{frames[-1]}"
+
+
 def _data_kitti(result: dict) -> str:
     k = result["kitti"]
     frames = k["frames"]
-    span = (
-        frames[0]
-        if len(frames) == 1
-        else f"{int(frames[0])}–{int(frames[-1])}"
-        if all(f.isdigit() for f in frames)
-        else f"{frames[0]}…{frames[-1]}"
-    )
     pf = k["depth"]["per_frame"][0]
-    return f"KITTI raw `{Path(k['dir']).name}`, frames {span} ({len(frames)}, {pf['width']}×{pf['height']})"
+    return (
+        f"KITTI raw `{Path(k['dir']).name}`, frames {_frame_span(frames)} ({len(frames)}, {pf['width']}×{pf['height']})"
+    )
 
 
 def _camera_height_label(p: str, camera_height: float) -> str:
@@ -437,8 +525,9 @@ def _depth_table(block: dict, data: str, count_key: str) -> list[str]:
     for key in ("fp32", "int8", "constant_baseline"):
         if key not in block:
             continue
-        label = PRECISION_LABEL.get(key, "constant depth (baseline)")
-        rows.append([label, data] + [sig3(block[key][c]) for c in metrics.DEPTH_KEYS] + [sig3(block[key]["count"])])
+        rows.append(
+            [ROW_LABEL[key], data] + [sig3(block[key][c]) for c in metrics.DEPTH_KEYS] + [sig3(block[key]["count"])]
+        )
         if by_height and key in by_height:
             means, failed = by_height[key], by_height[f"{key}_ground_fit_failed"]
             scored = block["frames"] - len(failed)
@@ -475,14 +564,13 @@ def _camera_height_text(block: dict) -> list[str]:
 
 def _flow_table(block: dict, data: str) -> list[str]:
     rows = []
-    for key in ("fp32", "int8", "zero_flow_baseline"):
+    for key in ("fp32", "int8", "zero_flow_baseline", "dis_medium_baseline"):
         if key not in block:
             continue
-        label = PRECISION_LABEL.get(key, "zero flow (baseline)")
         b = block[key]
         rows.append(
             [
-                label,
+                ROW_LABEL[key],
                 data,
                 sig3(b["noc"]["epe"]),
                 sig3(b["occ"]["epe"]),
@@ -496,14 +584,13 @@ def _flow_table(block: dict, data: str) -> list[str]:
 
 def _pose_table(block: dict, data: str) -> list[str]:
     rows = []
-    for key in ("fp32", "int8", "identity_baseline"):
+    for key in ("fp32", "int8", "identity_baseline", "orb_vo_baseline"):
         if key not in block:
             continue
-        label = PRECISION_LABEL.get(key, "identity pose / no motion (baseline)")
         b = block[key]
         rows.append(
             [
-                label,
+                ROW_LABEL[key],
                 data,
                 f"{sig3(b['ate_snippet']['mean'])} ± {sig3(b['ate_snippet']['std'])}",
                 f"{sig3(b['ate_rmse_true']['mean'])} ± {sig3(b['ate_rmse_true']['std'])}",
@@ -538,6 +625,114 @@ def _init_checkpoint(command: str | None) -> str | None:
         return None
     m = re.search(r"--init-checkpoint[ =](\S+)", command)
     return m.group(1) if m else None
+
+
+def _checkpoint_text(prov: dict) -> str:
+    if prov.get("checkpoint") and prov.get("checkpoint_sha256"):
+        return f"`{prov['checkpoint']}` (sha256 `{prov['checkpoint_sha256'][:12]}…`)"
+    return "n/a"
+
+
+class Headline(NamedTuple):
+    """A row of the before/after table: one model number, the baseline it is judged by and the issue's target."""
+
+    label: str
+    where: str  # "synthetic" or "kitti"
+    task: str
+    metric: str  # key in the flattened block of one precision
+    baseline: str  # key of the baseline's block
+    baseline_name: str
+    target: str
+    meets: Callable[[float, float], bool]  # (model, baseline) -> the target is met
+
+
+HEADLINES = (
+    Headline(
+        "real KITTI frames {frames} depth AbsRel",
+        "kitti",
+        "depth",
+        "abs_rel",
+        "constant_baseline",
+        "constant",
+        "below constant",
+        operator.lt,
+    ),
+    Headline(
+        "synthetic held-out depth AbsRel",
+        "synthetic",
+        "depth",
+        "abs_rel",
+        "constant_baseline",
+        "constant",
+        f"≤ {SYNTH_DEPTH_TARGET:g}",
+        lambda model, _: model <= SYNTH_DEPTH_TARGET,
+    ),
+    Headline(
+        "synthetic flow EPE-noc (px)",
+        "synthetic",
+        "flow",
+        "noc.epe",
+        "dis_medium_baseline",
+        "DIS medium",
+        "below DIS medium",
+        operator.lt,
+    ),
+    Headline(
+        "synthetic pose ATE (paper ÷N, mean)",
+        "synthetic",
+        "pose",
+        "ate_snippet.mean",
+        "orb_vo_baseline",
+        "ORB-VO",
+        "below ORB-VO",
+        operator.lt,
+    ),
+)
+
+
+def _headline(side: dict, h: Headline, precision: str) -> float | None:
+    """``h``'s number of one side (the result or its "before" block); None if it has no such precision."""
+    block = side[h.where][h.task]
+    return _flatten(block[precision])[h.metric] if precision in block else None
+
+
+def _side_text(label: str, model: dict) -> str:
+    random = "; random-init weights" if model["random_init"] else ""
+    return f"{label} `{model['dir']}` (checkpoint {_checkpoint_text(model['provenance'])}{random})"
+
+
+def _before_after(result: dict) -> list[str]:
+    """The headline numbers of the previous model and this one, with baseline, target and verdict."""
+    before = result["before"]
+    rows = []
+    for h in HEADLINES:
+        baseline = _flatten(result[h.where][h.task][h.baseline])[h.metric]
+        meets = h.meets(_headline(result, h, "fp32"), baseline)
+        rows.append(
+            [h.label.format(frames=_frame_span(result["kitti"]["frames"]))]
+            + [sig3(_headline(side, h, p)) for side in (before, result) for p in ("fp32", "int8")]
+            + [f"{sig3(baseline)} ({h.baseline_name})", h.target, "yes" if meets else "no"]
+        )
+    headers = [
+        "",
+        "before FP32",
+        "before INT8",
+        "after FP32",
+        "after INT8",
+        "baseline",
+        "target",
+        "after meets target?",
+    ]
+    return [
+        "## Before / after",
+        "",
+        *_table(headers, rows),
+        "",
+        f"{_side_text('Before:', before['model'])}; {_side_text('after:', result['model'])}. Both were measured "
+        "in this one run, on the same data and through the same code; the baselines are the rows of the tables "
+        'below. Lower is better in every row; "after meets target?" judges the after model\'s FP32 number.',
+        "",
+    ]
 
 
 def render_card(result: dict) -> str:
@@ -592,14 +787,7 @@ def render_card(result: dict) -> str:
             sig3(prov["checkpoint_step"]) if prov.get("checkpoint_step") is not None else "n/a",
         ],
         ["training command", f"`{prov['training_command']}`" if prov.get("training_command") else "n/a"],
-        [
-            "checkpoint",
-            (
-                f"`{prov['checkpoint']}` (sha256 `{prov['checkpoint_sha256'][:12]}…`)"
-                if prov.get("checkpoint") and prov.get("checkpoint_sha256")
-                else "n/a"
-            ),
-        ],
+        ["checkpoint", _checkpoint_text(prov)],
         ["exported", f"{prov.get('export_date')} at git commit `{(prov.get('git_commit') or 'unknown')[:12]}`"],
         ["exporter", prov.get("exporter") or "n/a"],
         ["versions", ", ".join(f"{k_} {v}" for k_, v in sorted(prov.get("versions", {}).items())) or "n/a"],
@@ -629,6 +817,8 @@ def render_card(result: dict) -> str:
             f"graphs kept in FP32: {', '.join(q.get('fp32_graphs') or []) or 'none'}.",
             "",
         ]
+    if result.get("before"):
+        L += _before_after(result)
 
     # ------------------------------------------------------------ files
     L += [
@@ -664,6 +854,7 @@ def render_card(result: dict) -> str:
 
     # ------------------------------------------------------------ data and protocol
     seqs = s["sequences"]
+    orb = s["pose"]["orb_vo_baseline"]
     L += [
         "## What was measured",
         "",
@@ -700,10 +891,15 @@ def render_card(result: dict) -> str:
         f"{k['max_depth']:g} m, per-image median scaling (or the camera height, rows so labelled), then clamp; "
         "the runtime returns depth at the input resolution.",
         "* **Baselines**: *constant depth* predicts one value per image; after median scaling that is the "
-        "image's median GT depth. *Zero flow* predicts no motion. *Identity pose* predicts no camera "
+        "image's median GT depth. *Zero flow* predicts no motion; *DIS medium* is OpenCV's DIS optical flow, "
+        "medium preset, on grey frames (`geonet_infer.baselines.dis_flow`). *Identity pose* predicts no camera "
         "motion; its ATE is the snippet's own extent. The per-snippet least-squares scale can shrink any "
         "prediction to zero, so a model's ATE can never exceed the identity baseline's on the same snippet: "
-        "the baseline is an upper bound, and the gap to it is what the pose network contributes.",
+        "the baseline is an upper bound, and the gap to it is what the pose network contributes. *ORB-VO* is "
+        "two-view ORB visual odometry per consecutive pair (5-point essential matrix, `recoverPose`, unit-length "
+        "steps, then the same per-snippet scale; `geonet_infer.baselines.orb_vo`); "
+        f"{orb['failed_pairs']} of its {orb['pairs']} pairs failed and repeated the previous step. Every baseline "
+        "is the function `geonet-infer eval --method` runs (`geonet_infer.evaluation.baseline_fns`).",
         "",
     ]
 
@@ -829,9 +1025,10 @@ def render_card(result: dict) -> str:
         "* **Pose ATE on 5-frame snippets** hides drift and most rotation error, and the paper's value "
         "divides by N (it is the true RMSE ÷ √5). There is no real-data pose or flow evaluation here "
         "(the KITTI frames have no poses and no flow ground truth).",
-        f"* **Flow** was compared with zero flow only "
+        "* **Flow** is compared with zero flow and OpenCV DIS (medium preset), not with a learned flow method "
         f"(FP32 EPE noc {sig3(s['flow'][best]['noc']['epe'])} px vs "
-        f"{sig3(s['flow']['zero_flow_baseline']['noc']['epe'])} px), on synthetic data only.",
+        f"{sig3(s['flow']['zero_flow_baseline']['noc']['epe'])} px for zero flow and "
+        f"{sig3(s['flow']['dis_medium_baseline']['noc']['epe'])} px for DIS medium), on synthetic data only.",
         "",
     ]
     return "\n".join(L) + "\n"
@@ -848,6 +1045,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--kitti", required=True, help="KITTI raw drive folder (image_02/, velodyne_points/, calib)")
     p.add_argument("--out", required=True, help="the Markdown card to write (docs/models.md)")
     p.add_argument("--json", help="also write every number as JSON here")
+    p.add_argument(
+        "--before",
+        metavar="DIR",
+        help="the previously shipped model directory: measured the same way in this run, and the card gets a "
+        "before/after table",
+    )
     p.add_argument("--stride", type=int, default=1, help="synthetic: every n-th frame / pair / snippet")
     p.add_argument("--kitti-frames", type=int, default=10, help="KITTI frames with Velodyne scans to use (first N)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all usable)")
@@ -887,7 +1090,10 @@ def main(argv=None) -> int:
             if out and not Path(out).parent.is_dir():
                 raise GeoNetInputError(Path(out).parent, "output folder not found", "create it first")
         result = run(args, command, progress)
-        _check_finite({k: v for k, v in result.items() if k != "model"})
+        # the manifests' own numbers (model blocks) are reported, not measured
+        _check_finite({k: v for k, v in result.items() if k not in ("model", "before")})
+        if result["before"]:
+            _check_finite({k: v for k, v in result["before"].items() if k != "model"}, "before")
     except GeoNetInputError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
