@@ -139,6 +139,31 @@ def test_dataset_augmentation_updates_intrinsics(tmp_path):
     np.testing.assert_allclose(item["intrinsics"].numpy(), K0, rtol=1e-6)
 
 
+def test_augmented_depth_follows_the_frames_geometry(tmp_path):
+    """Depth ground truth gets the frames' scale and crop: a depth map holding each pixel's own
+    column number is, after augmentation, the column that the item's K maps back to."""
+    # depth = (column + 1) / 4: no 0 (= none), and within the 16-bit encoding's 256 m
+    columns = np.tile((np.arange(W, dtype=np.float32) + 1.0) / 4, (H, 1))
+    write_sample(tmp_path, "s", "000001", const_frames([90, 100, 110]), K0)
+    write_depth_kitti(tmp_path / "s" / "000001_depth.png", columns)
+    write_sample(tmp_path, "r", "000001", const_frames([90, 100, 110]), K0)  # real footage: no depth file
+    write_lists(tmp_path, ["s 000001", "r 000001"])
+    ds = D.SequenceDataset(tmp_path, "train", augment=True, seed=5, load_depth=True)
+    u = np.arange(W)
+    for epoch in range(4):
+        ds.set_epoch(epoch)
+        item = ds[0]
+        K = item["intrinsics"].numpy().astype(np.float64)
+        depth = item["depth_gt"].numpy()[0]
+        assert depth.shape == (H, W)
+        expected = (u - K[0, 2]) * K0[0, 0] / K[0, 0] + K0[0, 2]  # source column of each output column
+        # nearest-neighbour resize: within a pixel (plus the 4/256 px of the 16-bit encoding)
+        assert np.abs(4 * depth[H // 2] - 1.0 - expected).max() <= 1.0, epoch
+        assert np.ptp(depth, axis=0).max() < 0.01  # rows stay rows: no vertical mixing
+    assert float(ds[1]["depth_gt"].abs().sum()) == 0.0  # a sample without ground truth: all zeros
+    assert "depth_gt" not in D.SequenceDataset(tmp_path, "train")[0]  # only when asked for
+
+
 # --------------------------------------------------------------------------- augmentation colour
 def test_random_color_gain_shared_or_not():
     frames = np.full((3, 4, 5, 3), 0.5, np.float32)

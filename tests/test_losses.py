@@ -56,3 +56,21 @@ def test_masked_mean_by_hand():
     mask = torch.tensor([[[[1.0, 0.0], [0.0, 1.0]]]])
     assert masked_mean(values, mask).item() == (2.0 + 5.0) / 2
     assert masked_mean(values, torch.zeros_like(mask)).item() == 0.0
+
+
+def test_scale_invariant_log_error_by_hand():
+    from training.losses import scale_invariant_log_error
+
+    gt = torch.tensor([[[[2.0, 4.0, 0.0]]], [[[1.0, 1.0, 1.0]]], [[[0.0, 0.0, 0.0]]]])  # 0 = no ground truth
+    # image 0: log ratios (0, 2) on its two GT pixels -> mean 1, mean square 2, spread sqrt(2 - 1) = 1
+    # image 1: the ground truth times 7 everywhere -> 0 (one global scale is free)
+    # image 2: no ground truth -> left out of the mean, whatever is predicted
+    pred = torch.tensor(
+        [[[[2.0, 4.0 * torch.e**2, 123.0]]], [[[7.0, 7.0, 7.0]]], [[[5.0, 0.1, 9.0]]]], dtype=torch.float32
+    )
+    value = scale_invariant_log_error(pred, gt)
+    torch.testing.assert_close(value, torch.tensor((1.0 + 0.0) / 2), atol=1e-4, rtol=0)
+    assert float(scale_invariant_log_error(pred[2:], gt[2:])) == 0.0
+    pred.requires_grad_(True)
+    scale_invariant_log_error(pred, gt).backward()
+    assert torch.isfinite(pred.grad).all() and pred.grad[2].abs().sum() == 0 and pred.grad[0, 0, 0, 2] == 0

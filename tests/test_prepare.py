@@ -239,6 +239,17 @@ def test_synth_heldout(tmp_path):
     assert not (out / "seq_00" / "000001_depth.png").exists()  # GT only for held-out samples
     with pytest.raises(GeoNetInputError, match="--heldout"):
         P.prepare(P.PrepareConfig("synth", src, tmp_path / "o2", heldout=3))
+    # --train-depth: train/val samples get their target depth too, the same split and files otherwise
+    sup = tmp_path / "sup"
+    res_sup = P.prepare(P.PrepareConfig("synth", src, sup, heldout=1, height=32, width=48, train_depth=True))
+    assert (res_sup.train, res_sup.val, res_sup.heldout) == (res.train, res.val, res.heldout)
+    for s in (0, 1):
+        for i in (1, 2, 3):
+            src_depth = cv2.imread(str(src / f"seq_{s:02d}" / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+            got = cv2.imread(str(sup / f"seq_{s:02d}" / f"{i:06d}_depth.png"), cv2.IMREAD_UNCHANGED)
+            np.testing.assert_array_equal(got, src_depth[::2, ::2])
+    with pytest.raises(GeoNetInputError, match="--train-depth only applies"):
+        P.prepare(P.PrepareConfig("frames", src / "seq_00" / "image", tmp_path / "o3", train_depth=True))
 
 
 def test_synth_generator_output(tmp_path):

@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import hashlib
 import os
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from geonet_infer import io as gio
+from geonet_infer.errors import GeoNetInputError
 from training import synth
 
 H, W = 128, 416
@@ -206,3 +208,28 @@ def test_help_runs(capsys):
         synth.main(["--help"])
     assert e.value.code == 0
     assert "KITTI" in capsys.readouterr().out
+
+
+def test_dense_traffic_fills_the_view_with_near_vehicles_and_trucks():
+    from training.synth.scene import make_scene
+    from training.synth.sequence import sequence_rng
+
+    def near_moving(s):  # share of the first frame covered by moving vehicles closer than 15 m
+        return (s["motion_mask"][0] & (s["depth"][0] < 15)).mean()
+
+    light, dense = [], []
+    for i in range(4):
+        light.append(near_moving(synth.generate_sequence(SEED, i, 2, H, W)))
+        d = synth.generate_sequence(SEED, i, 2, H, W, traffic="dense")
+        dense.append(near_moving(d))
+        # the ground truth stays exact: static pixels move by the camera's rigid flow
+        rigid = rigid_flow(d["depth"][0], d["poses"][0], d["poses"][1], d["K"])
+        static = d["flow_occ"][0] & ~d["motion_mask"][0]
+        assert np.linalg.norm(d["flow"][0] - rigid, axis=-1)[static].max() <= 0.05
+        scene = make_scene(sequence_rng(SEED, i), 2, H, W, "dense")
+        moving = scene.box_group >= 0
+        tops = -(scene.box_centre[moving, 1] - scene.box_half[moving, 1])  # y points down, ground at 0
+        assert tops.max() > 2.9, f"sequence {i}: no truck (tallest moving box {tops.max():.2f} m)"
+    assert np.mean(dense) > 2 * np.mean(light), (light, dense)
+    with pytest.raises(GeoNetInputError, match="traffic"):
+        synth.generate(synth.SynthConfig(out=Path("unused"), traffic="jam"))

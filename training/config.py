@@ -17,6 +17,7 @@ class TrainConfig:
     stage: str = "rigid"
     arch: str = "resnet50"
     data_dir: str = "data/prepared"
+    extra_data_dirs: list[str] = field(default_factory=list)  # more prepared folders mixed into train
     out_dir: str = "runs/rigid"
     init_checkpoint: str | None = None  # weights to start from (rigid: fine-tune; flow: freeze depth/pose)
     resume: str | None = None  # checkpoint of this stage to continue exactly
@@ -83,6 +84,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="DepthNet encoder; 'small' also selects the small PoseNet and ResFlowNet",
     )
     p.add_argument("--data-dir", default=d.data_dir, help="prepared data (train.txt, val.txt)")
+    p.add_argument(
+        "--extra-data-dir",
+        dest="extra_data_dirs",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="another prepared folder whose train.txt samples are mixed into the shuffled training "
+        "batches (repeatable; e.g. your own footage next to the synthetic scenes); validation "
+        "stays on --data-dir",
+    )
     p.add_argument("--out-dir", default=d.out_dir, help="checkpoints and log.jsonl go here")
     p.add_argument(
         "--init-checkpoint",
@@ -151,6 +162,15 @@ def build_parser() -> argparse.ArgumentParser:
         "predicted disparity map by its spatial mean before warping and smoothness",
     )
     p.add_argument(
+        "--depth-supervision",
+        type=float,
+        default=d.weights.depth_supervision,
+        metavar="W",
+        help="stage rigid: add W x the scale-invariant log-depth error against the ground truth of "
+        "samples that have it (synthetic data prepared with --train-depth; real samples have none "
+        "and keep only the self-supervised loss). Not in GeoNet: supervised synthetic pre-training",
+    )
+    p.add_argument(
         "--device",
         default=d.device,
         help="auto (CUDA if present, else CPU), cpu, cuda or cuda:N; under torchrun each rank "
@@ -177,4 +197,5 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(argv=None) -> TrainConfig:
     args = vars(build_parser().parse_args(argv))
-    return TrainConfig(**args)
+    weights = LossWeights(depth_supervision=args.pop("depth_supervision"))
+    return TrainConfig(**args, weights=weights)

@@ -85,19 +85,26 @@ def random_color(frames: np.ndarray, rng: np.random.Generator, share_gain: bool)
 
 
 def augment(
-    frames: np.ndarray, K: np.ndarray, rng: np.random.Generator, share_gain: bool
-) -> tuple[np.ndarray, np.ndarray]:
+    frames: np.ndarray, K: np.ndarray, rng: np.random.Generator, share_gain: bool, depth: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Official training augmentation: scale + crop (always), colour with p = 0.5.
 
     Args:
         frames: (N, H, W, 3) float32 in [0, 1]; K: (3, 3).
+        depth: optional (H, W) target depth (0 = none), given the same scale and crop.
     Returns:
-        frames (N, H, W, 3) float32 in [0, 1], K (3, 3).
+        frames (N, H, W, 3) float32 in [0, 1], K (3, 3), depth (H, W) or None.
     """
-    frames, K, _ = random_scale_crop(frames, K, rng)
+    frames, K, crop = random_scale_crop(frames, K, rng)
+    if depth is not None:
+        h, w = depth.shape
+        out_w, out_h = round(w * crop["sx"]), round(h * crop["sy"])
+        # Nearest: no depth blended across object edges or with 0 = none.
+        depth = cv2.resize(depth, (out_w, out_h), interpolation=cv2.INTER_NEAREST)
+        depth = np.ascontiguousarray(depth[crop["y0"] : crop["y0"] + h, crop["x0"] : crop["x0"] + w])
     if rng.uniform() < COLOR_PROB:
         frames = random_color(frames, rng, share_gain)
-    return frames, K
+    return frames, K, depth
 
 
 # --------------------------------------------------------------------------- reading
@@ -131,8 +138,9 @@ class SequenceDataset(Dataset):
                         seq 3 -> [t-1, t+1]; seq 5 -> [t-2, t-1, t+1, t+2].
         ``intrinsics``  float32 (3, 3), K at H x W (after augmentation).
         ``name``        str "<folder> <frame>".
-        ``depth_gt``    float32 (1, H, W) metres, 0 = none; split "heldout" only, when
-                        ``<frame>_depth.png`` exists.
+        ``depth_gt``    float32 (1, H, W) metres, 0 = none; split "heldout" when
+                        ``<frame>_depth.png`` exists, and every split with ``load_depth``
+                        (all zeros for a sample without that file, e.g. real footage).
 
     Augmentation (``augment=True`` and split "train" only) draws once per sample from an RNG
     seeded by (seed, epoch, index), so an item is reproducible whatever worker loads it; call
@@ -150,6 +158,7 @@ class SequenceDataset(Dataset):
         augment: bool = True,
         share_color_gain: bool = False,
         seed: int = 0,
+        load_depth: bool = False,
     ):
         if split not in SPLITS:
             raise GeoNetInputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
@@ -162,6 +171,7 @@ class SequenceDataset(Dataset):
         self.augment = augment and split == "train"
         self.share_color_gain = share_color_gain
         self.seed = seed
+        self.load_depth = load_depth or split == "heldout"
         self.epoch = 0
 
         if not self.root.is_dir():
@@ -216,12 +226,28 @@ class SequenceDataset(Dataset):
         frames = frames.astype(np.float32) / 255.0
         return frames, read_cam(self.root / folder / f"{frame}_cam.txt")
 
+    def load_depth_gt(self, name: str) -> np.ndarray | None:
+        """-> (H, W) float32 target depth in metres (0 = none), or None without ``<frame>_depth.png``."""
+        folder, frame = name.split(" ")
+        depth_path = self.root / folder / f"{frame}_depth.png"
+        if not depth_path.is_file():
+            return None
+        depth = read_depth_kitti(depth_path)
+        if depth.shape != (self.height, self.width):
+            raise GeoNetInputError(
+                depth_path,
+                f"depth is {depth.shape[1]}x{depth.shape[0]}, expected {self.width}x{self.height}",
+                PREPARE_CMD,
+            )
+        return depth.astype(np.float32)
+
     def __getitem__(self, index: int) -> dict:
         name = self.names[index]
         frames, K = self.load_frames(name)
+        depth = self.load_depth_gt(name) if self.load_depth else None
         if self.augment:
             rng = np.random.default_rng([self.seed, self.epoch, index])
-            frames, K = augment(frames, K, rng, self.share_color_gain)
+            frames, K, depth = augment(frames, K, rng, self.share_color_gain, depth)
         chw = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))  # (N, 3, H, W)
         order = snippet_indices(self.seq_length // 2, self.seq_length, self.seq_length)  # [target] + sources
         item = {
@@ -230,18 +256,10 @@ class SequenceDataset(Dataset):
             "intrinsics": torch.from_numpy(K.astype(np.float32)),
             "name": name,
         }
-        if self.split == "heldout":
-            folder, frame = name.split(" ")
-            depth_path = self.root / folder / f"{frame}_depth.png"
-            if depth_path.is_file():
-                depth = read_depth_kitti(depth_path)
-                if depth.shape != (self.height, self.width):
-                    raise GeoNetInputError(
-                        depth_path,
-                        f"depth is {depth.shape[1]}x{depth.shape[0]}, expected {self.width}x{self.height}",
-                        PREPARE_CMD,
-                    )
-                item["depth_gt"] = torch.from_numpy(depth[None].astype(np.float32))
+        if depth is None and self.load_depth and self.split != "heldout":
+            depth = np.zeros((self.height, self.width), np.float32)  # batches mix samples with and without
+        if depth is not None:
+            item["depth_gt"] = torch.from_numpy(depth[None])
         return item
 
 

@@ -27,6 +27,9 @@ class LossWeights:
     alpha_recon: float = 0.85  # weight of DSSIM vs L1 in the photometric error
     consistency_alpha: float = 3.0
     consistency_beta: float = 0.05
+    # Not in GeoNet (0 = official): weight of the scale-invariant log-depth error against the
+    # synthetic generator's ground truth, for supervised pre-training on synthetic scenes.
+    depth_supervision: float = 0.0
 
 
 def _mean_3x3(x: torch.Tensor) -> torch.Tensor:
@@ -99,3 +102,27 @@ def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """
     weighted = (values.mean(dim=1, keepdim=True) * mask).sum()
     return weighted / mask.sum().clamp(min=1.0)
+
+
+def scale_invariant_log_error(depth: torch.Tensor, depth_gt: torch.Tensor) -> torch.Tensor:
+    """Eigen et al.'s scale-invariant log error (lambda = 1), per image, as an RMS.
+
+    ``sqrt(mean(d^2) - mean(d)^2)`` with ``d = log(depth) - log(depth_gt)`` over the pixels with
+    ground truth: the spread of the log ratio, blind to one global scale, since a monocular
+    net's scale is set by the pose it learns with, not by the ground truth.
+
+    Args:
+        depth: (B, 1, H, W) predicted depth, > 0.
+        depth_gt: (B, 1, H, W) metres, 0 = no ground truth.
+    Returns:
+        scalar mean over the images that have ground truth; 0 when none has.
+    """
+    valid = (depth_gt > 0).to(depth.dtype)
+    count = valid.sum(dim=(1, 2, 3))
+    d = (torch.log(depth) - torch.log(depth_gt.clamp(min=1e-3))) * valid
+    n = count.clamp(min=1.0)
+    mean = d.sum(dim=(1, 2, 3)) / n
+    variance = (d.square().sum(dim=(1, 2, 3)) / n - mean.square()).clamp(min=0.0)
+    has_gt = (count > 0).to(depth.dtype)
+    # eps inside the sqrt: its gradient is infinite at a perfect (zero-spread) prediction
+    return (torch.sqrt(variance + 1e-8) * has_gt).sum() / has_gt.sum().clamp(min=1.0)

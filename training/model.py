@@ -25,7 +25,13 @@ from training.geometry import (
     pose_vec_to_mat,
     rigid_flow,
 )
-from training.losses import LossWeights, edge_aware_smoothness, masked_mean, photometric_error
+from training.losses import (
+    LossWeights,
+    edge_aware_smoothness,
+    masked_mean,
+    photometric_error,
+    scale_invariant_log_error,
+)
 from training.networks import DepthNet, PoseNet, ResFlowNet
 
 
@@ -186,8 +192,13 @@ class GeoNet(nn.Module):
             out.bwd_flow.append(flow), out.bwd_warp.append(warp), out.bwd_error.append(err)
         return out, target_pyr, source_pyr
 
-    def rigid_loss(self, target, sources, K) -> StageLoss:
-        """Stage 1: rigid warping + disparity smoothness, summed over scales."""
+    def rigid_loss(self, target, sources, K, depth_gt: torch.Tensor | None = None) -> StageLoss:
+        """Stage 1: rigid warping + disparity smoothness, summed over scales.
+
+        With ``weights.depth_supervision`` > 0 and ``depth_gt`` (B, 1, H, W) metres (0 = none;
+        synthetic scenes), the target's depth at every scale, upsampled to H x W, also pays the
+        scale-invariant log error against it (a deviation from GeoNet, for pre-training).
+        """
         w = self.weights
         out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
         N = self.num_source
@@ -203,7 +214,18 @@ class GeoNet(nn.Module):
             images_s = torch.cat([target_pyr[s][:B], source_pyr[s]], dim=0)
             disp_smooth_loss = disp_smooth_loss + w.disp_smooth / 2**s * edge_aware_smoothness(out.disp[s], images_s)
         total = rigid_warp_loss + disp_smooth_loss
-        return StageLoss(total, _as_floats(rigid_warp=rigid_warp_loss, disp_smooth=disp_smooth_loss, total=total))
+        terms = {"rigid_warp": rigid_warp_loss, "disp_smooth": disp_smooth_loss}
+        if w.depth_supervision > 0 and depth_gt is not None:
+            size = depth_gt.shape[-2:]
+            depth_loss = sum(
+                scale_invariant_log_error(
+                    1.0 / F.interpolate(out.disp[s][:B], size=size, mode="bilinear", align_corners=False), depth_gt
+                )
+                for s in range(NUM_SCALES)
+            )
+            terms["depth_supervised"] = w.depth_supervision * depth_loss
+            total = total + terms["depth_supervised"]
+        return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(
         self, error: torch.Tensor, flow: torch.Tensor, identity_error: torch.Tensor | None = None

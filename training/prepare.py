@@ -5,8 +5,9 @@ Output under ``--out DIR`` (read back by :class:`training.data.SequenceDataset`)
     DIR/<folder>/<frame>.jpg         seq_length frames at H x W side by side: (H, seq_length*W, 3),
                                      temporal order, target (middle frame) in the middle; JPEG q95
     DIR/<folder>/<frame>_cam.txt     one line "fx,0.,cx,0.,fy,cy,0.,0.,1.": the target's K at H x W
-    DIR/<folder>/<frame>_depth.png   synth held-out samples only: target depth (KITTI 16-bit, m*256)
-                                     resized to H x W with nearest neighbour
+    DIR/<folder>/<frame>_depth.png   synth held-out samples (and, with --train-depth, every synth
+                                     sample): target depth (KITTI 16-bit, m*256) resized to H x W
+                                     with nearest neighbour
     DIR/train.txt, DIR/val.txt       "<folder> <frame>" per line
     DIR/heldout.txt                  synth only: held-out samples (never in train.txt / val.txt)
 
@@ -87,6 +88,7 @@ class PrepareConfig:
     val_fraction: float = 0.1  # probability of a sample going to val.txt
     seed: int = 8964  # train/val split seed of the official script
     heldout: int = 2  # synth: the last N sequences go to heldout.txt
+    train_depth: bool = False  # synth: also write the target depth of train/val samples (depth supervision)
     max_frames: int | None = None  # only the first N frames of each sequence (quick runs)
     strict: bool = False  # the first bad input is an error instead of a skip
     calib: Path | None = None  # video/frames: the camera (any format of geonet_infer.io.read_camera)
@@ -106,7 +108,7 @@ class Sequence:
     K: np.ndarray  # (3, 3) intrinsics at the frames' original resolution
     scene: str = ""  # KITTI raw drive folder name, e.g. 2011_09_26_drive_0001_sync (static_frames.txt)
     heldout: bool = False
-    depth_dir: Path | None = None  # synth: depth/ folder (for held-out GT)
+    depth_dir: Path | None = None  # synth: depth/ folder (held-out GT; every sample with --train-depth)
     static_removed: set = field(default_factory=set)  # frame numbers dropped by --remove-static
 
 
@@ -359,8 +361,11 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
     return seqs
 
 
-def collect_synth(src: Path, heldout: int, skips: Skips) -> list[Sequence]:
-    """One Sequence per generator folder (image/, depth/, calib.txt); the last ``heldout`` are held out."""
+def collect_synth(src: Path, heldout: int, skips: Skips, train_depth: bool = False) -> list[Sequence]:
+    """One Sequence per generator folder (image/, depth/, calib.txt); the last ``heldout`` are held out.
+
+    Held-out sequences carry their depth/ folder for evaluation; the others only with ``train_depth``.
+    """
     if (src / "image").is_dir():
         seq_dirs = [src]
     else:
@@ -395,7 +400,7 @@ def collect_synth(src: Path, heldout: int, skips: Skips) -> list[Sequence]:
                 frames=list_frames(d / "image", skips),
                 K=K,
                 heldout=d.name in held,
-                depth_dir=d / "depth",
+                depth_dir=d / "depth" if train_depth or d.name in held else None,
             )
         )
     return seqs
@@ -558,7 +563,7 @@ def _static_gap(seq: Sequence, prev: int, n: int) -> bool:
 def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
     base = out / snip.folder
     paths = {"jpg": base / f"{snip.frame}.jpg", "cam": base / f"{snip.frame}_cam.txt"}
-    if snip.heldout:
+    if snip.depth_path is not None:
         paths["depth"] = base / f"{snip.frame}_depth.png"
     return paths
 
@@ -596,7 +601,7 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
     # K is scaled by the target frame's own resize factors (official: zoom_x, zoom_y of the target).
     K = scale_intrinsics(snip.K, width / w0, height / h0)
     depth = None
-    if snip.heldout:
+    if snip.depth_path is not None:
         try:
             depth = read_depth_kitti(snip.depth_path)
         except GeoNetInputError as err:
@@ -673,6 +678,8 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
         )
     if cfg.remove_static and cfg.kind != "kitti_raw":
         raise GeoNetInputError(None, "--remove-static only applies to --kind kitti_raw", "drop the flag")
+    if cfg.train_depth and cfg.kind != "synth":
+        raise GeoNetInputError(None, "--train-depth only applies to --kind synth", "real footage has no dense depth")
     if cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
         raise GeoNetInputError(
             None,
@@ -692,7 +699,7 @@ def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Ski
     elif cfg.kind in ("video", "frames"):
         seqs = collect_video(cfg, skips)  # --max-frames applied while decoding
     else:
-        seqs = collect_synth(src, cfg.heldout, skips)
+        seqs = collect_synth(src, cfg.heldout, skips, cfg.train_depth)
     if cfg.max_frames is not None:
         for seq in seqs:
             seq.frames = seq.frames[: cfg.max_frames]
@@ -794,6 +801,8 @@ kinds:
   synth       --src = the synthetic generator's output root (<seq>/image/*.png, depth/, calib.txt
               with "K: fx 0 cx 0 fy cy 0 0 1"). The last --heldout sequences (sorted by name) go to
               heldout.txt, with the target depth copied as <frame>_depth.png, never to train/val.
+              --train-depth also copies the depth of train/val samples, for depth-supervised
+              pre-training (python -m training.train --depth-supervision W).
       python -m training.prepare --kind synth --src data/synth --out data/prepared_synth --heldout 2
 
 Skipped inputs (unreadable frames, missing calibration keys, too-short or mixed-resolution
@@ -845,6 +854,11 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=D.heldout,
         help="synth: last N sequences held out for evaluation (default %(default)s)",
+    )
+    p.add_argument(
+        "--train-depth",
+        action="store_true",
+        help="synth: also write the ground-truth depth of train/val samples (for training.train --depth-supervision)",
     )
     p.add_argument(
         "--max-frames", type=int, default=D.max_frames, help="use only the first N frames of each sequence (quick runs)"

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import ConcatDataset
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
@@ -54,9 +55,10 @@ def set_modes(model: GeoNet, stage: str, training: bool) -> None:
         module.train(training)
 
 
-def stage_loss(model: GeoNet, stage: str, target, sources, K) -> StageLoss:
-    fn = model.rigid_loss if stage == "rigid" else model.flow_loss
-    return fn(target, sources, K)
+def stage_loss(model: GeoNet, stage: str, target, sources, K, depth_gt=None) -> StageLoss:
+    if stage == "rigid":
+        return model.rigid_loss(target, sources, K, depth_gt)
+    return model.flow_loss(target, sources, K)
 
 
 class StageLossModule(torch.nn.Module):
@@ -68,8 +70,8 @@ class StageLossModule(torch.nn.Module):
         self.model = model
         self.stage = stage
 
-    def forward(self, target, sources, K) -> StageLoss:
-        return stage_loss(self.model, self.stage, target, sources, K)
+    def forward(self, target, sources, K, depth_gt=None) -> StageLoss:
+        return stage_loss(self.model, self.stage, target, sources, K, depth_gt)
 
 
 def autocast_nets(model: GeoNet, device_type: str, dtype: torch.dtype) -> None:
@@ -96,9 +98,15 @@ def check_options(cfg: TrainConfig, device: torch.device) -> None:
         raise GeoNetInputError(None, "stage flow needs --init-checkpoint", "pass the last.pt of a stage rigid run")
 
 
-def epoch_loader(
-    dataset: SequenceDataset, sampler: DistributedSampler, cfg: TrainConfig, epoch: int, skip_batches: int = 0
-):
+class TrainSet(ConcatDataset):
+    """The training samples of ``--data-dir`` and every ``--extra-data-dir``, shuffled together."""
+
+    def set_epoch(self, epoch: int) -> None:
+        for dataset in self.datasets:
+            dataset.set_epoch(epoch)
+
+
+def epoch_loader(dataset: TrainSet, sampler: DistributedSampler, cfg: TrainConfig, epoch: int, skip_batches: int = 0):
     """This rank's batches of one epoch in a seeded order (DistributedSampler: seed + epoch),
     starting after ``skip_batches`` so a resumed run sees the same data without loading it."""
     dataset.set_epoch(epoch)
@@ -117,8 +125,13 @@ def epoch_loader(
     )
 
 
-def to_device(batch: dict, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    return tuple(batch[k].to(device, non_blocking=True) for k in ("target", "sources", "intrinsics"))
+def to_device(batch: dict, device: torch.device) -> tuple:
+    """-> (target, sources, K, depth_gt or None): the stage loss's arguments."""
+    depth_gt = batch.get("depth_gt")
+    return (
+        *(batch[k].to(device, non_blocking=True) for k in ("target", "sources", "intrinsics")),
+        None if depth_gt is None else depth_gt.to(device, non_blocking=True),
+    )
 
 
 @torch.no_grad()
@@ -177,15 +190,22 @@ def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
     check_options(cfg, rt.device)
     out_dir = Path(cfg.out_dir)
     seed_everything(cfg.seed)
-    train_set = SequenceDataset(
-        cfg.data_dir,
-        "train",
-        cfg.seq_length,
-        cfg.height,
-        cfg.width,
-        augment=cfg.augment,
-        share_color_gain=cfg.share_color_gain,
-        seed=cfg.seed,
+    supervised = cfg.stage == "rigid" and cfg.weights.depth_supervision > 0
+    train_set = TrainSet(
+        [
+            SequenceDataset(
+                root,
+                "train",
+                cfg.seq_length,
+                cfg.height,
+                cfg.width,
+                augment=cfg.augment,
+                share_color_gain=cfg.share_color_gain,
+                seed=cfg.seed + k,  # another augmentation stream per folder
+                load_depth=supervised,
+            )
+            for k, root in enumerate([cfg.data_dir, *cfg.extra_data_dirs])
+        ]
     )
     # drop_last: every rank gets as many samples, none twice (no padding with repeats)
     sampler = DistributedSampler(
@@ -202,7 +222,14 @@ def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
     val_set = None
     if rt.is_main and val_path.is_file() and val_path.read_text().strip():
         val_set = SequenceDataset(
-            cfg.data_dir, "val", cfg.seq_length, cfg.height, cfg.width, augment=False, seed=cfg.seed
+            cfg.data_dir,
+            "val",
+            cfg.seq_length,
+            cfg.height,
+            cfg.width,
+            augment=False,
+            seed=cfg.seed,
+            load_depth=supervised,
         )
 
     model = build_model(cfg)

@@ -30,6 +30,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=D.height, help="image height (default %(default)s)")
     p.add_argument("--width", type=int, default=D.width, help="image width (default %(default)s)")
     p.add_argument("--workers", type=int, default=D.workers, help="processes, one sequence each (default %(default)s)")
+    p.add_argument(
+        "--traffic",
+        choices=("light", "dense"),
+        default=D.traffic,
+        help="light: the lead car 14-35 m ahead, few cars (the original scenes); dense: queues 5-15 m "
+        "ahead and beside the camera, a third of the vehicles trucks (default %(default)s)",
+    )
     return p
 
 

@@ -251,10 +251,11 @@ def add_car(boxes: _BoxList, rng, centre_xz, yaw, group=-1):
         boxes.add(c, yaw0, half, mat, tn, off, group)
 
 
-def make_scene(rng: np.random.Generator, frames: int, height: int, width: int) -> Scene:
+def make_scene(rng: np.random.Generator, frames: int, height: int, width: int, traffic: str = "light") -> Scene:
     """Random road, ego trajectory, static dressing, traffic, lighting and textures for one sequence.
 
     Everything is drawn from ``rng`` in a fixed order (the output of a seed depends on it).
+    ``traffic``: "light" (the original scenes) or "dense" (see :data:`TRAFFIC`).
     """
     K = kitti_like_K(height, width)
     road = make_road(rng)
@@ -266,7 +267,7 @@ def make_scene(rng: np.random.Generator, frames: int, height: int, width: int) -
         _add_street_furniture(boxes, rng, road, side, -Z_BEHIND, z_end + Z_AHEAD)
         _add_parked_cars(boxes, rng, road, side, -Z_BEHIND, z_end + Z_AHEAD)
         _add_backdrop(boxes, rng, road, side, z_end)
-    group_T = _add_traffic(boxes, rng, road, ego_z, frames)
+    group_T = _add_traffic(boxes, rng, road, ego_z, frames, TRAFFIC[traffic])
 
     (centre, yaw, half, mat, tint, texoff, group) = boxes.arrays()
     path = np.linalg.norm(T_wc[-1, :3, 3] - T_wc[0, :3, 3])
@@ -403,8 +404,53 @@ def _add_backdrop(boxes: _BoxList, rng, road: Road, side: int, z_end: float) -> 
         z += L * rng.uniform(0.5, 1.2)
 
 
-def _add_traffic(boxes: _BoxList, rng, road: Road, ego_z: np.ndarray, frames: int) -> np.ndarray:
-    """Moving cars, each a rigid group of boxes; returns group_T (G, M, 4, 4) group-to-world per frame."""
+@dataclass(frozen=True)
+class Traffic:
+    """How close and how big the moving vehicles are."""
+
+    lead_prob: float  # a lead vehicle in the ego lane
+    lead_gap: tuple[float, float]  # its distance ahead (m), before the slow drift
+    lead_min: float  # never closer than this (m)
+    lane_skip: float  # probability that a lane has no traffic at all
+    speed: tuple[float, float]  # |speed| in m per frame
+    spacing: tuple[float, float]  # gap to the next vehicle in a lane (m)
+    truck_prob: float  # a vehicle is a truck (cab + box, 7-12 m long, up to 3.8 m high)
+
+
+TRAFFIC = {
+    # The original scenes: the lead car 14-35 m ahead, a few cars per lane, no trucks.
+    "light": Traffic(0.7, (14, 35), 9.0, 0.25, (0.4, 1.8), (12, 60), 0.0),
+    # Queues: vehicles 5-15 m ahead and beside the camera, a third of them trucks, slow. Real
+    # traffic fills much of the view with near vehicle sides and backs, which light traffic never does.
+    "dense": Traffic(0.95, (5, 15), 4.5, 0.05, (0.1, 1.0), (8, 20), 0.3),
+}
+
+
+def add_truck(boxes: _BoxList, rng, group: int) -> None:
+    """A truck as 3 boxes in its group's frame (wheels, cab, cargo box), bottom on the ground.
+
+    The group origin is the truck's rear (a car's is its centre), so a lead truck is never
+    closer than the lead gap however long it is.
+    """
+    L, Wd = rng.uniform(7.0, 12.0), rng.uniform(2.3, 2.5)
+    hc, hb = rng.uniform(2.6, 3.1), rng.uniform(3.0, 3.8)  # cab and cargo-box tops
+    tint = CAR_COLOURS[rng.integers(len(CAR_COLOURS))] * rng.uniform(0.85, 1.1)
+    box_tint = rng.uniform([0.7, 0.7, 0.7], [1.1, 1.1, 1.1])
+    off = rng.uniform(0, 5, 2)
+    cab = 2.2
+    parts = (  # (z of the box centre from the rear, y of its centre, half sizes, material, tint)
+        (L / 2, 0.5, (0.45 * Wd, 0.5, 0.45 * L), M_TYRE, (1, 1, 1)),
+        (L - cab / 2, 0.9 + (hc - 0.9) / 2, (Wd / 2, (hc - 0.9) / 2, cab / 2), M_PAINT, tint),
+        ((L - cab) / 2, 0.9 + (hb - 0.9) / 2, (Wd / 2, (hb - 0.9) / 2, (L - cab) / 2), M_PAINT, box_tint),
+    )
+    for dz, yc, half, mat, tn in parts:
+        boxes.add(np.array([0.0, -yc, dz]), 0.0, half, mat, tn, off, group)
+
+
+def _add_traffic(
+    boxes: _BoxList, rng, road: Road, ego_z: np.ndarray, frames: int, traffic: Traffic = TRAFFIC["light"]
+) -> np.ndarray:
+    """Moving vehicles, each a rigid group of boxes; returns group_T (G, M, 4, 4) group-to-world per frame."""
     groups = []
     t_idx = np.arange(frames)
     z_end = ego_z[-1]
@@ -414,21 +460,25 @@ def _add_traffic(boxes: _BoxList, rng, road: Road, ego_z: np.ndarray, frames: in
         yaw = road.heading(zs)
         return np.stack([make_T(rot_y(yaw[i]), (x[i], 0.0, zs[i])) for i in range(frames)])
 
-    if rng.random() < 0.7:  # lead car in the ego lane, never closer than ~9 m
-        gap = rng.uniform(14, 35) + _smooth_noise(rng, frames, rng.uniform(0, 10), (40, 150))
-        groups.append(group_poses(ego_z + np.maximum(gap, 9.0), EGO_LANE))
+    if rng.random() < traffic.lead_prob:  # lead vehicle in the ego lane
+        gap = rng.uniform(*traffic.lead_gap) + _smooth_noise(rng, frames, rng.uniform(0, 10), (40, 150))
+        groups.append(group_poses(ego_z + np.maximum(gap, traffic.lead_min), EGO_LANE))
     for d, direction in ((LANE + EGO_LANE, 1), (-EGO_LANE, -1), (-(LANE + EGO_LANE), -1)):
-        if rng.random() < 0.25:
+        if rng.random() < traffic.lane_skip:
             continue
-        speed = direction * rng.uniform(0.4, 1.8)
-        # Spread cars over the stretch of road they will cross during the sequence.
+        speed = direction * rng.uniform(*traffic.speed)
+        # Spread vehicles over the stretch of road they will cross during the sequence.
         span_lo, span_hi = (-60, z_end + 120) if direction > 0 else (0, z_end + 120 + abs(speed) * frames)
         z0 = span_lo + rng.uniform(0, 15)
         while z0 < span_hi:
             groups.append(group_poses(z0 + speed * t_idx, d))
-            z0 += rng.uniform(12, 60)
+            z0 += rng.uniform(*traffic.spacing)
     for g in range(len(groups)):
-        add_car(boxes, rng, None, 0.0, group=g)
+        # light traffic draws no truck lottery, so its scenes stay those of earlier versions
+        if traffic.truck_prob > 0 and rng.random() < traffic.truck_prob:
+            add_truck(boxes, rng, group=g)
+        else:
+            add_car(boxes, rng, None, 0.0, group=g)
     return np.stack(groups) if groups else np.zeros((0, frames, 4, 4))
 
 

@@ -29,12 +29,13 @@ from geonet_infer.io import (
     write_mask,
 )
 from training.synth.render import Renderer
-from training.synth.scene import make_scene
+from training.synth.scene import TRAFFIC, make_scene
 from training.synth.truth import flow_gt, frame_geometry
 
 GENERATOR_VERSION = 1
 MAX_PNG_DEPTH = 65535 / DEPTH_SCALE  # largest depth a KITTI uint16 PNG can hold
-RESUME_KEYS = ("generator_version", "seed", "frames", "height", "width")  # must match to add to a folder
+RESUME_KEYS = ("generator_version", "seed", "frames", "height", "width", "traffic")  # must match to add to a folder
+KEY_DEFAULTS = {"traffic": "light"}  # for folders written before the key existed
 
 
 @dataclass
@@ -51,6 +52,7 @@ class SynthConfig:
     height: int = REFERENCE_HEIGHT
     width: int = REFERENCE_WIDTH
     workers: int = 1  # processes, one sequence each
+    traffic: str = "light"  # "light" (the original scenes) or "dense" (queues and trucks, scene.TRAFFIC)
 
 
 # ---------------------------------------------------------------------------- one sequence
@@ -60,7 +62,12 @@ def sequence_rng(seed: int, index: int) -> np.random.Generator:
 
 
 def iter_frames(
-    seed: int, index: int, frames: int, height: int = REFERENCE_HEIGHT, width: int = REFERENCE_WIDTH
+    seed: int,
+    index: int,
+    frames: int,
+    height: int = REFERENCE_HEIGHT,
+    width: int = REFERENCE_WIDTH,
+    traffic: str = "light",
 ) -> Iterator[dict]:
     """Render one sequence frame by frame.
 
@@ -71,7 +78,7 @@ def iter_frames(
     """
     if frames < 2:
         raise GeoNetInputError(None, f"--frames must be >= 2 (got {frames})", "flow needs frame pairs")
-    scene = make_scene(sequence_rng(seed, index), frames, height, width)
+    scene = make_scene(sequence_rng(seed, index), frames, height, width, traffic)
     r = Renderer(scene)
     poses = np.linalg.inv(scene.T_wc[0]) @ scene.T_wc  # relative to frame 0
     poses[0] = np.eye(4)  # exactly, not up to rounding
@@ -93,7 +100,12 @@ def iter_frames(
 
 
 def generate_sequence(
-    seed: int, index: int, frames: int, height: int = REFERENCE_HEIGHT, width: int = REFERENCE_WIDTH
+    seed: int,
+    index: int,
+    frames: int,
+    height: int = REFERENCE_HEIGHT,
+    width: int = REFERENCE_WIDTH,
+    traffic: str = "light",
 ) -> dict:
     """Whole sequence in memory (for tests and small previews).
 
@@ -101,7 +113,7 @@ def generate_sequence(
     motion_mask (M, H, W) bool, flow (M-1, H, W, 2) float32, flow_noc / flow_occ (M-1, H, W) bool,
     poses (M, 4, 4) float64 camera-to-world (frame 0 = identity), K (3, 3) float64.
     """
-    fr = list(iter_frames(seed, index, frames, height, width))
+    fr = list(iter_frames(seed, index, frames, height, width, traffic))
     out = {k: np.stack([f[k] for f in fr]) for k in ("image", "depth", "ids", "motion_mask")}
     for k in ("flow", "flow_noc", "flow_occ"):
         out[k] = np.stack([f[k] for f in fr[:-1]])
@@ -125,7 +137,7 @@ def _write_frame(folder: Path, t: int, fr: dict) -> None:
         write_flow_kitti(folder / "flow_noc" / stem, fr["flow"], fr["flow_noc"])
 
 
-def write_sequence(out_dir, seed: int, index: int, frames: int, height: int, width: int) -> str:
+def write_sequence(out_dir, seed: int, index: int, frames: int, height: int, width: int, traffic: str = "light") -> str:
     """Render sequence `index` into out_dir/seq_NNNN (via out_dir/.tmp_seq_NNNN + rename).
 
     Returns the status: "done" or "skipped" (already complete).
@@ -140,7 +152,7 @@ def write_sequence(out_dir, seed: int, index: int, frames: int, height: int, wid
         shutil.rmtree(tmp)
     poses = []
     K = None
-    for t, fr in enumerate(iter_frames(seed, index, frames, height, width)):
+    for t, fr in enumerate(iter_frames(seed, index, frames, height, width, traffic)):
         _write_frame(tmp, t, fr)
         poses.append(fr["pose"])
         K = fr["K"]
@@ -152,8 +164,7 @@ def write_sequence(out_dir, seed: int, index: int, frames: int, height: int, wid
 
 # ---------------------------------------------------------------------------- a folder
 def _worker(args):
-    out_dir, seed, index, frames, height, width = args
-    return write_sequence(out_dir, seed, index, frames, height, width)
+    return write_sequence(*args)
 
 
 def check_config(cfg: SynthConfig) -> None:
@@ -164,6 +175,8 @@ def check_config(cfg: SynthConfig) -> None:
             f"size {cfg.height}x{cfg.width}, workers {cfg.workers}",
             "need --frames >= 2, --sequences >= 1, --height/--width >= 8, --workers >= 1",
         )
+    if cfg.traffic not in TRAFFIC:
+        raise GeoNetInputError(None, f"unknown traffic {cfg.traffic!r}", f"choose one of {', '.join(TRAFFIC)}")
 
 
 def _record_config(cfg: SynthConfig) -> None:
@@ -175,10 +188,11 @@ def _record_config(cfg: SynthConfig) -> None:
         "height": cfg.height,
         "width": cfg.width,
         "sequences": cfg.sequences,
+        "traffic": cfg.traffic,
     }
     path = Path(cfg.out) / "synth_config.json"
     if path.exists():
-        old = json.loads(path.read_text())
+        old = KEY_DEFAULTS | json.loads(path.read_text())
         if any(old.get(k) != config[k] for k in RESUME_KEYS):
             settings = ", ".join(f"{k}={old.get(k)}" for k in RESUME_KEYS)
             raise GeoNetInputError(
@@ -210,7 +224,7 @@ def generate(cfg: SynthConfig, on_sequence: Callable[[str], None] | None = None)
     generated with other settings.
     """
     open_folder(cfg)
-    jobs = [(str(cfg.out), cfg.seed, i, cfg.frames, cfg.height, cfg.width) for i in range(cfg.sequences)]
+    jobs = [(str(cfg.out), cfg.seed, i, cfg.frames, cfg.height, cfg.width, cfg.traffic) for i in range(cfg.sequences)]
     counts = {"done": 0, "skipped": 0}
 
     def record(status: str) -> None:
