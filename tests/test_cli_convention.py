@@ -37,7 +37,13 @@ CASES = [
         ],
         "{missing}",
     ),
-    ("training.summary", ["--height", "0"], "--height"),  # no input path: the bad size is the item
+    ("training.summary", ["--height", "0"], "--height"),
+    ("training.stereo_val", ["--realdata", "{missing}", "--out", "{out}"], "{missing}"),
+    (
+        "training.checkpoint",
+        ["--interpolate", "{missing}", "{missing}", "0.5", "{out}.pt"],
+        "{missing}",
+    ),  # no input path: the bad size is the item
     ("export", ["--checkpoint", "{missing}", "--out", "{out}"], "{missing}"),
     ("geonet_infer.cli", ["predict", "{missing}", "--out", "{out}"], "{missing}"),
     ("geonet_infer.cli", ["batch", "{missing}", "--out", "{out}"], "{missing}"),

@@ -167,6 +167,34 @@ def test_init_checkpoint_fine_tunes_from_a_checkpoint_or_a_weights_file(synth_pr
         assert torch.equal(after_flow[k], v), k
 
 
+def test_interpolate_puts_a_fine_tuned_model_between_its_base_and_itself(synth_prepared, tmp_path):
+    """--interpolate BASE TUNED 0.25 OUT: every float tensor is 0.75 * base + 0.25 * tuned."""
+    from training.checkpoint import load_checkpoint, load_weights
+    from training.checkpoint import main as checkpoint_main
+
+    base = train(config(synth_prepared, tmp_path / "base", max_steps=1), progress=False)
+    tuned = train(
+        config(synth_prepared, tmp_path / "tuned", max_steps=3, lr=1e-2, init_checkpoint=str(base["last"])),
+        progress=False,
+    )
+    out = tmp_path / "mix.pt"
+    assert checkpoint_main(["--interpolate", str(base["last"]), str(tuned["last"]), "0.25", str(out)]) == 0
+    a, b = load_checkpoint(base["last"])["model"], load_checkpoint(tuned["last"])["model"]
+    mixed = load_weights(out)
+    assert mixed["source"]["alpha"] == 0.25 and mixed["stage"] == "rigid"
+    moved = 0
+    for key, value in mixed["model"].items():
+        if not value.is_floating_point():
+            assert torch.equal(value, b[key]), key  # BN counters come from the tuned model
+            continue
+        expected = 0.75 * a[key] + 0.25 * b[key]
+        tol = 2e-3 if value.dim() == 4 else 1e-6  # conv kernels are stored as float16
+        torch.testing.assert_close(value, expected, rtol=tol, atol=tol * 1e-2), key
+        moved += int(not torch.equal(a[key], b[key]))
+    assert moved > 10  # the fine-tuning did change the weights, so the check above means something
+    assert checkpoint_main(["--interpolate", str(base["last"]), str(tuned["last"]), "1.5", str(out)]) == 2
+
+
 def test_init_checkpoint_of_another_arch_is_refused(synth_prepared, tmp_path):
     rigid = train(config(synth_prepared, tmp_path / "rigid", max_steps=1), progress=False)
     with pytest.raises(GeoNetInputError, match="arch is 'small', expected 'vgg'") as err:

@@ -204,6 +204,32 @@ def combine_weights(depth_pose: str | Path, flow: str | Path, out: str | Path) -
     save_weights({**dp, "stage": "flow", "config": config, "model": model}, out, source)
 
 
+def interpolate_weights(base: str | Path, tuned: str | Path, alpha: float, out: str | Path) -> None:
+    """Weights ``(1 - alpha) * base + alpha * tuned``, tensor by tensor (WiSE-FT, Wortsman et al. 2022).
+
+    ``tuned`` is a fine-tuned descendant of ``base`` (so the two sit in one basin and their
+    average is a working net). The output has ``tuned``'s stage, config and tensors; those that
+    ``base`` lacks (a ResFlowNet on top of a stage-rigid base) and integer counters are taken
+    from ``tuned`` unchanged. BatchNorm statistics are interpolated like the weights.
+    Measured use: docs/training.md, "Toward real video".
+    """
+    if not 0.0 <= alpha <= 1.0:
+        raise GeoNetInputError(None, f"alpha {alpha} is outside [0, 1]", "0 gives base, 1 gives tuned")
+    tu = load_weights(tuned)
+    ba = load_weights(base, expect_arch=tu["arch"])
+    model = {}
+    for key, w_tuned in tu["model"].items():
+        w_base = ba["model"].get(key)
+        if w_base is None or not w_tuned.is_floating_point():
+            model[key] = w_tuned
+        elif w_base.shape != w_tuned.shape:
+            raise GeoNetInputError(base, f"{key} is {tuple(w_base.shape)}, {tuned} has {tuple(w_tuned.shape)}", "")
+        else:
+            model[key] = torch.lerp(w_base, w_tuned, alpha)
+    source = {"base": str(base), "tuned": str(tuned), "alpha": alpha}
+    save_weights({**tu, "model": model}, out, source)
+
+
 def _portable_command(command: str | None) -> str | None:
     """v1 checkpoints recorded argv[0], this machine's absolute path to train.py: keep the module form."""
     return re.sub(r"^\S*training/train\.py", "python -m training.train", command) if command else command
@@ -278,8 +304,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m training.checkpoint",
         description="Convert checkpoints of an older training.train to the format that loads with "
-        "torch.load(weights_only=True) (--upgrade: unpickles them, trusted files only), or write a "
-        "checkpoint's weights alone to fine-tune from (--weights-only).",
+        "torch.load(weights_only=True) (--upgrade: unpickles them, trusted files only), write a "
+        "checkpoint's weights alone to fine-tune from (--weights-only), put two models' nets together "
+        "(--combine) or interpolate a fine-tuned model toward the one it started from (--interpolate).",
     )
     mode = p.add_mutually_exclusive_group(required=True)
     mode.add_argument("--upgrade", nargs="+", metavar="FILE", help="v1 checkpoints, rewritten in place")
@@ -290,12 +317,25 @@ def main(argv=None) -> int:
         metavar=("DEPTH_POSE", "FLOW", "OUT"),
         help="weights with DepthNet/PoseNet of DEPTH_POSE and ResFlowNet of FLOW (checkpoints or weights files)",
     )
+    mode.add_argument(
+        "--interpolate",
+        nargs=4,
+        metavar=("BASE", "TUNED", "ALPHA", "OUT"),
+        help="weights (1 - ALPHA) * BASE + ALPHA * TUNED, where TUNED was fine-tuned from BASE (WiSE-FT)",
+    )
     args = p.parse_args(argv)
-    if args.weights_only or args.combine:
-        dst = (args.weights_only or args.combine)[-1]
+    if args.weights_only or args.combine or args.interpolate:
+        dst = (args.weights_only or args.combine or args.interpolate)[-1]
         try:
             if args.weights_only:
                 save_weights(load_checkpoint(args.weights_only[0]), dst)
+            elif args.interpolate:
+                base, tuned, alpha, _ = args.interpolate
+                try:
+                    alpha = float(alpha)
+                except ValueError:
+                    raise GeoNetInputError(None, f"ALPHA {alpha!r} is not a number", "e.g. 0.85") from None
+                interpolate_weights(base, tuned, alpha, dst)
             else:
                 combine_weights(*args.combine)
         except GeoNetInputError as err:

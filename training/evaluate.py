@@ -27,7 +27,7 @@ from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.datasets import LAYOUTS, depth_dataset, flow_dataset, load_dataset, read_heldout
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.preprocess import InputSpec, disparity_to_input, flow_to_input, graph_intrinsics
-from training.checkpoint import load_checkpoint, model_from_checkpoint
+from training.checkpoint import load_weights, model_from_checkpoint
 from training.geometry import pose_vec_to_mat
 from training.model import GeoNet
 
@@ -192,7 +192,11 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m training.evaluate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--checkpoint", required=True, help="a last.pt / best.pt from training.train")
+    p.add_argument(
+        "--checkpoint",
+        required=True,
+        help="a last.pt / best.pt from training.train, or a weights file (training.checkpoint)",
+    )
     p.add_argument("--data", type=Path, help="dataset folder, any layout of `geonet-infer eval --help`")
     p.add_argument("--layout", default="auto", choices=["auto"] + sorted({n for v in LAYOUTS.values() for n in v}))
     p.add_argument("--heldout", type=Path, help="synth layout: only the sequences of this heldout.txt")
@@ -220,10 +224,12 @@ def main(argv=None) -> int:
             if args.prepared_dir
             else None
         )
-        ckpt = load_checkpoint(args.checkpoint)
+        ckpt = load_weights(args.checkpoint)
+        step = ckpt["step"] if "step" in ckpt else ckpt["source"].get("step")
         model = model_from_checkpoint(ckpt)
         tasks = ["depth", "flow", "pose"] if args.task == "all" else [args.task]
-        label = f"checkpoint {Path(args.checkpoint).name} (step {ckpt['step']})"
+        name = Path(args.checkpoint).name
+        label = f"checkpoint {name} (step {step})" if step is not None else f"weights {name}"
         results = []
         for task, (row, fn) in checkpoint_methods(model, ckpt["config"], tasks, label).items():
             dataset = load_dataset(task, data, args.layout, sequences=sequences, stride=args.stride)
@@ -240,7 +246,7 @@ def main(argv=None) -> int:
         print(evaluation.format_table([(result["method"], result)]))
     if args.out:
         evaluation.write_json(
-            args.out, {"checkpoint": str(args.checkpoint), "step": ckpt["step"], "results": [r for _, r in results]}
+            args.out, {"checkpoint": str(args.checkpoint), "step": step, "results": [r for _, r in results]}
         )
     errors = [e for _, r in results for e in r["errors"]]
     for e in errors:
