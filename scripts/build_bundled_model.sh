@@ -3,19 +3,21 @@
 # the model card docs/models.md from scratch with our own code, on a 2-core CPU:
 #   1. synthetic driving scenes (40 sequences x 40 frames, seed 2026; 4 held out), prepared;
 #   2. stage rigid: small DepthNet + PoseNet (--mask-out-of-view --automask, see docs/results.md);
-#   3. stage flow: small ResFlowNet on the frozen rigid nets;
+#   3. stage flow: small ResFlowNet on the frozen rigid nets, FLOW_STEPS steps (the bundled model:
+#      a 15-minute run to step 366, continued with --resume to step 2008);
 #   4. ONNX export fp32 + INT8 (calibrated on training sequence seq_0000, never a held-out one),
 #      with the INT8 accuracy delta on the held-out sequences written into the manifest;
-#   5. copy into the package, take 12 frames of held-out seq_0038 as the demo sample,
-#      write the model card (synthetic held-out + real KITTI frames 0-9 against Velodyne) and
-#      the README's demo picture.
-# Environment: RIGID_MINUTES (45), FLOW_MINUTES (15) cap the two training stages (wall clock);
+#   5. copy into the package, publish the checkpoint's weights (weights/small_synth.pt, to fine-tune
+#      from), take 12 frames of held-out seq_0038 as the demo sample, write the model card
+#      (synthetic held-out + real KITTI frames 0-9 against Velodyne; with BEFORE=<commit>, the
+#      bundled model of that commit measured beside it) and the README's demo picture.
+# Environment: RIGID_MINUTES (45) caps stage rigid (wall clock), FLOW_STEPS (2008) sets stage flow;
 # THREADS (1) torch threads: one thread per training process keeps OpenMP from stalling
 # when anything else runs on the machine.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RIGID_MINUTES=${RIGID_MINUTES:-45}
-FLOW_MINUTES=${FLOW_MINUTES:-15}
+FLOW_STEPS=${FLOW_STEPS:-2008}
 export OMP_NUM_THREADS=${THREADS:-1}
 PY=.venv/bin/python
 [ -x "$PY" ] || { python3 -m venv .venv && $PY -m pip install --quiet -e '.[train,dev]'; }
@@ -27,18 +29,25 @@ run $PY -m training.train --stage rigid --arch small --data-dir $PREP --out-dir 
     --max-steps 6000 --max-minutes "$RIGID_MINUTES" --bn-momentum 0.01 --mask-out-of-view --automask \
     --num-workers 1 --val-every 500 --save-every 250 --log-every 25
 run $PY -m training.train --stage flow --arch small --data-dir $PREP --out-dir $FLOW \
-    --init-checkpoint $RIGID/last.pt --max-steps 3000 --max-minutes "$FLOW_MINUTES" --bn-momentum 0.01 \
+    --init-checkpoint $RIGID/last.pt --max-steps "$FLOW_STEPS" --bn-momentum 0.01 \
     --num-workers 1 --val-every 250 --save-every 250 --log-every 25
 run $PY -m export --checkpoint $FLOW/last.pt --out models/small_synth --force \
     --precision fp32,int8 --calib-data $DATA/seq_0000/image --calib-method percentile --calib-frames 40 \
     --eval-synth-dir $DATA --eval-prepared-dir $PREP --eval-stride 2
 rm -rf geonet_infer/models/small_synth
 cp -r models/small_synth geonet_infer/models/small_synth
+run $PY -m training.checkpoint --weights-only $FLOW/last.pt weights/small_synth.pt
 rm -rf geonet_infer/samples/synth_seq && mkdir -p geonet_infer/samples/synth_seq/image
 cp $DATA/seq_0038/calib.txt geonet_infer/samples/synth_seq/calib.txt
 for i in $(seq -w 0 11); do cp $DATA/seq_0038/image/0000$i.png geonet_infer/samples/synth_seq/image/; done
+before=()
+if [ -n "${BEFORE:-}" ]; then
+    rm -rf runs/before && mkdir -p runs/before
+    git archive "$BEFORE" geonet_infer/models/small_synth | tar -x -C runs/before
+    before=(--before runs/before/geonet_infer/models/small_synth)
+fi
 run $PY -m training.model_card --model geonet_infer/models/small_synth --synth-dir $DATA --prepared-dir $PREP \
-    --kitti ../shared/realdata/kitti_raw_2011_09_26_sfnd --out docs/models.md --json docs/models.json
+    --kitti ../shared/realdata/kitti_raw_2011_09_26_sfnd --out docs/models.md --json docs/models.json "${before[@]}"
 .venv/bin/python -m pip install --quiet -e .
 run .venv/bin/geonet-infer demo --out runs/demo --no-progress
 mkdir -p docs/img && cp runs/demo/demo.png docs/img/demo.png
