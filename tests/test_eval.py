@@ -488,3 +488,15 @@ def test_training_evaluate_scores_a_checkpoint_through_the_shared_loops(tmp_path
     assert [r["task"] for r in results] == ["depth", "flow", "pose"]
     assert [r["metrics"]["count"] for r in results] == [6, 4, 2]
     assert all(r["method"] == "checkpoint c.pt (step 7)" for r in results)
+    # a weights-only file (what training.checkpoint writes) scores through the same path
+    from training.checkpoint import load_checkpoint, save_weights
+
+    weights = tmp_path / "w.pt"
+    save_weights(load_checkpoint(ckpt), weights, source={"note": "no step"})
+    out_w = tmp_path / "w.json"
+    assert train_eval_main(["--checkpoint", str(weights), "--data", str(tmp_path / "data"), "--out", str(out_w)]) == 0
+    from_weights = json.loads(out_w.read_text())["results"]
+    assert all(r["method"] == "weights w.pt" for r in from_weights)
+    for full, light in zip(results, from_weights):  # conv kernels stored as float16: close, not equal
+        for key, value in full["metrics"].items():
+            assert light["metrics"][key] == pytest.approx(value, rel=0.02, abs=1e-3), (full["task"], key)

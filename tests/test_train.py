@@ -189,7 +189,7 @@ def test_interpolate_puts_a_fine_tuned_model_between_its_base_and_itself(synth_p
             continue
         expected = 0.75 * a[key] + 0.25 * b[key]
         tol = 2e-3 if value.dim() == 4 else 1e-6  # conv kernels are stored as float16
-        torch.testing.assert_close(value, expected, rtol=tol, atol=tol * 1e-2), key
+        torch.testing.assert_close(value, expected, rtol=tol, atol=tol * 1e-2, msg=key)
         moved += int(not torch.equal(a[key], b[key]))
     assert moved > 10  # the fine-tuning did change the weights, so the check above means something
     assert checkpoint_main(["--interpolate", str(base["last"]), str(tuned["last"]), "1.5", str(out)]) == 2
