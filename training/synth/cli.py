@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from geonet_infer.errors import GeoNetInputError
+from training.synth.scene import TRAFFIC
 from training.synth.sequence import SynthConfig, generate, open_folder
 
 
@@ -32,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=D.workers, help="processes, one sequence each (default %(default)s)")
     p.add_argument(
         "--traffic",
-        choices=("light", "dense"),
+        choices=tuple(TRAFFIC),
         default=D.traffic,
         help="light: the lead car 14-35 m ahead, few cars (the original scenes); dense: queues 5-15 m "
         "ahead and beside the camera, a third of the vehicles trucks (default %(default)s)",
