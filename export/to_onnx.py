@@ -16,6 +16,13 @@ Batch: ``torch.export`` 0/1-specialises a dimension whose example size is 1
 would silently give a static graph. :func:`export_graph` therefore traces with
 the example repeated to batch 2 and then asserts that axis 0 of every input
 and output is symbolic.
+
+Spatial axes: a wrapper whose class sets ``dynamic_spatial = True`` (the rigid-flow
+op) is traced with H and W symbolic too, so the pixel grid it builds from its input
+shapes (``training.geometry.pixel_grid``) stays Range/Expand nodes; with static H, W
+the exporter's optimizer folds the grid into three H x W float initializers (0.64 MB
+at 128x416). The file still declares the fixed H x W of its manifest entry
+(:func:`_pin_dims`); only the computation inside is shape-generic.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -83,9 +91,24 @@ def _quiet():
             lg.setLevel(level)
 
 
+SPATIAL_AXES = {2: "H", 3: "W"}  # axes of a 4-D (B, C, H, W) tensor that ``dynamic_spatial`` frees
+
+
+def _dynamic_spatial(module) -> bool:
+    """Whether ``module`` asks to be traced with symbolic H and W (see the module docstring)."""
+    return bool(getattr(module, "dynamic_spatial", False))
+
+
 def _dynamo_export(module, example, spec: IOSpec, opset: int) -> onnx.ModelProto:
     batch = torch.export.Dim(BATCH_AXIS, min=1)
     input_names = [n for n, _ in spec.inputs]
+    dynamic_shapes = {name: {0: batch} for name in input_names}
+    if _dynamic_spatial(module):
+        # min=2: a 1-pixel axis would be 0/1-specialised, and flow_warp divides by W - 1.
+        spatial = {axis: torch.export.Dim(name, min=2) for axis, name in SPATIAL_AXES.items()}
+        for name, shape in spec.inputs:
+            if len(shape) == 4:
+                dynamic_shapes[name].update(spatial)
     program = torch.onnx.export(
         module,
         example,
@@ -94,7 +117,7 @@ def _dynamo_export(module, example, spec: IOSpec, opset: int) -> onnx.ModelProto
         verbose=False,
         input_names=input_names,
         output_names=[n for n, _ in spec.outputs],
-        dynamic_shapes={name: {0: batch} for name in input_names},
+        dynamic_shapes=dynamic_shapes,
         optimize=True,
         report=False,
         verify=False,
@@ -104,7 +127,11 @@ def _dynamo_export(module, example, spec: IOSpec, opset: int) -> onnx.ModelProto
 
 def _torchscript_export(module, example, spec: IOSpec, opset: int) -> onnx.ModelProto:
     buffer = io.BytesIO()
-    names = [n for n, _ in spec.inputs] + [n for n, _ in spec.outputs]
+    dynamic_axes = {n: {0: BATCH_AXIS} for n, _ in [*spec.inputs, *spec.outputs]}
+    if _dynamic_spatial(module):
+        for name, shape in [*spec.inputs, *spec.outputs]:
+            if len(shape) == 4:
+                dynamic_axes[name].update(SPATIAL_AXES)
     torch.onnx.export(
         module,
         example,
@@ -113,7 +140,7 @@ def _torchscript_export(module, example, spec: IOSpec, opset: int) -> onnx.Model
         opset_version=opset,
         input_names=[n for n, _ in spec.inputs],
         output_names=[n for n, _ in spec.outputs],
-        dynamic_axes={n: {0: BATCH_AXIS} for n in names},
+        dynamic_axes=dynamic_axes,
         do_constant_folding=True,
     )
     return onnx.load_from_string(buffer.getvalue())
@@ -132,6 +159,30 @@ def _name_batch_axis(model: onnx.ModelProto) -> None:
                 dim.dim_param = BATCH_AXIS
 
 
+def _pin_dims(model: onnx.ModelProto, spec: IOSpec) -> dict[str, int]:
+    """Declare the static dims of ``spec`` on a graph traced with symbolic ones; returns the mapping.
+
+    Each symbolic dim of a graph input/output that ``spec`` fixes (H and W of a
+    ``dynamic_spatial`` trace) becomes that value, in the inputs, outputs and
+    ``value_info``; a product of them (``H*W``) becomes the product. The file then
+    shows the fixed I/O the manifest records (:func:`check_graph`, the runtime's
+    engines), while the nodes still compute the pixel grid from the input shapes.
+    """
+    values: dict[str, int] = {}
+    for want, have in ((spec.inputs, model.graph.input), (spec.outputs, model.graph.output)):
+        for (_, shape), vi in zip(want, have):
+            for size, dim in zip(shape, vi.type.tensor_type.shape.dim):
+                if isinstance(size, int) and dim.dim_param:
+                    if values.setdefault(dim.dim_param, size) != size:
+                        raise ExportCheckError(f"axis {dim.dim_param!r} is both {values[dim.dim_param]} and {size}")
+    for vi in [*model.graph.input, *model.graph.output, *model.graph.value_info]:
+        for dim in vi.type.tensor_type.shape.dim:
+            factors = dim.dim_param.replace(" ", "").split("*") if dim.dim_param else []
+            if factors and all(f in values or f.isdigit() for f in factors):
+                dim.dim_value = math.prod(values[f] if f in values else int(f) for f in factors)
+    return values
+
+
 def _strip_debug_info(model: onnx.ModelProto) -> None:
     """Drop per-node stack traces and source paths the exporter stores (they leak local paths)."""
     for node in model.graph.node:
@@ -145,9 +196,10 @@ def _strip_debug_info(model: onnx.ModelProto) -> None:
 def _dedupe_initializers(model: onnx.ModelProto) -> int:
     """Merge initializers with identical dtype, shape and bytes; returns how many were dropped.
 
-    The dynamo exporter folds the pixel grid of each ``geometry`` call into its own
-    constant, so the rigid-flow graph stored the same 128x416 grids three times (1.9 MiB
-    instead of 0.6). ORT would merge them at load; this keeps the files small.
+    The dynamo exporter folds each constant subexpression into its own initializer, so
+    one tensor can be stored several times (the rigid-flow graph once stored the same
+    128x416 pixel grids three times; it now computes them, see ``dynamic_spatial``).
+    ORT would merge duplicates at load; this keeps the files small.
     """
     first: dict[tuple, str] = {}
     rename: dict[str, str] = {}
@@ -214,6 +266,8 @@ def export_graph(
                     f"both exporters failed for {path.name}: dynamo: {dynamo_error!r}; torchscript: {legacy_error!r}"
                 ) from legacy_error
     _name_batch_axis(model)
+    if _dynamic_spatial(module):
+        _pin_dims(model, spec)
     _strip_debug_info(model)
     _dedupe_initializers(model)
     if metadata:

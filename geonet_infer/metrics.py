@@ -209,6 +209,18 @@ def resize_flow_nearest(flow, shape):
     return out
 
 
+def resize_flow_gt(flow, valid, shape):
+    """Resize ground-truth flow and its mask (nearest), vectors scaled as in :func:`resize_flow_nearest`.
+
+    flow: (h, w, 2) (u, v) px; valid: (h, w) bool. shape: (H, W).
+    Returns flow (H, W, 2) float32 and valid (H, W) bool; nearest, so no vector is blended
+    across an object edge or with an invalid pixel.
+    """
+    height, width = int(shape[0]), int(shape[1])
+    mask = cv2.resize(np.asarray(valid, dtype=np.uint8), (width, height), interpolation=cv2.INTER_NEAREST) > 0
+    return resize_flow_nearest(flow, (height, width)), mask
+
+
 # --------------------------------------------------------------------------- pose
 def _align_first_and_scale(gt_xyz, pred_xyz):
     """Official snippet alignment. gt_xyz, pred_xyz: (N, 3). Returns error vectors (N, 3).

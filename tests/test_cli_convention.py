@@ -39,6 +39,7 @@ CASES = [
     ),
     ("training.summary", ["--height", "0"], "--height"),
     ("training.stereo_val", ["--realdata", "{missing}", "--out", "{out}"], "{missing}"),
+    ("training.photometric", ["--checkpoint", "{missing}", "--data-dir", "{out}"], "{missing}"),
     (
         "training.checkpoint",
         ["--interpolate", "{missing}", "{missing}", "0.5", "{out}.pt"],

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import write_calib_K, write_depth_kitti
+from geonet_infer.io import write_calib_K, write_depth_kitti, write_flow_kitti
 from training import data as D
 from training import prepare as P
 
@@ -162,6 +162,49 @@ def test_augmented_depth_follows_the_frames_geometry(tmp_path):
         assert np.ptp(depth, axis=0).max() < 0.01  # rows stay rows: no vertical mixing
     assert float(ds[1]["depth_gt"].abs().sum()) == 0.0  # a sample without ground truth: all zeros
     assert "depth_gt" not in D.SequenceDataset(tmp_path, "train")[0]  # only when asked for
+
+
+def test_augmented_flow_follows_the_frames_geometry():
+    """Flow ground truth gets the frames' scale and crop. Frame t+1 is frame t moved by exactly
+    (-5, -2) px, so after augmentation the flow must be (-5 sx, -2 sy) with sx, sy read off the
+    item's K (closed form), and warping t+1 with it must rebuild t (better than 0.9x or 1.1x it)."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.uniform(0, 1, (H + 20, W + 40, 3)).astype(np.float32), (0, 0), 2)
+    frame_t, frame_next = texture[10 : 10 + H, 20 : 20 + W], texture[12 : 12 + H, 25 : 25 + W]
+    frames = np.stack([frame_t, frame_t, frame_next])
+    flow = np.zeros((H, W, 3), np.float32)
+    flow[..., 0], flow[..., 1], flow[..., 2] = -5.0, -2.0, 1.0
+    xs, ys = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    for seed in range(4):
+        out, K, _, out_flow = D.augment(frames, K0.copy(), np.random.default_rng(seed), True, None, flow)
+        sx, sy = K[0, 0] / K0[0, 0], K[1, 1] / K0[1, 1]
+        assert sx > 1.0 or sy > 1.0, seed  # the draw really scaled
+        np.testing.assert_allclose(out_flow[..., 0], -5.0 * sx, rtol=1e-6)
+        np.testing.assert_allclose(out_flow[..., 1], -2.0 * sy, rtol=1e-6)
+        assert out_flow[..., 2].min() == 1.0
+        errors = []
+        for k in (0.9, 1.0, 1.1):
+            warped = cv2.remap(out[2], xs + k * out_flow[..., 0], ys + k * out_flow[..., 1], cv2.INTER_LINEAR)
+            errors.append(float(np.abs(warped - out[1])[12:-12, 12:-12].mean()))
+        assert errors[1] < 0.3 * min(errors[0], errors[2]), (seed, errors)
+
+
+def test_dataset_loads_flow_only_when_asked(tmp_path):
+    write_sample(tmp_path, "s", "000001", const_frames([90, 100, 110]), K0)
+    flow = np.zeros((H, W, 2), np.float32)
+    flow[..., 0] = 1.5
+    valid = np.ones((H, W), bool)
+    valid[:, :10] = False
+    write_flow_kitti(tmp_path / "s" / "000001_flow.png", flow, valid)
+    write_sample(tmp_path, "r", "000001", const_frames([90, 100, 110]), K0)  # real footage: no flow file
+    write_lists(tmp_path, ["s 000001", "r 000001"])
+    ds = D.SequenceDataset(tmp_path, "train", augment=False, load_flow=True)
+    item = ds[0]["flow_gt"].numpy()
+    assert item.shape == (3, H, W)
+    np.testing.assert_allclose(item[0][:, 10:], 1.5, atol=1 / 64)  # KITTI PNG: 1/64 px steps
+    assert item[2, :, :10].max() == 0.0 and item[2, :, 10:].min() == 1.0
+    assert float(ds[1]["flow_gt"].abs().sum()) == 0.0  # no ground truth: all zeros, valid 0
+    assert "flow_gt" not in D.SequenceDataset(tmp_path, "train")[0]
 
 
 # --------------------------------------------------------------------------- augmentation colour

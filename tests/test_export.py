@@ -201,6 +201,16 @@ def test_graphs_pass_checker_and_strict_shape_inference(model_dir):
         assert "Inverse" not in op_types(model_dir / entry.file)
 
 
+def test_rigidflow_stores_no_pixel_grid(model_dir):
+    """At 128x416 a folded u, v or ones grid is a 213 KB initializer (0.64 MB of a 0.66 MB file);
+    the graph builds the grid from the input shapes instead (RigidFlowExport.dynamic_spatial)."""
+    path = model_dir / "rigidflow.onnx"
+    model = onnx.load(str(path))
+    largest = max((onnx.numpy_helper.to_array(t).nbytes for t in model.graph.initializer), default=0)
+    assert largest < 4096, f"an initializer of {largest} bytes: a folded pixel grid?"
+    assert path.stat().st_size < 100_000
+
+
 def test_check_graph_rejects_wrong_io_names(model_dir, tmp_path):
     model = onnx.load(str(model_dir / "depthnet.onnx"))
     model.graph.output[1].name = "depth_renamed"

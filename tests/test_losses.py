@@ -1,6 +1,6 @@
 import torch
 
-from training.losses import dssim, edge_aware_smoothness, masked_mean, photometric_error, ssim
+from training.losses import dssim, edge_aware_smoothness, flow_endpoint_error, masked_mean, photometric_error, ssim
 
 
 def rand(*shape, seed=0):
@@ -74,3 +74,28 @@ def test_scale_invariant_log_error_by_hand():
     pred.requires_grad_(True)
     scale_invariant_log_error(pred, gt).backward()
     assert torch.isfinite(pred.grad).all() and pred.grad[2].abs().sum() == 0 and pred.grad[0, 0, 0, 2] == 0
+
+
+# --------------------------------------------------------------------------- flow supervision
+def test_flow_endpoint_error_closed_form():
+    gt = torch.zeros(2, 3, 8, 12)
+    gt[:, 0], gt[:, 1], gt[:, 2] = 2.0, -1.0, 1.0
+    exact = gt[:, :2].clone()
+    assert float(flow_endpoint_error(exact, gt)) < 1e-3
+    # off by (3, 4) px everywhere: EPE 5
+    torch.testing.assert_close(
+        flow_endpoint_error(exact + torch.tensor([3.0, 4.0]).view(1, 2, 1, 1), gt), torch.tensor(5.0)
+    )
+    # half resolution: (1, -0.5) px there is (2, -1) px at 8x12, so exact again
+    half = torch.empty(2, 2, 4, 6)
+    half[:, 0], half[:, 1] = 1.0, -0.5
+    assert float(flow_endpoint_error(half, gt)) < 1e-3
+    # only valid pixels count, and an image without any is left out of the mean
+    off = exact.clone()
+    off[:, 0, :, :6] += 10.0
+    gt_left_invalid = gt.clone()
+    gt_left_invalid[:, 2, :, :6] = 0.0
+    assert float(flow_endpoint_error(off, gt_left_invalid)) < 1e-3
+    gt_left_invalid[1, 2] = 0.0
+    off[0] += 1.0  # image 0: EPE sqrt(2) on its valid pixels; image 1 has none
+    torch.testing.assert_close(flow_endpoint_error(off, gt_left_invalid), torch.tensor(2.0**0.5))

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import write_calib_K, write_depth_kitti
+from geonet_infer.io import read_flow_kitti, write_calib_K, write_depth_kitti, write_flow_kitti
 from training import prepare as P
 from training import synth
 
@@ -58,7 +58,7 @@ def assert_no_partial_files(out: Path) -> None:
 
 # --------------------------------------------------------------------------- tiny synthetic tree
 def make_synth_seq(folder: Path, n_frames: int, size=(64, 96), seed=0, K=None) -> None:
-    """Generator-like folder: image/NNNNNN.png, depth/NNNNNN.png, calib.txt ('K: ...')."""
+    """Generator-like folder: image/NNNNNN.png, depth/NNNNNN.png, flow_noc/NNNNNN.png, calib.txt ('K: ...')."""
     h, w = size
     rng = np.random.default_rng(seed)
     (folder / "image").mkdir(parents=True)
@@ -68,6 +68,13 @@ def make_synth_seq(folder: Path, n_frames: int, size=(64, 96), seed=0, K=None) -
         # depth constant on 2x2 blocks, so a 2x nearest downsample picks exact block values
         blocks = rng.integers(1, 80 * 256, size=(h // 2, w // 2)).astype(np.float64) / 256.0
         write_depth_kitti(folder / "depth" / f"{i:06d}.png", np.kron(blocks, np.ones((2, 2))))
+        if i + 1 < n_frames:  # flow i -> i+1, also on 2x2 blocks, in steps of 2/64 px (halves stay exact)
+            uv = rng.integers(-640, 640, size=(h // 2, w // 2, 2)) * (2 / 64)
+            valid = rng.uniform(size=(h // 2, w // 2)) < 0.8
+            block = np.ones((2, 2, 1))
+            write_flow_kitti(
+                folder / "flow_noc" / f"{i:06d}.png", np.kron(uv, block), np.kron(valid, block[..., 0]) > 0
+            )
     K = np.array([[80.0, 0, 47.5], [0, 78.0, 31.5], [0, 0, 1]]) if K is None else K
     write_calib_K(folder / "calib.txt", K)
 
@@ -250,6 +257,20 @@ def test_synth_heldout(tmp_path):
             np.testing.assert_array_equal(got, src_depth[::2, ::2])
     with pytest.raises(GeoNetInputError, match="--train-depth only applies"):
         P.prepare(P.PrepareConfig("frames", src / "seq_00" / "image", tmp_path / "o3", train_depth=True))
+    # --train-flow: train/val samples get the generator's flow to the next frame, at H x W
+    flows = tmp_path / "flows"
+    res_flow = P.prepare(P.PrepareConfig("synth", src, flows, heldout=1, height=32, width=48, train_flow=True))
+    assert (res_flow.train, res_flow.val, res_flow.heldout) == (res.train, res.val, res.heldout)
+    for s in (0, 1):
+        for i in (1, 2, 3):
+            src_flow, src_valid = read_flow_kitti(src / f"seq_{s:02d}" / "flow_noc" / f"{i:06d}.png")
+            got_flow, got_valid = read_flow_kitti(flows / f"seq_{s:02d}" / f"{i:06d}_flow.png")
+            # nearest 2x downsample, vectors halved (the fixture's 1/64-px steps stay exact at 1/2)
+            np.testing.assert_array_equal(got_valid, src_valid[::2, ::2])
+            np.testing.assert_allclose(got_flow, src_flow[::2, ::2] / 2, atol=1 / 64)
+    assert not list((flows / "seq_02").glob("*_flow.png"))  # held-out flow is scored from the source
+    with pytest.raises(GeoNetInputError, match="--train-flow only applies"):
+        P.prepare(P.PrepareConfig("frames", src / "seq_00" / "image", tmp_path / "o4", train_flow=True))
 
 
 def test_synth_generator_output(tmp_path):

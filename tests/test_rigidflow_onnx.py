@@ -81,6 +81,19 @@ def test_structure_no_inverse_and_gridsample_spelling(graph):
         assert vi.type.tensor_type.shape.dim[0].dim_param == "B"
 
 
+def test_pixel_grid_is_computed_not_stored(graph):
+    """u, v, 1 come from Range/Expand on the input shapes (``dynamic_spatial`` trace), not from
+    H x W initializers (36 KB here, 0.64 MB at 128x416), yet the file declares static H, W."""
+    model = onnx.load(str(graph))
+    largest = max((onnx.numpy_helper.to_array(t).nbytes for t in model.graph.initializer), default=0)
+    assert largest < 4096, f"an initializer of {largest} bytes: a folded pixel grid?"
+    assert "Range" in op_types(graph)
+    assert graph.stat().st_size < 100_000
+    assert [d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim[2:]] == [H, W]
+    dim_params = {d.dim_param for vi in model.graph.value_info for d in vi.type.tensor_type.shape.dim}
+    assert dim_params <= {"", "B"}  # H, W and H*W pinned everywhere
+
+
 # ------------------------------------------------------------------------- closed forms
 def test_identity_pose_gives_zero_flow_and_identity_warp(graph):
     rng = np.random.default_rng(0)

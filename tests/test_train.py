@@ -7,6 +7,7 @@ import random
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -387,22 +388,36 @@ def test_scale_normalize_divides_each_disparity_map_by_its_mean():
         torch.testing.assert_close(d_n * d_p.mean(dim=(1, 2, 3), keepdim=True), d_p)
 
 
-def test_depth_supervision_learns_synthetic_depth(synth_prepared, tmp_path):
-    """--depth-supervision on data prepared with --train-depth: the scale-invariant depth error
-    is logged and falls; the flag is off by default (the official loss)."""
-    supervised = tmp_path / "prepared"
+def prepare_with_truth(synth_prepared, out, **truth):
+    """The fixture's synthetic sequences prepared again with ground truth for the train samples
+    (train_depth=True or train_flow=True)."""
     prepare.prepare(
         prepare.PrepareConfig(
             kind="synth",
             src=synth_prepared.parent / "synth",
-            out=supervised,
+            out=out,
             height=SH,
             width=SW,
             heldout=0,
             val_fraction=0.2,
-            train_depth=True,
+            **truth,
         )
     )
+    return out
+
+
+def assert_falls(rows, key):
+    """The mean of ``key`` over the last 5 logged steps is below 0.8x that of the first 5."""
+    first = sum(r[key] for r in rows[:5]) / 5
+    last = sum(r[key] for r in rows[-5:]) / 5
+    print(f"{key}: first 5 steps {first:.4f}, last 5 steps {last:.4f}")
+    assert last < 0.8 * first, (first, last)
+
+
+def test_depth_supervision_learns_synthetic_depth(synth_prepared, tmp_path):
+    """--depth-supervision on data prepared with --train-depth: the scale-invariant depth error
+    is logged and falls; the flag is off by default (the official loss)."""
+    supervised = prepare_with_truth(synth_prepared, tmp_path / "prepared", train_depth=True)
     cfg = config_from_args(["--data-dir", str(supervised), "--depth-supervision", "2.5"])
     assert cfg.weights.depth_supervision == 2.5 and config_from_args([]).weights.depth_supervision == 0.0
     # mixed with a folder without ground truth (as real footage is): those samples add no depth term
@@ -419,13 +434,73 @@ def test_depth_supervision_learns_synthetic_depth(synth_prepared, tmp_path):
         progress=False,
     )
     rows = read_log(result["log"])
-    first = sum(r["depth_supervised"] for r in rows[:5]) / 5
-    last = sum(r["depth_supervised"] for r in rows[-5:]) / 5
-    print(f"depth_supervised: first 5 steps {first:.4f}, last 5 steps {last:.4f}")
-    assert last < 0.8 * first, (first, last)
+    assert_falls(rows, "depth_supervised")
     assert "val_depth_supervised" in rows[-1]
     plain = train(config(synth_prepared, tmp_path / "plain", max_steps=1), progress=False)
     assert "depth_supervised" not in read_log(plain["log"])[-1]
+
+
+def test_flow_supervision_learns_synthetic_flow(synth_prepared, tmp_path):
+    """--flow-supervision on data prepared with --train-flow: the end-point error against the
+    generator's flow is logged and falls; the flag is off by default (the official loss)."""
+    supervised = prepare_with_truth(synth_prepared, tmp_path / "prepared", train_flow=True)
+    cfg = config_from_args(["--data-dir", str(supervised), "--stage", "flow", "--flow-supervision", "0.5"])
+    assert cfg.weights.flow_supervision == 0.5 and config_from_args([]).weights.flow_supervision == 0.0
+    rigid = train(config(synth_prepared, tmp_path / "rigid", max_steps=1), progress=False)
+    result = train(
+        config(
+            supervised,
+            tmp_path / "flow",
+            stage="flow",
+            max_steps=30,
+            lr=1e-3,
+            bn_momentum=0.1,
+            weights=cfg.weights,
+            init_checkpoint=str(rigid["last"]),
+            extra_data_dirs=[str(synth_prepared)],  # samples without flow add no supervised term
+        ),
+        progress=False,
+    )
+    rows = read_log(result["log"])
+    assert_falls(rows, "flow_supervised")
+    assert "val_flow_supervised" in rows[-1]
+    plain = train(
+        config(synth_prepared, tmp_path / "plain", stage="flow", max_steps=1, init_checkpoint=str(rigid["last"])),
+        progress=False,
+    )
+    assert "flow_supervised" not in read_log(plain["log"])[-1]
+
+
+def test_photometric_scores_unlabelled_footage(synth_prepared, tmp_path):
+    """training.photometric: the warp error of consecutive frames is lower than of a copy of the
+    folder whose source frames are noise (the loss really reads the footage), one row per model."""
+    from training.photometric import main as photometric_main
+    from training.photometric import photometric_terms
+
+    rigid = train(config(synth_prepared, tmp_path / "rigid", max_steps=1), progress=False)
+    flow = train(
+        config(synth_prepared, tmp_path / "flow", stage="flow", max_steps=1, init_checkpoint=str(rigid["last"])),
+        progress=False,
+    )
+    noise = tmp_path / "noise"
+    shutil.copytree(synth_prepared, noise)
+    rng = np.random.default_rng(0)
+    for jpg in noise.glob("*/*.jpg"):
+        strip = cv2.imread(str(jpg))
+        w = strip.shape[1] // 3
+        strip[:, :w] = rng.integers(0, 256, size=strip[:, :w].shape, dtype=np.uint8)  # source t-1
+        strip[:, 2 * w :] = rng.integers(0, 256, size=strip[:, 2 * w :].shape, dtype=np.uint8)  # source t+1
+        cv2.imwrite(str(jpg), strip)
+    real = photometric_terms(flow["last"], synth_prepared)
+    scrambled = photometric_terms(flow["last"], noise)
+    n_samples = sum(len((synth_prepared / f"{split}.txt").read_text().split()) // 2 for split in ("train", "val"))
+    assert real["stage"] == "flow" and real["samples"] == n_samples
+    assert real["terms"]["flow_warp"] < 0.8 * scrambled["terms"]["flow_warp"], (real, scrambled)
+    rigid_terms = photometric_terms(rigid["last"], synth_prepared)
+    assert rigid_terms["stage"] == "rigid" and "rigid_warp" in rigid_terms["terms"]
+    with pytest.raises(GeoNetInputError, match="no ResFlowNet"):
+        photometric_terms(rigid["last"], synth_prepared, stage="flow")
+    assert photometric_main(["--checkpoint", str(flow["last"]), str(flow["last"]), "--data-dir", str(noise)]) == 0
 
 
 def test_extra_data_dirs_are_shuffled_into_one_training_set(synth_prepared, tmp_path):

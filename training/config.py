@@ -171,6 +171,15 @@ def build_parser() -> argparse.ArgumentParser:
         "and keep only the self-supervised loss). Not in GeoNet: supervised synthetic pre-training",
     )
     p.add_argument(
+        "--flow-supervision",
+        type=float,
+        default=d.weights.flow_supervision,
+        metavar="W",
+        help="stage flow: add W x the end-point error of the full flow target -> next frame "
+        "against the ground truth of samples that have it (synthetic data prepared with "
+        "--train-flow; others keep only the self-supervised loss). Not in GeoNet",
+    )
+    p.add_argument(
         "--device",
         default=d.device,
         help="auto (CUDA if present, else CPU), cpu, cuda or cuda:N; under torchrun each rank "
@@ -197,5 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(argv=None) -> TrainConfig:
     args = vars(build_parser().parse_args(argv))
-    weights = LossWeights(depth_supervision=args.pop("depth_supervision"))
+    weights = LossWeights(
+        depth_supervision=args.pop("depth_supervision"), flow_supervision=args.pop("flow_supervision")
+    )
     return TrainConfig(**args, weights=weights)

@@ -17,7 +17,8 @@ from torch.utils.data import DataLoader, Dataset
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io import read_cam_txt, read_depth_kitti, read_image
+from geonet_infer.io import read_cam_txt, read_depth_kitti, read_flow_kitti, read_image
+from geonet_infer.metrics import resize_flow_gt
 from geonet_infer.preprocess import snippet_indices
 
 SPLITS = ("train", "val", "heldout")
@@ -85,26 +86,37 @@ def random_color(frames: np.ndarray, rng: np.random.Generator, share_gain: bool)
 
 
 def augment(
-    frames: np.ndarray, K: np.ndarray, rng: np.random.Generator, share_gain: bool, depth: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    frames: np.ndarray,
+    K: np.ndarray,
+    rng: np.random.Generator,
+    share_gain: bool,
+    depth: np.ndarray | None = None,
+    flow: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Official training augmentation: scale + crop (always), colour with p = 0.5.
 
     Args:
         frames: (N, H, W, 3) float32 in [0, 1]; K: (3, 3).
         depth: optional (H, W) target depth (0 = none), given the same scale and crop.
+        flow: optional (H, W, 3) target flow (u, v px, valid 0/1), given the same scale and crop
+            (vectors scaled by the resize ratios; cropping does not change them).
     Returns:
-        frames (N, H, W, 3) float32 in [0, 1], K (3, 3), depth (H, W) or None.
+        frames (N, H, W, 3) float32 in [0, 1], K (3, 3), depth (H, W) or None, flow (H, W, 3) or None.
     """
+    h, w = frames.shape[1:3]
     frames, K, crop = random_scale_crop(frames, K, rng)
+    out_w, out_h = round(w * crop["sx"]), round(h * crop["sy"])
+    window = np.s_[crop["y0"] : crop["y0"] + h, crop["x0"] : crop["x0"] + w]
     if depth is not None:
-        h, w = depth.shape
-        out_w, out_h = round(w * crop["sx"]), round(h * crop["sy"])
         # Nearest: no depth blended across object edges or with 0 = none.
         depth = cv2.resize(depth, (out_w, out_h), interpolation=cv2.INTER_NEAREST)
-        depth = np.ascontiguousarray(depth[crop["y0"] : crop["y0"] + h, crop["x0"] : crop["x0"] + w])
+        depth = np.ascontiguousarray(depth[window])
+    if flow is not None:
+        uv, valid = resize_flow_gt(flow[..., :2], flow[..., 2] > 0, (out_h, out_w))
+        flow = np.ascontiguousarray(np.concatenate([uv, valid[..., None].astype(np.float32)], axis=2)[window])
     if rng.uniform() < COLOR_PROB:
         frames = random_color(frames, rng, share_gain)
-    return frames, K, depth
+    return frames, K, depth, flow
 
 
 # --------------------------------------------------------------------------- reading
@@ -141,6 +153,8 @@ class SequenceDataset(Dataset):
         ``depth_gt``    float32 (1, H, W) metres, 0 = none; split "heldout" when
                         ``<frame>_depth.png`` exists, and every split with ``load_depth``
                         (all zeros for a sample without that file, e.g. real footage).
+        ``flow_gt``     float32 (3, H, W): flow target -> next frame (u, v px) and valid 0/1,
+                        with ``load_flow`` (all zeros without ``<frame>_flow.png``).
 
     Augmentation (``augment=True`` and split "train" only) draws once per sample from an RNG
     seeded by (seed, epoch, index), so an item is reproducible whatever worker loads it; call
@@ -159,6 +173,7 @@ class SequenceDataset(Dataset):
         share_color_gain: bool = False,
         seed: int = 0,
         load_depth: bool = False,
+        load_flow: bool = False,
     ):
         if split not in SPLITS:
             raise GeoNetInputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
@@ -172,6 +187,7 @@ class SequenceDataset(Dataset):
         self.share_color_gain = share_color_gain
         self.seed = seed
         self.load_depth = load_depth or split == "heldout"
+        self.load_flow = load_flow
         self.epoch = 0
 
         if not self.root.is_dir():
@@ -241,13 +257,30 @@ class SequenceDataset(Dataset):
             )
         return depth.astype(np.float32)
 
+    def load_flow_gt(self, name: str) -> np.ndarray | None:
+        """-> (H, W, 3) float32 flow target -> next frame (u, v px, valid 0/1), or None without
+        ``<frame>_flow.png``."""
+        folder, frame = name.split(" ")
+        flow_path = self.root / folder / f"{frame}_flow.png"
+        if not flow_path.is_file():
+            return None
+        uv, valid = read_flow_kitti(flow_path)
+        if valid.shape != (self.height, self.width):
+            raise GeoNetInputError(
+                flow_path,
+                f"flow is {valid.shape[1]}x{valid.shape[0]}, expected {self.width}x{self.height}",
+                PREPARE_CMD,
+            )
+        return np.concatenate([uv, valid[..., None]], axis=2).astype(np.float32)
+
     def __getitem__(self, index: int) -> dict:
         name = self.names[index]
         frames, K = self.load_frames(name)
         depth = self.load_depth_gt(name) if self.load_depth else None
+        flow = self.load_flow_gt(name) if self.load_flow else None
         if self.augment:
             rng = np.random.default_rng([self.seed, self.epoch, index])
-            frames, K, depth = augment(frames, K, rng, self.share_color_gain, depth)
+            frames, K, depth, flow = augment(frames, K, rng, self.share_color_gain, depth, flow)
         chw = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))  # (N, 3, H, W)
         order = snippet_indices(self.seq_length // 2, self.seq_length, self.seq_length)  # [target] + sources
         item = {
@@ -260,6 +293,10 @@ class SequenceDataset(Dataset):
             depth = np.zeros((self.height, self.width), np.float32)  # batches mix samples with and without
         if depth is not None:
             item["depth_gt"] = torch.from_numpy(depth[None])
+        if self.load_flow:
+            if flow is None:
+                flow = np.zeros((self.height, self.width, 3), np.float32)
+            item["flow_gt"] = torch.from_numpy(np.ascontiguousarray(flow.transpose(2, 0, 1)))
         return item
 
 

@@ -30,6 +30,9 @@ class LossWeights:
     # Not in GeoNet (0 = official): weight of the scale-invariant log-depth error against the
     # synthetic generator's ground truth, for supervised pre-training on synthetic scenes.
     depth_supervision: float = 0.0
+    # Not in GeoNet (0 = official): weight of the end-point error of the full flow against the
+    # synthetic generator's ground truth (flow target -> next frame), for supervised pre-training.
+    flow_supervision: float = 0.0
 
 
 def _mean_3x3(x: torch.Tensor) -> torch.Tensor:
@@ -102,6 +105,30 @@ def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """
     weighted = (values.mean(dim=1, keepdim=True) * mask).sum()
     return weighted / mask.sum().clamp(min=1.0)
+
+
+def flow_endpoint_error(flow: torch.Tensor, flow_gt: torch.Tensor) -> torch.Tensor:
+    """Mean end-point error over the valid ground-truth pixels, per image, then over images.
+
+    Args:
+        flow: (B, 2, h, w) predicted flow in pixels of its own resolution; resized (bilinear) to
+            the ground truth's H x W with the vectors scaled by W / w and H / h.
+        flow_gt: (B, 3, H, W): u, v px and valid 0/1.
+    Returns:
+        scalar mean over the images that have a valid pixel; 0 when none has.
+    """
+    H, W = flow_gt.shape[-2:]
+    h, w = flow.shape[-2:]
+    if (h, w) != (H, W):
+        flow = F.interpolate(flow, size=(H, W), mode="bilinear", align_corners=False)
+        flow = flow * flow.new_tensor([W / w, H / h]).reshape(1, 2, 1, 1)
+    valid = flow_gt[:, 2]
+    # eps inside the sqrt: its gradient is infinite where the prediction is exact
+    epe = torch.sqrt((flow - flow_gt[:, :2]).square().sum(dim=1) + 1e-8) * valid
+    count = valid.sum(dim=(1, 2))
+    has_gt = (count > 0).to(flow.dtype)
+    per_image = epe.sum(dim=(1, 2)) / count.clamp(min=1.0)
+    return (per_image * has_gt).sum() / has_gt.sum().clamp(min=1.0)
 
 
 def scale_invariant_log_error(depth: torch.Tensor, depth_gt: torch.Tensor) -> torch.Tensor:

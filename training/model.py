@@ -28,6 +28,7 @@ from training.geometry import (
 from training.losses import (
     LossWeights,
     edge_aware_smoothness,
+    flow_endpoint_error,
     masked_mean,
     photometric_error,
     scale_invariant_log_error,
@@ -133,6 +134,8 @@ class GeoNet(nn.Module):
         super().__init__()
         self.arch = arch
         self.num_source = num_source
+        # Sources are in temporal order around the target: [t-1, t+1] or [t-2, t-1, t+1, t+2].
+        self.next_source = num_source // 2  # index of frame t+1, the ground-truth flow's frame
         self.weights = weights if weights is not None else LossWeights()
         # Deviation (off by default = official): drop pixels whose rigid flow leaves the source
         # frame from the rigid photometric loss. Without it, zero-padded samples at the image
@@ -265,8 +268,14 @@ class GeoNet(nn.Module):
         bwd_full = [residual[s][NB:] + rigid.bwd_flow[s] for s in range(NUM_SCALES)]
         return fwd_full, bwd_full, target_pyr, source_pyr
 
-    def flow_loss(self, target, sources, K) -> StageLoss:
-        """Stage 2: full-flow warping (consistency-masked), flow smoothness, consistency."""
+    def flow_loss(self, target, sources, K, flow_gt: torch.Tensor | None = None) -> StageLoss:
+        """Stage 2: full-flow warping (consistency-masked), flow smoothness, consistency.
+
+        With ``weights.flow_supervision`` > 0 and ``flow_gt`` (B, 3, H, W) = u, v px, valid
+        (synthetic scenes: flow target -> next frame), the full forward flow to the next frame at
+        every scale, upsampled to H x W, also pays its end-point error against it (a deviation
+        from GeoNet, for pre-training).
+        """
         w = self.weights
         fwd_full, bwd_full, target_pyr, source_pyr = self.flow_forward(target, sources, K)
         N = self.num_source
@@ -293,7 +302,11 @@ class GeoNet(nn.Module):
                 edge_aware_smoothness(fwd_full[s], target_pyr[s]) + edge_aware_smoothness(bwd_full[s], source_pyr[s])
             )
         total = warp_loss + smooth_loss + consistency_loss
-        return StageLoss(
-            total,
-            _as_floats(flow_warp=warp_loss, flow_smooth=smooth_loss, flow_consistency=consistency_loss, total=total),
-        )
+        terms = {"flow_warp": warp_loss, "flow_smooth": smooth_loss, "flow_consistency": consistency_loss}
+        if w.flow_supervision > 0 and flow_gt is not None:
+            B = target.shape[0]
+            rows = slice(self.next_source * B, (self.next_source + 1) * B)  # fwd rows are source-major
+            flow_sup = sum(flow_endpoint_error(fwd_full[s][rows], flow_gt) for s in range(NUM_SCALES))
+            terms["flow_supervised"] = w.flow_supervision * flow_sup
+            total = total + terms["flow_supervised"]
+        return StageLoss(total, _as_floats(**terms, total=total))

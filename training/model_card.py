@@ -345,6 +345,8 @@ def model_info(manifest: Manifest, model_dir: Path) -> dict:
         "provenance": dataclasses.asdict(manifest.provenance),
         "metrics": manifest.metrics,
         "files": files,
+        # every file of the directory (manifest included), as unpacked from the wheel
+        "dir_bytes": sum(f.stat().st_size for f in model_dir.rglob("*") if f.is_file()),
         "quantization": None if quant is None else json.loads(json.dumps(dataclasses.asdict(quant), default=list)),
     }
 
@@ -848,7 +850,7 @@ def render_card(result: dict) -> str:
     L += [
         "Total per precision (a precision's set includes the shared FP32 `rigidflow`): "
         + ", ".join(f"{p} {_mib(b)}" for p, b in totals.items())
-        + ".",
+        + f"; the whole directory, manifest included: {m['dir_bytes']:,} bytes ({_mib(m['dir_bytes'])}).",
         "",
     ]
 

@@ -8,6 +8,9 @@ Output under ``--out DIR`` (read back by :class:`training.data.SequenceDataset`)
     DIR/<folder>/<frame>_depth.png   synth held-out samples (and, with --train-depth, every synth
                                      sample): target depth (KITTI 16-bit, m*256) resized to H x W
                                      with nearest neighbour
+    DIR/<folder>/<frame>_flow.png    synth train/val samples with --train-flow: the non-occluded
+                                     flow target -> next frame (KITTI flow PNG), resized to H x W
+                                     with nearest neighbour and scaled by the resize ratios
     DIR/train.txt, DIR/val.txt       "<folder> <frame>" per line
     DIR/heldout.txt                  synth only: held-out samples (never in train.txt / val.txt)
 
@@ -43,12 +46,15 @@ from geonet_infer.io import (
     read_calib_K,
     read_camera,
     read_depth_kitti,
+    read_flow_kitti,
     read_image,
     require_key,
     write_cam_txt,
     write_depth_kitti,
+    write_flow_kitti,
     write_image,
 )
+from geonet_infer.metrics import resize_flow_gt
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +95,7 @@ class PrepareConfig:
     seed: int = 8964  # train/val split seed of the official script
     heldout: int = 2  # synth: the last N sequences go to heldout.txt
     train_depth: bool = False  # synth: also write the target depth of train/val samples (depth supervision)
+    train_flow: bool = False  # synth: also write the target's flow to t+1 of train/val samples (flow supervision)
     max_frames: int | None = None  # only the first N frames of each sequence (quick runs)
     strict: bool = False  # the first bad input is an error instead of a skip
     calib: Path | None = None  # video/frames: the camera (any format of geonet_infer.io.read_camera)
@@ -109,6 +116,7 @@ class Sequence:
     scene: str = ""  # KITTI raw drive folder name, e.g. 2011_09_26_drive_0001_sync (static_frames.txt)
     heldout: bool = False
     depth_dir: Path | None = None  # synth: depth/ folder (held-out GT; every sample with --train-depth)
+    flow_dir: Path | None = None  # synth with --train-flow: flow_noc/ folder (<t>.png = flow t -> t+1)
     static_removed: set = field(default_factory=set)  # frame numbers dropped by --remove-static
 
 
@@ -122,6 +130,7 @@ class Snippet:
     K: np.ndarray  # (3, 3) target intrinsics at original resolution
     heldout: bool = False
     depth_path: Path | None = None
+    flow_path: Path | None = None  # flow target -> next frame (KITTI flow PNG)
 
     @property
     def name(self) -> str:
@@ -361,10 +370,14 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
     return seqs
 
 
-def collect_synth(src: Path, heldout: int, skips: Skips, train_depth: bool = False) -> list[Sequence]:
+def collect_synth(
+    src: Path, heldout: int, skips: Skips, train_depth: bool = False, train_flow: bool = False
+) -> list[Sequence]:
     """One Sequence per generator folder (image/, depth/, calib.txt); the last ``heldout`` are held out.
 
     Held-out sequences carry their depth/ folder for evaluation; the others only with ``train_depth``.
+    With ``train_flow`` the training sequences carry their flow_noc/ folder (held-out flow is
+    scored from the generator's folder by the evaluation, never written here).
     """
     if (src / "image").is_dir():
         seq_dirs = [src]
@@ -401,6 +414,7 @@ def collect_synth(src: Path, heldout: int, skips: Skips, train_depth: bool = Fal
                 K=K,
                 heldout=d.name in held,
                 depth_dir=d / "depth" if train_depth or d.name in held else None,
+                flow_dir=d / "flow_noc" if train_flow and d.name not in held else None,
             )
         )
     return seqs
@@ -543,7 +557,8 @@ def make_snippets(seq: Sequence, seq_length: int, skips: Skips) -> list[Snippet]
             window = tuple(run[i - half : i + half + 1])
             tgt = window[half]
             depth = seq.depth_dir / f"{tgt.stem}.png" if seq.depth_dir is not None else None
-            out.append(Snippet(seq.folder, tgt.stem, window, seq.K, seq.heldout, depth))
+            flow = seq.flow_dir / f"{tgt.stem}.png" if seq.flow_dir is not None else None
+            out.append(Snippet(seq.folder, tgt.stem, window, seq.K, seq.heldout, depth, flow))
     if not out:
         longest = max((len(r) for r in runs), default=0)
         skips.add(
@@ -565,6 +580,8 @@ def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
     paths = {"jpg": base / f"{snip.frame}.jpg", "cam": base / f"{snip.frame}_cam.txt"}
     if snip.depth_path is not None:
         paths["depth"] = base / f"{snip.frame}_depth.png"
+    if snip.flow_path is not None:
+        paths["flow"] = base / f"{snip.frame}_flow.png"
     return paths
 
 
@@ -610,11 +627,22 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
             return "skipped", snip.depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, image {w0}x{h0}"
         # Nearest keeps measured values (no blending of depth across edges / with 0 = none).
         depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    flow = valid = None
+    if snip.flow_path is not None:
+        try:
+            flow, valid = read_flow_kitti(snip.flow_path)
+        except GeoNetInputError as err:
+            return "skipped", snip.flow_path, err.problem
+        if flow.shape[:2] != (h0, w0):
+            return "skipped", snip.flow_path, f"flow is {flow.shape[1]}x{flow.shape[0]}, image {w0}x{h0}"
+        flow, valid = resize_flow_gt(flow, valid, (height, width))
     with atomic_write(paths["jpg"]) as tmp:
         tmp.write_bytes(jpg.tobytes())
     write_cam_txt(paths["cam"], K)
     if depth is not None:
         write_depth_kitti(paths["depth"], depth)
+    if flow is not None:
+        write_flow_kitti(paths["flow"], flow, valid)
     return "written", None, None
 
 
@@ -680,6 +708,8 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
         raise GeoNetInputError(None, "--remove-static only applies to --kind kitti_raw", "drop the flag")
     if cfg.train_depth and cfg.kind != "synth":
         raise GeoNetInputError(None, "--train-depth only applies to --kind synth", "real footage has no dense depth")
+    if cfg.train_flow and cfg.kind != "synth":
+        raise GeoNetInputError(None, "--train-flow only applies to --kind synth", "real footage has no dense flow")
     if cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
         raise GeoNetInputError(
             None,
@@ -699,7 +729,7 @@ def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Ski
     elif cfg.kind in ("video", "frames"):
         seqs = collect_video(cfg, skips)  # --max-frames applied while decoding
     else:
-        seqs = collect_synth(src, cfg.heldout, skips, cfg.train_depth)
+        seqs = collect_synth(src, cfg.heldout, skips, cfg.train_depth, cfg.train_flow)
     if cfg.max_frames is not None:
         for seq in seqs:
             seq.frames = seq.frames[: cfg.max_frames]
@@ -802,7 +832,9 @@ kinds:
               with "K: fx 0 cx 0 fy cy 0 0 1"). The last --heldout sequences (sorted by name) go to
               heldout.txt, with the target depth copied as <frame>_depth.png, never to train/val.
               --train-depth also copies the depth of train/val samples, for depth-supervised
-              pre-training (python -m training.train --depth-supervision W).
+              pre-training (python -m training.train --depth-supervision W); --train-flow writes
+              the non-occluded flow to the next frame as <frame>_flow.png, for flow-supervised
+              pre-training (python -m training.train --stage flow --flow-supervision W).
       python -m training.prepare --kind synth --src data/synth --out data/prepared_synth --heldout 2
 
 Skipped inputs (unreadable frames, missing calibration keys, too-short or mixed-resolution
@@ -859,6 +891,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--train-depth",
         action="store_true",
         help="synth: also write the ground-truth depth of train/val samples (for training.train --depth-supervision)",
+    )
+    p.add_argument(
+        "--train-flow",
+        action="store_true",
+        help="synth: also write the ground-truth flow to the next frame of train/val samples "
+        "(for training.train --stage flow --flow-supervision)",
     )
     p.add_argument(
         "--max-frames", type=int, default=D.max_frames, help="use only the first N frames of each sequence (quick runs)"

@@ -55,10 +55,12 @@ def set_modes(model: GeoNet, stage: str, training: bool) -> None:
         module.train(training)
 
 
-def stage_loss(model: GeoNet, stage: str, target, sources, K, depth_gt=None) -> StageLoss:
+def stage_loss(model: GeoNet, stage: str, target, sources, K, truth=None) -> StageLoss:
+    """``truth``: the batch's ground truth for supervision (depth_gt in stage rigid, flow_gt in
+    stage flow) or None."""
     if stage == "rigid":
-        return model.rigid_loss(target, sources, K, depth_gt)
-    return model.flow_loss(target, sources, K)
+        return model.rigid_loss(target, sources, K, truth)
+    return model.flow_loss(target, sources, K, truth)
 
 
 class StageLossModule(torch.nn.Module):
@@ -70,8 +72,8 @@ class StageLossModule(torch.nn.Module):
         self.model = model
         self.stage = stage
 
-    def forward(self, target, sources, K, depth_gt=None) -> StageLoss:
-        return stage_loss(self.model, self.stage, target, sources, K, depth_gt)
+    def forward(self, target, sources, K, truth=None) -> StageLoss:
+        return stage_loss(self.model, self.stage, target, sources, K, truth)
 
 
 def autocast_nets(model: GeoNet, device_type: str, dtype: torch.dtype) -> None:
@@ -126,11 +128,12 @@ def epoch_loader(dataset: TrainSet, sampler: DistributedSampler, cfg: TrainConfi
 
 
 def to_device(batch: dict, device: torch.device) -> tuple:
-    """-> (target, sources, K, depth_gt or None): the stage loss's arguments."""
-    depth_gt = batch.get("depth_gt")
+    """-> (target, sources, K, truth or None): the stage loss's arguments; truth is the
+    batch's depth_gt or flow_gt (a run loads at most one of them)."""
+    truth = batch.get("depth_gt", batch.get("flow_gt"))
     return (
         *(batch[k].to(device, non_blocking=True) for k in ("target", "sources", "intrinsics")),
-        None if depth_gt is None else depth_gt.to(device, non_blocking=True),
+        None if truth is None else truth.to(device, non_blocking=True),
     )
 
 
@@ -190,7 +193,8 @@ def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
     check_options(cfg, rt.device)
     out_dir = Path(cfg.out_dir)
     seed_everything(cfg.seed)
-    supervised = cfg.stage == "rigid" and cfg.weights.depth_supervision > 0
+    depth_supervised = cfg.stage == "rigid" and cfg.weights.depth_supervision > 0
+    flow_supervised = cfg.stage == "flow" and cfg.weights.flow_supervision > 0
     train_set = TrainSet(
         [
             SequenceDataset(
@@ -202,7 +206,8 @@ def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
                 augment=cfg.augment,
                 share_color_gain=cfg.share_color_gain,
                 seed=cfg.seed + k,  # another augmentation stream per folder
-                load_depth=supervised,
+                load_depth=depth_supervised,
+                load_flow=flow_supervised,
             )
             for k, root in enumerate([cfg.data_dir, *cfg.extra_data_dirs])
         ]
@@ -229,7 +234,8 @@ def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
             cfg.width,
             augment=False,
             seed=cfg.seed,
-            load_depth=supervised,
+            load_depth=depth_supervised,
+            load_flow=flow_supervised,
         )
 
     model = build_model(cfg)
