@@ -159,8 +159,8 @@ def _name_batch_axis(model: onnx.ModelProto) -> None:
                 dim.dim_param = BATCH_AXIS
 
 
-def _pin_dims(model: onnx.ModelProto, spec: IOSpec) -> dict[str, int]:
-    """Declare the static dims of ``spec`` on a graph traced with symbolic ones; returns the mapping.
+def _pin_dims(model: onnx.ModelProto, spec: IOSpec) -> None:
+    """Declare the static dims of ``spec`` on a graph traced with symbolic ones.
 
     Each symbolic dim of a graph input/output that ``spec`` fixes (H and W of a
     ``dynamic_spatial`` trace) becomes that value, in the inputs, outputs and
@@ -180,7 +180,6 @@ def _pin_dims(model: onnx.ModelProto, spec: IOSpec) -> dict[str, int]:
             factors = dim.dim_param.replace(" ", "").split("*") if dim.dim_param else []
             if factors and all(f in values or f.isdigit() for f in factors):
                 dim.dim_value = math.prod(values[f] if f in values else int(f) for f in factors)
-    return values
 
 
 def _strip_debug_info(model: onnx.ModelProto) -> None:

@@ -242,36 +242,28 @@ class SequenceDataset(Dataset):
         frames = frames.astype(np.float32) / 255.0
         return frames, read_cam(self.root / folder / f"{frame}_cam.txt")
 
+    def _read_truth(self, name: str, kind: str, read) -> np.ndarray | None:
+        """-> ``read(<frame>_<kind>.png)`` as float32, its first two axes checked against H x W, or
+        None without the file."""
+        folder, frame = name.split(" ")
+        path = self.root / folder / f"{frame}_{kind}.png"
+        if not path.is_file():
+            return None
+        truth = read(path)
+        if truth.shape[:2] != (self.height, self.width):
+            raise GeoNetInputError(
+                path, f"{kind} is {truth.shape[1]}x{truth.shape[0]}, expected {self.width}x{self.height}", PREPARE_CMD
+            )
+        return truth.astype(np.float32)
+
     def load_depth_gt(self, name: str) -> np.ndarray | None:
         """-> (H, W) float32 target depth in metres (0 = none), or None without ``<frame>_depth.png``."""
-        folder, frame = name.split(" ")
-        depth_path = self.root / folder / f"{frame}_depth.png"
-        if not depth_path.is_file():
-            return None
-        depth = read_depth_kitti(depth_path)
-        if depth.shape != (self.height, self.width):
-            raise GeoNetInputError(
-                depth_path,
-                f"depth is {depth.shape[1]}x{depth.shape[0]}, expected {self.width}x{self.height}",
-                PREPARE_CMD,
-            )
-        return depth.astype(np.float32)
+        return self._read_truth(name, "depth", read_depth_kitti)
 
     def load_flow_gt(self, name: str) -> np.ndarray | None:
         """-> (H, W, 3) float32 flow target -> next frame (u, v px, valid 0/1), or None without
         ``<frame>_flow.png``."""
-        folder, frame = name.split(" ")
-        flow_path = self.root / folder / f"{frame}_flow.png"
-        if not flow_path.is_file():
-            return None
-        uv, valid = read_flow_kitti(flow_path)
-        if valid.shape != (self.height, self.width):
-            raise GeoNetInputError(
-                flow_path,
-                f"flow is {valid.shape[1]}x{valid.shape[0]}, expected {self.width}x{self.height}",
-                PREPARE_CMD,
-            )
-        return np.concatenate([uv, valid[..., None]], axis=2).astype(np.float32)
+        return self._read_truth(name, "flow", lambda path: np.dstack(read_flow_kitti(path)))
 
     def __getitem__(self, index: int) -> dict:
         name = self.names[index]

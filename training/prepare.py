@@ -585,6 +585,16 @@ def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
     return paths
 
 
+def _read_truth(path: Path, kind: str, read, h0: int, w0: int):
+    """``read(path)``: an array, or read_flow_kitti's (flow, valid), whose first array must be
+    h0 x w0 like the image; GeoNetInputError naming the file otherwise."""
+    truth = read(path)
+    shape = (truth[0] if isinstance(truth, tuple) else truth).shape
+    if shape[:2] != (h0, w0):
+        raise GeoNetInputError(path, f"{kind} is {shape[1]}x{shape[0]}, image {w0}x{h0}")
+    return truth
+
+
 def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[str, Path | None, str | None]:
     """Read, resize and write one sample. Runs in a worker process.
 
@@ -617,25 +627,17 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
         return "skipped", snip.paths[len(frames) // 2], "JPEG encoding failed"
     # K is scaled by the target frame's own resize factors (official: zoom_x, zoom_y of the target).
     K = scale_intrinsics(snip.K, width / w0, height / h0)
-    depth = None
-    if snip.depth_path is not None:
-        try:
-            depth = read_depth_kitti(snip.depth_path)
-        except GeoNetInputError as err:
-            return "skipped", snip.depth_path, err.problem
-        if depth.shape != (h0, w0):
-            return "skipped", snip.depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, image {w0}x{h0}"
-        # Nearest keeps measured values (no blending of depth across edges / with 0 = none).
-        depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
-    flow = valid = None
-    if snip.flow_path is not None:
-        try:
-            flow, valid = read_flow_kitti(snip.flow_path)
-        except GeoNetInputError as err:
-            return "skipped", snip.flow_path, err.problem
-        if flow.shape[:2] != (h0, w0):
-            return "skipped", snip.flow_path, f"flow is {flow.shape[1]}x{flow.shape[0]}, image {w0}x{h0}"
-        flow, valid = resize_flow_gt(flow, valid, (height, width))
+    depth = flow = valid = None
+    try:
+        if snip.depth_path is not None:
+            depth = _read_truth(snip.depth_path, "depth", read_depth_kitti, h0, w0)
+            # Nearest keeps measured values (no blending of depth across edges / with 0 = none).
+            depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+        if snip.flow_path is not None:
+            flow, valid = _read_truth(snip.flow_path, "flow", read_flow_kitti, h0, w0)
+            flow, valid = resize_flow_gt(flow, valid, (height, width))
+    except GeoNetInputError as err:
+        return "skipped", err.path, err.problem
     with atomic_write(paths["jpg"]) as tmp:
         tmp.write_bytes(jpg.tobytes())
     write_cam_txt(paths["cam"], K)
