@@ -603,3 +603,21 @@ def test_sig3():
         "0",
         "3",
     ]
+
+
+@pytest.mark.parametrize(
+    ("flags", "origin"),
+    [
+        ("--init-checkpoint runs/F/last.pt", "`flow`, initialised from `runs/F/last.pt`"),
+        ("--resume runs/G/last.pt", "`flow`, resumed from `runs/G/last.pt`"),
+        ("", "`flow` |"),
+    ],
+)
+def test_training_stage_row_says_where_the_run_started(card3, flags, origin):
+    _, result = card3
+    result = json.loads(json.dumps(result))
+    prov = result["model"]["provenance"]
+    prov["checkpoint_stage"] = "flow"
+    prov["training_command"] = f"python -m training.train --stage flow --out-dir runs/H {flags} --max-steps 9"
+    row = next(line for line in render_card(result).splitlines() if line.startswith("| training stage |"))
+    assert origin in row

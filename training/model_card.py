@@ -622,11 +622,13 @@ def _compare(model: float, baseline: float, lower_is_better: bool = True) -> str
     return "better than" if better else ("equal to" if model == baseline else "worse than")
 
 
-def _init_checkpoint(command: str | None) -> str | None:
-    if not command:
-        return None
-    m = re.search(r"--init-checkpoint[ =](\S+)", command)
-    return m.group(1) if m else None
+def _stage_origin(command: str | None) -> str | None:
+    """Where the training run started: ``initialised from X`` (--init-checkpoint) or ``resumed from X`` (--resume)."""
+    for flag, verb in (("--resume", "resumed from"), ("--init-checkpoint", "initialised from")):
+        m = re.search(rf"{flag}[ =](\S+)", command or "")
+        if m:
+            return f"{verb} `{m.group(1)}`"
+    return None
 
 
 def _checkpoint_text(prov: dict) -> str:
@@ -768,9 +770,9 @@ def render_card(result: dict) -> str:
 
     # ------------------------------------------------------------ what
     L += ["## The model", ""]
-    init = _init_checkpoint(prov.get("training_command"))
+    origin = _stage_origin(prov.get("training_command"))
     stage = prov.get("checkpoint_stage")
-    stages = (f"`{stage}`, initialised from `{init}`" if init else f"`{stage}`") if stage else "n/a"
+    stages = (f"`{stage}`, {origin}" if origin else f"`{stage}`") if stage else "n/a"
     rows = [
         [
             "architecture",
