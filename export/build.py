@@ -316,19 +316,21 @@ def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):
     feeds = {"depthnet": qz.depth_feeds(frames, spec), "posenet": qz.pose_feeds(frames, spec)}
     if "resflownet" in fp32:
         feeds["resflownet"] = qz.resflow_feeds(Predictor(tmp, "fp32"), frames, K)
-    entries = {}
+    entries, plan_notes = {}, {}
     for graph in fp32:
         if graph in qz.FP32_ONLY_GRAPHS:
             entries[graph] = fp32[graph]  # same file: the int8 set reuses fp32 rigidflow.onnx
             continue
         started = time.perf_counter()
-        qz.quantize_graph(
+        notes = qz.quantize_graph(
             tmp / fp32[graph].file,
             tmp / "int8" / f"{graph}.onnx",
             feeds[graph],
             settings,
-            float_after=qz.FLOAT_AFTER.get(graph, ()),
+            qz.PLANS.get(graph, qz.GraphPlan()),
         )
+        if notes:
+            plan_notes[graph] = notes
         entries[graph] = mf.graph_entry(
             tmp,
             f"int8/{graph}.onnx",
@@ -346,8 +348,10 @@ def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):
             f"  int8 {graph}.onnx  {size:.1f} MiB  ({len(feeds[graph])} calibration inputs, "
             f"{time.perf_counter() - started:.1f} s)",
         )
+        for line in notes:
+            _log(cfg, f"    {line}")
     samples = {g: len(f) for g, f in feeds.items() if g in entries}
-    return entries, settings, samples, k_source
+    return entries, settings, samples, k_source, plan_notes
 
 
 def _delta(results: dict, group: str, key: str) -> dict:
@@ -388,10 +392,12 @@ def _write_graphs(cfg: ExportConfig, src: Source, graphs: list[str], precisions:
     all_graphs = {"fp32": fp32}
     quant = None
     if "int8" in precisions:
-        int8, settings, samples, k_source = _export_int8(cfg, src, fp32, tmp)
+        int8, settings, samples, k_source, plan_notes = _export_int8(cfg, src, fp32, tmp)
         all_graphs["int8"] = int8
         delta, reason = _accuracy_delta(cfg, src, all_graphs, tmp)
-        quant = mf.quantization_record(settings.describe(), str(cfg.calib_data), samples, k_source, delta, reason)
+        quant = mf.quantization_record(
+            settings.describe(), str(cfg.calib_data), samples, k_source, plan_notes, delta, reason
+        )
     manifest = mf.build_manifest(
         height=src.height,
         width=src.width,

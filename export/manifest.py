@@ -203,6 +203,7 @@ def quantization_record(
     calibration_data: str,
     samples: dict,
     intrinsics_source: str,
+    graph_notes: dict,
     accuracy_delta: dict | None,
     reason: str | None,
 ) -> Quantization:
@@ -219,6 +220,7 @@ def quantization_record(
         calibration_samples=dict(samples),
         calibration_intrinsics=intrinsics_source,
         fp32_graphs=tuple(FP32_ONLY_GRAPHS),
+        graph_notes={g: list(lines) for g, lines in graph_notes.items()},
         accuracy_delta=json_safe(accuracy_delta),
         accuracy_delta_reason=reason,
     )

@@ -39,9 +39,25 @@ from geonet_infer.preprocess import InputSpec, snippet_indices
 
 FP32_ONLY_GRAPHS = ("rigidflow",)
 CALIBRATION_METHODS = ("minmax", "entropy", "percentile")  # onnxruntime CalibrationMethod MinMax/Entropy/Percentile
-# Tensors whose consumers stay fp32 in the int8 graph: PoseNet's 4x4 matrices are built from
-# the pose vector with Sin/Cos/Concat; quantised, they collapsed to ~identity (no motion).
-FLOAT_AFTER = {"posenet": ("pose",)}
+
+
+@dataclass(frozen=True)
+class GraphPlan:
+    """What stays fp32 in one int8 graph, and what is rescaled before quantising."""
+
+    float_after: tuple[str, ...] = ()  # nodes consuming these tensors stay fp32
+    float_output_layer: bool = False  # output_layer_nodes stay fp32
+    equalize_concats: bool = False  # equalize_concat_inputs first
+
+
+PLANS = {
+    # PoseNet's 4x4 matrices are built from the pose vector with Sin/Cos/Concat; quantised,
+    # they collapsed to ~identity (no motion).
+    "posenet": GraphPlan(float_after=("pose",)),
+    # ResFlowNet's flow is in pixels and its decoder feeds the coarser flow back beside wide
+    # features; both lost ~1 px of agreement with fp32 flow (docs/export.md, "INT8 and flow").
+    "resflownet": GraphPlan(float_output_layer=True, equalize_concats=True),
+}
 
 
 @dataclass(frozen=True)
@@ -158,6 +174,121 @@ class _ListReader:
 
 
 # ----------------------------------------------------------------------------- quantise
+def output_layer_nodes(model: onnx.ModelProto) -> list[str]:
+    """The layer that writes each graph output, as node names: that node, the layer it reads
+    (its Conv and activation) when it is a Conv, and the Slices it takes graph inputs through.
+
+    Kept fp32 because the outputs are in pixels: quantised, ResFlowNet's flow (about +-80 px)
+    would be rounded to 0.6 px steps, and the 8-channel full-resolution features its head reads
+    carry the flow's fine detail (one uint8 step of them is a fraction of a pixel at the output).
+    """
+    inputs = {i.name for i in model.graph.input}
+    producer = {out: node for node in model.graph.node for out in node.output}
+    names = []
+    for output in model.graph.output:
+        node = producer.get(output.name)
+        if node is None:
+            continue
+        names.append(node.name)
+        step = producer.get(node.input[0]) if node.op_type == "Conv" else None
+        while step is not None:
+            names.append(step.name)
+            step = None if step.op_type == "Conv" else producer.get(step.input[0])
+        names += [
+            producer[i].name
+            for i in node.input
+            if i in producer and producer[i].op_type == "Slice" and producer[i].input[0] in inputs
+        ]
+    return names
+
+
+def activation_max_abs(model: onnx.ModelProto, feeds: Sequence[dict], tensors: Sequence[str]) -> dict[str, float]:
+    """max |x| of each named intermediate tensor of an fp32 graph over the feeds."""
+    import onnxruntime as ort
+
+    probe = onnx.ModelProto()
+    probe.CopyFrom(model)
+    del probe.graph.output[:]
+    probe.graph.output.extend(onnx.helper.make_empty_tensor_value_info(t) for t in tensors)
+    session = ort.InferenceSession(probe.SerializeToString(), providers=["CPUExecutionProvider"])
+    peak = dict.fromkeys(tensors, 0.0)
+    for feed in feeds:
+        for name, value in zip(tensors, session.run(list(tensors), feed)):
+            peak[name] = max(peak[name], float(np.abs(value).max()))
+    return peak
+
+
+def equalize_concat_inputs(model: onnx.ModelProto, feeds: Sequence[dict], ratio: float = 8.0) -> list[str]:
+    """Scale up concat inputs whose range is far below their neighbours'; fold 1/k into the next conv.
+
+    A Concat gets one uint8 scale for all its channels. GeoNet's decoders concatenate the
+    upsampled coarser prediction (ResFlowNet: flow normalised by the image size, |x| < 0.3) with
+    features of range ~10, so quantised, the prediction fed back keeps only a few levels. For
+    each such input (max |x| below 1/``ratio`` of the largest input, over ``feeds``), a
+    ``Mul(k)`` with k a power of two (exact in fp32) is inserted before the Concat and the
+    matching input channels of every consuming Conv's weight are divided by k, so the fp32
+    graph computes the same function. Edits ``model`` in place; returns "tensor x k" lines.
+    """
+    model.CopyFrom(onnx.shape_inference.infer_shapes(model))
+    channels = {
+        v.name: v.type.tensor_type.shape.dim[1].dim_value
+        for v in list(model.graph.value_info) + list(model.graph.input)
+        if len(v.type.tensor_type.shape.dim) == 4
+    }
+    weights = {init.name: init for init in model.graph.initializer}
+    users: dict[str, list] = {}
+    for node in model.graph.node:
+        for i in node.input:
+            users.setdefault(i, []).append(node)
+
+    def axis(node):
+        return next((a.i for a in node.attribute if a.name == "axis"), None)
+
+    def plain_conv(node):
+        groups = next((a.i for a in node.attribute if a.name == "group"), 1)
+        return node.op_type == "Conv" and groups == 1 and node.input[1] in weights and len(users[node.input[1]]) == 1
+
+    concats = [
+        n
+        for n in model.graph.node
+        if n.op_type == "Concat"
+        and axis(n) in (1, -3)
+        and all(i in channels and channels[i] > 0 for i in n.input)
+        and users.get(n.output[0])
+        and all(plain_conv(c) for c in users[n.output[0]])
+    ]
+    if not concats:
+        return []
+    peak = activation_max_abs(model, feeds, sorted({i for n in concats for i in n.input}))
+    done, new_nodes = [], {}
+    for concat in concats:
+        top = max(peak[i] for i in concat.input)
+        start = 0
+        for slot, tensor in enumerate(list(concat.input)):
+            width = channels[tensor]
+            if 0 < peak[tensor] * ratio < top:
+                k = float(2 ** np.floor(np.log2(top / peak[tensor])))
+                scaled = f"{tensor}_x{k:g}"
+                factor = onnx.numpy_helper.from_array(np.array(k, np.float32), f"{scaled}_k")
+                model.graph.initializer.append(factor)
+                new_nodes[concat.name] = new_nodes.get(concat.name, []) + [
+                    onnx.helper.make_node("Mul", [tensor, factor.name], [scaled], name=f"{scaled}_mul")
+                ]
+                concat.input[slot] = scaled
+                for conv in users[concat.output[0]]:
+                    w = onnx.numpy_helper.to_array(weights[conv.input[1]]).copy()
+                    w[:, start : start + width] /= k
+                    weights[conv.input[1]].CopyFrom(onnx.numpy_helper.from_array(w, conv.input[1]))
+                done.append(f"{tensor} x {k:g} (max |x| {peak[tensor]:.3g} next to {top:.3g})")
+            start += width
+    ordered = []
+    for node in model.graph.node:  # keep the graph topologically sorted: each Mul just before its Concat
+        ordered += new_nodes.get(node.name, []) + [node]
+    del model.graph.node[:]
+    model.graph.node.extend(ordered)
+    return done
+
+
 def downstream_nodes(model: onnx.ModelProto, tensors: Sequence[str]) -> list[str]:
     """Names of every node that (transitively) consumes one of ``tensors``."""
     reached, names = set(tensors), []
@@ -173,9 +304,13 @@ def quantize_graph(
     out_path: str | Path,
     feeds: Sequence[dict],
     settings: QuantSettings = QuantSettings(),
-    float_after: Sequence[str] = (),
-) -> None:
-    """Pre-process + quantize_static (QDQ) one graph; keeps the fp32 file's metadata_props."""
+    plan: GraphPlan = GraphPlan(),
+) -> list[str]:
+    """Pre-process + quantize_static (QDQ) one graph; keeps the fp32 file's metadata_props.
+
+    ``plan`` says which parts stay fp32 and whether concat inputs are rescaled first. Returns
+    what the plan did, one line each (for the log and the manifest).
+    """
     from onnxruntime.quantization import (
         CalibrationDataReader,
         CalibrationMethod,
@@ -211,9 +346,17 @@ def quantize_graph(
         # transformers) does not complete on these graphs, and on failure it dumps
         # sym_shape_infer_temp.onnx plus external-data files into the current directory.
         quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
-        exclude = downstream_nodes(onnx.load(str(pre)), float_after) if float_after else []
-        if float_after and not exclude:
-            raise GeoNetInputError(fp32_path, f"no nodes consume {list(float_after)}", "re-export the fp32 graph")
+        graph = onnx.load(str(pre))
+        notes = [f"rescaled {line}" for line in equalize_concat_inputs(graph, feeds)] if plan.equalize_concats else []
+        if notes:
+            onnx.save_model(graph, str(pre))
+        exclude = downstream_nodes(graph, plan.float_after) if plan.float_after else []
+        if plan.float_after and not exclude:
+            raise GeoNetInputError(fp32_path, f"no nodes consume {list(plan.float_after)}", "re-export the fp32 graph")
+        if plan.float_output_layer:
+            exclude += output_layer_nodes(graph)
+        if exclude:
+            notes.append(f"fp32 nodes: {', '.join(exclude)}")
         quantize_static(
             str(pre),
             str(work / "q.onnx"),
@@ -235,5 +378,6 @@ def quantize_graph(
             entry.key = key
             entry.value = "int8" if key == "geonet.precision" else source_meta[key]
         onnx.save_model(model, str(out_path), save_as_external_data=False)
+        return notes
     finally:
         shutil.rmtree(work, ignore_errors=True)

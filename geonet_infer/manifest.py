@@ -133,6 +133,7 @@ class Quantization:
     fp32_graphs: tuple[str, ...]  # graphs of the int8 set that stay fp32
     accuracy_delta: dict | None  # {"depth_abs_rel": {"fp32", "int8", "delta"}, "flow_epe_noc": ...}
     accuracy_delta_reason: str | None = None  # why accuracy_delta is null (or a note)
+    graph_notes: dict = field(default_factory=dict)  # graph -> what stayed fp32 / was rescaled in it
 
     @classmethod
     def from_dict(cls, d: dict) -> Quantization:

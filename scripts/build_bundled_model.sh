@@ -9,7 +9,7 @@
 #      sequences prepared with --train-flow (the bundled model: a 60-minute run, 1870 steps, started
 #      from the published weights of step 3, i.e. with conv kernels rounded to float16), then
 #      FLOWSUP2_STEPS with --flow-supervision 1.0 (a 50-minute run to step 1074, continued with
-#      --resume to step 4492);
+#      --resume to step 4492, then to step 7342);
 #   4. ONNX export fp32 + INT8 (calibrated on training sequence seq_0000, never a held-out one),
 #      with the INT8 accuracy delta on the held-out sequences written into the manifest;
 #   5. copy into the package, publish the checkpoint's weights (weights/small_synth.pt, to fine-tune
@@ -17,7 +17,7 @@
 #      (synthetic held-out + real KITTI frames 0-9 against Velodyne; with BEFORE=<commit>, the
 #      bundled model of that commit measured beside it) and the README's demo picture.
 # Environment: RIGID_MINUTES (45) caps stage rigid (wall clock), FLOW_STEPS (2008) sets stage flow,
-# FLOWSUP_STEPS (1870) and FLOWSUP2_STEPS (4492) its flow-supervised continuations;
+# FLOWSUP_STEPS (1870) and FLOWSUP2_STEPS (7342) its flow-supervised continuations;
 # THREADS (1) torch threads: one thread per training process keeps OpenMP from stalling
 # when anything else runs on the machine.
 set -euo pipefail
@@ -25,7 +25,7 @@ cd "$(dirname "$0")/.."
 RIGID_MINUTES=${RIGID_MINUTES:-45}
 FLOW_STEPS=${FLOW_STEPS:-2008}
 FLOWSUP_STEPS=${FLOWSUP_STEPS:-1870}
-FLOWSUP2_STEPS=${FLOWSUP2_STEPS:-4492}
+FLOWSUP2_STEPS=${FLOWSUP2_STEPS:-7342}
 export OMP_NUM_THREADS=${THREADS:-1}
 PY=.venv/bin/python
 [ -x "$PY" ] || { python3 -m venv .venv && $PY -m pip install --quiet -e '.[train,dev]'; }

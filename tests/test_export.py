@@ -391,6 +391,12 @@ def test_int8_graphs_load_run_and_report_delta(model_dir):
         assert (model_dir / entry.file).stat().st_size < 0.5 * (model_dir / f"{name}.onnx").stat().st_size
     quant = manifest.quantization
     assert quant.per_channel and quant.fp32_graphs == ("rigidflow",)
+    # ResFlowNet's output layer (flow in pixels) stays fp32: its kernels are plain initializers
+    flow8 = onnx.load(str(model_dir / "int8" / "resflownet.onnx"))
+    float_kernels = {i.name for i in flow8.graph.initializer if i.data_type == onnx.TensorProto.FLOAT}
+    writer = {out: node for node in flow8.graph.node for out in node.output}
+    assert writer["residual_flow"].op_type == "Conv" and writer["residual_flow"].input[1] in float_kernels
+    assert any(line.startswith("fp32 nodes:") for line in quant.graph_notes["resflownet"])
     delta = quant.accuracy_delta
     for key in ("depth_abs_rel", "flow_epe_noc"):
         assert np.isfinite(delta[key]["delta"])

@@ -207,6 +207,7 @@ def make_model_dir(
             calibration_samples={"depthnet": 1},
             calibration_intrinsics="none",
             fp32_graphs=("rigidflow",),
+            graph_notes={"resflownet": ["fp32 nodes: head_conv"]},
             accuracy_delta={
                 "synth_dir": "x",
                 "sequences": ["seq_0000"],
@@ -312,6 +313,7 @@ def test_card_has_every_table_and_finite_numbers(card3):
     assert md.startswith("# Model card")
     assert "```bash\n.venv/bin/python -m training.model_card --model " in md
     assert "WARNING: RANDOM-INIT MODEL" in md
+    assert "graphs kept in FP32: rigidflow.\n\n- resflownet: fp32 nodes: head_conv\n" in md
     for heading in (
         "## The model",
         "## Before / after",

@@ -821,6 +821,8 @@ def render_card(result: dict) -> str:
             f"graphs kept in FP32: {', '.join(q.get('fp32_graphs') or []) or 'none'}.",
             "",
         ]
+        for graph, notes in (q.get("graph_notes") or {}).items():
+            L += [f"- {graph}: {line}" for line in notes] + [""]
     if result.get("before"):
         L += _before_after(result)
 

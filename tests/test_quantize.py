@@ -1,0 +1,120 @@
+"""INT8 graph plans (export/quantize.py) on a hand-built decoder level.
+
+The graph mimics one level of GeoNet's decoder: wide features (range ~10) concatenated with a
+2-channel prediction of range ~0.05 fed back from a coarser head, a conv over the concat, and an
+output head. The fp32 ORT run of the unmodified graph is the reference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from export import quantize as qz
+from geonet_infer.errors import GeoNetInputError
+
+C, HW = 8, 16
+
+
+def decoder_level(path) -> onnx.ModelProto:
+    rng = np.random.default_rng(0)
+    weights = {
+        "w_feat": rng.normal(0, 0.5, (C, 3, 3, 3)),
+        "w_pred": rng.normal(0, 0.002, (2, C, 3, 3)),
+        "w_mix": np.concatenate([rng.normal(0, 0.05, (C, C, 3, 3)), rng.normal(0, 5.0, (C, 2, 3, 3))], axis=1),
+        "w_head": rng.normal(0, 0.3, (2, C, 3, 3)),
+    }
+    same = {"pads": [1, 1, 1, 1]}
+    nodes = [
+        helper.make_node("Conv", ["image", "w_feat"], ["feat_pre"], name="feat_conv", **same),
+        helper.make_node("Relu", ["feat_pre"], ["feat"], name="feat_relu"),
+        helper.make_node("Conv", ["feat", "w_pred"], ["pred"], name="pred_conv", **same),
+        helper.make_node("Concat", ["feat", "pred"], ["cat"], name="cat", axis=1),
+        helper.make_node("Conv", ["cat", "w_mix"], ["mix_pre"], name="mix_conv", **same),
+        helper.make_node("Relu", ["mix_pre"], ["mix"], name="mix_relu"),
+        helper.make_node("Conv", ["mix", "w_head"], ["out"], name="head_conv", **same),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "decoder_level",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, HW, HW])],
+        [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 2, HW, HW])],
+        [numpy_helper.from_array(v.astype(np.float32), k) for k, v in weights.items()],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    onnx.checker.check_model(model)
+    onnx.save_model(model, str(path))
+    return model
+
+
+def feeds(n: int, seed: int) -> list[dict]:
+    rng = np.random.default_rng(seed)
+    return [{"image": rng.uniform(-1, 1, (1, 3, HW, HW)).astype(np.float32)} for _ in range(n)]
+
+
+def run(model_or_path, feed: dict) -> np.ndarray:
+    source = model_or_path.SerializeToString() if isinstance(model_or_path, onnx.ModelProto) else str(model_or_path)
+    return ort.InferenceSession(source, providers=["CPUExecutionProvider"]).run(None, feed)[0]
+
+
+def test_equalized_concat_computes_the_same_function(tmp_path):
+    model = decoder_level(tmp_path / "level.onnx")
+    calib = feeds(4, seed=1)
+    peak = qz.activation_max_abs(model, calib, ["feat", "pred"])
+    assert peak["pred"] * 8 < peak["feat"]  # the case the rewrite is for
+    edited = onnx.ModelProto()
+    edited.CopyFrom(model)
+    lines = qz.equalize_concat_inputs(edited, calib)
+    assert len(lines) == 1 and lines[0].startswith("pred x ")
+    k = float(lines[0].split()[2])
+    assert np.log2(k) == int(np.log2(k))  # a power of two: exact in fp32
+    assert peak["feat"] / 2 < k * peak["pred"] <= peak["feat"]
+    onnx.checker.check_model(edited)
+    for feed in feeds(3, seed=2):
+        np.testing.assert_allclose(run(edited, feed), run(model, feed), rtol=1e-5, atol=1e-5)
+
+
+def test_equalized_concat_quantizes_the_fed_back_prediction_better(tmp_path):
+    decoder_level(tmp_path / "level.onnx")
+    calib, test = feeds(16, seed=1), feeds(4, seed=3)
+    settings = qz.QuantSettings(calibrate_method="minmax")
+    qz.quantize_graph(tmp_path / "level.onnx", tmp_path / "plain.onnx", calib, settings)
+    notes = qz.quantize_graph(
+        tmp_path / "level.onnx", tmp_path / "eq.onnx", calib, settings, qz.GraphPlan(equalize_concats=True)
+    )
+    assert any(line.startswith("rescaled pred x ") for line in notes)
+    reference = [run(tmp_path / "level.onnx", f) for f in test]
+
+    def error(path):
+        return np.mean([np.abs(run(path, f) - r).mean() for f, r in zip(test, reference)])
+
+    assert error(tmp_path / "eq.onnx") < 0.5 * error(tmp_path / "plain.onnx")
+
+
+def test_output_layer_nodes_are_the_head_and_the_layer_it_reads(tmp_path):
+    model = decoder_level(tmp_path / "level.onnx")
+    assert qz.output_layer_nodes(model) == ["head_conv", "mix_relu", "mix_conv"]
+    qz.quantize_graph(
+        tmp_path / "level.onnx",
+        tmp_path / "q.onnx",
+        feeds(8, seed=1),
+        qz.QuantSettings(),
+        qz.GraphPlan(float_output_layer=True),
+    )
+    quantized = onnx.load(str(tmp_path / "q.onnx"))
+    float_weights = {i.name for i in quantized.graph.initializer if i.data_type == TensorProto.FLOAT}
+    convs = {n.name: n for n in quantized.graph.node if n.op_type == "Conv"}
+    assert {"w_head", "w_mix"} <= float_weights  # fp32 kernels, read directly
+    assert convs["head_conv"].input[1] == "w_head" and convs["mix_conv"].input[1] == "w_mix"
+    assert convs["feat_conv"].input[1] != "w_feat"  # the rest is still quantised (through a DequantizeLinear)
+
+
+def test_float_after_an_unknown_tensor_is_an_error(tmp_path):
+    decoder_level(tmp_path / "level.onnx")
+    with pytest.raises(GeoNetInputError, match="no nodes consume"):
+        qz.quantize_graph(
+            tmp_path / "level.onnx", tmp_path / "q.onnx", feeds(2, seed=1), plan=qz.GraphPlan(float_after=("missing",))
+        )
