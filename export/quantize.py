@@ -17,7 +17,10 @@ H x W with ``cv2.INTER_AREA``:
   distribution ResFlowNet sees at inference.
 
 ``rigidflow`` is never quantised: it is geometry (projection, grid sampling),
-not convolutions, and its output is measured in pixels.
+not convolutions, and its output is measured in pixels. ``PLANS`` keeps parts of
+the other graphs fp32 (PoseNet's matrix tail, ResFlowNet's output layer) and
+rescales ResFlowNet's fed-back flow before its Concats; the manifest records it
+(``quantization.graph_notes``).
 """
 
 from __future__ import annotations
