@@ -209,11 +209,15 @@ def activation_max_abs(model: onnx.ModelProto, feeds: Sequence[dict], tensors: S
     """max |x| of each named intermediate tensor of an fp32 graph over the feeds."""
     import onnxruntime as ort
 
+    from geonet_infer.session import make_session_options
+
     probe = onnx.ModelProto()
     probe.CopyFrom(model)
     del probe.graph.output[:]
     probe.graph.output.extend(onnx.helper.make_empty_tensor_value_info(t) for t in tensors)
-    session = ort.InferenceSession(probe.SerializeToString(), providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(
+        probe.SerializeToString(), sess_options=make_session_options(), providers=["CPUExecutionProvider"]
+    )
     peak = dict.fromkeys(tensors, 0.0)
     for feed in feeds:
         for name, value in zip(tensors, session.run(list(tensors), feed)):
