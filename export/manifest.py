@@ -154,6 +154,7 @@ def provenance(
     arch: str, random_init: bool, exporter: str, checkpoint: str | Path | None = None, ckpt: dict | None = None
 ) -> Provenance:
     cfg = (ckpt or {}).get("config", {})
+    data_dirs = [d for d in (cfg.get("data_dir"), *cfg.get("extra_data_dirs", ())) if d]
     return Provenance(
         architecture=arch,
         random_init=random_init,
@@ -164,7 +165,7 @@ def provenance(
         checkpoint_stage=(ckpt or {}).get("stage"),
         checkpoint_step=(ckpt or {}).get("step"),
         training_command=(ckpt or {}).get("command"),
-        data_dir=cfg.get("data_dir"),
+        data_dir=" + ".join(data_dirs) or None,  # every prepared folder the stage trained on
         exporter=exporter,
         versions=versions(),
     )

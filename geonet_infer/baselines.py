@@ -60,7 +60,10 @@ def _relative_pose(orb, matcher, a: np.ndarray, b: np.ndarray, K: np.ndarray) ->
         return None, len(matches)
     p_a = np.float64([kp_a[m.queryIdx].pt for m in matches])
     p_b = np.float64([kp_b[m.trainIdx].pt for m in matches])
-    E, mask = cv2.findEssentialMat(p_a, p_b, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
+    try:
+        E, mask = cv2.findEssentialMat(p_a, p_b, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
+    except cv2.error:  # OpenCV 5 asserts (solvePoly) where 4.x returned no solution: no motion to solve
+        return None, 0
     if E is None or E.shape != (3, 3):  # several solutions stacked, or none: degenerate motion
         return None, 0 if mask is None else int(mask.sum())
     inliers, R, t, _ = cv2.recoverPose(E, p_a, p_b, K, mask=mask)

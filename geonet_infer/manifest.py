@@ -108,7 +108,7 @@ class Provenance:
     checkpoint_stage: str | None = None
     checkpoint_step: int | None = None
     training_command: str | None = None
-    data_dir: str | None = None
+    data_dir: str | None = None  # prepared folder(s) trained on, joined with " + "
     exporter: str = ""
     versions: dict = field(default_factory=dict)  # torch, onnx, onnxruntime, onnxscript
 

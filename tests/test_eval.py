@@ -287,6 +287,17 @@ def test_orb_vo_recovers_direction_of_a_rendered_plane_motion():
     assert direction[0] > 0.95  # camera moved along +x
 
 
+def test_orb_vo_counts_a_standing_camera_as_failed_pairs_instead_of_raising():
+    """Identical frames: every match has zero motion, which OpenCV 5's findEssentialMat rejects with an
+    assertion (4.x returned no solution). ORB-VO must record failed pairs and stand still, not crash."""
+    K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    tex = cv2.resize(np.random.default_rng(3).integers(0, 255, (60, 80), np.uint8), (320, 240))
+    frame = cv2.cvtColor(tex, cv2.COLOR_GRAY2RGB)
+    poses, info = baselines.orb_vo([frame] * 3, K)
+    assert info["failed_pairs"] == 2
+    np.testing.assert_array_equal(poses, np.stack([np.eye(4)] * 3))
+
+
 # ----------------------------------------------------------------------------- depth scaled by camera height
 CAM_H, FX, CY = 1.5, 100.0, 32.0  # camera 1.5 m above a flat road, level; 64x208 frames, principal row 32
 

@@ -324,6 +324,17 @@ def test_dynamic_batch_from_batch1_export(model_dir, torch_model):
 
 
 # --------------------------------------------------------------------------- manifest
+def test_provenance_names_every_prepared_folder_the_stage_trained_on():
+    from export.manifest import provenance
+
+    mixed = {"config": {"data_dir": "data/synth40_flow", "extra_data_dirs": ["data/synthB_flow", "data/udacity"]}}
+    assert (
+        provenance("small", False, "test", ckpt=mixed).data_dir == "data/synth40_flow + data/synthB_flow + data/udacity"
+    )
+    assert provenance("small", False, "test", ckpt={"config": {"data_dir": "d"}}).data_dir == "d"
+    assert provenance("small", True, "test").data_dir is None
+
+
 def test_manifest_round_trip_and_conventions(model_dir, tmp_path):
     manifest = load_manifest(model_dir)
     assert manifest.conventions == conventions_json()
