@@ -137,6 +137,29 @@ def depth_metrics(gt, pred, min_depth=1e-3, max_depth=80.0, crop="garg", median_
     return result
 
 
+FLOOR_BIN = 0.002  # log-depth bin of depth_floor_share: 0.2 % in depth
+
+
+def depth_floor_share(pred, bin_width=FLOOR_BIN):
+    """Share of the lower image half's pixels in the fullest ``bin_width``-wide bin of log depth.
+
+    A depth net whose last decoder features are all zero somewhere (dead ReLUs) outputs its
+    head's bias there: one depth for the whole region, whatever the scene. A road scene's
+    depth map spreads over many values (a share of a few %); a share near the region's size
+    is such a floor. No ground truth needed.
+
+    Args:
+        pred: (H, W) positive depth, any scale.
+    Returns: share in (0, 1].
+    """
+    pred = np.asarray(pred, dtype=np.float64)
+    if pred.ndim != 2 or not (np.isfinite(pred).all() and (pred > 0).all()):
+        raise GeoNetInputError(None, "depth_floor_share needs an (H, W) map of finite positive depth")
+    lower = np.log(pred[pred.shape[0] // 2 :].ravel())
+    counts = np.bincount(((lower - lower.min()) / bin_width).astype(np.int64))
+    return float(counts.max() / lower.size)
+
+
 def aggregate(results):
     """Mean of each numeric key over per-image result dicts.
 

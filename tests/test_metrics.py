@@ -11,6 +11,7 @@ from geonet_infer.metrics import (
     ate_rmse_true,
     ate_snippet,
     crop_mask,
+    depth_floor_share,
     depth_metrics,
     flow_epe,
     resize_depth_to,
@@ -28,6 +29,18 @@ def test_median_scaling_gives_zero_error_for_proportional_prediction():
     for key in ("abs_rel", "sq_rel", "rmse", "rmse_log"):
         assert m[key] == pytest.approx(0.0, abs=1e-12)
     assert (m["a1"], m["a2"], m["a3"]) == (1.0, 1.0, 1.0)
+
+
+def test_depth_floor_share_of_a_ramp_and_of_a_clamped_ramp():
+    # Rows 50 m (top) to 1 m (bottom), log-spaced: neighbouring rows differ by 2 %, ten bins of 0.2 %,
+    # so each of the lower half's 100 rows has a bin of its own.
+    ramp = np.geomspace(50.0, 1.0, 200)[:, None] * np.ones((1, 30))
+    assert depth_floor_share(ramp) == pytest.approx(1 / 100)
+    # Clamped at row 160's depth: rows 160-199 (40 of the lower 100) share one value.
+    assert depth_floor_share(np.maximum(ramp, ramp[160, 0])) == pytest.approx(40 / 100)
+    assert depth_floor_share(np.full((4, 6), 3.0)) == 1.0  # a constant map is all floor
+    with pytest.raises(GeoNetInputError, match="finite positive"):
+        depth_floor_share(np.zeros((4, 6)))
 
 
 def test_known_errors_without_scaling_and_invalid_gt_ignored():

@@ -26,6 +26,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from export.wrappers import io_spec
 from geonet_infer import conventions
+from geonet_infer.io import read_image
 from geonet_infer.manifest import (
     GraphEntry,
     Manifest,
@@ -35,6 +36,8 @@ from geonet_infer.manifest import (
     file_sha256,
     write_manifest,
 )
+from geonet_infer.metrics import depth_floor_share
+from geonet_infer.predictor import Predictor
 from geonet_infer.velodyne import velodyne_to_depth_map
 from training.model_card import main, render_card, sig3
 
@@ -377,6 +380,16 @@ def test_numbers_in_card_come_from_the_run(card3):
     assert f"| {sig3(f['noc']['epe'])} | {sig3(f['occ']['epe'])} |" in md
     p = result["synthetic"]["pose"]["fp32"]["ate_snippet"]
     assert f"{sig3(p['mean'])} ± {sig3(p['std'])}" in md
+
+
+def test_depth_floor_is_the_metric_of_the_predictions(card3, kitti):
+    """The floor share in the card is depth_floor_share of what the runtime predicts, frame by frame."""
+    md, result = card3
+    predictor = Predictor(result["model"]["dir"], precision="fp32")
+    frames = sorted((kitti / "image_02" / "data").glob("*.png"))[:2]  # the card's --kitti-frames 2
+    shares = [depth_floor_share(predictor.depth(read_image(f)).depth) for f in frames]
+    assert result["kitti"]["depth"]["fp32"]["floor_share"] == pytest.approx(np.mean(shares), rel=1e-6)
+    assert f"model, FP32 {sig3(np.mean(shares))}" in md.split("Depth floor")[1].split("\n")[0]
 
 
 def _row(md: str, label: str) -> list[str]:

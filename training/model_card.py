@@ -267,8 +267,14 @@ def evaluate_kitti(
     sizes = {}
     per_frame: dict[str, dict] = {item.name: {} for item in data.items}
 
-    def keep_size(item, rgb, gt, pred, row):
-        sizes[item.name] = rgb.shape[:2]
+    floor_shares: dict[str, list[float]] = {}
+
+    def keep_size_and_floor(key):
+        def observe(item, rgb, gt, pred, row):
+            sizes[item.name] = rgb.shape[:2]
+            floor_shares.setdefault(key, []).append(metrics.depth_floor_share(pred))
+
+        return observe
 
     out: dict = {}
     by_camera_height: dict = {"camera_height_m": camera_height}
@@ -276,8 +282,13 @@ def evaluate_kitti(
     methods = [*runs, ("constant_baseline", _baseline("depth", "constant"))] if constant_baseline else runs
     for key, fn in methods:
         progress(f"{key}: KITTI depth")
-        r = _checked(evaluation.evaluate_depth(fn, data, crop=KITTI_CROP, observe=keep_size), f"{key} KITTI depth")
+        r = _checked(
+            evaluation.evaluate_depth(fn, data, crop=KITTI_CROP, observe=keep_size_and_floor(key)),
+            f"{key} KITTI depth",
+        )
         out[key] = _means(r["items"])
+        if key in predictors:
+            out[key]["floor_share"] = float(np.mean(floor_shares[key]))
         for row in r["items"]:
             per_frame[row["name"]][key] = {k: row[k] for k in DEPTH_KEYS}
     for p, fn in runs:
@@ -562,6 +573,22 @@ def _camera_height_text(block: dict) -> list[str]:
                 f"({', '.join(failed)})."
             )
     return [" ".join(out), ""]
+
+
+def _floor_text(block: dict, before: dict | None) -> list[str]:
+    """The depth-floor diagnostic of each precision (and of the previous model)."""
+
+    def shares(b: dict) -> str:
+        return ", ".join(f"{PRECISION_LABEL[p]} {sig3(b[p]['floor_share'])}" for p in ("fp32", "int8") if p in b)
+
+    was = f"; before: {shares(before)}" if before else ""
+    return [
+        "Depth floor, without ground truth: the share of the lower image half in the fullest 0.2 %-wide "
+        "bin of log depth, mean over these frames (`geonet_infer.metrics.depth_floor_share`). A road "
+        "scene's depth spreads to a few %; a near field predicted as one value (dead decoder features "
+        f"leave the disparity head's bias) shows as a large share: {shares(block)}{was}.",
+        "",
+    ]
 
 
 def _flow_table(block: dict, data: str) -> list[str]:
@@ -915,6 +942,7 @@ def render_card(result: dict) -> str:
     L += _depth_table(d, synth_data, "frames") + [""]
     L += ["### Real KITTI (Velodyne ground truth)", ""]
     L += _depth_table(k["depth"], kitti_data, "frames") + [""]
+    L += _floor_text(k["depth"], result["before"]["kitti"]["depth"] if result["before"] else None)
     L += _camera_height_text(k["depth"])
     L += ["Per KITTI frame (AbsRel):", ""]
     keys = [c for p in ("fp32", "int8") if p in k["depth"] for c in (p, f"{p}_camera_height")]
