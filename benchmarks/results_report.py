@@ -449,7 +449,7 @@ def write_doc(path: Path, paper, results, synth_how, ckpt_note, seconds, worst, 
         "training.evaluate`), the paper's rows are parsed from `../shared/reference/paper_numbers.md`. "
         "Per-item numbers: `runs/results_report/results.json`. Protocols: [evaluation.md](evaluation.md).",
         "",
-        "**Read this first.** The bundled model `small_synth` is a small network trained for about five hours "
+        "**Read this first.** The bundled model `small_synth` is a small network trained for about eight hours "
         "of 2-core CPU on *synthetic* driving scenes only; "
         "the paper's GeoNet is a ResNet-50 trained for days on KITTI. "
         "Its KITTI rows measure transfer from synthetic to real data, not a reproduction of the paper. "
