@@ -11,23 +11,13 @@ and INT8), so a tenth of the lower half in one bin is a floor, not a scene.
 
 from __future__ import annotations
 
-import cv2
-import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer.io import read_image
+from geonet_infer.io import open_frames, read_image
 from geonet_infer.metrics import depth_floor_share
 
 MAX_SHARE = 0.1
-
-
-def first_frame(video) -> np.ndarray:
-    capture = cv2.VideoCapture(str(video))
-    ok, bgr = capture.read()
-    capture.release()
-    assert ok, video
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
 @pytest.mark.parametrize("precision", ["fp32", "int8"])
@@ -35,7 +25,7 @@ def test_bundled_depth_has_no_floor_on_real_frames(realdata, precision):
     predictor = geonet_infer.load(precision=precision)
     frames = {
         "KITTI raw frame 0": read_image(realdata / "kitti_raw_2011_09_26_sfnd/image_02/data/0000000000.png"),
-        "Udacity test_video frame 0": first_frame(realdata / "udacity_dashcam/test_video.mp4"),
+        "Udacity test_video frame 0": next(iter(open_frames(realdata / "udacity_dashcam/test_video.mp4"))).rgb,
     }
     shares = {name: depth_floor_share(predictor.depth(rgb).depth) for name, rgb in frames.items()}
     assert all(s < MAX_SHARE for s in shares.values()), shares
