@@ -35,8 +35,8 @@ from geonet_infer.io.flow import write_flow_kitti
 from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.images import write_image
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
-from geonet_infer.predictor import FrameResult, Predictor
-from geonet_infer.scale import SequenceScaler, check_metric_request
+from geonet_infer.predictor import FrameResult, Predictor, metric_frames
+from geonet_infer.scale import check_metric_request
 from geonet_infer.viz import depth_to_color, flow_to_color
 
 TASKS = ("depth", "pose", "flow")
@@ -143,7 +143,9 @@ def predict_to_dir(
     frames = _Frames(source, bar)
     try:
         if tasks == ("depth",):
-            results = _depth_only(predictor, frames, camera, batch_size, camera_height)
+            results = _depth_only(predictor, frames, camera, batch_size)
+            if camera_height is not None:
+                results = metric_frames(results, camera_height, lambda size: camera.scaled_to(size[1], size[0]).K)
         else:
             results = predictor.iter_sequence(
                 frames,
@@ -240,27 +242,19 @@ def _outputs(tasks: tuple[str, ...], vis: bool = True) -> list[str]:
     return out
 
 
-def _depth_only(
-    predictor: Predictor, frames: _Frames, camera: Camera | None, batch_size: int, camera_height: float | None = None
-) -> Iterator[FrameResult]:
-    """Depth in batches of ``batch_size`` frames; works on a single image too."""
+def _depth_only(predictor: Predictor, frames: _Frames, camera: Camera | None, batch_size: int) -> Iterator[FrameResult]:
+    """Depth in batches of ``batch_size`` frames, in the model's relative scale; works on a single image too."""
     batch: list[np.ndarray] = []
     index = 0
-    scaler = SequenceScaler(camera_height) if camera_height is not None else None
 
     def flush():
         nonlocal index
-        for rgb, rgb_result in zip(batch, predictor.depth(batch, camera=camera)):
-            depth, disparity, scale = rgb_result.depth, rgb_result.disparity, None
-            if scaler is not None:
-                K = camera.scaled_to(rgb.shape[1], rgb.shape[0]).K
-                scale = scaler(depth, K, frames.names[index])
-                depth, disparity = depth * scale, disparity / scale
+        for rgb_result in predictor.depth(batch, camera=camera):
             yield FrameResult(
                 index=index,
                 name=frames.names[index],
-                depth=depth,
-                disparity=disparity,
+                depth=rgb_result.depth,
+                disparity=rgb_result.disparity,
                 camera_to_world=np.eye(4),
                 pose_to_next=None,
                 pose_vector_to_next=None,
@@ -269,7 +263,6 @@ def _depth_only(
                 residual_flow=None,
                 undistorted=rgb_result.undistorted,
                 timings_ms=rgb_result.timings_ms,
-                metric_scale=scale,
             )
             index += 1
 

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +42,7 @@ from geonet_infer.preprocess import (
     next_source_position,
     snippet_indices,
 )
-from geonet_infer.scale import SequenceScaler, check_metric_request
+from geonet_infer.scale import check_camera_height, check_metric_request, fit_ground_plane
 from geonet_infer.session import usable_cpus
 
 ImageLike = np.ndarray | str | Path
@@ -151,6 +151,66 @@ class SequenceResult:
         if any(f.flow is None for f in self.frames[:-1]):
             raise ValueError("this sequence was predicted without flow (with_flow=False)")
         return np.stack([f.flow for f in self.frames[:-1]])
+
+
+MAX_FRAMES_BEFORE_GROUND = 60  # frames held back waiting for a first ground plane (2.4 s at 25 fps)
+
+
+def metric_frames(
+    results: Iterable[FrameResult], camera_height: float, K_at: Callable[[tuple[int, int]], np.ndarray]
+) -> Iterator[FrameResult]:
+    """The frames of a sequence in metres, in order.
+
+    Each frame's depth and pose translation are multiplied by the factor that puts the ground
+    plane fitted to its depth (:func:`geonet_infer.scale.fit_ground_plane`) ``camera_height``
+    metres below the camera. A frame whose road is hidden (a truck ahead) takes the previous
+    frame's factor; frames before the first fit are held back (at most
+    ``MAX_FRAMES_BEFORE_GROUND``) and take the first fit's. ``camera_to_world`` is chained
+    again from the scaled poses. ``K_at((H, W))``: the intrinsics at a depth map's size.
+    """
+    check_camera_height(camera_height)
+    pending: list[FrameResult] = []
+    scale: float | None = None
+    pose_world = np.eye(4)
+    for result in results:
+        try:
+            scale = fit_ground_plane(result.depth, K_at(result.depth.shape)).scale_for(camera_height)
+        except GeoNetInputError as err:
+            if scale is None:
+                pending.append(result)
+                if len(pending) > MAX_FRAMES_BEFORE_GROUND:
+                    raise GeoNetInputError(
+                        pending[0].name,
+                        f"no ground plane in the first {len(pending)} frames ({err.problem})",
+                        "metric scale needs the road in view early in the video: start it where the road "
+                        "shows, or drop --camera-height for relative depth",
+                    ) from None
+                continue
+        for frame in [*pending, result]:
+            pose_next, vector = frame.pose_to_next, frame.pose_vector_to_next
+            if pose_next is not None:
+                pose_next, vector = pose_next.copy(), vector.copy()
+                pose_next[:3, 3] *= scale
+                vector[:3] *= scale
+            yield replace(
+                frame,
+                depth=frame.depth * scale,
+                disparity=frame.disparity / scale,
+                camera_to_world=pose_world.copy(),
+                pose_to_next=pose_next,
+                pose_vector_to_next=vector,
+                metric_scale=scale,
+            )
+            if pose_next is not None:
+                pose_world = pose_world @ rigid_inverse(pose_next)
+        pending = []
+    if pending:
+        raise GeoNetInputError(
+            pending[0].name,
+            f"no ground plane in any of the {len(pending)} frames",
+            "metric scale from camera height needs a visible, roughly flat road; drop --camera-height "
+            "for relative depth",
+        )
 
 
 class _Timer:
@@ -364,7 +424,10 @@ class Predictor:
                 depth, disp = disparity_to_input(d, r.shape[:2])
                 scale = None
                 if camera_height is not None:
-                    scale = SequenceScaler(camera_height)(depth, c.K, f"image {i}")
+                    try:
+                        scale = fit_ground_plane(depth, c.K).scale_for(camera_height)
+                    except GeoNetInputError as err:
+                        raise GeoNetInputError(f"image {i}", err.problem, err.hint) from None
                     depth, disp = depth * scale, disp / scale
                 results.append((depth, disp, bool(c and c.has_distortion), scale))
         timings = timer.result(1.0 / len(images))
@@ -517,9 +580,24 @@ class Predictor:
         ``with_flow=False`` skips the rigid-flow op and ResFlowNet (depth and poses
         only; K may then be None, or a Camera used only to undistort).
         ``camera_height`` (metres, needs K) makes each frame's depth and its pose
-        translation metric (:mod:`geonet_infer.scale`); a frame whose ground plane is
-        hidden keeps the previous frame's scale.
+        translation metric (:func:`metric_frames`: a frame whose road is hidden takes the
+        previous frame's scale, frames before the first fit the first fit's).
         """
+        check_metric_request(camera_height, K)
+        results = self._iter_relative(frames, K, batch_size, names, with_flow)
+        if camera_height is not None:
+            results = metric_frames(results, camera_height, lambda size: self._camera(K, size).K)
+        yield from results
+
+    def _iter_relative(
+        self,
+        frames: Iterable[ImageLike],
+        K: Intrinsics | None,
+        batch_size: int,
+        names: Sequence[str] | None,
+        with_flow: bool,
+    ) -> Iterator[FrameResult]:
+        """:meth:`iter_sequence` in the model's own (relative) scale."""
         if batch_size < 1:
             raise GeoNetInputError(None, f"batch_size must be >= 1, got {batch_size}")
         L = self.seq_length
@@ -531,8 +609,6 @@ class Predictor:
         size: tuple[int, int] | None = None
         n_read, exhausted = 0, False
         pose_world = np.eye(4)
-        check_metric_request(camera_height, K)
-        scaler = SequenceScaler(camera_height) if camera_height is not None else None
         t0 = 0
         while True:
             timer = _Timer()
@@ -601,18 +677,9 @@ class Predictor:
                     )
                     pose_next = parts["pose_matrix"][j].astype(np.float64) if t in paired else None
                     vector = parts["pose"][j] if t in paired else None
-                    scale = None
-                    if scaler is not None:
-                        scale = scaler(depth, camera.K, frame_names[t])
-                        depth, disp = depth * scale, disp / scale
-                        if pose_next is not None:
-                            pose_next = pose_next.copy()
-                            pose_next[:3, 3] *= scale
-                            vector = vector.copy()
-                            vector[:3] *= scale
-                    results.append((t, depth, disp, pose_next, vector, flows, scale))
+                    results.append((t, depth, disp, pose_next, vector, flows))
             share = timer.result(1.0 / len(batch))
-            for t, depth, disp, pose_next, vector, flows, scale in results:
+            for t, depth, disp, pose_next, vector, flows in results:
                 yield FrameResult(
                     index=t,
                     name=frame_names.pop(t),
@@ -623,7 +690,6 @@ class Predictor:
                     pose_vector_to_next=vector,
                     undistorted=bool(camera and camera.has_distortion),
                     timings_ms=dict(share),
-                    metric_scale=scale,
                     **flows,
                 )
                 if pose_next is not None:

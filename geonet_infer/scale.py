@@ -7,13 +7,16 @@ above a locally flat ground, the ground plane fitted to the predicted depth lies
 Conventions: camera coordinates x right, y down, z forward (OpenCV); K at the
 depth map's resolution. The plane is fitted with RANSAC over the lower part of the
 image (where the road is), its normal required to be within ``max_tilt_deg`` of the
-camera's y axis, then refined by least squares on the inliers.
+camera's y axis, then refined by least squares on the inliers. A candidate that the image
+sees through (many pixels well beyond it along their own rays) is not the road but a level
+surface above it, such as a car transporter's deck or a truck bed: it is skipped.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from geonet_infer.errors import GeoNetInputError
@@ -60,6 +63,8 @@ def fit_ground_plane(
     rows_from: float | None = None,
     max_tilt_deg: float = 20.0,
     inlier_rel: float = 0.02,
+    seen_through_rel: float = 0.3,
+    max_seen_through: float = 0.03,
     iterations: int = 200,
     max_points: int = 20000,
     seed: int = 0,
@@ -73,6 +78,12 @@ def fit_ground_plane(
             the principal point (the horizon of a level camera).
         max_tilt_deg: largest angle between the plane normal and the camera's y axis.
         inlier_rel: inlier distance as a fraction of the candidate plane's camera height.
+        seen_through_rel, max_seen_through: a candidate is skipped when more than
+            ``max_seen_through`` of the searched pixels lie beyond it along their rays by more
+            than ``seen_through_rel`` of the plane's depth there (judged on the 5x5 median of
+            the depth, so scattered outliers do not veto the road). On the ground-truth depth of
+            dense synthetic traffic, a plain inlier count took the top of a car close ahead for
+            the road on 10 of 71 frames, all of one scene (0.6-0.8 m instead of 1.65 m).
     Raises:
         GeoNetInputError if no plausible ground plane is found.
     """
@@ -82,7 +93,9 @@ def fit_ground_plane(
     h, _ = depth.shape
     start = int(np.clip((K[1, 2] / h + 0.05) if rows_from is None else rows_from, 0.0, 0.95) * h)
     points = backproject(depth, K)[start:].reshape(-1, 3)
-    points = points[np.isfinite(points).all(axis=1) & (points[:, 2] > 0)]
+    smooth_z = cv2.medianBlur(np.nan_to_num(depth, nan=0.0, posinf=0.0).astype(np.float32), 5)[start:].reshape(-1)
+    valid = np.isfinite(points).all(axis=1) & (points[:, 2] > 0)
+    points, smooth_z = points[valid], smooth_z[valid]
     if len(points) < 50:
         raise GeoNetInputError(
             None,
@@ -91,7 +104,8 @@ def fit_ground_plane(
         )
     rng = np.random.default_rng(seed)
     if len(points) > max_points:
-        points = points[rng.choice(len(points), max_points, replace=False)]
+        keep = rng.choice(len(points), max_points, replace=False)
+        points, smooth_z = points[keep], smooth_z[keep]
     cos_tilt = np.cos(np.deg2rad(max_tilt_deg))
     best, best_count = None, 0
     for _ in range(iterations):
@@ -99,8 +113,12 @@ def fit_ground_plane(
         if plane is None or plane[0][1] < cos_tilt or plane[1] <= 0:
             continue
         n, d = plane
-        count = int((np.abs(points @ n - d) < inlier_rel * d).sum())
-        if count > best_count:
+        along = points @ n  # > 0: the pixel's ray meets the plane, at depth z * d / along
+        count = int((np.abs(along - d) < inlier_rel * d).sum())
+        if count <= best_count:
+            continue
+        beyond = (along > 0) & (smooth_z * along > (1 + seen_through_rel) * d * points[:, 2])
+        if beyond.mean() <= max_seen_through:
             best, best_count = plane, count
     if best is None or best_count < 0.1 * len(points):
         raise GeoNetInputError(
@@ -126,24 +144,6 @@ def metric_depth(
     check_camera_height(camera_height_m)
     fit = fit_ground_plane(depth, K, **fit_options)
     return (depth * fit.scale_for(camera_height_m)).astype(np.float32), fit
-
-
-class SequenceScaler:
-    """Per-frame metric scale along a video: a frame whose ground is hidden (a truck ahead)
-    keeps the previous frame's scale; the first frames must show the road."""
-
-    def __init__(self, camera_height_m: float):
-        check_camera_height(camera_height_m)
-        self.camera_height_m = camera_height_m
-        self.last: float | None = None
-
-    def __call__(self, depth: np.ndarray, K: np.ndarray, label: str) -> float:
-        try:
-            self.last = fit_ground_plane(depth, K).scale_for(self.camera_height_m)
-        except GeoNetInputError as err:
-            if self.last is None:
-                raise GeoNetInputError(label, err.problem, err.hint) from None
-        return self.last
 
 
 def check_metric_request(camera_height_m: float | None, camera, where=None) -> None:

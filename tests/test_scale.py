@@ -54,6 +54,38 @@ def test_noise_and_obstacles_leave_the_scale_within_two_percent():
     assert fit.scale_for(1.5) == pytest.approx(0.5, rel=0.02)
 
 
+def flatbed_scene(road_m: float = 1.65, bed_m: float = 0.6, bed_from_m: float = 5.0, bed_width: float = 0.8):
+    """Metric depth of a level camera ``road_m`` above the road, behind a low flatbed (a car
+    transporter) whose horizontal deck lies ``bed_m`` below the camera from ``bed_from_m`` ahead
+    and fills the middle ``bed_width`` of the image; its front face is vertical. Closed form:
+    a ray meeting y = h does so at z = h / ray_y."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    ray_y = (v - K[1, 2]) / K[1, 1]
+    depth = np.full((H, W), 80.0)
+    down = ray_y > 1e-6
+    depth[down] = np.minimum(road_m / ray_y[down], 80.0)
+    centre = np.abs(u - K[0, 2]) < 0.5 * bed_width * W
+    z_deck = np.where(down, bed_m / np.maximum(ray_y, 1e-9), np.inf)
+    on_deck = centre & down & (z_deck >= bed_from_m) & (z_deck < 80.0)
+    on_face = centre & down & (z_deck < bed_from_m) & (depth > bed_from_m)
+    depth[on_deck] = z_deck[on_deck]
+    depth[on_face] = bed_from_m
+    return depth
+
+
+def test_a_deck_that_the_road_is_seen_beside_is_not_taken_for_the_road():
+    """The deck holds more of the searched pixels than the road, and is as level as the road,
+    but the road pixels beside it lie 2.75x beyond it along their rays: the road cannot be
+    seen through, so the deck is not the ground."""
+    metric = flatbed_scene()
+    rows = slice(int((K[1, 2] / H + 0.05) * H), H)
+    deck = np.isclose(metric[rows] * (np.arange(H)[rows, None] - K[1, 2]) / K[1, 1], 0.6)
+    road = np.isclose(metric[rows] * (np.arange(H)[rows, None] - K[1, 2]) / K[1, 1], 1.65)
+    assert deck.sum() > road.sum() > 0.1 * deck.size  # the premise: the deck wins a plain inlier count
+    _, fit = metric_depth(metric * 0.3, K, 1.65)
+    assert fit.height == pytest.approx(1.65 * 0.3, rel=1e-3)
+
+
 def test_no_ground_is_a_clear_error():
     wall = np.full((H, W), 5.0)  # fronto-parallel wall: no plane near the camera's y axis
     with pytest.raises(GeoNetInputError, match="no ground plane"):
@@ -71,6 +103,61 @@ def test_kitti_velodyne_ground_is_1_65_m_below_the_camera(realdata):
         gt = velodyne_to_depth_map(drive, velo, (375, 1242))
         heights.append(fit_ground_plane(gt, K2).height)
     assert np.median(heights) == pytest.approx(1.65, abs=0.1)
+
+
+# ----------------------------------------------------------------------------- along a video
+def _frame(index: int, depth: np.ndarray, forward_m: float | None):
+    """A FrameResult in relative units whose pose to the next frame moves ``forward_m`` along z."""
+    from geonet_infer.predictor import FrameResult
+
+    pose = None
+    if forward_m is not None:
+        pose = np.eye(4)
+        pose[2, 3] = -forward_m  # target -> next: the world moves back as the camera drives forward
+    return FrameResult(
+        index=index,
+        name=f"{index:06d}",
+        depth=depth.astype(np.float32),
+        disparity=(1.0 / depth).astype(np.float32),
+        camera_to_world=np.eye(4),
+        pose_to_next=pose,
+        pose_vector_to_next=None if pose is None else np.array([0, 0, -forward_m, 0, 0, 0], np.float32),
+        flow=None,
+        rigid_flow=None,
+        residual_flow=None,
+        undistorted=False,
+        timings_ms={},
+    )
+
+
+def test_frames_before_the_first_road_take_its_scale_and_later_ones_the_previous():
+    """Frames 0-1 and 3 show a wall (no road); 2 and 4 a road in units of 1/0.25 and 1/0.5 of a
+    metre. Expected factors by hand: 0.25 -> 4 for frames 0-3, 0.5 -> 2 for frame 4; each
+    pair's 1-unit translation becomes that many metres, chained into the trajectory."""
+    from geonet_infer.predictor import metric_frames
+
+    wall, road = np.full((H, W), 5.0), road_scene(1.65, 0.0)
+    units = [(wall, None), (wall, None), (road, 0.25), (wall, None), (road, 0.5)]
+    frames = [_frame(i, d * (c or 1.0), 1.0 if i < 4 else None) for i, (d, c) in enumerate(units)]
+    out = list(metric_frames(iter(frames), 1.65, lambda size: K))
+    assert [f.metric_scale for f in out] == pytest.approx([4.0, 4.0, 4.0, 4.0, 2.0], rel=1e-3)
+    np.testing.assert_allclose(out[2].depth, road, rtol=1e-3)
+    np.testing.assert_allclose(out[0].depth, wall * 4.0, rtol=1e-3)
+    assert [f.camera_to_world[2, 3] for f in out] == pytest.approx([0.0, 4.0, 8.0, 12.0, 16.0], rel=1e-3)
+    assert out[1].pose_vector_to_next[2] == pytest.approx(-4.0, rel=1e-3)
+
+
+def test_a_video_without_a_road_names_its_first_frame(monkeypatch):
+    from geonet_infer import predictor as predictor_module
+
+    wall = np.full((H, W), 5.0)
+    with pytest.raises(GeoNetInputError, match="no ground plane in any of the 3 frames") as err:
+        list(predictor_module.metric_frames(iter([_frame(i, wall, None) for i in range(3)]), 1.65, lambda size: K))
+    assert str(err.value.path) == "000000"
+    monkeypatch.setattr(predictor_module, "MAX_FRAMES_BEFORE_GROUND", 2)
+    endless = (_frame(i, wall, None) for i in range(10**6))
+    with pytest.raises(GeoNetInputError, match="no ground plane in the first 3 frames"):
+        list(predictor_module.metric_frames(endless, 1.65, lambda size: K))
 
 
 # ----------------------------------------------------------------------------- wiring in the runtime

@@ -559,9 +559,11 @@ def _camera_height_text(block: dict) -> list[str]:
     out = [
         f"Scaled by camera height: per frame, a ground plane is fitted to the predicted depth "
         "(`geonet_infer.scale.fit_ground_plane`: RANSAC on the image below the horizon, normal within 20° of "
-        "the camera's down axis, at least 10 % of the points within 2 % of the plane's distance) and the depth "
-        f"is multiplied so that the plane lies {h['camera_height_m']:g} m below the camera (KITTI's colour "
-        'cameras); the ground truth is not used (`evaluation.evaluate_depth(..., scaling="camera_height")`, '
+        "the camera's down axis, at least 10 % of the points within 2 % of the plane's distance; a plane with "
+        "over 3 % of the points more than 30 % beyond it along their rays is skipped, as a car top the road is "
+        f"seen beside) and the depth is multiplied so that the plane lies {h['camera_height_m']:g} m below the "
+        "camera (KITTI's colour cameras); the ground truth is not used "
+        '(`evaluation.evaluate_depth(..., scaling="camera_height")`, '
         "`geonet-infer eval depth --camera-height`). A frame without such a plane is not scored and never "
         "median-scaled instead: the means cover the other frames."
     ]
