@@ -66,7 +66,9 @@ def add_parser(sub) -> None:
         default=None,
         metavar="METRES",
         help="camera height above a flat road: depth and pose translations in metres, from a "
-        "ground plane fitted to each frame's depth (needs intrinsics; e.g. 1.65 for KITTI)",
+        "ground plane fitted to each frame's depth; a frame with the road hidden takes the previous "
+        "frame's scale, frames before the first fit take the first fit's, and a video with no road in "
+        "its first 60 frames stops (needs intrinsics; e.g. 1.65 for KITTI)",
     )
     parser.add_argument(
         "--no-vis",
