@@ -16,6 +16,7 @@ from geonet_infer.cli.common import (
 )
 from geonet_infer.io.frames import open_frames
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks, predict_to_dir
+from geonet_infer.predictor import MAX_FRAMES_BEFORE_GROUND
 
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.
@@ -68,7 +69,7 @@ def add_parser(sub) -> None:
         help="camera height above a flat road: depth and pose translations in metres, from a "
         "ground plane fitted to each frame's depth; a frame with the road hidden takes the previous "
         "frame's scale, frames before the first fit take the first fit's, and a video with no road in "
-        "its first 60 frames stops (needs intrinsics; e.g. 1.65 for KITTI)",
+        f"its first {MAX_FRAMES_BEFORE_GROUND} frames stops (needs intrinsics; e.g. 1.65 for KITTI)",
     )
     parser.add_argument(
         "--no-vis",
