@@ -2,7 +2,9 @@
 
 One module per subcommand; each has ``add_parser(subparsers)`` and ``run(args) -> int``.
 Exit codes, for every subcommand: 0 all good, 1 some items failed (recorded in the
-output), 2 bad usage or input (one line on stderr naming the item).
+output), 2 bad usage or input (one line on stderr naming the item), 3 the operating system
+refused a read or write (permission, disk full, read-only; one line naming the path),
+130 interrupted (Ctrl-C or SIGTERM).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from geonet_infer.cli import batch, bench, demo, eval, info, predict
 from geonet_infer.errors import GeoNetInputError
 
 SUBCOMMANDS = (predict, batch, demo, info, bench, eval)
-EXIT_OK, EXIT_PARTIAL, EXIT_USAGE = 0, 1, 2
+EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, EXIT_OS_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -24,7 +26,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="GeoNet (CVPR 2018) monocular depth, optical flow and camera pose on CPU with onnxruntime. "
         "Start with `geonet-infer demo`; run `geonet-infer COMMAND --help` for each command.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="exit codes: 0 all good, 1 some frames failed (see summary.json), 2 bad usage or input",
+        epilog="exit codes: 0 all good, 1 some frames failed (see summary.json), 2 bad usage or input, "
+        "3 a file could not be read or written (permission, disk full), 130 interrupted",
     )
     parser.add_argument("--version", action="version", version=f"geonet-infer {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -52,4 +55,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except KeyboardInterrupt:
         print(f"geonet-infer {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except OSError as exc:  # permission, disk full, read-only: one line, not a traceback
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"geonet-infer {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_OS_ERROR
