@@ -544,8 +544,9 @@ def write_doc(path: Path, paper, results, synth_how, ckpt_note, seconds, worst, 
         "## Reproduce one row",
         "",
         "```bash",
-        "geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --method model,constant",
-        "geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --max-depth 50",
+        "geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt "
+        "--method model,constant",
+        "geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt --max-depth 50",
         "geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --stride 2 "
         "--method model,dis,zero",
         "geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 "

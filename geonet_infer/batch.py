@@ -4,24 +4,32 @@
 :func:`geonet_infer.pipeline.predict_to_dir`, so ``OUT/<sequence>/`` has exactly the layout
 of ``geonet-infer predict``; next to the sequences::
 
+    OUT/.geonet-batch            ownership marker: batch made this folder (also in each OUT/<sequence>/)
     OUT/<sequence>/...           predict's layout (depth/, flow/, flow_vis/, poses_*.txt, summary.json)
-    OUT/<sequence>/.done         completion marker, written (atomically) after all the sequence's files
+    OUT/<sequence>/.done         completion record, written (atomically) after all the sequence's files:
+                                 each output's size and sha256, and the inputs' names, sizes and mtimes
     OUT/failures.jsonl           one JSON object a line: {"sequence", "input", "frame" (or null), "reason"}
     OUT/summary.json             sequences done/failed/skipped, frames, frames/s, engine, workers, threads
     OUT/.lock                    held while a job runs (a second job on the same OUT stops with exit 2)
 
-Nothing is lost: files are written under temporary names and renamed (``io.atomic``); a
+Nothing is lost: batch only writes into a folder it made (or an empty one), refuses an OUT
+that is, holds or is inside an input, and only ever deletes a sequence folder carrying its
+ownership marker. Files are written under temporary names and renamed (``io.atomic``); a
 sequence without ``.done`` is incomplete, and ``resume=True`` redoes it (its folder is
-deleted first) while skipping the complete ones. A failure (unreadable input or
-calibration, bad frame, any exception in a worker, a worker process that died) is recorded
-and the job goes on. Work units are whole sequences: the frames of a sequence depend on
-each other (pose and flow pair frame t with t + 1, and each frame's depth is reused).
+deleted first), and redoes a complete one whose outputs or inputs no longer match its
+``.done``, while skipping the others. A failure (unreadable input or calibration, bad
+frame, any exception in a worker, a worker process that died) is recorded and the job goes
+on; the operating system refusing a write into OUT (disk full, read-only) stops the job
+(exit 3). Work units are whole sequences: the frames of a sequence depend on each other
+(pose and flow pair frame t with t + 1, and each frame's depth is reused).
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
+import hashlib
 import json
 import multiprocessing
 import os
@@ -41,13 +49,14 @@ from geonet_infer import __version__
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
-from geonet_infer.io.frames import open_frames
+from geonet_infer.io.frames import FrameSource, open_frames
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, predict_to_dir
 from geonet_infer.session import usable_cpus
 
 __all__ = [
     "ENGINES",
     "MARKER_NAME",
+    "OWNER_NAME",
     "FAILURES_NAME",
     "LIST_SUFFIX",
     "BatchConfig",
@@ -56,16 +65,25 @@ __all__ = [
     "plan_units",
     "sequence_name",
     "plan_workers",
+    "cap_workers",
+    "worker_memory_bytes",
     "run_sequence",
     "run_batch",
 ]
 
 ENGINES = ("local", "ray")
 MARKER_NAME = ".done"
+OWNER_NAME = ".geonet-batch"
 FAILURES_NAME = "failures.jsonl"
 LOCK_NAME = ".lock"
 LIST_SUFFIX = ".txt"
-_RESERVED = {SUMMARY_NAME, FAILURES_NAME, LOCK_NAME, MARKER_NAME}
+_RESERVED = {SUMMARY_NAME, FAILURES_NAME, LOCK_NAME, MARKER_NAME, OWNER_NAME}
+MAX_WORKERS = 1024  # workers or threads per worker above this are a typo, not a machine
+# Peak memory of one local worker, estimated as a base plus a multiple of the model's graph files
+# (weights, onnxruntime's copies and arenas). Measured: 447 MB for the bundled small_synth model
+# (20 MB of fp32 graphs), 128x416 frames, batch size 4, all tasks; the estimate gives 461 MB.
+WORKER_BASE_BYTES = 256 * 1024**2
+WORKER_GRAPH_FACTOR = 10
 _KITTI = ("image_02", "data")
 
 
@@ -245,11 +263,108 @@ def _reason(exc: BaseException) -> str:
     return f"{exc.__class__.__name__}: {exc}".strip()
 
 
+def _owned(folder: Path) -> bool:
+    return (folder / OWNER_NAME).is_file()
+
+
+def _is_empty(folder: Path) -> bool:
+    return folder.is_dir() and next(folder.iterdir(), None) is None
+
+
+def _not_ours(folder: Path) -> GeoNetInputError:
+    return GeoNetInputError(
+        folder,
+        f"holds files that geonet-infer batch did not make (no {OWNER_NAME} in it); it is left alone",
+        "choose another --out (a new or empty folder, or one an earlier batch made)",
+    )
+
+
+def _claim(folder: Path) -> None:
+    """Make ``folder`` (or take an empty one) and mark it as batch's; refuse a folder with others' files."""
+    if folder.exists() and not folder.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "exists and is not a folder", str(folder))
+    if _owned(folder):
+        return
+    if folder.exists() and not _is_empty(folder):
+        raise _not_ours(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    # a plain write, no temp file: a marker cut short by a crash still says who made the folder
+    (folder / OWNER_NAME).write_text(json.dumps({"made_by": "geonet-infer batch", "version": __version__}) + "\n")
+
+
 def _discard(folder: Path) -> None:
-    if folder.exists():
-        shutil.rmtree(folder, ignore_errors=True)
-        if folder.exists():  # something kept writing into it; one more try, then let it fail loudly
-            shutil.rmtree(folder)
+    """Remove a sequence folder batch made (or an empty one); anything else is left alone (GeoNetInputError)."""
+    if not folder.exists():
+        return
+    if not _owned(folder):
+        if _is_empty(folder):
+            folder.rmdir()
+            return
+        raise _not_ours(folder)
+    shutil.rmtree(folder, ignore_errors=True)
+    if folder.exists():  # something kept writing into it; one more try, then let it fail loudly
+        shutil.rmtree(folder)
+
+
+def _input_files(unit_path: str, source: FrameSource, own_calib: bool) -> list[Path]:
+    """The files a sequence's outputs are made from: its frames (or video), and its own calibration."""
+    files = list(getattr(source, "files", None) or [Path(source.path)])
+    if own_calib and source.default_calib is not None:
+        files.append(Path(source.default_calib))
+    return files
+
+
+def _fingerprint(unit_path: str, files: list[Path]) -> list[list]:
+    """[name, size, mtime_ns] of each input file (fast: no hashing of the inputs)."""
+    base = unit_path if os.path.isdir(unit_path) else os.path.dirname(unit_path)
+    out = []
+    for p in files:
+        st = os.stat(p)
+        out.append([os.path.relpath(os.path.abspath(p), base), st.st_size, st.st_mtime_ns])
+    return out
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _record_outputs(folder: Path) -> dict[str, list]:
+    """{relative path: [size, sha256]} of every file of a sequence folder but batch's own markers."""
+    own = {folder / MARKER_NAME, folder / OWNER_NAME}
+    return {
+        p.relative_to(folder).as_posix(): [p.stat().st_size, _sha256(p)]
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p not in own
+    }
+
+
+def _stale(marker: dict, unit: WorkUnit, folder: Path, own_calib: bool) -> str | None:
+    """Why a complete sequence must be redone (outputs or inputs differ from its ``.done``), or None."""
+    try:
+        outputs = {str(rel): (int(size), str(digest)) for rel, (size, digest) in marker["outputs"].items()}
+        before = {str(name): (size, mtime) for name, size, mtime in marker["inputs"]}
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return f"its {MARKER_NAME} has no record to check the outputs against"
+    for rel, (size, digest) in outputs.items():
+        p = folder / rel
+        if not p.is_file():
+            return f"{rel} is missing"
+        if p.stat().st_size != size or _sha256(p) != digest:
+            return f"{rel} changed since it was written"
+    try:
+        now = _fingerprint(unit.path, _input_files(unit.path, open_frames(unit.path), own_calib))
+    except (GeoNetInputError, OSError) as exc:
+        return f"its input cannot be read now ({_reason(exc)})"
+    after = {name: (size, mtime) for name, size, mtime in now}
+    changed = sorted(n for n in before.keys() | after.keys() if before.get(n) != after.get(n))
+    if changed:
+        more = f" and {len(changed) - 1} more" if len(changed) > 1 else ""
+        return f"input {changed[0]}{more} changed since the run (added, removed, or another size or time)"
+    return None
 
 
 class _CountingSource:
@@ -281,7 +396,9 @@ def run_sequence(
 
     Returns a result dict: sequence, input, index, status ("done" | "failed"), frames,
     failures (records for failures.jsonl; bad frames of a done sequence, or one record with
-    frame None for a failed one), wall_s. A failed sequence leaves no folder behind.
+    frame None for a failed one), wall_s, and os_error (errno, strerror, filename) when the
+    operating system refused a write into OUT (the job stops on it). A failed sequence leaves
+    no folder behind. A folder batch did not make is never touched (the sequence fails).
     """
     out = Path(config.out_dir) / unit.name
     started = time.perf_counter()
@@ -293,15 +410,21 @@ def run_sequence(
         "frames": 0,
         "failures": [],
         "wall_s": 0.0,
+        "os_error": None,
     }
+    writing = False
     try:
         _discard(out)  # a partial folder of an interrupted run, or the results of an earlier job
         source = open_frames(unit.path)
         camera = config.camera
         if camera is None and source.default_calib is not None:
             camera = read_camera(source.default_calib).validate(source.default_calib)
+        inputs = _fingerprint(unit.path, _input_files(unit.path, source, config.camera is None))
         if on_frame is not None:
             source = _CountingSource(source, on_frame)
+        writing = True
+        out.mkdir()
+        (out / OWNER_NAME).write_text(json.dumps({"made_by": "geonet-infer batch", "version": __version__}) + "\n")
         summary = predict_to_dir(
             predictor,
             source,
@@ -322,11 +445,15 @@ def run_sequence(
             "frames": summary["frames"],
             "failures": failures,
             "options": options if options is not None else config.options(),
+            "inputs": inputs,
+            "outputs": _record_outputs(out),
         }
         with atomic_write(out / MARKER_NAME) as tmp:
             tmp.write_text(json.dumps(marker) + "\n")
         result.update(status="done", frames=summary["frames"], failures=failures)
     except Exception as exc:  # noqa: BLE001 - any failure is recorded and the job goes on
+        if writing and isinstance(exc, OSError):  # disk full, read-only, ...: every sequence would fail alike
+            result["os_error"] = [exc.errno, exc.strerror or str(exc), exc.filename or str(out)]
         with contextlib.suppress(Exception):
             _discard(out)
         result["failures"] = [{"sequence": unit.name, "input": unit.path, "frame": None, "reason": _reason(exc)}]
@@ -360,6 +487,72 @@ def plan_workers(n_units: int, workers: int | None, threads: int | None, cpus: i
     elif threads is None:
         threads = max(1, cpus // min(workers, n))
     return min(workers, n), threads
+
+
+def check_counts(workers: int | None, threads: int | None) -> None:
+    """GeoNetInputError (exit 2) for a worker or thread count no machine has (a typo)."""
+    for flag, value in (("--workers", workers), ("--threads-per-worker", threads)):
+        if value is not None and not 1 <= value <= MAX_WORKERS:
+            raise GeoNetInputError(None, f"{flag} {value} is out of range", f"pass 1 to {MAX_WORKERS}")
+
+
+def worker_memory_bytes(model_dir, precision: str) -> int:
+    """Estimated peak memory of one local worker: :data:`WORKER_BASE_BYTES` plus
+    :data:`WORKER_GRAPH_FACTOR` times the size of the graph files it loads."""
+    from geonet_infer.manifest import load_manifest
+
+    return WORKER_BASE_BYTES + int(WORKER_GRAPH_FACTOR * load_manifest(Path(model_dir)).files_mib(precision) * 2**20)
+
+
+def memory_available() -> int | None:
+    """Bytes this job may still use: MemAvailable of /proc/meminfo, capped by a cgroup v2 limit;
+    None where neither can be read (then workers are not capped by memory)."""
+    avail = None
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                avail = int(line.split()[1]) * 1024
+    with contextlib.suppress(OSError, ValueError):
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+            free = max(0, int(limit) - used)
+            avail = free if avail is None else min(avail, free)
+    return avail
+
+
+def cap_workers(
+    workers: int | None,
+    threads: int | None,
+    *,
+    cpus: int,
+    mem_available: int | None,
+    per_worker: int,
+    n_units: int | None = None,
+) -> tuple[int | None, int | None, list[str]]:
+    """(workers, threads, notes): requests capped at the usable CPUs, and workers at what the
+    available memory holds (``per_worker`` bytes each). None stays None (the default)
+    unless memory holds fewer workers than the default would start. One note per cap."""
+    notes = []
+    if threads is not None and threads > cpus:
+        notes.append(f"--threads-per-worker {threads}: more than the {cpus} usable CPUs; using {cpus}")
+        threads = cpus
+    if workers is not None and workers > cpus:
+        notes.append(f"--workers {workers}: more than the {cpus} usable CPUs; using {cpus}")
+        workers = cpus
+    if mem_available is not None and per_worker > 0:
+        fit = max(1, mem_available // per_worker)
+        want = workers if workers is not None else cpus
+        if n_units is not None:
+            want = min(want, max(1, n_units))
+        if want > fit:
+            what = f"--workers {workers}" if workers is not None else f"{want} workers"
+            notes.append(
+                f"{what} would need about {want * per_worker / 1024**3:.1f} GiB of memory, "
+                f"{mem_available / 1024**3:.1f} GiB is available; using {fit}"
+            )
+            workers = fit
+    return workers, threads, notes
 
 
 # ----------------------------------------------------------------------------- local engine
@@ -643,6 +836,80 @@ class _Progress:
         self.bar.close()
 
 
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[list]:
+    """Ctrl-C and SIGTERM only noted (not raised) inside: stopping the workers and writing the
+    summary must not be cut short by a second signal. Yields a list that gets the signals caught."""
+    caught: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, lambda signum, frame: caught.append(signum))
+    try:
+        yield caught
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def check_out(out_dir: Path, units: list[WorkUnit]) -> None:
+    """GeoNetInputError (exit 2) when OUT is, holds or is inside an input: batch writes (and
+    deletes its own sequence folders) in OUT, and must never touch an input."""
+    out_real = Path(os.path.realpath(out_dir))
+    for unit in units:
+        root = Path(os.path.realpath(_sequence_root(Path(unit.path))))
+        if out_real == root or root in out_real.parents or out_real in root.parents:
+            how = "is" if out_real == root else ("is inside" if root in out_real.parents else "holds")
+            raise GeoNetInputError(
+                out_dir,
+                f"--out {how} the input {unit.path}; batch never writes where its inputs are",
+                "choose an --out outside every input",
+            )
+
+
+def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
+    """(todo, skipped results, redone records) of a resume: a sequence is skipped only if its
+    ``.done`` matches its outputs and its inputs; a ``.done`` made with other options is refused."""
+    todo, skipped, redone = [], [], []
+    for unit in units:
+        folder = out_dir / unit.name
+        marker = read_marker(folder)
+        if marker is None:
+            todo.append(unit)
+            continue
+        if marker.get("options") != options or marker.get("input") != unit.path:
+            what = (
+                "input"
+                if marker.get("input") != unit.path
+                else "set of options (model, precision, tasks, batch size or camera)"
+            )
+            raise GeoNetInputError(
+                folder,
+                f"was made with another {what} than this job has",
+                "resume with the options of the first run, or pass another --out",
+            )
+        why = _stale(marker, unit, folder, own_calib)
+        if why:
+            log(f"geonet-infer batch: note: {unit.name}: redoing it, {why}")
+            redone.append({"sequence": unit.name, "reason": why})
+            todo.append(unit)
+            continue
+        skipped.append(
+            {
+                "index": unit.index,
+                "sequence": unit.name,
+                "input": unit.path,
+                "status": "skipped",
+                "frames": marker.get("frames", 0),
+                "failures": marker.get("failures", []),
+                "wall_s": 0.0,
+            }
+        )
+    return todo, skipped, redone
+
+
 def run_batch(
     inputs,
     out_dir,
@@ -664,10 +931,14 @@ def run_batch(
 ) -> dict:
     """Run a batch job (see the module docstring); returns the summary (also OUT/summary.json).
 
-    ``summary["exit_code"]``: 0 all good, 1 something failed (see failures.jsonl).
-    Raises GeoNetInputError for bad usage (missing input, unknown model, a resume with other
-    options, a locked OUT); KeyboardInterrupt after stopping the workers and writing the
-    summary (``"interrupted": true``) when interrupted; a later ``resume=True`` finishes.
+    ``summary["exit_code"]``: 0 all good, 1 something failed (see failures.jsonl), 3 the
+    operating system refused a write into OUT, 130 interrupted.
+    Raises GeoNetInputError for bad usage (missing input, unknown model, an OUT that overlaps an
+    input or holds files batch did not make, a resume with other options, a locked OUT);
+    OSError after writing the summary when the OS refused a write (the job stops);
+    KeyboardInterrupt after stopping the workers and writing the summary
+    (``"interrupted": true``) when interrupted (Ctrl-C, or SIGTERM turned into it by the CLI);
+    a later ``resume=True`` finishes.
     """
     from geonet_infer.manifest import load_manifest
     from geonet_infer.models import resolve_model
@@ -677,13 +948,13 @@ def run_batch(
         raise GeoNetInputError(None, f"unknown engine {engine!r}", f"choose one of {', '.join(ENGINES)}")
     if batch_size < 1:
         raise GeoNetInputError(None, f"batch size must be >= 1, got {batch_size}")
+    check_counts(workers, threads)
     tasks = tuple(t for t in TASKS if t in tasks)
     units = plan_units(expand_inputs(inputs))
     load_manifest(resolve_model(model)).graph_names(precision)  # bad --model / --precision: exit 2 before any work
     out_dir = Path(os.path.abspath(out_dir))
-    if out_dir.exists() and not out_dir.is_dir():
-        raise GeoNetInputError(out_dir, "exists and is not a folder", "pass a folder for --out")
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_out(out_dir, units)
+    _claim(out_dir)
 
     probe = BatchConfig(
         out_dir=str(out_dir),
@@ -697,63 +968,54 @@ def run_batch(
     )
     options = probe.options()
     with _job_lock(out_dir):
-        skipped, carried = [], []
-        todo = units
-        if resume:
-            todo = []
-            for unit in units:
-                marker = read_marker(out_dir / unit.name)
-                if marker is None:
-                    todo.append(unit)
-                    continue
-                if marker.get("options") != options or marker.get("input") != unit.path:
-                    what = (
-                        "input"
-                        if marker.get("input") != unit.path
-                        else "set of options (model, precision, tasks, batch size or camera)"
-                    )
-                    raise GeoNetInputError(
-                        out_dir / unit.name,
-                        f"was made with another {what} than this job has",
-                        "resume with the options of the first run, or pass another --out",
-                    )
-                skipped.append(
-                    {
-                        "index": unit.index,
-                        "sequence": unit.name,
-                        "input": unit.path,
-                        "status": "skipped",
-                        "frames": marker.get("frames", 0),
-                        "failures": marker.get("failures", []),
-                        "wall_s": 0.0,
-                    }
-                )
-                carried += marker.get("failures", [])
-        if not todo:  # everything is complete already: no workers, no cluster
-            runner, n_workers, n_threads = _NoEngine(), 0, 0
-        elif engine == "ray":
-            from geonet_infer.batch_ray import RayEngine
-
-            runner = RayEngine.start(probe, options, len(todo), workers, threads, ray_address, log)
-            n_workers, n_threads = runner.workers, runner.threads
-        else:
-            n_workers, n_threads = plan_workers(len(todo), workers, threads)
-            cpus = usable_cpus()
-            if n_workers * n_threads > cpus:
-                log(f"geonet-infer batch: note: {n_workers} workers x {n_threads} threads > {cpus} usable CPUs")
-            runner = LocalEngine(
-                BatchConfig(**{**asdict(probe), "camera": camera, "threads": n_threads}), options, n_workers
-            )
-
-        failures_path = out_dir / FAILURES_NAME
-        _write_failures(failures_path, carried)
-        results: dict[int, dict] = {r["index"]: r for r in skipped}
-        bar = _Progress(len(todo), progress)
-        started = time.perf_counter()
+        foreign = [u for u in units if (out_dir / u.name).exists() and not _owned(out_dir / u.name)]
+        for unit in foreign:
+            if not _is_empty(out_dir / unit.name):
+                raise _not_ours(out_dir / unit.name)
+        runner, stream = _NoEngine(), iter(())
+        n_workers = n_threads = 0
+        limits: list[str] = []
+        skipped, redone, todo = [], [], list(units)
+        results: dict[int, dict] = {}
+        bar = None
         interrupted = False
+        os_error = None
         n_done = n_failed = 0
-        stream = runner.results(todo)
+        started = time.perf_counter()
+        failures_path = out_dir / FAILURES_NAME
         try:
+            if resume:
+                todo, skipped, redone = _resume_plan(units, out_dir, options, camera is None, log)
+                results.update({r["index"]: r for r in skipped})
+            _write_failures(failures_path, [f for r in skipped for f in r["failures"]])
+            if not todo:  # everything is complete already: no workers, no cluster
+                pass
+            elif engine == "ray":
+                from geonet_infer.batch_ray import RayEngine
+
+                runner = RayEngine.start(probe, options, len(todo), workers, threads, ray_address, log)
+                n_workers, n_threads = runner.workers, runner.threads
+            else:
+                cpus = usable_cpus()
+                capped_w, capped_t, limits = cap_workers(
+                    workers,
+                    threads,
+                    cpus=cpus,
+                    mem_available=memory_available(),
+                    per_worker=worker_memory_bytes(resolve_model(model), precision),
+                    n_units=len(todo),
+                )
+                for note in limits:
+                    log(f"geonet-infer batch: warning: {note}")
+                n_workers, n_threads = plan_workers(len(todo), capped_w, capped_t)
+                if n_workers * n_threads > cpus:
+                    log(f"geonet-infer batch: note: {n_workers} workers x {n_threads} threads > {cpus} usable CPUs")
+                runner = LocalEngine(
+                    BatchConfig(**{**asdict(probe), "camera": camera, "threads": n_threads}), options, n_workers
+                )
+            bar = _Progress(len(todo), progress)
+            started = time.perf_counter()
+            stream = runner.results(todo)
             with open(failures_path, "a") as failures_file:
                 for result in stream:
                     if result is None:
@@ -767,64 +1029,89 @@ def run_batch(
                     n_failed += result["status"] == "failed"
                     bar.frames_done += result["frames"]
                     bar.tick(runner.live_frames(), done=1, failed=n_failed)
+                    if result.get("os_error"):
+                        os_error = OSError(*result["os_error"])
+                        break
         except KeyboardInterrupt:
             interrupted = True
-        finally:
-            bar.close()
-            with contextlib.suppress(Exception):
-                getattr(stream, "close", lambda: None)()
-            with contextlib.suppress(Exception):
-                runner.close()
-        wall = time.perf_counter() - started
-
-        ordered = [results[u.index] for u in units if u.index in results]
-        records = [r for res in ordered for r in res["failures"]]
-        _write_failures(failures_path, records)  # final: in input order (appends came in completion order)
-        frames = sum(r["frames"] for r in ordered if r["status"] == "done")
-        summary = {
-            "engine": engine,
-            "workers": n_workers,
-            "threads_per_worker": n_threads,
-            "usable_cpus": usable_cpus(),
-            "ray_address": getattr(runner, "address", None),
-            "out": str(out_dir),
-            "resume": resume,
-            "interrupted": interrupted,
-            "sequences": {
-                "total": len(units),
-                "done": n_done,
-                "failed": n_failed,
-                "skipped": len(skipped),
-                "not_run": len(units) - n_done - n_failed - len(skipped),
-            },
-            "frames": frames,
-            "frames_failed": sum(1 for r in records if r["frame"] is not None),
-            "failures": len(records),
-            "failures_file": FAILURES_NAME,
-            "wall_s": wall,
-            "frames_per_s": frames / wall if wall > 0 and frames else 0.0,
-            "tasks": list(tasks),
-            "batch_size": batch_size,
-            "model": options["model"],
-            "precision": precision,
-            "backend": backend,
-            "camera": "per input (its own calibration, if any)" if camera is None else camera.source,
-            "per_sequence": [
-                {
-                    "sequence": r["sequence"],
-                    "input": r["input"],
-                    "status": r["status"],
-                    "frames": r["frames"],
-                    "failures": len(r["failures"]),
-                    "wall_s": round(r["wall_s"], 3),
-                }
-                for r in ordered
-            ],
-            "versions": {"geonet_infer": __version__, "python": platform.python_version()},
-        }
-        summary["exit_code"] = 1 if records or n_failed else 0
-        with atomic_write(out_dir / SUMMARY_NAME) as tmp:
-            tmp.write_text(json.dumps(summary, indent=2) + "\n")
+        except BaseException:
+            with _signals_deferred():
+                _stop(bar, stream, runner)
+            raise
+        with _signals_deferred() as caught:
+            _stop(bar, stream, runner)
+            interrupted = interrupted or bool(caught)
+            wall = time.perf_counter() - started
+            ordered = [results[u.index] for u in units if u.index in results]
+            records = [r for res in ordered for r in res["failures"]]
+            _write_failures(failures_path, records)  # final: in input order (appends came in completion order)
+            frames = sum(r["frames"] for r in ordered if r["status"] == "done")
+            summary = {
+                "engine": engine,
+                "workers": n_workers,
+                "threads_per_worker": n_threads,
+                "workers_requested": workers,
+                "threads_per_worker_requested": threads,
+                "limits": limits,
+                "usable_cpus": usable_cpus(),
+                "ray_address": getattr(runner, "address", None),
+                "out": str(out_dir),
+                "resume": resume,
+                "interrupted": interrupted,
+                "sequences": {
+                    "total": len(units),
+                    "done": n_done,
+                    "failed": n_failed,
+                    "skipped": len(skipped),
+                    "not_run": len(units) - n_done - n_failed - len(skipped),
+                },
+                "redone": redone,
+                "frames": frames,
+                "frames_failed": sum(1 for r in records if r["frame"] is not None),
+                "failures": len(records),
+                "failures_file": FAILURES_NAME,
+                "os_error": None if os_error is None else f"{os_error.filename}: {os_error.strerror}",
+                "wall_s": wall,
+                "frames_per_s": frames / wall if wall > 0 and frames else 0.0,
+                "tasks": list(tasks),
+                "batch_size": batch_size,
+                "model": options["model"],
+                "precision": precision,
+                "backend": backend,
+                "camera": "per input (its own calibration, if any)" if camera is None else camera.source,
+                "per_sequence": [
+                    {
+                        "sequence": r["sequence"],
+                        "input": r["input"],
+                        "status": r["status"],
+                        "frames": r["frames"],
+                        "failures": len(r["failures"]),
+                        "wall_s": round(r["wall_s"], 3),
+                    }
+                    for r in ordered
+                ],
+                "versions": {"geonet_infer": __version__, "python": platform.python_version()},
+            }
+            if interrupted:
+                summary["exit_code"] = 130
+            elif os_error is not None:
+                summary["exit_code"] = 3
+            else:
+                summary["exit_code"] = 1 if records or n_failed else 0
+            with atomic_write(out_dir / SUMMARY_NAME) as tmp:
+                tmp.write_text(json.dumps(summary, indent=2) + "\n")
     if interrupted:
         raise KeyboardInterrupt
+    if os_error is not None:
+        raise os_error
     return summary
+
+
+def _stop(bar, stream, runner) -> None:
+    """Close the progress bar, the result stream and the engine (workers stopped, unfinished folders removed)."""
+    if bar is not None:
+        bar.close()
+    with contextlib.suppress(Exception):
+        getattr(stream, "close", lambda: None)()
+    with contextlib.suppress(Exception):
+        runner.close()

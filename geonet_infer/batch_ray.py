@@ -20,6 +20,8 @@ import inspect
 import json
 import logging
 import os
+import signal
+import threading
 from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
@@ -189,6 +191,10 @@ class RayEngine:
             common = dict(logging_level=logging.ERROR, log_to_driver=True)
             if address:
                 check_reachable(address)
+            # ray.init replaces the SIGTERM handler with sys.exit(15) (and its core worker adds a C++
+            # stack dump): the job's own handler is put back, so SIGTERM stops the job like Ctrl-C.
+            main_thread = threading.current_thread() is threading.main_thread()
+            previous = signal.getsignal(signal.SIGTERM) if main_thread else None
             try:
                 if address:
                     ray.init(address=address, **common)
@@ -207,6 +213,15 @@ class RayEngine:
                     f"cannot start or join {where} ({_reason(exc).splitlines()[0]})",
                     "check --ray-address (e.g. ray://HOST:10001, HOST:6379 or auto)",
                 ) from None
+            except SystemExit as exc:  # Ray's handler: SIGTERM while the cluster was starting
+                if exc.code != signal.SIGTERM:
+                    raise
+                with contextlib.suppress(Exception):
+                    ray.shutdown()
+                raise KeyboardInterrupt from None
+            finally:
+                if previous is not None:
+                    signal.signal(signal.SIGTERM, previous)
             started_here = True
         ctx = ray.data.DataContext.get_current()
         for key, value in (

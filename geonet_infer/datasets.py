@@ -173,6 +173,10 @@ class Dataset:
     items: list
     description: str
     notes: list[str] = field(default_factory=list)
+    # Frames of the layout that have no ground truth file and so are not scored (KITTI raw depth),
+    # and the warning that says so.
+    without_gt: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     def describe(self) -> dict:
         return {
@@ -182,6 +186,7 @@ class Dataset:
             "items": len(self.items),
             "description": self.description,
             "notes": list(self.notes),
+            "frames_without_gt": list(self.without_gt),
         }
 
 
@@ -191,6 +196,8 @@ def depth_dataset(
     root = Path(root)
     layout = detect_layout("depth", root) if layout == "auto" else layout
     items: list[DepthItem] = []
+    without_gt: list[str] = []
+    warnings: list[str] = []
     if layout == "synth":
         seqs = synth_sequences(root, sequences)
         for seq in seqs:
@@ -230,11 +237,19 @@ def depth_dataset(
                 "no frame of image_02/data has ground truth here",
                 "ground truth files are named like the frames",
             )
+        scored = {img for img, _ in pairs}
+        without_gt = [img.stem for img in images if img not in scored]
+        if without_gt:
+            names = ", ".join(without_gt[:3]) + (", ..." if len(without_gt) > 3 else "")
+            warnings.append(
+                f"{image_dir}: {len(without_gt)} of {len(images)} frames without ground truth in "
+                f"{(png_dir if kind == 'png' else velo_dir).relative_to(root)}/ ({names}): not scored"
+            )
         items = [DepthItem(img.stem, img, gt, kind, calib_dir) for img, gt in pairs[::stride]]
         desc = f"KITTI raw {root.name}, {gt_what}"
     else:
         raise _bad_layout("depth", layout)
-    return Dataset("depth", layout, root, _limit(items, limit, root), desc)
+    return Dataset("depth", layout, root, _limit(items, limit, root), desc, without_gt=without_gt, warnings=warnings)
 
 
 # ----------------------------------------------------------------------------- flow
@@ -405,6 +420,19 @@ class PoseItem:
         return read_camera(self.calib).K
 
 
+def _finite_poses(path: Path) -> np.ndarray:
+    """Ground-truth poses of a file, refused if any holds NaN or infinity (it would score as "nan ± nan")."""
+    poses = read_kitti_poses(path)
+    bad = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))
+    if bad.size:
+        raise GeoNetInputError(
+            path,
+            f"pose line {bad[0] + 1} holds NaN or infinity ({bad.size} such line(s))",
+            "ground-truth poses must be finite: fix or regenerate the file",
+        )
+    return poses
+
+
 def _snippets(
     frames: list[Path],
     poses: np.ndarray,
@@ -444,7 +472,7 @@ def pose_dataset(
         for seq in seqs:
             frames = list_images(seq / "image")
             poses_path = seq / "poses.txt"
-            poses = read_kitti_poses(poses_path)
+            poses = _finite_poses(poses_path)
             if len(poses) != len(frames):
                 raise GeoNetInputError(
                     poses_path,
@@ -477,7 +505,7 @@ def pose_dataset(
         key = "P2" if image_name == "image_2" else "P0"  # each camera's own projection matrix
         if key not in read_calib_file(calib):
             raise GeoNetInputError(calib, f"missing calibration key '{key}'", f"{image_name}/ frames need {key}")
-        items = _snippets(frames, read_kitti_poses(poses_path), poses_path, stride, "", calib, key)
+        items = _snippets(frames, _finite_poses(poses_path), poses_path, stride, "", calib, key)
         if not items:
             raise GeoNetInputError(
                 root / image_name, f"no {SNIPPET} consecutive frames", "the ATE protocol scores 5-frame snippets"

@@ -13,12 +13,14 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
 from geonet_infer.errors import GeoNetInputError
+from geonet_infer.manifest import IoSpec, Manifest, check_graph_io
 from geonet_infer.session import make_session, make_session_options
 from geonet_infer.timing import Case, time_interleaved
 
@@ -32,6 +34,8 @@ class Engine(Protocol):
     output_names: list[str]
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
+
+    def io(self) -> tuple[list[IoSpec], list[IoSpec]]: ...
 
     def describe(self) -> dict: ...
 
@@ -52,6 +56,10 @@ class OrtEngine:
 
     def input_shapes(self) -> dict[str, list]:
         return {i.name: list(i.shape) for i in self.session.get_inputs()}
+
+    def io(self) -> tuple[list[IoSpec], list[IoSpec]]:
+        """(inputs, outputs) as (name, shape, numpy dtype name), as the graph declares them."""
+        return _ort_io(self.session)
 
     def describe(self) -> dict:
         so = self.session.get_session_options()
@@ -91,11 +99,24 @@ def openvino_version() -> str | None:
     return None if ov is None else ov.__version__
 
 
+def _ort_io(session) -> tuple[list[IoSpec], list[IoSpec]]:
+    def dtype(ort_type: str) -> str:  # "tensor(float)" -> "float32"
+        name = ort_type.removeprefix("tensor(").removesuffix(")")
+        return {"float": "float32", "double": "float64"}.get(name, name)
+
+    def specs(args) -> list[IoSpec]:
+        return [(a.name, list(a.shape), dtype(a.type)) for a in args]
+
+    return specs(session.get_inputs()), specs(session.get_outputs())
+
+
 class OpenVinoEngine:
     """An ONNX file compiled by OpenVINO's CPU plugin, once per distinct input shape.
 
     The graphs have a dynamic batch; OpenVINO runs static shapes faster, so each new
-    set of input shapes (a new batch size) is compiled once and cached.
+    set of input shapes (a new batch size) is compiled once and cached. An infer request
+    is not thread-safe (a second thread's inputs overwrite the first's, or the call fails
+    with "busy"), so each thread gets its own request per compiled shape.
     """
 
     backend = "openvino"
@@ -125,23 +146,29 @@ class OpenVinoEngine:
         self.config = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32", "NUM_STREAMS": "1"}
         if threads is not None:
             self.config["INFERENCE_NUM_THREADS"] = str(threads)
-        self._compiled: dict[tuple, tuple] = {}
+        self._compiled: dict[tuple, tuple] = {}  # input shapes -> (compiled model, output ports)
+        self._compile_lock = threading.Lock()
+        self._local = threading.local()  # .requests: input shapes -> this thread's infer request
+
+    def _compiled_for(self, shapes: tuple) -> tuple:
+        with self._compile_lock:  # two threads meeting a new batch size compile it once
+            if shapes not in self._compiled:
+                model = self.model.clone()
+                model.reshape(dict(zip(self.input_names, [list(s) for s in shapes])))
+                compiled = self.core.compile_model(model, "CPU", self.config)
+                self._compiled[shapes] = (compiled, [compiled.output(name) for name in self.output_names])
+            return self._compiled[shapes]
 
     def _request(self, shapes: tuple):
-        if shapes not in self._compiled:
-            model = self.model.clone()
-            model.reshape(dict(zip(self.input_names, [list(s) for s in shapes])))
-            compiled = self.core.compile_model(model, "CPU", self.config)
-            self._compiled[shapes] = (
-                compiled,
-                compiled.create_infer_request(),
-                [compiled.output(name) for name in self.output_names],
-            )
-        return self._compiled[shapes]
+        requests = self._local.__dict__.setdefault("requests", {})
+        if shapes not in requests:
+            compiled, outputs = self._compiled_for(shapes)
+            requests[shapes] = (compiled.create_infer_request(), outputs)
+        return requests[shapes]
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         shapes = tuple(tuple(feeds[n].shape) for n in self.input_names)
-        _, request, outputs = self._request(shapes)
+        request, outputs = self._request(shapes)
         result = request.infer([feeds[n] for n in self.input_names])
         # copies: the request reuses its output buffers on the next call
         return {name: np.array(result[port]) for name, port in zip(self.output_names, outputs)}
@@ -151,6 +178,19 @@ class OpenVinoEngine:
             p.get_any_name(): [d.get_length() if d.is_static else "B" for d in p.get_partial_shape()]
             for p in self.model.inputs
         }
+
+    def io(self) -> tuple[list[IoSpec], list[IoSpec]]:
+        """(inputs, outputs) as (name, shape, numpy dtype name) of the model as read (before any reshape)."""
+
+        def specs(ports) -> list[IoSpec]:
+            out = []
+            for port in ports:
+                shape = port.get_partial_shape()
+                dims = None if shape.rank.is_dynamic else [d.get_length() if d.is_static else None for d in shape]
+                out.append((port.get_any_name(), dims, str(port.get_element_type().to_dtype())))
+            return out
+
+        return specs(self.model.inputs), specs(self.model.outputs)
 
     def describe(self) -> dict:
         out = {"engine": self.backend, "config": dict(self.config)}
@@ -207,6 +247,20 @@ def pick_fastest(path: str | Path, threads: int | None) -> tuple[Engine, dict]:
     p50 = {case.name: case.stats().p50_ms for case in cases}
     chosen = min(p50, key=p50.get)
     return engines[chosen], {"chosen": chosen, "p50_ms_batch1": {k: round(v, 3) for k, v in p50.items()}}
+
+
+def check_graphs(manifest: Manifest) -> None:
+    """Load every graph file the manifest lists in onnxruntime (no optimisation: only its declared
+    inputs and outputs are read) and compare them with the manifest (:func:`check_graph_io`)."""
+    seen = set()
+    for precision, graphs in manifest.graphs.items():
+        for name, entry in graphs.items():
+            path = manifest.path(name, precision)
+            if (path, entry) in seen:
+                continue
+            seen.add((path, entry))
+            session = make_session(path, make_session_options(threads=1, opt_level="disable"))
+            check_graph_io(entry, path, *_ort_io(session))
 
 
 def make_engine(path: str | Path, backend: str, threads: int | None) -> Engine:

@@ -18,6 +18,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+import mmap
+import os
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -32,6 +36,16 @@ SCHEMA_VERSION = conventions.SCHEMA_VERSION
 PRECISIONS = ("fp32", "int8")
 BATCH_AXIS = "B"  # symbolic batch dimension in shapes
 REEXPORT_HINT = "re-export the model directory with `python -m export`"
+# Limits on what a manifest may ask for: frames are resized to height x width and snippets of
+# seq_length frames are stacked before any graph runs, so an absurd number here would be an
+# absurd allocation at the first frame. Export writes sizes that are multiples of 8 (DepthNet and
+# ResFlowNet need them, export/build.py) and odd snippets (the target is the middle frame); 2048
+# is 5x KITTI's 416-pixel graph width, 32 the smallest size the tests train and export at.
+SIZE_MULTIPLE = 8
+MIN_SIDE, MAX_SIDE = 32, 2048
+MIN_SEQ_LENGTH, MAX_SEQ_LENGTH = 3, 9
+MAX_CONVENTION_MAGNITUDE = 1e4  # every number of the conventions (the largest is a reference size)
+MIN_NORM_SCALE = 1e-3  # image_norm.scale: a zero scale feeds the nets a constant image
 
 
 def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -111,6 +125,7 @@ class Provenance:
     data_dir: str | None = None  # prepared folder(s) trained on, joined with " + "
     exporter: str = ""
     versions: dict = field(default_factory=dict)  # torch, onnx, onnxruntime, onnxscript
+    sources: list = field(default_factory=list)  # --from-tf: each TF checkpoint, its nets and files' sha256
 
     @classmethod
     def from_dict(cls, d: dict) -> Provenance:
@@ -247,10 +262,16 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
     """Read and validate ``directory/manifest.json``.
 
     Checks: the file parses, ``format`` and ``schema_version`` match this
-    package, every required key is there, conventions are present, and (with
-    ``verify_files``) every graph file exists inside the directory with the
-    recorded sha256. Any mismatch raises :class:`GeoNetInputError` naming the
-    offending file.
+    package, every required key is there, conventions are present, sizes are
+    within the limits (``MIN_SIDE``..``MAX_SIDE``, ``MIN_SEQ_LENGTH``..``MAX_SEQ_LENGTH``)
+    and agree with the graph entries, every convention number is finite and sane,
+    each listed graph's path stays inside the directory (symlinks resolved), and
+    (with ``verify_files``) each listed graph file exists with the recorded sha256
+    and keeps no tensor in external data (which the sha256 would not cover). Graphs
+    are checked as listed; which graphs a model needs is the consumer's business.
+    The graph's own inputs/outputs are compared with its entry by the engine that
+    loads it (:func:`check_graph_io`). Any problem raises :class:`GeoNetInputError`
+    naming the offending file.
     """
     directory = Path(directory)
     path = directory / MANIFEST_NAME
@@ -282,6 +303,8 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
     missing_conv = sorted(set(conventions.as_dict()) - set(conv))
     if missing_conv:
         raise GeoNetInputError(path, f"conventions lack {missing_conv}", REEXPORT_HINT)
+    _check_sizes(raw, path)
+    _check_convention_numbers(conv, path)
     try:
         manifest = Manifest.from_dict(raw, root=directory)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -293,24 +316,227 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
         if precision not in PRECISIONS:
             raise GeoNetInputError(path, f"unknown precision {precision!r}", f"expected one of {PRECISIONS}")
         for name, entry in graphs.items():
-            if not _safe_relative(entry.file):
-                raise GeoNetInputError(
-                    path,
-                    f"graph {precision}/{name} has an unsafe file path {entry.file!r}",
-                    "paths must be relative and stay inside the model directory",
-                )
+            _check_entry_sizes(manifest, f"{precision}/{name}", entry, path)
+            file = _graph_path(directory, f"{precision}/{name}", entry.file, path)
             if verify_files:
-                _verify_file(directory / entry.file, entry.sha256)
+                _verify_file(file, entry.sha256)
     return manifest
 
 
+# ----------------------------------------------------------------------------- manifest checks
+def _check_sizes(raw: dict, path: Path) -> None:
+    """height, width and seq_length, where present, are integers within the limits above."""
+    for key in ("height", "width"):
+        value = raw.get(key, MIN_SIDE)  # a missing key is reported by Manifest.from_dict
+        if type(value) is not int or not MIN_SIDE <= value <= MAX_SIDE or value % SIZE_MULTIPLE:
+            raise GeoNetInputError(
+                path,
+                f"{key} {value!r} is not a multiple of {SIZE_MULTIPLE} in [{MIN_SIDE}, {MAX_SIDE}]",
+                REEXPORT_HINT,
+            )
+    value = raw.get("seq_length", MIN_SEQ_LENGTH)
+    if type(value) is not int or not MIN_SEQ_LENGTH <= value <= MAX_SEQ_LENGTH or value % 2 == 0:
+        raise GeoNetInputError(
+            path,
+            f"seq_length {value!r} is not an odd number in [{MIN_SEQ_LENGTH}, {MAX_SEQ_LENGTH}]",
+            REEXPORT_HINT,
+        )
+
+
+def _check_convention_numbers(conv: dict, path: Path) -> None:
+    """Every number of the conventions is finite and of sane magnitude; image_norm.scale is not ~0."""
+
+    def walk(value, where: str):
+        if isinstance(value, dict):
+            for key, item in value.items():
+                walk(item, f"{where}.{key}")
+        elif isinstance(value, list):
+            for i, item in enumerate(value):
+                walk(item, f"{where}[{i}]")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not (math.isfinite(value) and abs(value) <= MAX_CONVENTION_MAGNITUDE):
+                raise GeoNetInputError(
+                    path,
+                    f"{where} is {value!r}: not a finite number within ±{MAX_CONVENTION_MAGNITUDE:g}",
+                    REEXPORT_HINT,
+                )
+
+    walk(conv, "conventions")
+    scale = (conv.get("image_norm") or {}).get("scale")
+    if isinstance(scale, (int, float)) and abs(scale) < MIN_NORM_SCALE:
+        raise GeoNetInputError(
+            path, f"conventions.image_norm.scale is {scale!r}: the graphs would see a constant image", REEXPORT_HINT
+        )
+
+
+def _check_entry_sizes(manifest: Manifest, graph: str, entry: GraphEntry, path: Path) -> None:
+    """Image inputs (rank 4) of a graph entry are at the manifest's height x width."""
+    for spec in entry.inputs:
+        if len(spec.shape) == 4 and tuple(spec.shape[-2:]) != (manifest.height, manifest.width):
+            raise GeoNetInputError(
+                path,
+                f"graph {graph} input {spec.name!r} is {spec.shape[-2]}x{spec.shape[-1]}, the manifest says "
+                f"height x width {manifest.height}x{manifest.width}",
+                REEXPORT_HINT,
+            )
+
+
+# ----------------------------------------------------------------------------- graph file checks
+IoSpec = tuple[str, list | None, str]  # name, shape (int = fixed, str or None = dynamic; None = unknown rank), dtype
+
+
+def _dim_fits(manifest_dim, graph_dim) -> bool:
+    dynamic = not isinstance(graph_dim, int)
+    return dynamic if manifest_dim == BATCH_AXIS else dynamic or graph_dim == manifest_dim
+
+
+def check_graph_io(entry: GraphEntry, file: Path, inputs: list[IoSpec], outputs: list[IoSpec]) -> None:
+    """Compare a loaded graph's inputs and outputs (as its engine reports them) with its manifest entry.
+
+    Names must match; per tensor the rank, the dtype and every fixed dimension. A manifest ``"B"``
+    (batch) must be a dynamic dimension of the graph; a dynamic graph dimension accepts any fixed
+    manifest size. Raises GeoNetInputError naming the graph file and the first difference.
+    """
+    hint = "the graph file does not match its manifest entry; " + REEXPORT_HINT
+    for kind, expected, actual in (("inputs", entry.inputs, inputs), ("outputs", entry.outputs, outputs)):
+        by_name = {name: (shape, dtype) for name, shape, dtype in actual}
+        if set(by_name) != {t.name for t in expected}:
+            raise GeoNetInputError(
+                file, f"graph {kind} are {sorted(by_name)}, the manifest says {sorted(t.name for t in expected)}", hint
+            )
+        for spec in expected:
+            shape, dtype = by_name[spec.name]
+            fits = shape is not None and len(shape) == len(spec.shape) and all(map(_dim_fits, spec.shape, shape))
+            if not fits or dtype != spec.dtype:
+                got = "?" if shape is None else [d if isinstance(d, int) else "dynamic" for d in shape]
+                raise GeoNetInputError(
+                    file,
+                    f"{kind[:-1]} {spec.name!r} is {dtype} {got}, the manifest says {spec.dtype} {list(spec.shape)}",
+                    hint,
+                )
+
+
+def _graph_path(directory: Path, graph: str, file: str, path: Path) -> Path:
+    """The graph's file, refused if its path (or a symlink on the way) leads out of the model directory."""
+    if not _safe_relative(file):
+        raise GeoNetInputError(
+            path,
+            f"graph {graph} has an unsafe file path {file!r}",
+            "paths must be relative and stay inside the model directory",
+        )
+    full = directory / file
+    if not full.resolve().is_relative_to(directory.resolve()):
+        raise GeoNetInputError(
+            full,
+            f"graph file resolves to {full.resolve()}, outside the model directory",
+            "the manifest's sha256 vouches for files inside the model directory only: copy the file in",
+        )
+    return full
+
+
 def _verify_file(file: Path, expected: str) -> None:
+    """The file has the recorded sha256 and loads nothing the sha256 does not cover (external data)."""
     if not file.is_file():
         raise GeoNetInputError(file, "graph file listed in the manifest is missing", REEXPORT_HINT)
-    actual = file_sha256(file)
-    if actual != expected:
+    with open(file, "rb") as f:
+        empty = os.fstat(f.fileno()).st_size == 0  # mmap refuses an empty file
+        with nullcontext(b"") if empty else mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            actual = hashlib.sha256(data).hexdigest()
+            if actual != expected:
+                raise GeoNetInputError(
+                    file,
+                    f"sha256 mismatch: manifest says {expected[:16]}..., file has {actual[:16]}...",
+                    "the file is corrupt or was changed after export; " + REEXPORT_HINT,
+                )
+            try:
+                location = external_data_location(data)
+            except (IndexError, ValueError):
+                raise GeoNetInputError(
+                    file, "not a valid ONNX file (cannot parse its protobuf)", REEXPORT_HINT
+                ) from None
+    if location is not None:
         raise GeoNetInputError(
             file,
-            f"sha256 mismatch: manifest says {expected[:16]}..., file has {actual[:16]}...",
-            "the file is corrupt or was changed after export; " + REEXPORT_HINT,
+            f"the graph keeps tensors in external data ({location or 'no location given'}), which the manifest's "
+            "sha256 does not cover",
+            "export with the weights inside the .onnx file (`python -m export` does)",
         )
+
+
+# ONNX protobuf field numbers (onnx/onnx.proto) of the messages on the way to a TensorProto:
+# message kind -> {field number: kind of the sub-message}.
+_ONNX_CHILDREN = {
+    "model": {7: "graph", 25: "function"},  # ModelProto.graph, .functions
+    "graph": {1: "node", 5: "tensor", 15: "sparse"},  # GraphProto.node, .initializer, .sparse_initializer
+    "function": {7: "node"},  # FunctionProto.node
+    "node": {5: "attribute"},  # NodeProto.attribute
+    "attribute": {5: "tensor", 6: "graph", 10: "tensor", 11: "graph", 22: "sparse", 23: "sparse"},  # t g tensors ...
+    "sparse": {1: "tensor", 2: "tensor"},  # SparseTensorProto.values, .indices
+}
+_TENSOR_EXTERNAL_DATA, _TENSOR_DATA_LOCATION, _EXTERNAL = 13, 14, 1  # TensorProto fields, DataLocation.EXTERNAL
+
+
+def _varint(buf, pos: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        byte = buf[pos]
+        pos += 1
+        value |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return value, pos
+        shift += 7
+        if shift > 63:
+            raise ValueError("varint too long")
+
+
+def _fields(buf, start: int, end: int):
+    """(field number, wire type, value) of one protobuf message; value = (start, end) for wire type 2."""
+    pos = start
+    while pos < end:
+        key, pos = _varint(buf, pos)
+        field_number, wire = key >> 3, key & 7
+        if wire == 0:
+            value, pos = _varint(buf, pos)
+            yield field_number, wire, value
+        elif wire == 2:
+            size, pos = _varint(buf, pos)
+            if pos + size > end:
+                raise ValueError("field runs past its message")
+            yield field_number, wire, (pos, pos + size)
+            pos += size
+        elif wire in (1, 5):
+            pos += 8 if wire == 1 else 4
+        else:
+            raise ValueError(f"wire type {wire}")
+    if pos != end:
+        raise ValueError("message runs past its end")
+
+
+def external_data_location(buf, kind: str = "model", start: int = 0, end: int | None = None) -> str | None:
+    """The ``location`` of the first tensor an ONNX model keeps in external data ("" if it names none),
+    or None when every tensor is inside the file. Walks the protobuf structure only (weights are
+    skipped, not decoded), so the runtime needs no ``onnx`` package; raises ValueError or IndexError
+    on a malformed file."""
+    end = len(buf) if end is None else end
+    if kind == "tensor":
+        return _tensor_location(buf, start, end)
+    for field_number, wire, value in _fields(buf, start, end):
+        child = _ONNX_CHILDREN[kind].get(field_number)
+        if child and wire == 2:
+            location = external_data_location(buf, child, *value)
+            if location is not None:
+                return location
+    return None
+
+
+def _tensor_location(buf, start: int, end: int) -> str | None:
+    external = None
+    for field_number, wire, value in _fields(buf, start, end):
+        if field_number == _TENSOR_EXTERNAL_DATA and wire == 2:
+            entry = {k: bytes(buf[v[0] : v[1]]) for k, w, v in _fields(buf, *value) if w == 2}
+            if entry.get(1) == b"location":  # StringStringEntryProto: key = 1, value = 2
+                return entry.get(2, b"").decode("utf-8", "replace")
+            external = ""
+        elif field_number == _TENSOR_DATA_LOCATION and wire == 0 and value == _EXTERNAL:
+            external = ""
+    return external

@@ -12,17 +12,25 @@ so every sequence gets the same layout::
     OUT/summary.json             counts, failures with reasons, per-stage timings, model, camera
 
 Every file is written under a temporary name and renamed, so a reader never sees a
-half-written file. A frame that cannot be read (or has another size than the first)
-is recorded in the summary and skipped; the sequence goes on with the next frame.
+half-written file. A frame that cannot be read, has another size than most of the first
+frames, or for which the model gives NaN/inf is recorded in the summary and skipped; the
+sequence goes on with the next frame. ``exclusive=True`` (the ``predict`` command) also makes
+OUT a folder of one run (:class:`_OwnedFolder`): a marker ``OUT/.geonet-predict`` lists the
+files the run may write, a lock file keeps a second run out, and the next run removes exactly
+the listed files of the previous one before writing.
 """
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import json
+import os
 import platform
+import re
 import time
-from collections import defaultdict
-from collections.abc import Iterator
+from collections import Counter, defaultdict
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +49,11 @@ from geonet_infer.viz import depth_to_color, flow_to_color
 
 TASKS = ("depth", "pose", "flow")
 SUMMARY_NAME = "summary.json"
+MAX_BATCH_SIZE = 64  # frames per network batch; memory grows with it, speed does not past a few
+SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
+OUTPUT_MARKER = ".geonet-predict"  # JSON: the files the run that owns OUT may write
+OUTPUT_LOCK = ".geonet-predict.lock"  # the pid of the run writing into OUT now
+_POSE_FILES = ("poses_kitti.txt", "poses_tum.txt")
 
 
 def parse_tasks(text: str) -> tuple[str, ...]:
@@ -61,26 +74,40 @@ def output_path(out_dir: Path, subdir: str, name: str, suffix: str) -> Path:
 
 
 class _Frames:
-    """The source's good frames, in order; bad ones are recorded in ``failures`` and skipped."""
+    """The source's good frames, in order; bad ones are recorded in ``failures`` and skipped.
 
-    def __init__(self, source: FrameSource, progress):
-        self.source, self.progress = source, progress
+    The sequence's size is the one most of the first :data:`SIZE_VOTE_FRAMES` readable frames
+    have (ties: the earliest), so one odd frame at the start does not reject all the others.
+    ``on_size(width, height)`` is called once the size is known, before any frame is yielded.
+    """
+
+    def __init__(self, source: FrameSource, progress, on_size: Callable[[int, int], None] | None = None):
+        self.source, self.progress, self.on_size = source, progress, on_size
         self.names: list[str] = []
         self.failures: list[dict] = []
         self.size: tuple[int, int] | None = None
         self.skipped_before: dict[str, list[str]] = {}  # good frame -> bad frames right before it
 
     def __iter__(self) -> Iterator[np.ndarray]:
+        frames = iter(self.source)
+        head = list(itertools.islice(frames, SIZE_VOTE_FRAMES))
+        sizes = Counter(frame.rgb.shape[:2] for frame in head if frame.ok)
+        if sizes:
+            self.size = sizes.most_common(1)[0][0]  # Counter keeps first-seen order among equal counts
+            if self.on_size is not None:
+                self.on_size(self.size[1], self.size[0])
         pending_bad: list[str] = []
-        for frame in self.source:
+        for frame in itertools.chain(head, frames):
             self.progress.update(1)
             if frame.error is not None:
                 self.failures.append({"frame": frame.name, "reason": str(frame.error)})
                 pending_bad.append(frame.name)
                 continue
-            if self.size is None:
+            if self.size is None:  # no readable frame among the first ones
                 self.size = frame.rgb.shape[:2]
-            elif frame.rgb.shape[:2] != self.size:
+                if self.on_size is not None:
+                    self.on_size(self.size[1], self.size[0])
+            if frame.rgb.shape[:2] != self.size:
                 h, w = frame.rgb.shape[:2]
                 self.failures.append(
                     {"frame": frame.name, "reason": f"frame is {w}x{h}, the sequence is {self.size[1]}x{self.size[0]}"}
@@ -94,16 +121,155 @@ class _Frames:
             yield frame.rgb
 
 
+def _frame_files(name: str, tasks: tuple[str, ...], vis: bool) -> set[str]:
+    """The files (relative to OUT) a frame may get."""
+    files = set()
+    if "depth" in tasks:
+        files |= {f"depth/{name}.npy"} | ({f"depth/{name}.png"} if vis else set())
+    if "flow" in tasks:
+        files |= {f"flow/{name}.png"} | ({f"flow_vis/{name}.png"} if vis else set())
+    return files
+
+
+class _OwnedFolder:
+    """OUT as the folder of one predict run: lock, ownership marker, removal of the previous run's files.
+
+    * Lock: ``OUT/.geonet-predict.lock`` created with O_EXCL holds this pid and is removed at exit;
+      a lock whose pid is alive refuses the run, one whose process is gone (killed) is taken over.
+    * Ownership: a non-empty OUT without ``OUT/.geonet-predict`` is refused (its files are not ours).
+      With the marker, the files it lists (and temp files of an interrupted writer) are removed,
+      nothing else: files a user added to OUT stay.
+    * The marker is written before the first output and lists every file this run may write, so a
+      run that is killed still leaves a marker that covers all it wrote.
+    """
+
+    def __init__(self, out_dir: Path, files: set[str], input_path):
+        self.out_dir, self.files, self.input = out_dir, set(files), str(input_path)
+        self.lock = out_dir / OUTPUT_LOCK
+        self.marker = out_dir / OUTPUT_MARKER
+
+    def __enter__(self) -> _OwnedFolder:
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self._take_lock()
+        try:
+            self._clear_previous_run()
+            self._write_marker()
+        except BaseException:
+            self.lock.unlink(missing_ok=True)
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.lock.unlink(missing_ok=True)
+
+    def add(self, files: set[str]) -> None:
+        """Record more files before writing them (a video that decodes more frames than it lists)."""
+        if not files <= self.files:
+            self.files |= files
+            self._write_marker()
+
+    def _take_lock(self) -> None:
+        for _ in range(2):
+            try:
+                fd = os.open(self.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                pid = _lock_pid(self.lock)
+                if pid is None or _alive(pid):
+                    who = f"another geonet-infer predict (pid {pid})" if pid else "another geonet-infer predict"
+                    raise GeoNetInputError(
+                        self.out_dir,
+                        f"{who} is writing into this folder",
+                        f"wait for it or pick another --out (if none is running, delete {self.lock})",
+                    ) from None
+                self.lock.unlink(missing_ok=True)  # its process is gone (killed): a stale lock
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(f"{os.getpid()}\n")
+            return
+        raise GeoNetInputError(self.out_dir, "another geonet-infer predict took this folder", "pick another --out")
+
+    def _clear_previous_run(self) -> None:
+        others = [p for p in self.out_dir.iterdir() if p.name != OUTPUT_LOCK]
+        if not others:
+            return
+        if not self.marker.is_file():
+            raise GeoNetInputError(
+                self.out_dir,
+                "this folder is not empty and was not written by geonet-infer predict",
+                "pick another --out (predict never overwrites files it did not write)",
+            )
+        try:
+            previous = json.loads(self.marker.read_text())["files"]
+            assert isinstance(previous, list) and all(isinstance(f, str) for f in previous)
+        except (ValueError, KeyError, TypeError, AssertionError):
+            raise GeoNetInputError(
+                self.marker, "unreadable ownership marker", "pick another --out, or delete the folder yourself"
+            ) from None
+        root = self.out_dir.resolve()
+        for rel in previous:
+            path = self.out_dir / rel
+            if Path(rel).is_absolute() or ".." in Path(rel).parts or root not in path.resolve().parents:
+                continue  # a marker never lists such a path; an edited one cannot make us delete elsewhere
+            if path.is_file() or path.is_symlink():
+                path.unlink()
+            # temp files of the atomic writer of a run that was killed while writing this file
+            temp = re.compile(rf"\.{re.escape(path.stem)}\.[a-z0-9_]{{8}}{re.escape(path.suffix or '.tmp')}")
+            if path.parent.is_dir():
+                for leftover in path.parent.iterdir():
+                    if temp.fullmatch(leftover.name) and leftover.is_file():
+                        leftover.unlink()
+        for sub in ("depth", "flow", "flow_vis"):
+            with contextlib.suppress(OSError):  # only when empty: a user's file there keeps it
+                (self.out_dir / sub).rmdir()
+
+    def _write_marker(self) -> None:
+        marker = {"written_by": "geonet-infer predict", "version": __version__, "input": self.input}
+        marker["files"] = sorted(self.files)
+        with atomic_write(self.marker) as tmp:
+            tmp.write_text(json.dumps(marker) + "\n")
+
+
+def _lock_pid(lock: Path) -> int | None:
+    with contextlib.suppress(OSError, ValueError):
+        return int(lock.read_text().strip())
+    return None  # empty: its writer is between creating and filling it
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _non_finite(result: FrameResult, tasks: tuple[str, ...]) -> str | None:
+    """The first output of ``result`` that would be written and holds NaN or inf, or None."""
+    checks = (
+        ("depth", "depth" in tasks, result.depth),
+        ("flow", "flow" in tasks and result.flow is not None, result.flow),
+        ("pose", "pose" in tasks, result.camera_to_world),
+    )
+    for what, written, value in checks:
+        if written and not np.isfinite(value).all():
+            return what
+    return None
+
+
 def predict_to_dir(
     predictor: Predictor,
     source: FrameSource,
     out_dir: str | Path,
     camera: Camera | None = None,
-    tasks: tuple[str, ...] = TASKS,
+    tasks: tuple[str, ...] | None = TASKS,
     batch_size: int = 4,
     progress: bool = True,
     camera_height: float | None = None,
     vis: bool = True,
+    exclusive: bool = False,
+    extra_outputs: tuple[str, ...] = (),
 ) -> dict:
     """Predict every frame of ``source`` into ``out_dir`` (layout in the module docstring).
 
@@ -111,21 +277,27 @@ def predict_to_dir(
         predictor: a loaded :class:`~geonet_infer.predictor.Predictor`.
         source: frames from :func:`geonet_infer.io.frames.open_frames`.
         camera: intrinsics (and distortion) of the frames; required for "flow".
-        tasks: any of "depth", "pose", "flow".
+        tasks: any of "depth", "pose", "flow" (each needs its graphs, else GeoNetInputError before
+            anything is written); None: all the model can do, the others in ``skipped_tasks``.
         camera_height: metres above a flat road: metric depth and pose translations
             (:mod:`geonet_infer.scale`; needs ``camera``).
         vis: also write the depth colour maps and flow colour wheels (PNG encoding of
             pictures is most of the write time; fleets that only need the data skip it).
+        exclusive: own ``out_dir`` for this run (:class:`_OwnedFolder`): refuse a non-empty folder
+            predict did not write or one another predict is writing, remove the previous run's files.
+        extra_outputs: more files (relative to ``out_dir``) the caller writes there, recorded as
+            this run's (``exclusive`` only).
     Returns:
-        The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad frames.
+        The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad
+        frames (unreadable, odd size, NaN/inf output, or missing from a truncated video).
     Raises:
         GeoNetInputError for unusable input (no intrinsics for flow, fewer than 2 good frames
-        for pose/flow, no readable frame at all).
+        for pose/flow, no readable frame at all, intrinsics that do not fit the frames' size).
+        KeyboardInterrupt (Ctrl-C, or SIGTERM where the caller maps it) after writing a summary
+        with ``"interrupted": true`` for the frames written so far; no temp file is left.
     """
-    from tqdm import tqdm
-
     out_dir = Path(out_dir)
-    tasks = tuple(t for t in TASKS if t in tasks)
+    tasks, skipped_tasks = predictor.resolve_tasks(tasks, metric=camera_height is not None)  # None: all it can
     if "flow" in tasks and camera is None:
         raise GeoNetInputError(
             source.path,
@@ -133,14 +305,48 @@ def predict_to_dir(
             "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
         )
     check_metric_request(camera_height, camera, source.path)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if not exclusive:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        return _predict(
+            predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis, None, skipped_tasks
+        )
+    names = source.frame_names if source.frame_names is not None else [f"{i:06d}" for i in range(len(source))]
+    files = {SUMMARY_NAME, *extra_outputs, *(_POSE_FILES if "pose" in tasks else ())}
+    files |= set().union(*(_frame_files(name, tasks, vis) for name in names))
+    with _OwnedFolder(out_dir, files, source.path) as owned:
+        return _predict(
+            predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis, owned, skipped_tasks
+        )
+
+
+def _predict(
+    predictor: Predictor,
+    source: FrameSource,
+    out_dir: Path,
+    camera: Camera | None,
+    tasks: tuple[str, ...],
+    batch_size: int,
+    progress: bool,
+    camera_height: float | None,
+    vis: bool,
+    owned: _OwnedFolder | None,
+    skipped_tasks: dict[str, tuple[str, ...]],
+) -> dict:
+    from tqdm import tqdm
+
     started = time.perf_counter()
     totals: dict[str, float] = defaultdict(float)
     poses: list[np.ndarray] = []
     done = 0
     scales: list[float] = []
+    interrupted = False
+
+    def check_camera(width: int, height: int) -> None:
+        if camera is not None:
+            camera.scaled_to(width, height).check_image_size(width, height, camera.source or None)
+
     bar = tqdm(total=len(source) or None, unit="frame", desc=source.name, disable=not progress, leave=False)
-    frames = _Frames(source, bar)
+    frames = _Frames(source, bar, check_camera)
     try:
         if tasks == ("depth",):
             results = _depth_only(predictor, frames, camera, batch_size)
@@ -152,11 +358,17 @@ def predict_to_dir(
                 camera,
                 batch_size=batch_size,
                 names=frames.names,
-                with_flow="flow" in tasks,
+                tasks=tasks,
                 camera_height=camera_height,
             )
         for result in results:
+            bad = _non_finite(result, tasks)
+            if bad is not None:
+                frames.failures.append({"frame": result.name, "reason": f"model produced NaN/inf {bad}"})
+                continue
             t0 = time.perf_counter()
+            if owned is not None:
+                owned.add(_frame_files(result.name, tasks, vis))
             _write_frame(out_dir, result, tasks, vis)
             totals["write"] += (time.perf_counter() - t0) * 1e3
             poses.append(result.camera_to_world)
@@ -166,6 +378,8 @@ def predict_to_dir(
                 totals[stage] += ms
             done += 1
             bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: a summary of what was written, then stop
+        interrupted = True
     except GeoNetInputError as exc:
         if done == 0 and frames.size is None:
             raise GeoNetInputError(
@@ -174,12 +388,16 @@ def predict_to_dir(
         raise
     finally:
         bar.close()
+    truncated = None if interrupted else getattr(source, "truncated", None)
+    if truncated:
+        reason = f"{source.path}: video truncated: {truncated}"
+        frames.failures += [{"frame": name, "reason": reason} for name in getattr(source, "missing", ())]
     totals["total"] += totals["write"]
     if "pose" in tasks and poses:
         fps = getattr(source, "fps", None)
         stamps = np.arange(len(poses)) / fps if fps else np.arange(len(poses), dtype=np.float64)
-        write_kitti_poses(out_dir / "poses_kitti.txt", np.stack(poses))
-        write_tum_poses(out_dir / "poses_tum.txt", stamps, np.stack(poses))
+        write_kitti_poses(out_dir / _POSE_FILES[0], np.stack(poses))
+        write_tum_poses(out_dir / _POSE_FILES[1], stamps, np.stack(poses))
     elapsed = time.perf_counter() - started
     summary = {
         "input": {
@@ -192,7 +410,10 @@ def predict_to_dir(
         "failed": len(frames.failures),
         "failures": frames.failures,
         "gaps": [{"frame": k, "skipped_before": v} for k, v in frames.skipped_before.items()],
+        "interrupted": interrupted,
+        "truncated": truncated,
         "tasks": list(tasks),
+        "skipped_tasks": {task: list(graphs) for task, graphs in skipped_tasks.items()},  # tasks=None only
         "outputs": _outputs(tasks, vis),
         "model": {
             "dir": str(predictor.model_dir),
@@ -228,6 +449,8 @@ def predict_to_dir(
     }
     with atomic_write(out_dir / SUMMARY_NAME) as tmp:
         tmp.write_text(json.dumps(summary, indent=2) + "\n")
+    if interrupted:
+        raise KeyboardInterrupt
     return summary
 
 
@@ -276,11 +499,24 @@ def _depth_only(predictor: Predictor, frames: _Frames, camera: Camera | None, ba
 
 
 def _write_frame(out_dir: Path, result: FrameResult, tasks: tuple[str, ...], vis: bool = True) -> None:
+    """All files of one frame, or none: an interrupt or a failed write removes the ones already written."""
+    writes = []
     if "depth" in tasks:
-        save_npy_atomic(output_path(out_dir, "depth", result.name, ".npy"), result.depth)
+        writes.append((output_path(out_dir, "depth", result.name, ".npy"), lambda p: save_npy_atomic(p, result.depth)))
         if vis:
-            write_image(output_path(out_dir, "depth", result.name, ".png"), depth_to_color(result.depth))
+            path = output_path(out_dir, "depth", result.name, ".png")
+            writes.append((path, lambda p: write_image(p, depth_to_color(result.depth))))
     if "flow" in tasks and result.flow is not None:
-        write_flow_kitti(output_path(out_dir, "flow", result.name, ".png"), result.flow)
+        writes.append((output_path(out_dir, "flow", result.name, ".png"), lambda p: write_flow_kitti(p, result.flow)))
         if vis:
-            write_image(output_path(out_dir, "flow_vis", result.name, ".png"), flow_to_color(result.flow))
+            path = output_path(out_dir, "flow_vis", result.name, ".png")
+            writes.append((path, lambda p: write_image(p, flow_to_color(result.flow))))
+    written: list[Path] = []
+    try:
+        for path, write in writes:
+            write(path)
+            written.append(path)
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise

@@ -30,7 +30,7 @@ from geonet_infer.engines import BACKENDS, Engine, make_engine, pick_fastest
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.images import read_image
-from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, Manifest, load_manifest
+from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, Manifest, check_graph_io, load_manifest
 from geonet_infer.metrics import rigid_inverse
 from geonet_infer.models import resolve_model
 from geonet_infer.preprocess import (
@@ -49,6 +49,23 @@ ImageLike = np.ndarray | str | Path
 Intrinsics = np.ndarray | Sequence[Sequence[float]] | Camera
 # "write" is filled in by pipeline.predict_to_dir (saving outputs), not by the Predictor.
 STAGES = ("read", "preprocess", "depthnet", "posenet", "rigidflow", "resflownet", "postprocess", "write")
+TASKS = ("depth", "pose", "flow")
+# The graphs each task needs. A model directory may hold only some (a converted depth or pose
+# release, `python -m export --graphs`). "flow" is GeoNet's full flow; the API's flow methods
+# also run on RIGID_FLOW_GRAPHS alone and then return the rigid flow (residual None).
+TASK_GRAPHS = {
+    "depth": ("depthnet",),
+    "pose": ("posenet",),
+    "flow": ("depthnet", "posenet", "rigidflow", "resflownet"),
+}
+RIGID_FLOW_GRAPHS = ("depthnet", "posenet", "rigidflow")
+METRIC_TASK = "metric scale (camera height)"  # fits the ground to depth: needs DepthNet
+
+
+def missing_graphs(task: str, graphs: Iterable[str]) -> tuple[str, ...]:
+    """The graphs ``task`` needs that are not among ``graphs`` (empty: the task can run)."""
+    present = set(graphs)
+    return tuple(g for g in TASK_GRAPHS[task] if g not in present)
 
 
 # ----------------------------------------------------------------------------- results
@@ -103,11 +120,12 @@ class FlowResult:
 class FrameResult:
     """One frame of :meth:`Predictor.iter_sequence`.
 
-    depth, disparity: (H, W) float32 at the input resolution.
+    depth, disparity: (H, W) float32 at the input resolution (None when "depth" was not asked for
+    and nothing else needed it).
     camera_to_world: (4, 4) this frame's pose in the first frame's camera coordinates
     (first frame = identity; translation up to the model's unknown scale, or metres with
     ``camera_height``: each pair's translation takes its target frame's ``metric_scale``).
-    pose_to_next: (4, 4) target -> next-frame transform (None for the last frame).
+    pose_to_next: (4, 4) target -> next-frame transform (None for the last frame, or without "pose").
     flow, rigid_flow, residual_flow: (H, W, 2) flow to the next frame (None for the last
     frame; residual None for a model without ResFlowNet).
     timings_ms: this frame's share of each stage (batched stages divided evenly).
@@ -115,8 +133,8 @@ class FrameResult:
 
     index: int
     name: str
-    depth: np.ndarray
-    disparity: np.ndarray
+    depth: np.ndarray | None
+    disparity: np.ndarray | None
     camera_to_world: np.ndarray
     pose_to_next: np.ndarray | None
     pose_vector_to_next: np.ndarray | None
@@ -291,6 +309,7 @@ class Predictor:
                 self._engines[name], self.backend_choice[name] = pick_fastest(path, self.threads)
             else:
                 self._engines[name] = make_engine(path, backend, self.threads)
+            check_graph_io(self.manifest.graph(name, precision), path, *self._engines[name].io())
 
     @property
     def engines(self) -> dict[str, str]:
@@ -307,6 +326,62 @@ class Predictor:
     def has_flow(self) -> bool:
         """Whether the model has ResFlowNet (else flow = rigid flow)."""
         return "resflownet" in self._engines
+
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        """The tasks this model's graphs can do, of "depth", "pose", "flow" (see ``TASK_GRAPHS``)."""
+        return tuple(t for t in TASKS if not self.missing_graphs(t))
+
+    def missing_graphs(self, task: str) -> tuple[str, ...]:
+        """The graphs ``task`` needs that this model (at its precision) lacks."""
+        return missing_graphs(task, self._engines)
+
+    def require_tasks(self, tasks: Iterable[str]) -> None:
+        """Raise GeoNetInputError (one line naming the graph and this directory) unless every task can run."""
+        tasks = list(tasks)
+        unknown = [t for t in tasks if t not in TASKS]
+        if unknown:
+            raise GeoNetInputError(None, f"unknown task(s) {unknown}", f"choose from {','.join(TASKS)}")
+        for task in tasks:
+            self._require_graphs(task, TASK_GRAPHS[task])
+
+    def resolve_tasks(
+        self, tasks: Iterable[str] | None = None, *, metric: bool = False
+    ) -> tuple[tuple[str, ...], dict[str, tuple[str, ...]]]:
+        """(tasks to run in canonical order, {task skipped: the graphs it lacks}).
+
+        ``tasks=None``: every task this model can do, the others skipped; given tasks are all
+        required (:meth:`require_tasks`) and none is skipped. ``metric``: a camera height will
+        be given (it needs DepthNet whatever the tasks).
+        """
+        if metric:
+            self._require_graphs(METRIC_TASK, TASK_GRAPHS["depth"])
+        if tasks is not None:
+            self.require_tasks(tasks)
+            return tuple(t for t in TASKS if t in tasks), {}
+        skipped = {t: self.missing_graphs(t) for t in TASKS if self.missing_graphs(t)}
+        if len(skipped) == len(TASKS):
+            raise GeoNetInputError(
+                self.model_dir,
+                f"this model can do none of {', '.join(TASKS)} (it holds {', '.join(self._engines)})",
+                "export depthnet or posenet into it with `python -m export --graphs`",
+            )
+        return self.tasks, skipped
+
+    def _require_graphs(self, task: str, graphs: Iterable[str]) -> None:
+        missing = [g for g in graphs if g not in self._engines]
+        if not missing:
+            return
+        leave = f"leave {task} out of the tasks" if task in TASKS else "drop the camera height"
+        hint = f"{leave}, or use a model directory that holds {', '.join(missing)}"
+        if "resflownet" in missing:
+            hint += " (exported from a stage 'flow' checkpoint or the released geonet_resflownet)"
+        raise GeoNetInputError(
+            self.model_dir,
+            f"{'task ' if task in TASKS else ''}{task} needs the {' and '.join(missing)} "
+            f"graph{'s' if len(missing) > 1 else ''}, which this model lacks (it holds {', '.join(self._engines)})",
+            hint + f"; `geonet-infer info --model {self.model_dir}` lists what a model can do",
+        )
 
     @property
     def seq_length(self) -> int:
@@ -407,6 +482,7 @@ class Predictor:
         Returns:
             DepthResult (a list for a list input) at each image's own resolution.
         """
+        self._require_graphs("depth", TASK_GRAPHS["depth"])
         single = not isinstance(image, (list, tuple))
         images = [image] if single else list(image)
         if not images:
@@ -444,6 +520,7 @@ class Predictor:
         A pair [t, t+1] is padded to a snippet as at a sequence start (see
         ``preprocess.snippet_indices``). ``camera`` only matters for undistortion.
         """
+        self._require_graphs("pose", TASK_GRAPHS["pose"])
         timer = _Timer()
         frames = self._snippet_frames(frames)
         rgbs, cam, _ = self._load_frames(frames, camera, timer, "snippet")
@@ -463,7 +540,9 @@ class Predictor:
             frames: ``seq_length`` consecutive frames (target in the middle), or a
                 pair [t, t+1] (padded as at a sequence start).
             K: (3, 3) intrinsics at the frames' resolution, or a Camera.
+        Needs the depthnet, posenet and rigidflow graphs; without resflownet, flow = rigid flow.
         """
+        self._require_graphs("flow", RIGID_FLOW_GRAPHS)
         timer = _Timer()
         frames = self._snippet_frames(frames)
         rgbs, cam, size = self._load_frames(frames, K, timer, "snippet")
@@ -489,6 +568,7 @@ class Predictor:
         ``frames``: a snippet (any size; resized like every other call); ``source_index`` counts
         sources in temporal order without the target (None = the frame after the target).
         """
+        self._require_graphs("flow", RIGID_FLOW_GRAPHS)  # builds ResFlowNet's input, does not run it
         frames = self._snippet_frames(frames)
         timer = _Timer()
         rgbs, cam, size = self._load_frames(frames, K, timer, "snippet")
@@ -515,7 +595,7 @@ class Predictor:
         ``targets[b]`` is the target's index in snippet b; the source is the frame after it
         unless ``source_position`` (index among the sources) is given. ``disparity``
         (B, h, w) of the targets can be passed to reuse depth computed elsewhere.
-        ``with_flow=False`` stops after PoseNet.
+        ``with_flow=False`` stops after PoseNet (and then needs no DepthNet).
         """
         B, L = snippets.shape[:2]
         rows = np.arange(B)
@@ -523,7 +603,7 @@ class Predictor:
         order = [[t] + [i for i in range(L) if i != t] for t in targets]
         src_pos = next_source_position(L) if source_position is None else source_position
         source = snippets[rows, [o[1 + src_pos] for o in order]]
-        if disparity is None:
+        if disparity is None and with_flow:
             with timer.stage("depthnet"):
                 disparity = self._run("depthnet", image=target)["disparity"][:, 0]
         with timer.stage("posenet"):
@@ -567,6 +647,7 @@ class Predictor:
         names: Sequence[str] | None = None,
         with_flow: bool = True,
         camera_height: float | None = None,
+        tasks: Iterable[str] = TASKS,
     ) -> Iterator[FrameResult]:
         """Stream a whole sequence: yields one :class:`FrameResult` per frame, in order.
 
@@ -577,17 +658,28 @@ class Predictor:
         frame has depth and a pose but no flow. Poses are chained into one
         trajectory: camera_to_world[t + 1] = camera_to_world[t] @ inv(T_t->t+1).
         Frames are read lazily (an iterator of frames or paths is fine).
-        ``with_flow=False`` skips the rigid-flow op and ResFlowNet (depth and poses
-        only; K may then be None, or a Camera used only to undistort).
-        ``camera_height`` (metres, needs K) makes each frame's depth and its pose
+        ``tasks``: any of "depth", "pose", "flow"; a task left out is not computed (its
+        fields are None; without "pose" every camera_to_world is the identity), so a model
+        lacking a graph runs the tasks it has. "flow" needs depthnet, posenet and rigidflow
+        (without resflownet, flow = rigid flow). ``with_flow=False`` drops "flow" (depth and
+        poses only; K may then be None, or a Camera used only to undistort).
+        ``camera_height`` (metres, needs K and depthnet) makes each frame's depth and its pose
         translation metric (:func:`metric_frames`: a frame whose road is hidden takes the
         previous frame's scale, frames before the first fit the first fit's).
+        A missing graph or a bad request raises here, before any frame is read.
         """
+        tasks = tuple(tasks)
+        self.require_tasks(t for t in tasks if t != "flow")
+        tasks = tuple(t for t in TASKS if t in tasks and (with_flow or t != "flow"))
+        if "flow" in tasks:
+            self._require_graphs("flow", RIGID_FLOW_GRAPHS)
+        if camera_height is not None:
+            self._require_graphs(METRIC_TASK, TASK_GRAPHS["depth"])
         check_metric_request(camera_height, K)
-        results = self._iter_relative(frames, K, batch_size, names, with_flow)
+        results = self._iter_relative(frames, K, batch_size, names, tasks, camera_height is not None)
         if camera_height is not None:
             results = metric_frames(results, camera_height, lambda size: self._camera(K, size).K)
-        yield from results
+        return results
 
     def _iter_relative(
         self,
@@ -595,11 +687,15 @@ class Predictor:
         K: Intrinsics | None,
         batch_size: int,
         names: Sequence[str] | None,
-        with_flow: bool,
+        tasks: tuple[str, ...],
+        need_depth: bool = False,
     ) -> Iterator[FrameResult]:
-        """:meth:`iter_sequence` in the model's own (relative) scale."""
+        """:meth:`iter_sequence` in the model's own (relative) scale, for checked ``tasks``."""
         if batch_size < 1:
             raise GeoNetInputError(None, f"batch_size must be >= 1, got {batch_size}")
+        with_flow = "flow" in tasks
+        run_depth = need_depth or "depth" in tasks or with_flow
+        run_pose = "pose" in tasks or with_flow
         L = self.seq_length
         k = L // 2
         source = iter(frames)
@@ -650,9 +746,12 @@ class Predictor:
             last = n_read - 1 if exhausted else n_read - 1 - k
             batch = list(range(t0, min(t0 + batch_size, last + 1)))
             # Frames with a next frame get pose + flow; every frame gets depth.
-            paired = [t for t in batch if t + 1 < n_read]
-            with timer.stage("depthnet"):
-                disparity = self._run("depthnet", image=np.stack([prepared[t] for t in batch]))["disparity"][:, 0]
+            paired = [t for t in batch if t + 1 < n_read] if run_pose else []
+            disparity = None
+            if run_depth:
+                with timer.stage("depthnet"):
+                    images = np.stack([prepared[t] for t in batch])
+                    disparity = self._run("depthnet", image=images)["disparity"][:, 0]
             parts = {}
             if paired:
                 windows = [[min(max(i, 0), n_read - 1) for i in range(t - k, t + k + 1)] for t in paired]
@@ -663,13 +762,13 @@ class Predictor:
                     camera.K if camera else None,
                     size,
                     timer,
-                    disparity=disparity[: len(paired)],
+                    disparity=None if disparity is None else disparity[: len(paired)],
                     with_flow=with_flow,
                 )
             results = []
             with timer.stage("postprocess"):
                 for j, t in enumerate(batch):
-                    depth, disp = disparity_to_input(disparity[j], size)
+                    depth, disp = (None, None) if disparity is None else disparity_to_input(disparity[j], size)
                     flows = (
                         self._flows_to_input(parts, j, size)
                         if t in paired and with_flow

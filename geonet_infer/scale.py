@@ -21,6 +21,8 @@ import numpy as np
 
 from geonet_infer.errors import GeoNetInputError
 
+MAX_CAMERA_HEIGHT_M = 100.0  # above a road; more is a unit mix-up (mm, cm) and gives depth in kilometres
+
 
 @dataclass
 class GroundFit:
@@ -163,9 +165,11 @@ def check_metric_request(camera_height_m: float | None, camera, where=None) -> N
 
 
 def check_camera_height(camera_height_m) -> None:
-    if not isinstance(camera_height_m, (int, float)) or not np.isfinite(camera_height_m) or camera_height_m <= 0:
+    ok = isinstance(camera_height_m, (int, float)) and np.isfinite(camera_height_m)
+    if not (ok and 0 < camera_height_m <= MAX_CAMERA_HEIGHT_M):
         raise GeoNetInputError(
             None,
-            f"camera height must be a positive number of metres, got {camera_height_m!r}",
+            f"camera height (--camera-height / camera_height) must be a positive number of metres, "
+            f"at most {MAX_CAMERA_HEIGHT_M:g}, got {camera_height_m!r}",
             "e.g. 1.65 for KITTI's colour cameras",
         )

@@ -22,8 +22,9 @@ from pathlib import Path
 import pytest
 
 import geonet_infer
-from geonet_infer.batch import FAILURES_NAME, MARKER_NAME, plan_units, plan_workers
+from geonet_infer.batch import FAILURES_NAME, MARKER_NAME, OWNER_NAME, plan_units, plan_workers
 from geonet_infer.cli import main
+from geonet_infer.pipeline import OUTPUT_MARKER
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 SAMPLE = PKG / "samples" / "synth_seq"
@@ -47,7 +48,7 @@ def make_sequences(root: Path, names, n_frames: int) -> list[Path]:
     return out
 
 
-def tree(folder: Path, skip=("summary.json", MARKER_NAME)) -> dict[str, bytes]:
+def tree(folder: Path, skip=("summary.json", MARKER_NAME, OWNER_NAME, OUTPUT_MARKER)) -> dict[str, bytes]:
     """Relative path -> bytes of every file under ``folder`` whose name is not in ``skip``."""
     return {
         str(p.relative_to(folder)): p.read_bytes()
@@ -56,11 +57,19 @@ def tree(folder: Path, skip=("summary.json", MARKER_NAME)) -> dict[str, bytes]:
     }
 
 
+def done_record(folder: Path) -> dict:
+    """A sequence's .done without the hash of its summary.json (which holds timings)."""
+    record = json.loads((folder / MARKER_NAME).read_text())
+    record["outputs"].pop("summary.json")
+    return record
+
+
 def assert_complete_and_clean(out: Path, names) -> None:
-    """Every sequence has its .done; no temporary file anywhere (only .done and the job's .lock are hidden)."""
+    """Every sequence has its .done; no temporary file anywhere (only .done, the ownership markers and
+    the job's .lock are hidden)."""
     for name in names:
         assert (out / name / MARKER_NAME).is_file(), name
-    hidden = [p for p in out.rglob(".*") if p.name != MARKER_NAME and p != out / ".lock"]
+    hidden = [p for p in out.rglob(".*") if p.name not in (MARKER_NAME, OWNER_NAME) and p != out / ".lock"]
     assert hidden == []
 
 
@@ -260,8 +269,10 @@ def test_killed_job_resumes_to_identical_outputs(tmp_path, capfd, how):
         # the workers die with the job: nothing keeps writing into OUT while --resume runs
         assert _wait_for(lambda: not any(_alive(w) for w in workers), 30), "orphan workers"
         # and a partial folder (as after a power cut) is redone: plant one with a stray temp file
+        # (with batch's ownership marker, which it writes before anything else)
         partial = out / names[-1]
         (partial / "depth").mkdir(parents=True, exist_ok=True)
+        (partial / OWNER_NAME).write_text("{}\n")
         (partial / "depth" / "000000.npy").write_bytes(b"half")
         (partial / "depth" / ".000001.abc123.npy").write_bytes(b"tmp")
 
@@ -270,7 +281,8 @@ def test_killed_job_resumes_to_identical_outputs(tmp_path, capfd, how):
     assert f"{len(done)} skipped" in stdout
     assert_complete_and_clean(out, names)
     for name in names:
-        assert tree(out / name, skip=("summary.json",)) == tree(ref / name, skip=("summary.json",)), name
+        assert tree(out / name) == tree(ref / name), name
+        assert done_record(out / name) == done_record(ref / name), name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["sequences"]["skipped"] == len(done) and summary["sequences"]["done"] == len(names) - len(done)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import gc
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -71,12 +72,10 @@ def run_cli(capsys, *argv) -> tuple[int, str, str]:
 
 
 def model_copy(tmp_path: Path, edit=None) -> Path:
-    """The bundled model in tmp_path (graph files symlinked), its manifest passed through ``edit``."""
+    """The bundled model copied into tmp_path (graphs linked from outside it are refused), its manifest
+    passed through ``edit``."""
     out = tmp_path / "model"
-    out.mkdir()
-    for f in MODEL_DIR.iterdir():
-        if f.name != "manifest.json":
-            (out / f.name).symlink_to(f)
+    shutil.copytree(MODEL_DIR, out)
     manifest = json.loads((MODEL_DIR / "manifest.json").read_text())
     if edit is not None:
         edit(manifest)

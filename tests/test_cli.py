@@ -22,7 +22,7 @@ import geonet_infer
 from geonet_infer import GeoNetInputError
 from geonet_infer.cli import main
 from geonet_infer.io import read_camera, read_flow_kitti, read_kitti_poses, read_tum_poses
-from geonet_infer.pipeline import output_path
+from geonet_infer.pipeline import OUTPUT_MARKER, output_path
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 SAMPLE = PKG / "samples" / "synth_seq"
@@ -51,7 +51,8 @@ def stems(folder: Path, pattern: str) -> list[str]:
 
 
 def hidden_files(root: Path) -> list[Path]:
-    return [p for p in root.rglob("*") if p.name.startswith(".")]
+    """Temp files of the atomic writer or a left lock: hidden files other than predict's ownership marker."""
+    return [p for p in root.rglob("*") if p.name.startswith(".") and p.name != OUTPUT_MARKER]
 
 
 def run_cli(capture, *argv) -> tuple[int, str, str]:

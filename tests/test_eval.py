@@ -387,7 +387,7 @@ def test_camera_height_bad_input(tmp_path, capsys):
     seq = make_road(tmp_path)
     base = ["eval", "depth", "--data", str(tmp_path), "--method", "constant"]
     assert cli_main([*base, "--camera-height", "0"]) == 2
-    assert "camera height must be a positive number" in capsys.readouterr().err
+    assert "must be a positive number of metres" in capsys.readouterr().err
     assert cli_main([*base, "--camera-height", "1.5", "--no-median-scaling"]) == 2  # one scaling at a time
     assert "not allowed with argument --camera-height" in capsys.readouterr().err
     assert cli_main(["eval", "flow", "--data", str(tmp_path), "--method", "zero", "--camera-height", "1.5"]) == 2

@@ -9,7 +9,7 @@ import sys
 import threading
 from pathlib import Path
 
-from geonet_infer.batch import ENGINES, FAILURES_NAME, MARKER_NAME, needs_own_calib, run_batch
+from geonet_infer.batch import ENGINES, FAILURES_NAME, MARKER_NAME, OWNER_NAME, needs_own_calib, run_batch
 from geonet_infer.cli.common import add_camera_args, add_model_args, camera_from_args, positive_int
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks
@@ -24,21 +24,26 @@ relative paths are relative to the list file's folder). Each sequence gets
 `geonet-infer predict`'s layout in OUT/<sequence>/ (sequence = folder name, video
 stem or drive name; inputs sharing a name become <name>__<parent folder>).
 
-Next to the sequences:
-  {"OUT/<sequence>/" + MARKER_NAME:<22} written last: the sequence is complete
+OUT must be new, empty, or made by an earlier batch (marked by OUT/{OWNER_NAME}),
+and must not be, hold or be inside an input; batch only ever deletes or replaces
+sequence folders it made. Next to the sequences:
+  {"OUT/<sequence>/" + MARKER_NAME:<22} written last: the sequence is complete (with each
+  {"":<22} output's size and sha256 and the inputs' sizes and times)
   {"OUT/" + FAILURES_NAME:<22} one JSON object a line: sequence, input, frame (null = whole
   {"":<22} sequence), reason; a failure never stops the job
   {"OUT/" + SUMMARY_NAME:<22} sequences done/failed/skipped, frames, frames/s, engine, workers
 
 Every file is written to a temporary name and renamed. After a crash, Ctrl-C or a
-kill, run the same command with --resume: complete sequences are skipped, the
-others are redone. Exit codes: 0 all good, 1 something failed (see {FAILURES_NAME}),
-2 bad usage (one line on stderr), 130 interrupted.
+kill, run the same command with --resume: complete sequences whose outputs and
+inputs are as recorded are skipped, the others are redone. Exit codes: 0 all good,
+1 something failed (see {FAILURES_NAME}), 2 bad usage (one line on stderr), 3 the
+system refused a write into OUT (disk full, read-only), 130 interrupted (Ctrl-C, SIGTERM).
 
 Engines:
   local  a process pool on this machine; each worker loads the models once. By
          default workers x threads-per-worker = the usable CPUs ({usable_cpus()} here):
-         one worker per CPU, at most one per sequence.
+         one worker per CPU, at most one per sequence. --workers is capped at the
+         usable CPUs and at what the available memory holds (with a warning).
   ray    Ray Data (pip install 'geonet-infer[ray]'): an actor pool, one predictor per
          actor (num_cpus = threads per worker), sized so that actors never ask for more
          CPUs than the cluster has. Starts a local cluster, or joins --ray-address
@@ -66,7 +71,9 @@ def add_parser(sub) -> None:
         metavar="INPUTS",
         help="sequence folders, videos, KITTI drives, or .txt files listing them",
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    parser.add_argument(
+        "--out", type=Path, required=True, help="output folder (created; or empty, or made by an earlier batch)"
+    )
     run = parser.add_argument_group("workers")
     run.add_argument(
         "--engine", choices=ENGINES, default="local", help="local process pool or Ray Data (default: local)"
@@ -75,7 +82,8 @@ def add_parser(sub) -> None:
         "--workers",
         type=positive_int,
         default=None,
-        help="worker processes / Ray actors (default: usable CPUs / threads, at most one per sequence)",
+        help="worker processes / Ray actors (default: usable CPUs / threads, at most one per sequence; "
+        "capped at the usable CPUs and by memory)",
     )
     run.add_argument(
         "--threads-per-worker",
@@ -91,7 +99,9 @@ def add_parser(sub) -> None:
         help="join this Ray cluster (e.g. auto, HOST:6379, ray://HOST:10001); default: start a local one",
     )
     run.add_argument(
-        "--resume", action="store_true", help="skip the sequences OUT already has complete; redo the others"
+        "--resume",
+        action="store_true",
+        help="skip the sequences OUT already has complete (outputs and inputs as recorded); redo the others",
     )
     add_model_args(parser, threads=False)
     add_camera_args(parser)
@@ -159,8 +169,10 @@ def run_command(args: argparse.Namespace) -> int:
             with contextlib.suppress(Exception):
                 signal.signal(signal.SIGTERM, previous)
     seqs = summary["sequences"]
+    redone = f", {len(summary['redone'])} redone (changed since their run)" if summary["resume"] else ""
     print(
-        f"{seqs['done']} sequences done, {seqs['failed']} failed, {seqs['skipped']} skipped (complete already); "
+        f"{seqs['done']} sequences done, {seqs['failed']} failed, {seqs['skipped']} skipped (complete already)"
+        f"{redone}; "
         f"{summary['frames']} frames, {summary['frames_per_s']:.1f} frames/s "
         f"({summary['engine']}: {summary['workers']} workers x {summary['threads_per_worker']} threads) "
         f"-> {args.out}; details in {args.out / SUMMARY_NAME}"

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +17,7 @@ from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.manifest import PRECISIONS
 from geonet_infer.models import DEFAULT_MODEL
 from geonet_infer.predictor import STAGES, Predictor, load
+from geonet_infer.session import usable_cpus
 
 
 def positive_int(text: str) -> int:
@@ -58,6 +63,15 @@ def add_model_args(parser: argparse.ArgumentParser, threads: bool = True) -> Non
 
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
+    """The predictor the model options ask for; more --threads than usable CPUs is refused."""
+    cpus = usable_cpus()
+    if getattr(args, "threads", None) is not None and args.threads > cpus:
+        # oversubscribed onnxruntime pools spin against each other: --threads 5000 ran 300 s for 6 frames
+        raise GeoNetInputError(
+            None,
+            f"--threads {args.threads} is more than the {cpus} CPUs this process may use",
+            f"pass --threads {cpus} or fewer (or leave it out: the default is {cpus})",
+        )
     return load(args.model, precision=args.precision, threads=args.threads, backend=args.backend)
 
 
@@ -107,3 +121,25 @@ def stage_table(per_frame_ms: dict[str, float], frames: int) -> str:
     lines = [f"per-frame latency (mean over {frames} frames)", f"  {'stage':<{width}}  {'ms':>8}"]
     lines += [f"  {s:<{width}}  {ms:8.2f}" for s, ms in rows]
     return "\n".join(lines)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (a scheduler or ``kill`` stopping the job) handled like Ctrl-C inside the block.
+
+    The KeyboardInterrupt unwinds through the writers (temp files removed), ``predict_to_dir``
+    writes its summary with ``"interrupted": true`` and ``main()`` exits 130 with one line.
+    Signal handlers can only be set from the main thread; elsewhere this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -51,14 +51,21 @@ Layouts (--layout, default auto):
          kitti-odometry  sequences/XX with image_2/ (or image_0/), calib.txt, and poses.txt
                      there or poses/XX.txt two levels up; frames matched to poses by number
 
+Ground truth: a frame of a KITTI raw drive without its ground-truth file (sparse depth PNG or
+Velodyne scan) is not scored; a warning on stderr says how many and which, the JSON lists them
+(data.frames_without_gt), and the exit code is 1 unless --allow-missing-gt accepts that. Ground
+truth holding NaN or infinity (a pose file, ...) is bad data (exit 2).
+
 exit codes: 0 done; 1 some predictions held NaN/inf (reported per item, means are NaN) or,
-with --camera-height, some frames had no ground plane (named, left out of the means);
-2 bad usage or data (one line naming the file)
+with --camera-height, some frames had no ground plane (named, left out of the means), or
+frames without ground truth were left out (without --allow-missing-gt); 2 bad usage or data
+(one line naming the file)
 
 examples:
-  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd
-  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --max-depth 50 --precision int8
-  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --camera-height 1.65
+  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt
+  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt --max-depth 50 \\
+      --precision int8
+  geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt --camera-height 1.65
   geonet-infer eval flow --data ../shared/realdata/middlebury_flow --method dis,zero
   geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 --method model,orb-vo,identity
   geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --json flow.json
@@ -90,6 +97,11 @@ def add_parser(sub) -> None:
     )
     group.add_argument("--stride", type=positive_int, default=1, help="score every n-th item (default: 1)")
     group.add_argument("--limit", type=positive_int, default=None, help="score at most this many items")
+    group.add_argument(
+        "--allow-missing-gt",
+        action="store_true",
+        help="depth on KITTI raw: frames without ground truth are expected (still named on stderr), exit 0",
+    )
     group = parser.add_argument_group("protocol")
     group.add_argument(
         "--max-depth",
@@ -208,4 +220,8 @@ def run(args: argparse.Namespace) -> int:
     failed = [(label, e) for label, r in results for e in r["errors"]]
     for label, error in failed:
         print(f"geonet-infer eval: {label}: {error['item']}: {error['problem']}", file=sys.stderr)
-    return 1 if failed else 0
+    for warning in dataset.warnings:
+        accepted = "accepted (--allow-missing-gt)" if args.allow_missing_gt else "--allow-missing-gt to accept"
+        print(f"geonet-infer eval: warning: {warning}; {accepted}", file=sys.stderr)
+    missing_gt = bool(dataset.without_gt) and not args.allow_missing_gt
+    return 1 if failed or missing_gt else 0

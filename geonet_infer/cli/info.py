@@ -12,9 +12,10 @@ import numpy as np
 import onnxruntime as ort
 
 from geonet_infer import __version__
-from geonet_infer.engines import openvino_version
+from geonet_infer.engines import check_graphs, openvino_version
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import DEFAULT_MODEL, bundled_models, resolve_model
+from geonet_infer.predictor import RIGID_FLOW_GRAPHS, TASK_GRAPHS, missing_graphs
 from geonet_infer.session import usable_cpus
 
 
@@ -61,6 +62,7 @@ def environment() -> dict:
 
 def model_summary(model) -> dict:
     manifest = load_manifest(resolve_model(model))
+    check_graphs(manifest)  # what the Predictor would refuse at load, info refuses too
     graphs = {
         p: {
             name: {
@@ -74,6 +76,11 @@ def model_summary(model) -> dict:
         for p in manifest.graphs
     }
     prov = manifest.provenance
+    present = manifest.graph_names("fp32")
+    tasks = {}
+    for task, needed in TASK_GRAPHS.items():
+        missing = missing_graphs(task, present)
+        tasks[task] = {"available": not missing, "graphs": list(needed), "missing": list(missing)}
     return {
         "dir": str(manifest.root),
         "arch": manifest.arch,
@@ -82,6 +89,7 @@ def model_summary(model) -> dict:
         "random_init": manifest.random_init,
         "precisions": list(manifest.graphs),
         "graphs": graphs,
+        "tasks": tasks,
         "provenance": {
             "checkpoint_stage": prov.checkpoint_stage,
             "checkpoint_step": prov.checkpoint_step,
@@ -119,6 +127,14 @@ def run(args: argparse.Namespace) -> int:
         f"frames, precisions {', '.join(model['precisions'])}"
         + ("  [RANDOM WEIGHTS: timing only]" if model["random_init"] else "")
     )
+    for task, t in model["tasks"].items():
+        if t["available"]:
+            print(f"  task {task}: yes ({', '.join(t['graphs'])})")
+            continue
+        line = f"  task {task}: no, missing {', '.join(t['missing'])} (needs {', '.join(t['graphs'])})"
+        if task == "flow" and all(g not in t["missing"] for g in RIGID_FLOW_GRAPHS):
+            line += "; the Python API's Predictor.flow gives rigid flow only"
+        print(line)
     for precision, graphs in model["graphs"].items():
         for name, g in graphs.items():
             print(f"  {precision:5s} {name:11s} {g['file']:24s} {g['mib']:6.2f} MiB  sha256 {g['sha256']}")

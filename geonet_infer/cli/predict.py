@@ -12,10 +12,12 @@ from geonet_infer.cli.common import (
     camera_from_args,
     load_predictor,
     positive_int,
+    sigterm_as_interrupt,
     stage_table,
 )
+from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.frames import open_frames
-from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks, predict_to_dir
+from geonet_infer.pipeline import MAX_BATCH_SIZE, SUMMARY_NAME, TASKS, parse_tasks, predict_to_dir
 from geonet_infer.predictor import MAX_FRAMES_BEFORE_GROUND
 
 HELP = """\
@@ -25,7 +27,10 @@ INPUT is a video file (.mp4 .avi .mov .mkv .webm), a folder of frames (sorted by
 name), or a KITTI raw drive folder (frames from image_02/data; calibration
 calib_cam_to_cam.txt found in the folder or up to two levels up).
 
-Outputs in --out (written atomically; a bad frame is recorded in summary.json and skipped):
+Outputs in --out (written atomically; a bad frame is recorded in summary.json and skipped).
+--out must be new, empty, or an earlier predict's output folder: then exactly the files that
+run wrote are replaced (files you added stay); any other folder is refused, and so is a folder
+another predict is writing into. Ctrl-C or SIGTERM stops with summary.json marked interrupted:
   depth/<frame>.npy      float32 depth at the input resolution (relative scale; metres
                          with --camera-height)
   depth/<frame>.png      colour map (near = bright)
@@ -52,14 +57,22 @@ def add_parser(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("input", type=Path, metavar="INPUT", help="video file, folder of frames or KITTI drive")
-    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    parser.add_argument(
+        "--out", type=Path, required=True, help="output folder: new, empty, or an earlier predict's (created)"
+    )
     add_model_args(parser)
     add_camera_args(parser)
     parser.add_argument(
-        "--tasks", default=",".join(TASKS), help="comma list of depth,pose,flow (default: all; flow needs intrinsics)"
+        "--tasks",
+        default=None,
+        help=f"comma list of {','.join(TASKS)} (default: every task the model's graphs can do, the others "
+        "named in one line and in summary.json; flow needs intrinsics)",
     )
     parser.add_argument(
-        "--batch-size", type=positive_int, default=4, help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)"
+        "--batch-size",
+        type=positive_int,
+        default=4,
+        help=f"frames per DepthNet/PoseNet/ResFlowNet batch, at most {MAX_BATCH_SIZE} (default: 4)",
     )
     parser.add_argument(
         "--camera-height",
@@ -81,26 +94,47 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    tasks = parse_tasks(args.tasks)
+    tasks = None if args.tasks is None else parse_tasks(args.tasks)
+    if args.batch_size > MAX_BATCH_SIZE:
+        raise GeoNetInputError(
+            None, f"--batch-size {args.batch_size} is over the limit of {MAX_BATCH_SIZE}", "4 to 16 is plenty on a CPU"
+        )
     source = open_frames(args.input)
     camera = camera_from_args(args, source.default_calib)
     predictor = load_predictor(args)
-    summary = predict_to_dir(
-        predictor,
-        source,
-        args.out,
-        camera=camera,
-        tasks=tasks,
-        batch_size=args.batch_size,
-        progress=not args.no_progress,
-        camera_height=args.camera_height,
-        vis=not args.no_vis,
-    )
+    if tasks is None:
+        doable, skipped = predictor.resolve_tasks()
+        if skipped:
+            lacks = ", ".join(
+                f"{task} (no {', '.join(graphs)} graph{'s' if len(graphs) > 1 else ''})"
+                for task, graphs in skipped.items()
+            )
+            print(
+                f"geonet-infer predict: skipping {lacks} in {predictor.model_dir}; running {', '.join(doable)}",
+                file=sys.stderr,
+            )
+    with sigterm_as_interrupt():
+        summary = predict_to_dir(
+            predictor,
+            source,
+            args.out,
+            camera=camera,
+            tasks=tasks,
+            batch_size=args.batch_size,
+            progress=not args.no_progress,
+            camera_height=args.camera_height,
+            vis=not args.no_vis,
+            exclusive=True,
+        )
     print(
         f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
         f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}"
     )
     print(stage_table(summary["timings_ms_per_frame"], summary["frames"]))
+    missing = set(source.missing) if summary["truncated"] else set()
     for failure in summary["failures"]:
-        print(f"failed: {failure['frame']}: {failure['reason']}", file=sys.stderr)
+        if failure["frame"] not in missing:
+            print(f"failed: {failure['frame']}: {failure['reason']}", file=sys.stderr)
+    if missing:  # one line for the frames a truncated video lacks (each is in summary.json)
+        print(f"warning: {args.input}: video truncated: {summary['truncated']}", file=sys.stderr)
     return 1 if summary["failed"] else 0

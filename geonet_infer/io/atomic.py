@@ -24,23 +24,25 @@ def atomic_write(path) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
 
     The temp file lives in the same directory (so the rename is atomic on POSIX)
-    and keeps the same suffix (so cv2.imwrite picks the right encoder). If the
+    and keeps the same suffix (readers that go by the suffix see the right one). If the
     body raises, the temp file is deleted and ``path`` is left untouched.
     Parent directories are created.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix or ".tmp")
-    os.close(fd)
-    tmp = Path(tmp)
-    try:
+    tmp = None
+    try:  # from mkstemp on: an interrupt (Ctrl-C, SIGTERM) at any point still removes the temp file
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix or ".tmp")
+        tmp = Path(name)
+        os.close(fd)
         yield tmp
         # mkstemp makes 0600 files; outputs get the mode a plain open() would give (0666 & ~umask).
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
         raise
 
 

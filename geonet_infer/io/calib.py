@@ -44,6 +44,12 @@ CAMERA_FORMATS = (
 )
 _FORMATS_HINT = "supported: " + "; ".join(CAMERA_FORMATS)
 OPENCV_DIST_LENGTHS = (4, 5, 8, 12, 14)  # k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]
+# Sanity limits: values outside them come from a typo or a unit mix-up, and give flow with no
+# valid pixel or infinite depth rather than an error. Real calibrations sit far inside (KITTI's
+# and the Udacity dashcam's |k| <= 0.37; rational models reach tens).
+MAX_DISTORTION = 100.0  # |coefficient|
+FOCAL_RANGE = (0.05, 100.0)  # fx / image width and fy / image height (a 170-degree to a 0.6-degree view)
+PRINCIPAL_POINT_MARGIN = 0.5  # cx, cy at most this fraction of the image width / height outside it
 
 
 # --------------------------------------------------------------------------- Camera
@@ -128,8 +134,9 @@ class Camera:
         Raises:
             GeoNetInputError (naming ``path`` if given) if K is not finite, fx or fy is
             not > 0, cx or cy is not finite, the last row of K is not (0, 0, 1), the
-            distortion has non-finite values or a length OpenCV does not accept
-            (4, 5, 8, 12, 14), or the size is not positive.
+            distortion has non-finite values, a coefficient over :data:`MAX_DISTORTION` or a
+            length OpenCV does not accept (4, 5, 8, 12, 14), or the size is not positive; with a
+            size, also :meth:`check_image_size`.
         """
         K = self.K
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -156,17 +163,52 @@ class Camera:
         if self.dist is not None:
             if not np.isfinite(self.dist).all():
                 raise GeoNetInputError(path, "distortion coefficients are not finite", "check the calibration values")
+            if np.abs(self.dist).max(initial=0.0) > MAX_DISTORTION:
+                raise GeoNetInputError(
+                    path,
+                    f"distortion coefficients {self.dist.tolist()} exceed {MAX_DISTORTION:g} in magnitude",
+                    "check the calibration values (OpenCV order k1 k2 p1 p2 [k3 ...])",
+                )
             if self.dist.size not in OPENCV_DIST_LENGTHS:
                 raise GeoNetInputError(
                     path,
                     f"{self.dist.size} distortion coefficients",
                     "OpenCV takes k1 k2 p1 p2 [k3 [k4 k5 k6 ...]]: 4, 5, 8, 12 or 14 numbers",
                 )
-        if self.size is not None and (self.size[0] <= 0 or self.size[1] <= 0):
-            raise GeoNetInputError(
-                path, f"image size must be positive, got {self.size[0]}x{self.size[1]}", "check the calibration values"
-            )
+        if self.size is not None:
+            if self.size[0] <= 0 or self.size[1] <= 0:
+                raise GeoNetInputError(
+                    path,
+                    f"image size must be positive, got {self.size[0]}x{self.size[1]}",
+                    "check the calibration values",
+                )
+            self.check_image_size(*self.size, path)
         return self
+
+    def check_image_size(self, width: int, height: int, path=None) -> None:
+        """Check K against the image size it is used at (this camera already scaled to it).
+
+        Raises:
+            GeoNetInputError (naming ``path``) if fx / width or fy / height is outside
+            :data:`FOCAL_RANGE`, or the principal point lies more than
+            :data:`PRINCIPAL_POINT_MARGIN` of the image size outside the image.
+        """
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        low, high = FOCAL_RANGE
+        if not (low * width <= fx <= high * width and low * height <= fy <= high * height):
+            raise GeoNetInputError(
+                path,
+                f"focal lengths fx={fx:g}, fy={fy:g} do not fit {width}x{height} images "
+                f"(expected {low:g} to {high:g} times the width / height)",
+                "check the calibration values and that they belong to these frames",
+            )
+        margin = PRINCIPAL_POINT_MARGIN
+        if not (-margin * width <= cx <= (1 + margin) * width and -margin * height <= cy <= (1 + margin) * height):
+            raise GeoNetInputError(
+                path,
+                f"principal point cx={cx:g}, cy={cy:g} lies far outside the {width}x{height} image",
+                "check the calibration values and that they belong to these frames",
+            )
 
 
 # --------------------------------------------------------------------------- KITTI-style key: value files

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from geonet_infer.errors import GeoNetInputError
+from geonet_infer.io import images
 from geonet_infer.io.images import IMAGE_SUFFIXES, list_images, read_image
 
 __all__ = ["VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames"]
@@ -66,7 +67,13 @@ class FrameSource:
         fps: frames per second of a video (None for folders or when the container does not say).
         default_calib: calibration file that belongs to these frames (KITTI raw
             ``calib_cam_to_cam.txt``), or None.
+        truncated: for a video read to the end that decoded fewer frames than its container
+            lists, ``"decoded N of M frames"``; else None.
+        missing: names of the frames the container lists but that did not decode (with ``truncated``).
     """
+
+    truncated: str | None = None
+    missing: tuple[str, ...] = ()
 
     def __init__(
         self,
@@ -115,6 +122,8 @@ class _ImageFolderSource(FrameSource):
                 yield Frame(p.stem, rgb=read_image(p))
             except GeoNetInputError as err:
                 yield Frame(p.stem, error=err)
+            except OSError as err:  # one unreadable frame (permission, I/O error) fails that frame only
+                yield Frame(p.stem, error=GeoNetInputError(p, f"cannot read it ({err.strerror or err})", ""))
 
     def __len__(self) -> int:
         return len(self.files)
@@ -124,9 +133,18 @@ class _VideoSource(FrameSource):
     """A video file decoded with cv2.VideoCapture; frames are named 000000, 000001, ..."""
 
     def __init__(self, path: Path):
+        try:
+            str(path).encode("utf-8")
+        except UnicodeEncodeError:  # cv2.VideoCapture crashes the interpreter on such a name
+            raise GeoNetInputError(
+                path, "OpenCV cannot open a video whose path is not valid UTF-8", "rename the file or its folders"
+            ) from None
         cap = cv2.VideoCapture(str(path))
         try:
             ok = cap.isOpened()
+            if ok:  # before the first decode: FFmpeg allocates whatever the header claims
+                width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+                images.check_pixels(path, width, height)
             first = cap.read()[1] if ok else None
             fps = float(cap.get(cv2.CAP_PROP_FPS)) if ok else 0.0
             count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if ok else 0
@@ -159,12 +177,9 @@ class _VideoSource(FrameSource):
                 self.path, "cannot open this video (OpenCV decoded no frame)", "the file changed since it was opened?"
             )
         if len(names) < self._count:
-            log.warning(
-                "%s: decoded %d frames, the container lists %d (truncated or partly unreadable)",
-                self.path,
-                len(names),
-                self._count,
-            )
+            self.truncated = f"decoded {len(names)} of {self._count} frames"
+            self.missing = tuple(f"{i:06d}" for i in range(len(names), self._count))
+            log.warning("%s: truncated or partly unreadable: %s the container lists", self.path, self.truncated)
         self.frame_names = names
 
     def __len__(self) -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import struct
 from pathlib import Path
 
 import cv2
@@ -11,26 +12,125 @@ import numpy as np
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.atomic import atomic_write
 
-__all__ = ["IMAGE_SUFFIXES", "list_images", "read_image", "read_mask", "write_image", "write_mask"]
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "MAX_IMAGE_PIXELS",
+    "check_pixels",
+    "encoded_size",
+    "list_images",
+    "read_image",
+    "read_mask",
+    "write_image",
+    "write_mask",
+]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm")  # compared lower-case
 
 
+# Decoded frames above this many pixels are refused before decoding (50 Mpx: an 8K frame is 33 Mpx;
+# 50 Mpx of RGB is 150 MB, a few times that in the predictor). A small compressed file can claim
+# gigapixels (a 876 KB PNG of 30000x30000 decodes to 2.7 GB); OpenCV's own cap is 1 Gpx.
+MAX_IMAGE_PIXELS = 50_000_000
+
+
 def _imwrite(path: Path, array: np.ndarray) -> None:
-    """cv2.imwrite that raises instead of returning False."""
-    if not cv2.imwrite(str(path), array):
+    """Encode with OpenCV (format from the suffix), then write the bytes with Python.
+
+    An encoder that refuses the array is a GeoNetInputError; the write itself raises the
+    OSError the OS gave (disk full, read-only), which cv2.imwrite would hide behind False.
+    Python opens the file, so any file name the OS accepts works (OpenCV's C++ path
+    conversion crashes on names that are not valid UTF-8).
+    """
+    array = np.asarray(array)
+    try:
+        ok, encoded = cv2.imencode(path.suffix, array)
+    except cv2.error:
+        ok = False
+    if not ok:
         raise GeoNetInputError(
-            path, "OpenCV could not write this image", "check the suffix and that the folder is writable"
+            path,
+            f"OpenCV cannot encode a {array.dtype} image of shape {array.shape} as {path.suffix or '(no suffix)'}",
+            f"use one of {' '.join(IMAGE_SUFFIXES)} (16-bit needs .png)",
+        )
+    with open(path, "wb") as f:
+        f.write(encoded.tobytes())
+
+
+def encoded_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the header of a PNG, JPEG, BMP or PPM/PGM/PBM file, or None if not one of them.
+
+    Reads only the header, so a frame's size can be checked before OpenCV allocates it.
+    """
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        return struct.unpack(">II", data[16:24])
+    if data[:2] == b"BM" and len(data) >= 26:
+        if struct.unpack("<I", data[14:18])[0] == 12:  # OS/2 BITMAPCOREHEADER: 16-bit sizes
+            return struct.unpack("<HH", data[18:22])
+        width, height = struct.unpack("<ii", data[18:26])
+        return abs(width), abs(height)  # a negative height means top-down rows
+    netpbm = re.match(rb"P[1-6](?:\s|#[^\n]*\n)+(\d+)(?:\s|#[^\n]*\n)+(\d+)", data[:1024])
+    if netpbm:
+        return int(netpbm[1]), int(netpbm[2])
+    if data[:2] == b"\xff\xd8":
+        i = 2
+        while i + 4 <= len(data) and data[i] == 0xFF:
+            marker = data[i + 1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+            elif marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+                i += 2
+            elif 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
+                if i + 9 > len(data):
+                    return None
+                height, width = struct.unpack(">HH", data[i + 5 : i + 9])
+                return width, height
+            else:
+                i += 2 + int.from_bytes(data[i + 2 : i + 4], "big")
+    return None
+
+
+def check_pixels(path, width: int, height: int) -> None:
+    """GeoNetInputError naming ``path`` if ``width`` x ``height`` is over :data:`MAX_IMAGE_PIXELS`."""
+    if width * height > MAX_IMAGE_PIXELS:
+        raise GeoNetInputError(
+            path,
+            f"{width}x{height} is {width * height:,} pixels, over the limit of {MAX_IMAGE_PIXELS:,} pixels",
+            "resize the frames (e.g. to 1920x1080)",
         )
 
 
 def _imread(path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """Decode an image file; GeoNetInputError naming the file and the real reason when it cannot be.
+
+    The bytes are read by Python and decoded with cv2.imdecode (any file name works), after the
+    header's size was checked against :data:`MAX_IMAGE_PIXELS`. An OSError of the read (permission
+    denied, I/O error) is raised as is.
+    """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise GeoNetInputError(path, "image not found", "check the path")
-    img = cv2.imread(str(path), flags)
+    if not path.is_file():
+        raise GeoNetInputError(path, "not a file", "pass an image file")
+    data = path.read_bytes()
+    if not data:
+        raise GeoNetInputError(path, "empty file (0 bytes)", "was it copied or downloaded completely?")
+    size = encoded_size(data)
+    if size is not None:
+        check_pixels(path, *size)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except cv2.error as exc:
+        img, detail = None, f" ({str(exc).strip().splitlines()[-1]})"
+    else:
+        detail = ""
     if img is None:
-        raise GeoNetInputError(path, "OpenCV could not decode this image", "is it a valid PNG/JPEG file?")
+        if size is None:
+            raise GeoNetInputError(
+                path, "not an image OpenCV can read (unknown file header)", f"expected {' '.join(IMAGE_SUFFIXES)}"
+            )
+        raise GeoNetInputError(
+            path, f"OpenCV could not decode this {size[0]}x{size[1]} image{detail}", "is the file truncated or damaged?"
+        )
     return img
 
 

@@ -1,0 +1,260 @@
+"""`geonet-infer batch` used carelessly or hostilely (issue 27): nothing lost, nothing silently wrong.
+
+Each test reproduces one way the batch job used to lose data or misreport, on tiny inputs
+(copies of the bundled sample's 128x416 frames; depth only unless flow is the point).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from geonet_infer import batch as batch_mod
+from geonet_infer.batch import MARKER_NAME
+from tests.test_batch import CLI, FRAMES, SAMPLE_CALIB, _wait_for, cli, make_sequences, require_ray
+
+DEPTH = ["--tasks", "depth", "--no-progress", "--no-vis"]
+OWNER_NAME = ".geonet-batch"  # the ownership marker batch writes in each folder it makes
+KNOWN_HIDDEN = {MARKER_NAME, OWNER_NAME, ".lock"}
+
+
+def digest(folder: Path) -> dict[str, str]:
+    """Relative path -> sha256 of every file under ``folder`` (an independent record of what was there)."""
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def leftovers(out: Path) -> list[Path]:
+    """Temporary files: hidden names batch does not own, or ``*.tmp``."""
+    return [
+        p
+        for p in out.rglob("*")
+        if p.is_file() and (p.name.endswith(".tmp") or p.name.startswith(".")) and p.name not in KNOWN_HIDDEN
+    ]
+
+
+def one_error_line(stderr: str) -> str:
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("geonet-infer batch: error:"), stderr
+    return lines[0]
+
+
+# ----------------------------------------------------------------------------- 1. never delete what batch did not make
+@pytest.mark.parametrize("where", ["parent", "same", "inside", "kitti_date"])
+def test_out_overlapping_an_input_is_refused_before_any_work(tmp_path, capfd, where):
+    if where == "kitti_date":
+        date = tmp_path / "2011_09_26"
+        (seq,) = make_sequences(date / "2011_09_26_drive_0001_sync" / "image_02", ["data"], 3)
+        seq = seq.parent.parent  # the drive
+        out = date
+    else:
+        (seq,) = make_sequences(tmp_path, ["seqA"], 3)
+        out = {"parent": tmp_path, "same": seq, "inside": seq / "out"}[where]
+    before = digest(tmp_path)
+    rc, _, stderr = cli(capfd, "batch", seq, "--out", out, *DEPTH)
+    assert rc == 2
+    assert "input" in one_error_line(stderr)
+    assert digest(tmp_path) == before  # nothing deleted, nothing written
+
+
+def test_a_folder_batch_did_not_make_is_refused(tmp_path, capfd):
+    (seq,) = make_sequences(tmp_path / "in", ["seqA"], 3)
+    out = tmp_path / "mine"
+    (out / "seqA").mkdir(parents=True)
+    (out / "seqA" / "notes.txt").write_text("my notes\n")
+    (out / "notes.txt").write_text("more notes\n")
+    rc, _, stderr = cli(capfd, "batch", seq, "--out", out, *DEPTH)
+    assert rc == 2 and "--out" in one_error_line(stderr)
+    assert sorted(map(str, digest(out))) == ["notes.txt", "seqA/notes.txt"]
+
+
+def test_a_sequence_folder_batch_did_not_make_is_left_alone(tmp_path, capfd):
+    seq_a, seq_b = make_sequences(tmp_path / "in", ["seqA", "seqB"], 3)
+    out = tmp_path / "out"
+    assert cli(capfd, "batch", seq_b, "--out", out, *DEPTH)[0] == 0  # OUT is batch's now
+    (out / "seqA").mkdir()
+    (out / "seqA" / "notes.txt").write_text("my notes\n")
+    rc, _, stderr = cli(capfd, "batch", seq_a, seq_b, "--out", out, *DEPTH)
+    assert rc == 2 and "seqA" in one_error_line(stderr)
+    assert (out / "seqA" / "notes.txt").read_text() == "my notes\n"
+    # and an empty folder (nothing to lose) is fine
+    shutil.rmtree(out / "seqA")
+    (out / "seqA").mkdir()
+    rc, _, stderr = cli(capfd, "batch", seq_a, "--out", out, *DEPTH)
+    assert rc == 0, stderr
+    assert (out / "seqA" / MARKER_NAME).is_file()
+
+
+# ----------------------------------------------------------------------------- 2. resume verifies, not trusts
+def test_resume_redoes_a_sequence_whose_outputs_changed(tmp_path, capfd):
+    seqs = make_sequences(tmp_path / "in", ["s1", "s2", "s3"], 3)
+    out = tmp_path / "out"
+    assert cli(capfd, "batch", *seqs, "--out", out, *DEPTH)[0] == 0
+    first = {s.name: digest(out / s.name) for s in seqs}
+    (out / "s1" / "depth" / f"{FRAMES[1].stem}.npy").unlink()
+    npy = out / "s2" / "depth" / f"{FRAMES[2].stem}.npy"
+    npy.write_bytes(npy.read_bytes()[:100])
+    rc, stdout, stderr = cli(capfd, "batch", *seqs, "--out", out, *DEPTH, "--resume")
+    assert rc == 0, stderr
+    assert "1 skipped" in stdout and "2 redone" in stdout
+    for s in seqs:
+        now = digest(out / s.name)
+        assert {k: v for k, v in now.items() if not k.endswith("summary.json") and k != MARKER_NAME} == {
+            k: v for k, v in first[s.name].items() if not k.endswith("summary.json") and k != MARKER_NAME
+        }, s.name
+    summary = json.loads((out / "summary.json").read_text())
+    redone = {r["sequence"]: r["reason"] for r in summary["redone"]}
+    assert sorted(redone) == ["s1", "s2"]
+    assert f"{FRAMES[1].stem}.npy" in redone["s1"] and f"{FRAMES[2].stem}.npy" in redone["s2"]
+    assert summary["sequences"]["skipped"] == 1 and summary["sequences"]["done"] == 2
+
+
+def test_resume_redoes_a_sequence_whose_input_frames_changed(tmp_path, capfd):
+    (seq,) = make_sequences(tmp_path / "in", ["s1"], 3)
+    out = tmp_path / "out"
+    assert cli(capfd, "batch", seq, "--out", out, *DEPTH)[0] == 0
+    old = (out / "s1" / "depth" / f"{FRAMES[0].stem}.npy").read_bytes()
+    shutil.copyfile(FRAMES[6], seq / FRAMES[0].name)  # another picture under the same name
+    rc, stdout, stderr = cli(capfd, "batch", seq, "--out", out, *DEPTH, "--resume")
+    assert rc == 0, stderr
+    assert "0 skipped" in stdout and "1 redone" in stdout
+    assert FRAMES[0].name in json.loads((out / "summary.json").read_text())["redone"][0]["reason"]
+    assert (out / "s1" / "depth" / f"{FRAMES[0].stem}.npy").read_bytes() != old
+    # a resume right after finds everything as recorded
+    rc, stdout, _ = cli(capfd, "batch", seq, "--out", out, *DEPTH, "--resume")
+    assert rc == 0 and "1 skipped" in stdout and "0 redone" in stdout
+
+
+# ----------------------------------------------------------------------------- 3. workers capped
+def test_workers_are_capped_by_cpus_and_memory():
+    per = 300 * 1024**2
+    assert batch_mod.cap_workers(16, 1, cpus=2, mem_available=64 * 1024**3, per_worker=per)[:2] == (2, 1)
+    assert batch_mod.cap_workers(None, 8, cpus=2, mem_available=64 * 1024**3, per_worker=per)[:2] == (None, 2)
+    w, t, notes = batch_mod.cap_workers(4, 1, cpus=8, mem_available=2 * per + per // 2, per_worker=per)
+    assert (w, t) == (2, 1) and "memory" in notes[0]
+    assert (
+        batch_mod.cap_workers(None, None, cpus=8, mem_available=per, per_worker=per)[0] == 1
+    )  # the default is capped too
+    assert batch_mod.cap_workers(3, 2, cpus=8, mem_available=None, per_worker=per) == (
+        3,
+        2,
+        [],
+    )  # unknown memory: no cap
+    assert batch_mod.cap_workers(16, 1, cpus=16, mem_available=64 * 1024**3, per_worker=per) == (16, 1, [])
+    # the estimate grows with the model's graphs
+    model = Path(batch_mod.__file__).parent / "models" / "small_synth"
+    assert (
+        batch_mod.worker_memory_bytes(model, "fp32")
+        > batch_mod.WORKER_BASE_BYTES + (model / "depthnet.onnx").stat().st_size
+    )
+
+
+def test_too_many_workers_warns_and_records_the_cap(tmp_path, capfd, monkeypatch):
+    seqs = make_sequences(tmp_path / "in", ["s1", "s2"], 2)
+    monkeypatch.setattr(batch_mod, "usable_cpus", lambda: 1)
+    out = tmp_path / "out"
+    rc, _, stderr = cli(capfd, "batch", *seqs, "--out", out, *DEPTH, "--workers", 16)
+    assert rc == 0, stderr
+    warnings = [line for line in stderr.splitlines() if "--workers 16" in line]
+    assert len(warnings) == 1 and "1 usable CPU" in warnings[0], stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["workers"] == 1 and summary["workers_requested"] == 16 and summary["limits"]
+
+
+@pytest.mark.parametrize("flag", ["--workers", "--threads-per-worker"])
+def test_absurd_worker_counts_are_refused(tmp_path, capfd, flag):
+    (seq,) = make_sequences(tmp_path / "in", ["s1"], 2)
+    rc, _, stderr = cli(capfd, "batch", seq, "--out", tmp_path / "out", *DEPTH, flag, 5000)
+    assert rc == 2 and "5000" in one_error_line(stderr)
+    assert not (tmp_path / "out").exists()
+
+
+# ----------------------------------------------------------------------------- 4, 5. SIGTERM
+def _sigterm_run(tmp_path, engine: str, first_output_timeout: float):
+    names = ["t1", "t2", "t3", "t4"]
+    seqs = make_sequences(tmp_path / "in", names, 12)
+    out = tmp_path / "out"
+    argv = [*CLI, "batch", *map(str, seqs), "--out", str(out), "--tasks", "depth", "--no-progress"]
+    argv += ["--workers", "1", "--threads-per-worker", "1", "--batch-size", "1", "--engine", engine]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        started = lambda: any(out.glob("t*/depth/*.npy"))  # noqa: E731
+        assert _wait_for(started, first_output_timeout), "no output appeared"
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, stderr
+    # Ray's C++ core prints a notice of its own on every run; ours is one line, and no stack dump
+    assert [line for line in stderr.splitlines() if "geonet-infer" in line] == ["geonet-infer batch: interrupted"]
+    assert "SIGTERM received" not in stderr and "Traceback" not in stderr, stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] is True and summary["exit_code"] == 130
+    assert leftovers(out) == []
+    done = [n for n in names if (out / n / MARKER_NAME).is_file()]
+    assert [p.name for p in out.iterdir() if p.is_dir() and p.name not in done] == []  # unfinished ones removed
+    assert summary["sequences"]["done"] == len(done) < len(names)
+
+
+def test_sigterm_stops_a_local_job_with_a_summary_and_130(tmp_path):
+    _sigterm_run(tmp_path, "local", 120)
+
+
+def test_sigterm_stops_a_ray_job_with_a_summary_and_130(tmp_path):
+    require_ray()
+    _sigterm_run(tmp_path, "ray", 240)
+
+
+# ----------------------------------------------------------------------------- OS refusals: exit 3, one line
+@pytest.mark.parametrize("where", ["under", "is"])
+def test_out_under_a_file_exits_3_with_one_line(tmp_path, capfd, where):
+    (seq,) = make_sequences(tmp_path / "in", ["s1"], 2)
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "out" if where == "under" else tmp_path / "afile"
+    rc, _, stderr = cli(capfd, "batch", seq, "--out", out, *DEPTH)
+    assert rc == 3 and "afile" in one_error_line(stderr)
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+def _small_files_only():  # in the child: any file past 64 KiB cannot be written (EFBIG), as on a full disk
+    resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_FSIZE")
+def test_a_write_refused_by_the_os_in_a_worker_exits_3_not_1(tmp_path):
+    seqs = make_sequences(tmp_path / "in", ["s1", "s2"], 2)
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [*CLI, "batch", *map(str, seqs), "--out", str(out), *DEPTH, "--workers", "1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=_small_files_only,
+    )
+    assert proc.returncode == 3, proc.stderr
+    assert str(out / "s1") in one_error_line(proc.stderr)  # numpy reports a short write without the errno
+    assert "Traceback" not in proc.stderr
+    assert json.loads((out / "summary.json").read_text())["exit_code"] == 3
+    assert leftovers(out) == []
+    assert [p for p in out.iterdir() if p.is_dir()] == []  # no half-written sequence
+
+
+def test_no_temp_files_after_a_complete_run(tmp_path, capfd):
+    seqs = make_sequences(tmp_path / "in", ["s1", "s2"], 2)
+    out = tmp_path / "out"
+    rc, _, stderr = cli(capfd, "batch", *seqs, "--out", out, "--calib", SAMPLE_CALIB, "--no-progress")
+    assert rc == 0, stderr
+    assert leftovers(out) == [] and (out / OWNER_NAME).is_file()
