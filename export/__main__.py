@@ -6,6 +6,11 @@ depthnet/posenet/rigidflow)::
     python -m export --checkpoint runs/flow/last.pt --out models/geonet \\
         [--precision fp32,int8 --calib-data DIR] [--eval-synth-dir DIR --eval-prepared-dir DIR]
 
+The authors' released TensorFlow checkpoints (docs/official_models.md; needs the ``[tf]`` extra)::
+
+    python -m export --from-tf geonet_depthnet/model-250000 --out models/official_depth \\
+        [--from-tf pose=PREFIX --from-tf flow=PREFIX ...] [--precision fp32,int8 --calib-frames DIR]
+
 Timing-only models with random weights (marked ``"random_init": true``)::
 
     python -m export --arch resnet50 --random-init --out /tmp/geonet_r50 [--height 128 --width 416]
@@ -37,12 +42,31 @@ def _names(text: str) -> tuple[str, ...]:
     return GRAPH_NAMES if text == "all" else tuple(dict.fromkeys(t.strip() for t in text.split(",") if t.strip()))
 
 
+def _count_or_folder(text: str) -> int | Path:
+    """--calib-frames: a frame count, or (the spelling of issue 28) the calibration folder itself."""
+    return int(text) if text.isdigit() and not Path(text).is_dir() else Path(text)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     src = p.add_argument_group("model")
     src.add_argument("--checkpoint", type=Path, help="a last.pt / best.pt written by training.train")
+    src.add_argument(
+        "--from-tf",
+        action="append",
+        default=[],
+        metavar="[KIND=]PREFIX",
+        help="an official GeoNet TensorFlow checkpoint (prefix like .../model-250000, a file of it, or its folder): "
+        "every net it holds; KIND=PREFIX (depth, pose, flow; e.g. depth,pose=PREFIX) takes only those; "
+        "repeat to combine checkpoints (docs/official_models.md)",
+    )
+    src.add_argument(
+        "--scale-normalize",
+        action="store_true",
+        help="with --from-tf: the model_sn depth release (each disparity map divided by its mean, in the graph)",
+    )
     src.add_argument("--arch", help=f"with --random-init: one of {', '.join(ARCHS)}")
     src.add_argument(
         "--random-init",
@@ -74,9 +98,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--calib-data", type=Path, help="folder of consecutive frames for INT8 calibration")
     q.add_argument(
         "--calib-frames",
-        type=int,
+        type=_count_or_folder,
         default=D.calib_frames,
-        help="calibration frames to read from --calib-data (default %(default)s)",
+        metavar="N|DIR",
+        help="how many calibration frames to read (default %(default)s); a folder instead of a number "
+        "is taken as --calib-data DIR",
     )
     q.add_argument("--calib-method", default=D.calib_method, choices=CALIBRATION_METHODS)
     q.add_argument(
@@ -98,6 +124,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if isinstance(args.calib_frames, Path):
+        if args.calib_data and args.calib_data != args.calib_frames:
+            print("error: --calib-frames DIR and --calib-data DIR name different folders; pass one", file=sys.stderr)
+            return 2
+        args.calib_data, args.calib_frames = args.calib_frames, D.calib_frames
+    args.from_tf = tuple(args.from_tf)
     try:
         out = export_model(ExportConfig(**vars(args)))
     except GeoNetInputError as err:

@@ -11,6 +11,7 @@ renamed when complete, so DIR is either absent or whole. Bad input raises
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import sys
@@ -38,7 +39,7 @@ SIZE_MULTIPLE = 8  # DepthNet/ResFlowNet need H and W divisible by 8
 
 @dataclass
 class ExportConfig:
-    """What to export and how. Exactly one of ``checkpoint`` / ``random_init``.
+    """What to export and how. Exactly one of ``checkpoint`` / ``random_init`` / ``from_tf``.
 
     ``height``/``width``/``seq_length`` of None mean the checkpoint's (or 128 x 416 and 3 for
     random weights). ``graphs`` and ``precisions`` may be given in any order; int8 needs
@@ -47,6 +48,8 @@ class ExportConfig:
 
     out: Path
     checkpoint: Path | None = None  # last.pt / best.pt of training.train
+    from_tf: tuple[str, ...] = ()  # official TF checkpoints, "PREFIX" or "depth=PREFIX" (export/from_tf.py)
+    scale_normalize: bool = False  # from_tf: the model_sn release (each disparity map / its mean, in the graph)
     arch: str | None = None  # random_init: one of training.config.ARCHS
     random_init: bool = False  # timing-only graphs; accuracy commands refuse them
     seed: int = 0  # torch seed of random_init weights
@@ -87,6 +90,9 @@ class Source:
     random_init: bool
     checkpoint: Path | None = None
     ckpt: dict | None = None
+    graphs: list | None = None  # from_tf: the graphs its checkpoints can give (overrides cfg.graphs)
+    sources: list | None = None  # from_tf: provenance record of each TF checkpoint
+    official: dict | None = None  # from_tf: the official code's conventions (manifest conventions.official_tf)
 
 
 # ------------------------------------------------------------------------------ checks
@@ -120,8 +126,12 @@ def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
             "--precision must include fp32",
             "int8 graphs are calibrated with the fp32 ones: use --precision fp32,int8",
         )
-    if bool(cfg.checkpoint) == bool(cfg.random_init):
-        raise GeoNetInputError(None, "pass exactly one of --checkpoint or --random-init")
+    if sum((bool(cfg.checkpoint), bool(cfg.random_init), bool(cfg.from_tf))) != 1:
+        raise GeoNetInputError(None, "pass exactly one of --checkpoint, --random-init or --from-tf")
+    if cfg.scale_normalize and not cfg.from_tf:
+        raise GeoNetInputError(
+            None, "--scale-normalize only applies to --from-tf", "our checkpoints record it in their config"
+        )
     if cfg.random_init and cfg.arch not in ARCHS:
         raise GeoNetInputError(None, f"unknown arch {cfg.arch!r}", f"--arch must be one of {', '.join(ARCHS)}")
     if cfg.random_init and (cfg.eval_synth_dir or cfg.eval_prepared_dir):
@@ -215,7 +225,12 @@ def _checkpoint_source(cfg: ExportConfig, graphs: list[str]) -> Source:
 
 
 def _load_source(cfg: ExportConfig, graphs: list[str]) -> Source:
-    src = _random_source(cfg, graphs) if cfg.random_init else _checkpoint_source(cfg, graphs)
+    if cfg.from_tf:
+        from export.from_tf import tf_source
+
+        src = tf_source(cfg, graphs, lambda msg: _log(cfg, msg))
+    else:
+        src = _random_source(cfg, graphs) if cfg.random_init else _checkpoint_source(cfg, graphs)
     if src.height % SIZE_MULTIPLE or src.width % SIZE_MULTIPLE or src.height <= 0 or src.width <= 0:
         raise GeoNetInputError(
             None,
@@ -398,6 +413,15 @@ def _write_graphs(cfg: ExportConfig, src: Source, graphs: list[str], precisions:
         quant = mf.quantization_record(
             settings.describe(), str(cfg.calib_data), samples, k_source, plan_notes, delta, reason
         )
+    prov = mf.provenance(src.arch, src.random_init, exporter, src.checkpoint, src.ckpt)
+    if src.sources is not None:
+        prov = dataclasses.replace(
+            prov,
+            checkpoint=" + ".join(s["path"] for s in src.sources),
+            checkpoint_stage="official TensorFlow release (export/from_tf.py)",
+            checkpoint_step=src.sources[0]["global_step"] if len(src.sources) == 1 else None,
+            sources=src.sources,
+        )
     manifest = mf.build_manifest(
         height=src.height,
         width=src.width,
@@ -405,10 +429,12 @@ def _write_graphs(cfg: ExportConfig, src: Source, graphs: list[str], precisions:
         arch=src.arch,
         random_init=src.random_init,
         graphs=all_graphs,
-        prov=mf.provenance(src.arch, src.random_init, exporter, src.checkpoint, src.ckpt),
+        prov=prov,
         metrics=(src.ckpt or {}).get("metrics", {}),
         quantization=quant,
     )
+    if src.official is not None:
+        manifest = dataclasses.replace(manifest, conventions={**manifest.conventions, "official_tf": src.official})
     write_manifest(manifest, tmp)
     load_manifest(tmp)  # the directory must validate before it is published
 
@@ -422,13 +448,14 @@ def export_model(cfg: ExportConfig) -> Path:
     """
     graphs, precisions = _check(cfg)
     src = _load_source(cfg, graphs)
+    graphs = src.graphs or graphs
     out = Path(cfg.out)
     tmp = _make_tmp_dir(out)
     try:
         _log(
             cfg,
             f"exporting {src.arch} {src.height}x{src.width} seq {src.seq_length} "
-            f"({'random init' if src.random_init else src.checkpoint}) -> {out}",
+            f"({'random init' if src.random_init else src.checkpoint or 'TensorFlow checkpoints'}) -> {out}",
         )
         _write_graphs(cfg, src, graphs, precisions, tmp)
         _publish(tmp, out, cfg.force)
