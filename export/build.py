@@ -146,8 +146,8 @@ def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
         if not cfg.calib_data:
             raise GeoNetInputError(
                 None,
-                "--precision int8 needs --calib-data DIR",
-                "a folder of consecutive frames, e.g. ../shared/realdata/kitti_raw_2011_09_26_sfnd/image_02/data",
+                "--precision int8 needs --calib-frames DIR (or --calib-data DIR)",
+                "a folder of consecutive frames, e.g. frames of your own footage",
             )
         _check_calib_data(Path(cfg.calib_data))
         _choose([cfg.calib_method], qz.CALIBRATION_METHODS, "--calib-method")

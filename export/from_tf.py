@@ -17,6 +17,7 @@ the official creation order, so layer i of ours is ``Conv_i`` of theirs.
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -116,6 +117,8 @@ def official_variables() -> dict:
 
 # ------------------------------------------------------------------------------ reading
 def _tf():
+    # TensorFlow's C++ start-up notices (CPU features, oneDNN, no CUDA) are not the user's business here.
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
     try:
         import tensorflow as tf
     except ImportError:

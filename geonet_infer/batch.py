@@ -39,7 +39,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
@@ -51,6 +51,7 @@ from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, predict_to_dir
+from geonet_infer.predictor import missing_graphs
 from geonet_infer.session import usable_cpus
 
 __all__ = [
@@ -910,6 +911,27 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
     return todo, skipped, redone
 
 
+def model_tasks(model_dir, graphs, tasks: Iterable[str] | None, log) -> tuple[str, ...]:
+    """The tasks to run, in canonical order: ``tasks`` if the model's ``graphs`` can do them all (else
+    GeoNetInputError naming the missing graph, before any work), or with ``None`` every task it can do
+    (the others named in one line), as ``predict`` does."""
+    lacking = {t: missing_graphs(t, graphs) for t in TASKS if missing_graphs(t, graphs)}
+    if tasks is None:
+        if len(lacking) == len(TASKS):
+            raise GeoNetInputError(model_dir, f"this model can do none of {', '.join(TASKS)}", "use another --model")
+        if lacking:
+            log("batch: skipping " + "; ".join(f"{t} (no {', '.join(g)} graph)" for t, g in lacking.items()))
+        return tuple(t for t in TASKS if t not in lacking)
+    for task in tasks:
+        if task in lacking:
+            raise GeoNetInputError(
+                model_dir,
+                f"task {task} needs the {', '.join(lacking[task])} graph, which this model lacks",
+                f"leave {task} out of --tasks; `geonet-infer info --model {model_dir}` lists what it can do",
+            )
+    return tuple(t for t in TASKS if t in tasks)
+
+
 def run_batch(
     inputs,
     out_dir,
@@ -920,7 +942,7 @@ def run_batch(
     model: str | None = None,
     precision: str = "fp32",
     backend: str = "onnxruntime",
-    tasks: tuple[str, ...] = TASKS,
+    tasks: tuple[str, ...] | None = None,
     batch_size: int = 4,
     camera: Camera | None = None,
     vis: bool = True,
@@ -949,9 +971,10 @@ def run_batch(
     if batch_size < 1:
         raise GeoNetInputError(None, f"batch size must be >= 1, got {batch_size}")
     check_counts(workers, threads)
-    tasks = tuple(t for t in TASKS if t in tasks)
     units = plan_units(expand_inputs(inputs))
-    load_manifest(resolve_model(model)).graph_names(precision)  # bad --model / --precision: exit 2 before any work
+    model_dir = resolve_model(model)
+    graphs = load_manifest(model_dir).graph_names(precision)  # bad --model / --precision: exit 2 before any work
+    tasks = model_tasks(model_dir, graphs, tasks, log)
     out_dir = Path(os.path.abspath(out_dir))
     check_out(out_dir, units)
     _claim(out_dir)

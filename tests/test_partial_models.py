@@ -325,3 +325,23 @@ def test_eval_pose_feeds_a_seq5_model_the_official_snippet_and_a_seq3_model_stil
                 T = np.insert(T, 2, np.eye(4), axis=0)
                 want = np.stack([T[0] @ rigid_inverse_by_hand(T[p]) for p in range(5)])
                 np.testing.assert_allclose(pred, want, **POSE_TOL)
+
+
+def test_batch_does_what_the_model_can_and_refuses_a_task_it_cannot(models, frames, tmp_path, capsys):
+    """batch resolves tasks as predict does: without --tasks a depth-only model gives depth (the skipped
+    tasks named on stderr); --tasks flow on it is refused before any work, naming the missing graph."""
+    folder = frame_folder(tmp_path, frames)
+    rc, _, err = run_cli(
+        capsys, "batch", folder, "--out", tmp_path / "refused", "--model", models["depth"], "--tasks", "flow"
+    )
+    assert rc == 2 and "posenet" in err and str(models["depth"]) in err and err.count("\n") == 1, err
+    assert not (tmp_path / "refused").exists()
+    out = tmp_path / "out"
+    rc, _, err = run_cli(
+        capsys, "batch", folder, "--out", out, "--model", models["depth"], "--workers", "1", "--no-progress"
+    )
+    assert rc == 0, err
+    assert "skipping pose" in err and "flow" in err
+    depth_files = sorted(p.stem for p in (out / folder.name / "depth").glob("*.npy"))
+    assert depth_files == [f"{t:06d}" for t in range(N_FRAMES)]
+    assert not (out / folder.name / "flow").exists()

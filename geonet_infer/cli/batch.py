@@ -9,10 +9,20 @@ import sys
 import threading
 from pathlib import Path
 
-from geonet_infer.batch import ENGINES, FAILURES_NAME, MARKER_NAME, OWNER_NAME, needs_own_calib, run_batch
+from geonet_infer.batch import (
+    ENGINES,
+    FAILURES_NAME,
+    MARKER_NAME,
+    OWNER_NAME,
+    model_tasks,
+    needs_own_calib,
+    run_batch,
+)
 from geonet_infer.cli.common import add_camera_args, add_model_args, camera_from_args, positive_int
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks
+from geonet_infer.manifest import load_manifest
+from geonet_infer.models import resolve_model
+from geonet_infer.pipeline import SUMMARY_NAME, parse_tasks
 from geonet_infer.session import usable_cpus
 
 HELP = f"""\
@@ -107,8 +117,7 @@ def add_parser(sub) -> None:
     add_camera_args(parser)
     parser.add_argument(
         "--tasks",
-        default=",".join(TASKS),
-        help="comma list of depth,pose,flow (default: all; flow needs intrinsics: --calib, "
+        help="comma list of depth,pose,flow (default: every task the model can do; flow needs intrinsics: --calib, "
         "--intrinsics, or a KITTI drive's own calibration)",
     )
     parser.add_argument(
@@ -128,7 +137,14 @@ def _raise_interrupt(signum, frame):
 
 
 def run_command(args: argparse.Namespace) -> int:
-    tasks = parse_tasks(args.tasks)
+    model_dir = resolve_model(args.model)
+    graphs = load_manifest(model_dir).graph_names(args.precision)
+    tasks = model_tasks(
+        model_dir,
+        graphs,
+        None if args.tasks is None else parse_tasks(args.tasks),
+        lambda msg: print(msg, file=sys.stderr),
+    )
     if args.ray_address and args.engine != "ray":
         raise GeoNetInputError(None, "--ray-address needs --engine ray")
     camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own

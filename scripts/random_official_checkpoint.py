@@ -1,0 +1,81 @@
+"""Write a TensorFlow checkpoint in the layout of a released GeoNet checkpoint, with random values.
+
+The released files cannot be downloaded on this project's machines; this stands in for them so that
+every command of docs/official_models.md can be run as written (the values are random: the depth,
+poses and flow it gives mean nothing). Names, shapes and dtypes come from
+export/official_variables.json (derived from the official code); needs the ``[tf]`` extra::
+
+    python scripts/random_official_checkpoint.py /tmp/geonet_depthnet/model-250000 depth_resnet50 pose_seq3
+    python scripts/random_official_checkpoint.py /tmp/geonet_posenet/model-206000 depth_resnet50 pose_seq5
+    python scripts/random_official_checkpoint.py /tmp/geonet_resflownet/model-400000 \\
+        depth_resnet50 pose_seq3 flow_resnet50
+
+A ``train_rigid`` release holds depth_net and pose_net, a ``train_flow`` release flow_net as well
+(../shared/reference/official_checkpoints.md), plus ``global_step``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from export.from_tf import official_variables  # noqa: E402
+
+
+def random_values(variables: list, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """He-scaled weights, BatchNorm at its initial statistics, small betas and biases.
+
+    The last 1x1 conv of each bottleneck (``Conv_N`` whose output width is 4x its input, and the
+    shortcut) is scaled down so 16 random residual blocks do not grow activations without bound."""
+    values = {}
+    for name, shape, dtype in variables:
+        if name.endswith("/weights"):
+            fan_in = int(np.prod(shape[:-1]))
+            std = np.sqrt(2.0 / fan_in) * (0.25 if len(shape) == 4 and shape[-1] >= 4 * shape[-2] else 1.0)
+            value = rng.normal(0.0, std, shape)
+        elif name.endswith("moving_variance"):
+            value = np.ones(shape)
+        elif name.endswith("moving_mean"):
+            value = np.zeros(shape)
+        else:  # BatchNorm/beta, biases
+            value = rng.normal(0.0, 0.01, shape)
+        values[name] = value.astype(dtype)
+    return values
+
+
+def main(argv: list[str] | None = None) -> int:
+    networks = official_variables()
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("prefix", type=Path, help="checkpoint prefix to write: PREFIX.index + PREFIX.data-*")
+    parser.add_argument("networks", nargs="+", choices=list(networks), help="networks the checkpoint holds")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")  # no C++ start-up notices
+    import tensorflow as tf
+
+    rng = np.random.default_rng(args.seed)
+    values = {}
+    for key in args.networks:
+        values.update(random_values(networks[key], rng))
+    step = int(m.group(1)) if (m := re.search(r"model-(\d+)$", args.prefix.name)) else 0
+    args.prefix.parent.mkdir(parents=True, exist_ok=True)
+    names = sorted(values)
+    tensors = [tf.constant(values[n]) for n in names] + [tf.constant(np.int64(step))]
+    tf.raw_ops.SaveV2(
+        prefix=str(args.prefix),
+        tensor_names=names + ["global_step"],
+        shape_and_slices=[""] * (len(names) + 1),
+        tensors=tensors,
+    )
+    print(f"{args.prefix}: {len(names)} variables of {', '.join(args.networks)} (random values), global_step {step}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
