@@ -962,7 +962,7 @@ def run_batch(
     (``"interrupted": true``) when interrupted (Ctrl-C, or SIGTERM turned into it by the CLI);
     a later ``resume=True`` finishes.
     """
-    from geonet_infer.manifest import load_manifest
+    from geonet_infer.manifest import load_manifest, model_notice
     from geonet_infer.models import resolve_model
 
     log = log or (lambda msg: print(msg, file=sys.stderr))
@@ -973,7 +973,8 @@ def run_batch(
     check_counts(workers, threads)
     units = plan_units(expand_inputs(inputs))
     model_dir = resolve_model(model)
-    graphs = load_manifest(model_dir).graph_names(precision)  # bad --model / --precision: exit 2 before any work
+    manifest = load_manifest(model_dir)
+    graphs = manifest.graph_names(precision)  # bad --model / --precision: exit 2 before any work
     tasks = model_tasks(model_dir, graphs, tasks, log)
     out_dir = Path(os.path.abspath(out_dir))
     check_out(out_dir, units)
@@ -1099,6 +1100,7 @@ def run_batch(
                 "tasks": list(tasks),
                 "batch_size": batch_size,
                 "model": options["model"],
+                "model_notice": model_notice(manifest),  # synthetic-only model: how it does on real video
                 "precision": precision,
                 "backend": backend,
                 "camera": "per input (its own calibration, if any)" if camera is None else camera.source,

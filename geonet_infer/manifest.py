@@ -46,6 +46,10 @@ MIN_SIDE, MAX_SIDE = 32, 2048
 MIN_SEQ_LENGTH, MAX_SEQ_LENGTH = 3, 9
 MAX_CONVENTION_MAGNITUDE = 1e4  # every number of the conventions (the largest is a reference size)
 MIN_NORM_SCALE = 1e-3  # image_norm.scale: a zero scale feeds the nets a constant image
+REAL_VIDEO_HINT = (
+    "for real video, convert the released GeoNet checkpoints with `python -m export --from-tf` "
+    "(docs/official_models.md)"
+)
 
 
 def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -158,6 +162,70 @@ class Quantization:
 
 
 @dataclass(frozen=True)
+class Score:
+    """One measured number of a model next to its baseline on the same data (written by the model card)."""
+
+    task: str  # depth, flow, pose
+    metric: str  # as the card labels it, e.g. "AbsRel"
+    data: str  # what it was measured on
+    value: float  # the model's FP32 number
+    baseline: str  # e.g. "constant depth"
+    baseline_value: float
+    lower_is_better: bool = True
+
+    @property
+    def verdict(self) -> str:
+        """ "better", "worse" or "no better" than the baseline."""
+        ahead = self.baseline_value - self.value if self.lower_is_better else self.value - self.baseline_value
+        return "better" if ahead > 0 else "worse" if ahead < 0 else "no better"
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Score:
+        d = dict(d)
+        for key in ("value", "baseline_value"):
+            d[key] = float(d[key])
+            if not math.isfinite(d[key]):
+                raise ValueError(f"model_card score {key} is {d[key]}")
+        return _from_known_fields(cls, d)
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    """What the model was trained on and its measured scores, copied from its model card
+    (``python -m training.model_card``); a model directory without one has no measured scores."""
+
+    trained_on: str  # one line
+    synthetic_only: bool  # trained on synthetic scenes only: predict/batch say so on real video
+    measured_in: str  # where the measurement is written up (docs/models.md)
+    generated_utc: str
+    real: tuple[Score, ...] = ()
+    synthetic: tuple[Score, ...] = ()
+
+    def notice(self) -> str | None:
+        """One line for users of a synthetic-only model: its real-data score and where a model for
+        real video comes from; None for any other model."""
+        if not self.synthetic_only:
+            return None
+        if self.real:
+            s = self.real[0]
+            real = (
+                f"on real video it is {s.verdict} than the {s.baseline} baseline: {s.task} {s.metric} "
+                f"{s.value:.3g} vs {s.baseline_value:.3g} on {s.data}, see {self.measured_in}"
+            )
+        else:
+            real = "its real-data scores are not measured"
+        return f"trained on synthetic scenes only: {real}; {REAL_VIDEO_HINT}"
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ModelCard:
+        d = dict(d)
+        d["synthetic_only"] = bool(d["synthetic_only"])
+        for key in ("real", "synthetic"):
+            d[key] = tuple(Score.from_dict(s) for s in d.get(key) or ())
+        return _from_known_fields(cls, d)
+
+
+@dataclass(frozen=True)
 class Manifest:
     """Everything a consumer needs to run the graphs of one model directory."""
 
@@ -173,6 +241,7 @@ class Manifest:
     provenance: Provenance
     metrics: dict  # the checkpoint's validation metrics ({} for random init)
     quantization: Quantization | None = None
+    model_card: ModelCard | None = None  # optional: older manifests and fresh exports have none
     format: str = MANIFEST_FORMAT
     root: Path | None = field(default=None, compare=False, repr=False)  # directory it was loaded from
 
@@ -221,12 +290,14 @@ class Manifest:
     def to_dict(self) -> dict:
         d = asdict(self)
         d.pop("root")
+        if d["model_card"] is None:  # written by the model card, not by export
+            d.pop("model_card")
         # Put the identifying keys first for readers of the JSON.
         return {"format": d.pop("format"), "schema_version": d.pop("schema_version"), **d}
 
     @classmethod
     def from_dict(cls, d: dict, root: Path | None = None) -> Manifest:
-        quant = d.get("quantization")
+        quant, card = d.get("quantization"), d.get("model_card")
         return cls(
             schema_version=int(d["schema_version"]),
             height=int(d["height"]),
@@ -240,9 +311,16 @@ class Manifest:
             provenance=Provenance.from_dict(d["provenance"]),
             metrics=dict(d.get("metrics") or {}),
             quantization=Quantization.from_dict(quant) if quant else None,
+            model_card=ModelCard.from_dict(card) if card else None,
             format=str(d.get("format", "")),
             root=root,
         )
+
+
+def model_notice(manifest: Manifest) -> str | None:
+    """The one-line notice ``predict`` and ``batch`` print and record for a model trained on synthetic
+    scenes only (from its ``model_card``); None for any other model."""
+    return manifest.model_card.notice() if manifest.model_card else None
 
 
 def write_manifest(manifest: Manifest, directory: str | Path) -> Path:

@@ -43,6 +43,7 @@ from geonet_infer.io.flow import write_flow_kitti
 from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.images import write_image
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
+from geonet_infer.manifest import model_notice
 from geonet_infer.predictor import FrameResult, Predictor, metric_frames
 from geonet_infer.scale import check_metric_request
 from geonet_infer.viz import depth_to_color, flow_to_color
@@ -423,6 +424,7 @@ def _predict(
             "graph_size": [predictor.spec.height, predictor.spec.width],
             "random_init": predictor.manifest.random_init,
         },
+        "model_notice": model_notice(predictor.manifest),  # synthetic-only model: how it does on real video
         "camera": None
         if camera is None
         else {

@@ -34,6 +34,7 @@ from geonet_infer.manifest import (
     Quantization,
     TensorSpec,
     file_sha256,
+    load_manifest,
     write_manifest,
 )
 from geonet_infer.metrics import depth_floor_share
@@ -380,6 +381,26 @@ def test_numbers_in_card_come_from_the_run(card3):
     assert f"| {sig3(f['noc']['epe'])} | {sig3(f['occ']['epe'])} |" in md
     p = result["synthetic"]["pose"]["fp32"]["ate_snippet"]
     assert f"{sig3(p['mean'])} ± {sig3(p['std'])}" in md
+
+
+def test_card_writes_its_headline_scores_into_the_model_manifest(card3):
+    """The measured run puts the card's numbers into the model's manifest (`geonet-infer info` shows
+    them); the --before model's manifest is left alone, and the card's directory size counts the new manifest."""
+    md, result = card3
+    model_dir = Path(result["model"]["dir"])
+    written = load_manifest(model_dir).model_card
+    k, s = result["kitti"]["depth"], result["synthetic"]
+    assert [(x.value, x.baseline_value) for x in written.real] == [
+        (k["fp32"]["abs_rel"], k["constant_baseline"]["abs_rel"])
+    ]
+    assert [(x.value, x.baseline_value) for x in written.synthetic] == [
+        (s["depth"]["fp32"]["abs_rel"], s["depth"]["constant_baseline"]["abs_rel"]),
+        (s["flow"]["fp32"]["noc"]["epe"], s["flow"]["dis_medium_baseline"]["noc"]["epe"]),
+        (s["pose"]["fp32"]["ate_snippet"]["mean"], s["pose"]["orb_vo_baseline"]["ate_snippet"]["mean"]),
+    ]
+    assert written.synthetic_only is False and "random-init" in written.trained_on  # the stand-in is untrained
+    assert load_manifest(result["before"]["model"]["dir"]).model_card is None
+    assert result["model"]["dir_bytes"] == sum(f.stat().st_size for f in model_dir.rglob("*") if f.is_file())
 
 
 def test_depth_floor_is_the_metric_of_the_predictions(card3, kitti):

@@ -26,6 +26,12 @@ from :mod:`geonet_infer.baselines`); this module only picks the data and renders
 on that model in the same run and adds a "Before / after" table of the headline
 numbers, each with its baseline and target.
 
+The card's headline FP32 numbers (each beside its baseline) and what the model was trained
+on are also written into the model directory's ``manifest.json`` as ``model_card`` (graph
+files untouched; ``--no-manifest`` skips it), where ``geonet-infer info`` shows them and
+``predict`` / ``batch`` warn about a synthetic-only model. ``--from-json`` does that (and
+renders the card again) from an earlier run's ``--json`` without measuring.
+
 Random-init (timing-only) model directories are refused unless
 ``--allow-random-init`` is given (development only; the card then carries a
 warning at the top). Bad input: a one-line message naming the path, exit 2.
@@ -357,7 +363,7 @@ def model_info(manifest: Manifest, model_dir: Path) -> dict:
         "metrics": manifest.metrics,
         "files": files,
         # every file of the directory (manifest included), as unpacked from the wheel
-        "dir_bytes": sum(f.stat().st_size for f in model_dir.rglob("*") if f.is_file()),
+        "dir_bytes": _dir_bytes(model_dir),
         "quantization": None if quant is None else json.loads(json.dumps(dataclasses.asdict(quant), default=list)),
     }
 
@@ -768,6 +774,61 @@ def _before_after(result: dict) -> list[str]:
     ]
 
 
+# ----------------------------------------------------------------------------- manifest
+METRIC_NAMES = {"abs_rel": "AbsRel", "noc.epe": "EPE-noc (px)", "ate_snippet.mean": "ATE (paper ÷N, mean)"}
+
+
+def manifest_card(result: dict, card_path: str) -> dict:
+    """The manifest's ``model_card`` block: what the model was trained on and the card's headline
+    FP32 numbers, each beside its baseline (the same rows as the card's before/after table)."""
+    m = result["model"]
+    prov = m["provenance"]
+    if m["random_init"]:
+        trained_on, synthetic_only = "nothing: random-init weights (timing only)", False
+    elif prov.get("sources"):
+        trained_on, synthetic_only = f"the released GeoNet TensorFlow checkpoints ({prov['checkpoint']})", False
+    else:
+        data = f" ({prov['data_dir']})" if prov.get("data_dir") else ""
+        trained_on, synthetic_only = f"synthetic scenes only{data}, made by training.synth", True
+    data = {"kitti": _data_kitti(result).replace("`", ""), "synthetic": _data_synth(result).replace("`", "")}
+    scores: dict[str, list] = {"real": [], "synthetic": []}
+    for h in HEADLINES:
+        scores["real" if h.where == "kitti" else "synthetic"].append(
+            {
+                "task": h.task,
+                "metric": METRIC_NAMES[h.metric],
+                "data": data[h.where],
+                "value": _headline(result, h, "fp32"),
+                "baseline": BASELINE_LABEL[h.baseline].removesuffix(" (baseline)"),
+                "baseline_value": _flatten(result[h.where][h.task][h.baseline])[h.metric],
+                "lower_is_better": True,
+            }
+        )
+    return {
+        "trained_on": trained_on,
+        "synthetic_only": synthetic_only,
+        "measured_in": card_path,
+        "generated_utc": result["generated_utc"],
+        **scores,
+    }
+
+
+def write_manifest_card(model_dir: str | Path, card: dict) -> Path:
+    """Put ``card`` into the model directory's manifest as ``model_card``; every other key and the
+    graph files stay as they are (the manifest is rewritten atomically, the graphs are not touched)."""
+    path = Path(model_dir) / MANIFEST_NAME
+    raw = json.loads(path.read_text())
+    raw["model_card"] = card
+    with atomic_write(path) as tmp:
+        tmp.write_text(json.dumps(raw, indent=2) + "\n")
+    load_manifest(model_dir)  # what the runtime will read back: refuse to leave a manifest it cannot load
+    return path
+
+
+def _dir_bytes(model_dir: Path) -> int:
+    return sum(f.stat().st_size for f in model_dir.rglob("*") if f.is_file())
+
+
 def render_card(result: dict) -> str:
     m = result["model"]
     prov = m["provenance"]
@@ -1076,9 +1137,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m training.model_card", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     p.add_argument("--model", required=True, help="model directory written by `python -m export`")
-    p.add_argument("--synth-dir", required=True, help="output of training.synth")
-    p.add_argument("--prepared-dir", required=True, help="output of training.prepare (has heldout.txt)")
-    p.add_argument("--kitti", required=True, help="KITTI raw drive folder (image_02/, velodyne_points/, calib)")
+    p.add_argument("--synth-dir", help="(measuring) output of training.synth")
+    p.add_argument("--prepared-dir", help="(measuring) output of training.prepare (has heldout.txt)")
+    p.add_argument("--kitti", help="(measuring) KITTI raw drive folder (image_02/, velodyne_points/, calib)")
     p.add_argument("--out", required=True, help="the Markdown card to write (docs/models.md)")
     p.add_argument("--json", help="also write every number as JSON here")
     p.add_argument(
@@ -1094,6 +1155,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--allow-random-init",
         action="store_true",
         help="accept a random-init model directory (development only; the card says so loudly)",
+    )
+    p.add_argument(
+        "--no-manifest",
+        action="store_true",
+        help="leave the model directory's manifest.json as it is (by default the card's headline scores and "
+        "what the model was trained on are written into it as `model_card`, which `geonet-infer info` shows)",
+    )
+    p.add_argument(
+        "--from-json",
+        metavar="JSON",
+        help="measure nothing: take the numbers of an earlier run's --json (for the same graphs), write them "
+        "into --model's manifest and render --out (and --json) again",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
@@ -1125,7 +1198,13 @@ def main(argv=None) -> int:
         for out in (args.out, args.json):
             if out and not Path(out).parent.is_dir():
                 raise GeoNetInputError(Path(out).parent, "output folder not found", "create it first")
-        result = run(args, command, progress)
+        if args.from_json:
+            result = recorded_result(args.from_json, args.model)
+        else:
+            for flag in ("synth_dir", "prepared_dir", "kitti"):
+                if getattr(args, flag) is None:
+                    raise GeoNetInputError(None, f"--{flag.replace('_', '-')} is required", "or pass --from-json")
+            result = run(args, command, progress)
         # the manifests' own numbers (model blocks) are reported, not measured
         _check_finite({k: v for k, v in result.items() if k not in ("model", "before")})
         if result["before"]:
@@ -1135,6 +1214,9 @@ def main(argv=None) -> int:
         return 2
     if result["model"]["random_init"]:
         print("WARNING: random-init model: the card's numbers measure untrained weights", file=sys.stderr)
+    if not args.no_manifest:
+        write_manifest_card(args.model, manifest_card(result, args.out))
+        result["model"]["dir_bytes"] = _dir_bytes(Path(args.model))  # the manifest just grew
     with atomic_write(args.out) as tmp:
         tmp.write_text(render_card(result))
     if args.json:
@@ -1142,6 +1224,22 @@ def main(argv=None) -> int:
             tmp.write_text(json.dumps(result, indent=2, default=_json_default) + "\n")
     progress(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
     return 0
+
+
+def recorded_result(path: str | Path, model: str | Path) -> dict:
+    """An earlier run's --json, refused unless its graph files are ``model``'s (same sha256)."""
+    try:
+        result = json.loads(Path(path).read_text())
+        recorded = {(f["precision"], f["graph"]): f["sha256"] for f in result["model"]["files"]}
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise GeoNetInputError(path, f"not a model card's --json ({exc})", "pass the file a --json run wrote") from None
+    manifest = load_manifest(model)
+    current = {(p, n): manifest.graph(n, p).sha256 for p in manifest.precisions for n in manifest.graph_names(p)}
+    if recorded != current:
+        raise GeoNetInputError(
+            path, f"its numbers were measured on other graph files than those of {model}", "measure this model"
+        )
+    return result
 
 
 def _json_default(obj):

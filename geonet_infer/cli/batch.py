@@ -129,6 +129,12 @@ def add_parser(sub) -> None:
         help="skip the depth colour maps and flow colour wheels (the data files only; much faster writes)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no notes on stderr (the model's notice, skipped tasks; summary.json keeps them); warnings, "
+        "failures and errors still print",
+    )
     parser.set_defaults(run=run_command)
 
 
@@ -143,7 +149,7 @@ def run_command(args: argparse.Namespace) -> int:
         model_dir,
         graphs,
         None if args.tasks is None else parse_tasks(args.tasks),
-        lambda msg: print(msg, file=sys.stderr),
+        (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
     )
     if args.ray_address and args.engine != "ray":
         raise GeoNetInputError(None, "--ray-address needs --engine ray")
@@ -193,6 +199,8 @@ def run_command(args: argparse.Namespace) -> int:
         f"({summary['engine']}: {summary['workers']} workers x {summary['threads_per_worker']} threads) "
         f"-> {args.out}; details in {args.out / SUMMARY_NAME}"
     )
+    if summary["model_notice"] and not args.quiet:
+        print(f"geonet-infer batch: note: {model_dir.name}: {summary['model_notice']}", file=sys.stderr)
     if summary["failures"]:
         print(
             f"{summary['failures']} failures (sequences or frames) listed in {args.out / FAILURES_NAME}",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -13,7 +14,7 @@ import onnxruntime as ort
 
 from geonet_infer import __version__
 from geonet_infer.engines import check_graphs, openvino_version
-from geonet_infer.manifest import load_manifest
+from geonet_infer.manifest import ModelCard, load_manifest
 from geonet_infer.models import DEFAULT_MODEL, bundled_models, resolve_model
 from geonet_infer.predictor import RIGID_FLOW_GRAPHS, TASK_GRAPHS, missing_graphs
 from geonet_infer.session import usable_cpus
@@ -99,8 +100,35 @@ def model_summary(model) -> dict:
             "export_date": prov.export_date,
         },
         "metrics": manifest.metrics,
+        "model_card": card_summary(manifest.model_card),
         "int8_accuracy_delta": manifest.quantization.accuracy_delta if manifest.quantization else None,
     }
+
+
+NOT_MEASURED = "not measured"
+
+
+def card_summary(card: ModelCard | None) -> dict:
+    """What the model was trained on and its measured scores (from the model card), or "not measured"."""
+    if card is None:
+        return {"trained_on": "not recorded", "real": NOT_MEASURED, "synthetic": NOT_MEASURED, "measured_in": None}
+    scores = {
+        key: [{**asdict(s), "verdict": s.verdict} for s in getattr(card, key)] or NOT_MEASURED
+        for key in ("real", "synthetic")
+    }
+    return {
+        "trained_on": card.trained_on,
+        "synthetic_only": card.synthetic_only,
+        **scores,
+        "measured_in": card.measured_in,
+    }
+
+
+def _score_text(s: dict) -> str:
+    return (
+        f"{s['task']} {s['metric']} {s['value']:.3g} vs {s['baseline_value']:.3g} for {s['baseline']} "
+        f"({s['verdict']}) on {s['data']}"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -143,4 +171,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"  trained: stage {prov['checkpoint_stage']} step {prov['checkpoint_step']}: {prov['training_command']}")
     for key, value in (model["metrics"] or {}).items():
         print(f"  metric {key}: {value}")
+    card = model["model_card"]
+    print(f"  trained on: {card['trained_on']}")
+    for key, label in (("real", "real-data"), ("synthetic", "synthetic")):
+        if card[key] == NOT_MEASURED:
+            print(f"  {label} scores: {NOT_MEASURED}")
+        for s in [] if card[key] == NOT_MEASURED else card[key]:
+            print(f"  {label} score: {_score_text(s)} ({card['measured_in']})")
     return 0

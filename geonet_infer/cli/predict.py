@@ -90,6 +90,12 @@ def add_parser(sub) -> None:
         help="skip the depth colour maps and flow colour wheels (the data files only; much faster writes)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no notes on stderr (the model's notice, skipped tasks; summary.json keeps them); warnings, "
+        "failures and errors still print",
+    )
     parser.set_defaults(run=run)
 
 
@@ -104,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     predictor = load_predictor(args)
     if tasks is None:
         doable, skipped = predictor.resolve_tasks()
-        if skipped:
+        if skipped and not args.quiet:
             lacks = ", ".join(
                 f"{task} (no {', '.join(graphs)} graph{'s' if len(graphs) > 1 else ''})"
                 for task, graphs in skipped.items()
@@ -131,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}"
     )
     print(stage_table(summary["timings_ms_per_frame"], summary["frames"]))
+    if summary["model_notice"] and not args.quiet:
+        print(f"geonet-infer predict: note: {predictor.model_dir.name}: {summary['model_notice']}", file=sys.stderr)
     missing = set(source.missing) if summary["truncated"] else set()
     for failure in summary["failures"]:
         if failure["frame"] not in missing:
