@@ -29,12 +29,11 @@ from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_in
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
-from geonet_infer.manifest import PRECISIONS, load_manifest, write_manifest
+from geonet_infer.manifest import PRECISIONS, SIZE_MULTIPLE, load_manifest, write_manifest
 from training.checkpoint import load_checkpoint, model_from_checkpoint
 from training.config import ARCHS
 
 DEFAULT_SEQ_LENGTH = 3
-SIZE_MULTIPLE = 8  # DepthNet/ResFlowNet need H and W divisible by 8
 
 
 @dataclass
@@ -231,13 +230,19 @@ def _load_source(cfg: ExportConfig, graphs: list[str]) -> Source:
         src = tf_source(cfg, graphs, lambda msg: _log(cfg, msg))
     else:
         src = _random_source(cfg, graphs) if cfg.random_init else _checkpoint_source(cfg, graphs)
-    if src.height % SIZE_MULTIPLE or src.width % SIZE_MULTIPLE or src.height <= 0 or src.width <= 0:
+    check_graph_size(src.height, src.width)
+    return src
+
+
+def check_graph_size(height: int, width: int) -> None:
+    """GeoNetInputError unless both sides are positive multiples of ``SIZE_MULTIPLE`` (DepthNet and
+    ResFlowNet need them; the runtime refuses other manifests too)."""
+    if height % SIZE_MULTIPLE or width % SIZE_MULTIPLE or height <= 0 or width <= 0:
         raise GeoNetInputError(
             None,
-            f"graph size {src.height}x{src.width} is not a positive multiple of {SIZE_MULTIPLE}",
-            "pass --height/--width divisible by 8 (GeoNet uses 128x416)",
+            f"graph size {height}x{width} is not a positive multiple of {SIZE_MULTIPLE}",
+            f"pass --height/--width divisible by {SIZE_MULTIPLE} (GeoNet and its released models use 128x416)",
         )
-    return src
 
 
 # ------------------------------------------------------------------------------ directory

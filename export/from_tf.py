@@ -451,18 +451,13 @@ def tf_source(cfg, requested: list[str], log=print):
     Graphs: those the checkpoints' nets give (depthnet, posenet, resflownet) plus the weightless
     rigidflow.onnx; ``--graphs`` narrows that set and must not ask for a net the checkpoints lack.
     """
-    from export.build import SIZE_MULTIPLE, Source
+    from export.build import Source, check_graph_size
     from export.wrappers import GRAPH_NAMES
     from training.model import GeoNet
 
     height = cfg.height or conventions.REFERENCE_HEIGHT
     width = cfg.width or conventions.REFERENCE_WIDTH
-    if height % SIZE_MULTIPLE or width % SIZE_MULTIPLE or height <= 0 or width <= 0:
-        raise GeoNetInputError(
-            None,
-            f"graph size {height}x{width} is not a positive multiple of {SIZE_MULTIPLE}",
-            "pass --height/--width divisible by 8 (the released models were trained at 128x416)",
-        )
+    check_graph_size(height, width)  # before minutes of reading checkpoints
     conv = convert_checkpoints(cfg.from_tf, log)
     available = {GRAPH_OF_KIND[k] for k in conv.nets} | {"rigidflow"}
     if tuple(requested) == GRAPH_NAMES:  # the default: everything the checkpoints give

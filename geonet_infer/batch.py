@@ -29,7 +29,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
-import hashlib
 import json
 import multiprocessing
 import os
@@ -50,8 +49,9 @@ from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
+from geonet_infer.manifest import file_sha256
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, predict_to_dir
-from geonet_infer.predictor import missing_graphs
+from geonet_infer.predictor import describe_skipped, resolve_tasks
 from geonet_infer.session import usable_cpus
 
 __all__ = [
@@ -289,7 +289,12 @@ def _claim(folder: Path) -> None:
     if folder.exists() and not _is_empty(folder):
         raise _not_ours(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    # a plain write, no temp file: a marker cut short by a crash still says who made the folder
+    _mark(folder)
+
+
+def _mark(folder: Path) -> None:
+    """Write batch's ownership marker into ``folder``: a plain write, no temp file, so a marker cut
+    short by a crash still says who made the folder."""
     (folder / OWNER_NAME).write_text(json.dumps({"made_by": "geonet-infer batch", "version": __version__}) + "\n")
 
 
@@ -307,7 +312,7 @@ def _discard(folder: Path) -> None:
         shutil.rmtree(folder)
 
 
-def _input_files(unit_path: str, source: FrameSource, own_calib: bool) -> list[Path]:
+def _input_files(source: FrameSource, own_calib: bool) -> list[Path]:
     """The files a sequence's outputs are made from: its frames (or video), and its own calibration."""
     files = list(getattr(source, "files", None) or [Path(source.path)])
     if own_calib and source.default_calib is not None:
@@ -325,19 +330,11 @@ def _fingerprint(unit_path: str, files: list[Path]) -> list[list]:
     return out
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _record_outputs(folder: Path) -> dict[str, list]:
     """{relative path: [size, sha256]} of every file of a sequence folder but batch's own markers."""
     own = {folder / MARKER_NAME, folder / OWNER_NAME}
     return {
-        p.relative_to(folder).as_posix(): [p.stat().st_size, _sha256(p)]
+        p.relative_to(folder).as_posix(): [p.stat().st_size, file_sha256(p)]
         for p in sorted(folder.rglob("*"))
         if p.is_file() and p not in own
     }
@@ -354,10 +351,10 @@ def _stale(marker: dict, unit: WorkUnit, folder: Path, own_calib: bool) -> str |
         p = folder / rel
         if not p.is_file():
             return f"{rel} is missing"
-        if p.stat().st_size != size or _sha256(p) != digest:
+        if p.stat().st_size != size or file_sha256(p) != digest:
             return f"{rel} changed since it was written"
     try:
-        now = _fingerprint(unit.path, _input_files(unit.path, open_frames(unit.path), own_calib))
+        now = _fingerprint(unit.path, _input_files(open_frames(unit.path), own_calib))
     except (GeoNetInputError, OSError) as exc:
         return f"its input cannot be read now ({_reason(exc)})"
     after = {name: (size, mtime) for name, size, mtime in now}
@@ -420,12 +417,12 @@ def run_sequence(
         camera = config.camera
         if camera is None and source.default_calib is not None:
             camera = read_camera(source.default_calib).validate(source.default_calib)
-        inputs = _fingerprint(unit.path, _input_files(unit.path, source, config.camera is None))
+        inputs = _fingerprint(unit.path, _input_files(source, config.camera is None))
         if on_frame is not None:
             source = _CountingSource(source, on_frame)
         writing = True
         out.mkdir()
-        (out / OWNER_NAME).write_text(json.dumps({"made_by": "geonet-infer batch", "version": __version__}) + "\n")
+        _mark(out)
         summary = predict_to_dir(
             predictor,
             source,
@@ -497,12 +494,10 @@ def check_counts(workers: int | None, threads: int | None) -> None:
             raise GeoNetInputError(None, f"{flag} {value} is out of range", f"pass 1 to {MAX_WORKERS}")
 
 
-def worker_memory_bytes(model_dir, precision: str) -> int:
+def worker_memory_bytes(manifest, precision: str) -> int:
     """Estimated peak memory of one local worker: :data:`WORKER_BASE_BYTES` plus
-    :data:`WORKER_GRAPH_FACTOR` times the size of the graph files it loads."""
-    from geonet_infer.manifest import load_manifest
-
-    return WORKER_BASE_BYTES + int(WORKER_GRAPH_FACTOR * load_manifest(Path(model_dir)).files_mib(precision) * 2**20)
+    :data:`WORKER_GRAPH_FACTOR` times the size of the graph files of ``manifest`` it loads."""
+    return WORKER_BASE_BYTES + int(WORKER_GRAPH_FACTOR * manifest.files_mib(precision) * 2**20)
 
 
 def memory_available() -> int | None:
@@ -912,24 +907,13 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
 
 
 def model_tasks(model_dir, graphs, tasks: Iterable[str] | None, log) -> tuple[str, ...]:
-    """The tasks to run, in canonical order: ``tasks`` if the model's ``graphs`` can do them all (else
-    GeoNetInputError naming the missing graph, before any work), or with ``None`` every task it can do
-    (the others named in one line), as ``predict`` does."""
-    lacking = {t: missing_graphs(t, graphs) for t in TASKS if missing_graphs(t, graphs)}
-    if tasks is None:
-        if len(lacking) == len(TASKS):
-            raise GeoNetInputError(model_dir, f"this model can do none of {', '.join(TASKS)}", "use another --model")
-        if lacking:
-            log("batch: skipping " + "; ".join(f"{t} (no {', '.join(g)} graph)" for t, g in lacking.items()))
-        return tuple(t for t in TASKS if t not in lacking)
-    for task in tasks:
-        if task in lacking:
-            raise GeoNetInputError(
-                model_dir,
-                f"task {task} needs the {', '.join(lacking[task])} graph, which this model lacks",
-                f"leave {task} out of --tasks; `geonet-infer info --model {model_dir}` lists what it can do",
-            )
-    return tuple(t for t in TASKS if t in tasks)
+    """The tasks to run, resolved as ``predict`` does (:func:`geonet_infer.predictor.resolve_tasks`):
+    given tasks the model cannot do are refused before any work; with ``None`` every task it can do,
+    the others named in one line."""
+    tasks, skipped = resolve_tasks(graphs, tasks, model_dir)
+    if skipped:
+        log(f"geonet-infer batch: skipping {describe_skipped(skipped)} in {model_dir}; running {', '.join(tasks)}")
+    return tasks
 
 
 def run_batch(
@@ -1012,21 +996,20 @@ def run_batch(
                 todo, skipped, redone = _resume_plan(units, out_dir, options, camera is None, log)
                 results.update({r["index"]: r for r in skipped})
             _write_failures(failures_path, [f for r in skipped for f in r["failures"]])
-            if not todo:  # everything is complete already: no workers, no cluster
-                pass
-            elif engine == "ray":
+            # nothing left to do (everything complete already): no workers, no cluster
+            if todo and engine == "ray":
                 from geonet_infer.batch_ray import RayEngine
 
                 runner = RayEngine.start(probe, options, len(todo), workers, threads, ray_address, log)
                 n_workers, n_threads = runner.workers, runner.threads
-            else:
+            elif todo:
                 cpus = usable_cpus()
                 capped_w, capped_t, limits = cap_workers(
                     workers,
                     threads,
                     cpus=cpus,
                     mem_available=memory_available(),
-                    per_worker=worker_memory_bytes(resolve_model(model), precision),
+                    per_worker=worker_memory_bytes(manifest, precision),
                     n_units=len(todo),
                 )
                 for note in limits:

@@ -27,7 +27,6 @@ import itertools
 import json
 import os
 import platform
-import re
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator
@@ -37,7 +36,7 @@ import numpy as np
 
 from geonet_infer import __version__
 from geonet_infer.errors import GeoNetInputError
-from geonet_infer.io.atomic import atomic_write, save_npy_atomic
+from geonet_infer.io.atomic import atomic_write, leftover_temps, save_npy_atomic
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.flow import write_flow_kitti
 from geonet_infer.io.frames import FrameSource
@@ -213,12 +212,8 @@ class _OwnedFolder:
                 continue  # a marker never lists such a path; an edited one cannot make us delete elsewhere
             if path.is_file() or path.is_symlink():
                 path.unlink()
-            # temp files of the atomic writer of a run that was killed while writing this file
-            temp = re.compile(rf"\.{re.escape(path.stem)}\.[a-z0-9_]{{8}}{re.escape(path.suffix or '.tmp')}")
-            if path.parent.is_dir():
-                for leftover in path.parent.iterdir():
-                    if temp.fullmatch(leftover.name) and leftover.is_file():
-                        leftover.unlink()
+            for leftover in leftover_temps(path):  # of a run killed while writing this file
+                leftover.unlink()
         for sub in ("depth", "flow", "flow_vis"):
             with contextlib.suppress(OSError):  # only when empty: a user's file there keeps it
                 (self.out_dir / sub).rmdir()

@@ -68,6 +68,62 @@ def missing_graphs(task: str, graphs: Iterable[str]) -> tuple[str, ...]:
     return tuple(g for g in TASK_GRAPHS[task] if g not in present)
 
 
+def require_graphs(task: str, needed: Iterable[str], graphs: Iterable[str], model_dir) -> None:
+    """GeoNetInputError (one line naming the missing graphs and ``model_dir``) unless every graph
+    ``task`` needs is among the model's ``graphs``."""
+    graphs = tuple(graphs)
+    missing = [g for g in needed if g not in graphs]
+    if not missing:
+        return
+    leave = f"leave {task} out of the tasks" if task in TASKS else "drop the camera height"
+    hint = f"{leave}, or use a model directory that holds {', '.join(missing)}"
+    if "resflownet" in missing:
+        hint += " (exported from a stage 'flow' checkpoint or the released geonet_resflownet)"
+    raise GeoNetInputError(
+        model_dir,
+        f"{'task ' if task in TASKS else ''}{task} needs the {' and '.join(missing)} "
+        f"graph{'s' if len(missing) > 1 else ''}, which this model lacks (it holds {', '.join(graphs)})",
+        hint + f"; `geonet-infer info --model {model_dir}` lists what a model can do",
+    )
+
+
+def resolve_tasks(
+    graphs: Iterable[str], tasks: Iterable[str] | None, model_dir, *, metric: bool = False
+) -> tuple[tuple[str, ...], dict[str, tuple[str, ...]]]:
+    """(tasks to run in canonical order, {task skipped: the graphs it lacks}) for a model holding ``graphs``.
+
+    ``tasks=None``: every task the model can do, the others skipped; given tasks are all
+    required (GeoNetInputError naming a missing graph) and none is skipped. ``metric``: a camera
+    height will be given (it needs DepthNet whatever the tasks).
+    """
+    graphs = tuple(graphs)
+    if metric:
+        require_graphs(METRIC_TASK, TASK_GRAPHS["depth"], graphs, model_dir)
+    if tasks is not None:
+        tasks = list(tasks)
+        unknown = [t for t in tasks if t not in TASKS]
+        if unknown:
+            raise GeoNetInputError(None, f"unknown task(s) {unknown}", f"choose from {','.join(TASKS)}")
+        for task in tasks:
+            require_graphs(task, TASK_GRAPHS[task], graphs, model_dir)
+        return tuple(t for t in TASKS if t in tasks), {}
+    skipped = {t: missing_graphs(t, graphs) for t in TASKS if missing_graphs(t, graphs)}
+    if len(skipped) == len(TASKS):
+        raise GeoNetInputError(
+            model_dir,
+            f"this model can do none of {', '.join(TASKS)} (it holds {', '.join(graphs)})",
+            "export depthnet or posenet into it with `python -m export --graphs`",
+        )
+    return tuple(t for t in TASKS if t not in skipped), skipped
+
+
+def describe_skipped(skipped: dict[str, tuple[str, ...]]) -> str:
+    """'pose (no posenet graph), flow (no posenet, resflownet graphs)' for the notes of predict and batch."""
+    return ", ".join(
+        f"{task} (no {', '.join(graphs)} graph{'s' if len(graphs) > 1 else ''})" for task, graphs in skipped.items()
+    )
+
+
 # ----------------------------------------------------------------------------- results
 @dataclass
 class DepthResult:
@@ -338,50 +394,16 @@ class Predictor:
 
     def require_tasks(self, tasks: Iterable[str]) -> None:
         """Raise GeoNetInputError (one line naming the graph and this directory) unless every task can run."""
-        tasks = list(tasks)
-        unknown = [t for t in tasks if t not in TASKS]
-        if unknown:
-            raise GeoNetInputError(None, f"unknown task(s) {unknown}", f"choose from {','.join(TASKS)}")
-        for task in tasks:
-            self._require_graphs(task, TASK_GRAPHS[task])
+        resolve_tasks(self._engines, tasks, self.model_dir)
 
     def resolve_tasks(
         self, tasks: Iterable[str] | None = None, *, metric: bool = False
     ) -> tuple[tuple[str, ...], dict[str, tuple[str, ...]]]:
-        """(tasks to run in canonical order, {task skipped: the graphs it lacks}).
-
-        ``tasks=None``: every task this model can do, the others skipped; given tasks are all
-        required (:meth:`require_tasks`) and none is skipped. ``metric``: a camera height will
-        be given (it needs DepthNet whatever the tasks).
-        """
-        if metric:
-            self._require_graphs(METRIC_TASK, TASK_GRAPHS["depth"])
-        if tasks is not None:
-            self.require_tasks(tasks)
-            return tuple(t for t in TASKS if t in tasks), {}
-        skipped = {t: self.missing_graphs(t) for t in TASKS if self.missing_graphs(t)}
-        if len(skipped) == len(TASKS):
-            raise GeoNetInputError(
-                self.model_dir,
-                f"this model can do none of {', '.join(TASKS)} (it holds {', '.join(self._engines)})",
-                "export depthnet or posenet into it with `python -m export --graphs`",
-            )
-        return self.tasks, skipped
+        """(tasks to run in canonical order, {task skipped: the graphs it lacks}); see :func:`resolve_tasks`."""
+        return resolve_tasks(self._engines, tasks, self.model_dir, metric=metric)
 
     def _require_graphs(self, task: str, graphs: Iterable[str]) -> None:
-        missing = [g for g in graphs if g not in self._engines]
-        if not missing:
-            return
-        leave = f"leave {task} out of the tasks" if task in TASKS else "drop the camera height"
-        hint = f"{leave}, or use a model directory that holds {', '.join(missing)}"
-        if "resflownet" in missing:
-            hint += " (exported from a stage 'flow' checkpoint or the released geonet_resflownet)"
-        raise GeoNetInputError(
-            self.model_dir,
-            f"{'task ' if task in TASKS else ''}{task} needs the {' and '.join(missing)} "
-            f"graph{'s' if len(missing) > 1 else ''}, which this model lacks (it holds {', '.join(self._engines)})",
-            hint + f"; `geonet-infer info --model {self.model_dir}` lists what a model can do",
-        )
+        require_graphs(task, graphs, self._engines, self.model_dir)
 
     @property
     def seq_length(self) -> int:

@@ -19,6 +19,7 @@ import pytest
 
 from geonet_infer import batch as batch_mod
 from geonet_infer.batch import MARKER_NAME
+from geonet_infer.manifest import load_manifest
 from tests.test_batch import CLI, FRAMES, SAMPLE_CALIB, _wait_for, cli, make_sequences, require_ray
 
 DEPTH = ["--tasks", "depth", "--no-progress", "--no-vis"]
@@ -155,7 +156,7 @@ def test_workers_are_capped_by_cpus_and_memory():
     # the estimate grows with the model's graphs
     model = Path(batch_mod.__file__).parent / "models" / "small_synth"
     assert (
-        batch_mod.worker_memory_bytes(model, "fp32")
+        batch_mod.worker_memory_bytes(load_manifest(model), "fp32")
         > batch_mod.WORKER_BASE_BYTES + (model / "depthnet.onnx").stat().st_size
     )
 

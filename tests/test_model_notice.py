@@ -21,11 +21,11 @@ import geonet_infer
 from geonet_infer.cli import demo as demo_cli
 from geonet_infer.cli import main
 from geonet_infer.manifest import MANIFEST_NAME, file_sha256
+from tests.test_cli import sample_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = Path(geonet_infer.__file__).resolve().parent
 MODEL_DIR = PKG / "models" / "small_synth"
-SAMPLE = PKG / "samples" / "synth_seq"
 CARD_JSON = ROOT / "docs" / "models.json"
 NOTICE = "trained on synthetic scenes only"
 
@@ -49,14 +49,6 @@ def unscored(tmp_path_factory) -> Path:
     return out
 
 
-def frames(tmp_path: Path, n: int = 3) -> Path:
-    folder = tmp_path / "frames"
-    folder.mkdir()
-    for f in sorted((SAMPLE / "image").glob("*.png"))[:n]:
-        shutil.copyfile(f, folder / f.name)
-    return folder
-
-
 def notice_lines(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if NOTICE in line]
 
@@ -72,7 +64,7 @@ def check_notice(line: str, card: dict) -> None:
 
 # ----------------------------------------------------------------------------- predict
 def test_predict_prints_the_notice_once_and_records_it_quiet_keeps_the_field(tmp_path, capsys, card):
-    src = frames(tmp_path)
+    src = sample_folder(tmp_path, 3)
     assert main(["predict", str(src), "--out", str(tmp_path / "a"), "--tasks", "depth", "--no-progress"]) == 0
     lines = notice_lines(capsys.readouterr().err)
     assert len(lines) == 1
@@ -87,7 +79,7 @@ def test_predict_prints_the_notice_once_and_records_it_quiet_keeps_the_field(tmp
 
 
 def test_predict_on_a_model_without_scores_says_nothing(tmp_path, capsys, unscored):
-    src = frames(tmp_path)
+    src = sample_folder(tmp_path, 3)
     argv = ["predict", str(src), "--out", str(tmp_path / "o"), "--model", str(unscored), "--tasks", "depth"]
     assert main([*argv, "--no-progress"]) == 0
     assert notice_lines(capsys.readouterr().err) == []
@@ -96,7 +88,7 @@ def test_predict_on_a_model_without_scores_says_nothing(tmp_path, capsys, unscor
 
 # ----------------------------------------------------------------------------- batch
 def test_batch_prints_the_notice_and_records_it_quiet_keeps_the_field(tmp_path, capsys, card):
-    src = frames(tmp_path)
+    src = sample_folder(tmp_path, 3)
     common = ["--tasks", "depth", "--workers", "1", "--no-progress"]
     assert main(["batch", str(src), "--out", str(tmp_path / "a"), *common]) == 0
     lines = notice_lines(capsys.readouterr().err)

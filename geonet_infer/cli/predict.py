@@ -18,7 +18,7 @@ from geonet_infer.cli.common import (
 from geonet_infer.errors import GeoNetInputError
 from geonet_infer.io.frames import open_frames
 from geonet_infer.pipeline import MAX_BATCH_SIZE, SUMMARY_NAME, TASKS, parse_tasks, predict_to_dir
-from geonet_infer.predictor import MAX_FRAMES_BEFORE_GROUND
+from geonet_infer.predictor import MAX_FRAMES_BEFORE_GROUND, describe_skipped
 
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.
@@ -111,12 +111,9 @@ def run(args: argparse.Namespace) -> int:
     if tasks is None:
         doable, skipped = predictor.resolve_tasks()
         if skipped and not args.quiet:
-            lacks = ", ".join(
-                f"{task} (no {', '.join(graphs)} graph{'s' if len(graphs) > 1 else ''})"
-                for task, graphs in skipped.items()
-            )
             print(
-                f"geonet-infer predict: skipping {lacks} in {predictor.model_dir}; running {', '.join(doable)}",
+                f"geonet-infer predict: skipping {describe_skipped(skipped)} in {predictor.model_dir}; "
+                f"running {', '.join(doable)}",
                 file=sys.stderr,
             )
     with sigterm_as_interrupt():

@@ -4,13 +4,29 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_write", "save_npy_atomic"]
+__all__ = ["atomic_write", "leftover_temps", "save_npy_atomic"]
+
+
+def _temp_affixes(path: Path) -> tuple[str, str]:
+    """(prefix, suffix) of the temp names of ``path``: mkstemp puts 8 random characters between them."""
+    return f".{path.stem}.", path.suffix or ".tmp"
+
+
+def leftover_temps(path) -> list[Path]:
+    """The temp files an :func:`atomic_write` of ``path`` that was killed mid-write may have left."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    prefix, suffix = _temp_affixes(path)
+    name = re.compile(re.escape(prefix) + r"[a-z0-9_]{8}" + re.escape(suffix))
+    return [p for p in path.parent.iterdir() if name.fullmatch(p.name) and p.is_file()]
 
 
 def _umask() -> int:
@@ -32,7 +48,8 @@ def atomic_write(path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = None
     try:  # from mkstemp on: an interrupt (Ctrl-C, SIGTERM) at any point still removes the temp file
-        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix or ".tmp")
+        prefix, suffix = _temp_affixes(path)
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=suffix)
         tmp = Path(name)
         os.close(fd)
         yield tmp
