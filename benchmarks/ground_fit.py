@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import geonet_infer  # noqa: E402
 from geonet_infer import metrics  # noqa: E402
 from geonet_infer.datasets import load_dataset  # noqa: E402
-from geonet_infer.errors import GeoNetInputError  # noqa: E402
+from geonet_infer.errors import GeoNetError  # noqa: E402
 from geonet_infer.evaluation import MAX_DEPTH, MIN_DEPTH, depth_intrinsics  # noqa: E402
 from geonet_infer.io import read_image  # noqa: E402
 from geonet_infer.scale import fit_ground_plane  # noqa: E402
@@ -39,7 +39,7 @@ from training.synth.scene import CAM_HEIGHT  # noqa: E402
 def _height_or_nan(depth: np.ndarray, K: np.ndarray, **options) -> float:
     try:
         return fit_ground_plane(depth, K, **options).height
-    except GeoNetInputError:
+    except GeoNetError:
         return float("nan")
 
 

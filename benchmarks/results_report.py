@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 
 from geonet_infer import baselines, evaluation, load  # noqa: E402
 from geonet_infer.datasets import depth_dataset, flow_dataset, pose_dataset, read_heldout  # noqa: E402
-from geonet_infer.errors import GeoNetInputError  # noqa: E402
+from geonet_infer.errors import GeoNetError  # noqa: E402
 from geonet_infer.io import atomic_write, read_image  # noqa: E402
 from geonet_infer.metrics import rigid_inverse  # noqa: E402
 from geonet_infer.viz import depth_to_color, flow_to_color, side_by_side  # noqa: E402
@@ -104,7 +104,7 @@ def checkpoint_methods(path: Path) -> tuple[dict | None, str]:
         return None, f"training code not importable ({err}): checkpoint rows are missing"
     try:
         ckpt = load_checkpoint(path)
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         return None, f"`{rel(path)}` was not loaded: {err.problem}. Checkpoint rows are missing"
     fns = methods(model_from_checkpoint(ckpt), ckpt["config"], ["depth", "flow", "pose"], "checkpoint")
     return {t: fn for t, (_, fn) in fns.items()}, f"`{rel(path)}` (step {ckpt['step']})"

@@ -31,7 +31,7 @@ from export.build import ExportConfig, export_model
 from export.quantize import CALIBRATION_METHODS
 from export.to_onnx import ExportCheckError
 from export.wrappers import GRAPH_NAMES
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from training.config import ARCHS
 
 D = ExportConfig  # argparse defaults are the config's defaults
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
     args.from_tf = tuple(args.from_tf)
     try:
         out = export_model(ExportConfig(**vars(args)))
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except ExportCheckError as err:

@@ -6,7 +6,7 @@
 ``python -m export`` only parses its flags into an :class:`ExportConfig` and calls
 :func:`export_model`. The directory is written as ``DIR.tmp-XXXX`` beside DIR and
 renamed when complete, so DIR is either absent or whole. Bad input raises
-:class:`~geonet_infer.errors.GeoNetInputError` before anything is written.
+:class:`~geonet_infer.errors.GeoNetError` before anything is written.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from export import quantize as qz
 from export.to_onnx import OPSET, export_graph
 from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_inputs, io_spec
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
 from geonet_infer.manifest import PRECISIONS, SIZE_MULTIPLE, load_manifest, write_manifest
 from training.checkpoint import load_checkpoint, model_from_checkpoint
@@ -96,10 +96,10 @@ class Source:
 
 # ------------------------------------------------------------------------------ checks
 def _choose(items, allowed: tuple, what: str) -> list[str]:
-    """``items`` in the canonical order of ``allowed``; GeoNetInputError naming unknown ones."""
+    """``items`` in the canonical order of ``allowed``; GeoNetError naming unknown ones."""
     bad = [t for t in items if t not in allowed]
     if bad or not items:
-        raise GeoNetInputError(None, f"unknown {what} {bad or list(items)!r}", f"choose from {', '.join(allowed)}")
+        raise InputError(None, f"unknown {what} {bad or list(items)!r}", f"choose from {', '.join(allowed)}")
     return [a for a in allowed if a in items]
 
 
@@ -107,8 +107,8 @@ def _check_calib_data(folder: Path) -> None:
     """Fail now, not after minutes of export, if the calibration folder holds no frames."""
     try:
         list_images(folder)
-    except GeoNetInputError as err:
-        raise GeoNetInputError(
+    except GeoNetError as err:
+        raise InputError(
             folder,
             f"--calib-data: {err.problem}",
             f"it needs consecutive frames ({', '.join(IMAGE_SUFFIXES)}), e.g. a KITTI image_02/data folder",
@@ -120,30 +120,30 @@ def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
     graphs = _choose(cfg.graphs, GRAPH_NAMES, "graph")
     precisions = _choose(cfg.precisions, PRECISIONS, "precision")
     if "fp32" not in precisions:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             "--precision must include fp32",
             "int8 graphs are calibrated with the fp32 ones: use --precision fp32,int8",
         )
     if sum((bool(cfg.checkpoint), bool(cfg.random_init), bool(cfg.from_tf))) != 1:
-        raise GeoNetInputError(None, "pass exactly one of --checkpoint, --random-init or --from-tf")
+        raise InputError(None, "pass exactly one of --checkpoint, --random-init or --from-tf")
     if cfg.scale_normalize and not cfg.from_tf:
-        raise GeoNetInputError(
+        raise InputError(
             None, "--scale-normalize only applies to --from-tf", "our checkpoints record it in their config"
         )
     if cfg.random_init and cfg.arch not in ARCHS:
-        raise GeoNetInputError(None, f"unknown arch {cfg.arch!r}", f"--arch must be one of {', '.join(ARCHS)}")
+        raise InputError(None, f"unknown arch {cfg.arch!r}", f"--arch must be one of {', '.join(ARCHS)}")
     if cfg.random_init and (cfg.eval_synth_dir or cfg.eval_prepared_dir):
-        raise GeoNetInputError(
+        raise InputError(
             None,
             "--random-init graphs have no accuracy to evaluate",
             "drop --eval-synth-dir/--eval-prepared-dir or export a trained --checkpoint",
         )
     if bool(cfg.eval_synth_dir) != bool(cfg.eval_prepared_dir):
-        raise GeoNetInputError(None, "--eval-synth-dir and --eval-prepared-dir go together")
+        raise InputError(None, "--eval-synth-dir and --eval-prepared-dir go together")
     if "int8" in precisions:
         if not cfg.calib_data:
-            raise GeoNetInputError(
+            raise InputError(
                 None,
                 "--precision int8 needs --calib-frames DIR (or --calib-data DIR)",
                 "a folder of consecutive frames, e.g. frames of your own footage",
@@ -151,30 +151,28 @@ def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
         _check_calib_data(Path(cfg.calib_data))
         _choose([cfg.calib_method], qz.CALIBRATION_METHODS, "--calib-method")
     elif cfg.calib_data or cfg.eval_synth_dir:
-        raise GeoNetInputError(None, "--calib-data / --eval-* only apply to --precision fp32,int8")
+        raise InputError(None, "--calib-data / --eval-* only apply to --precision fp32,int8")
     if cfg.eval_synth_dir:
         from training.evaluate import heldout_sequences
 
         if not Path(cfg.eval_synth_dir).is_dir():
-            raise GeoNetInputError(
+            raise InputError(
                 cfg.eval_synth_dir,
                 "synthetic data folder not found",
                 "pass the --out folder of `python -m training.synth`",
             )
         heldout_sequences(cfg.eval_prepared_dir)  # raises naming heldout.txt
     if cfg.seq_length is not None and (cfg.seq_length < 3 or cfg.seq_length % 2 == 0):
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"--seq-length {cfg.seq_length}: need an odd number >= 3",
             "the target is the middle frame of the snippet",
         )
     out = Path(cfg.out)
     if out.exists() and not cfg.force:
-        raise GeoNetInputError(
-            out, "output directory already exists", "pass --force to replace it, or choose another --out"
-        )
+        raise InputError(out, "output directory already exists", "pass --force to replace it, or choose another --out")
     if out.exists() and not out.is_dir():
-        raise GeoNetInputError(out, "output path exists and is not a directory", "choose another --out")
+        raise InputError(out, "output path exists and is not a directory", "choose another --out")
     return graphs, precisions
 
 
@@ -194,19 +192,19 @@ def _checkpoint_source(cfg: ExportConfig, graphs: list[str]) -> Source:
     ckpt = load_checkpoint(path)
     train_cfg = ckpt["config"]
     if "resflownet" in graphs and ckpt["stage"] != "flow":
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"resflownet.onnx needs a stage 'flow' checkpoint, this one is stage '{ckpt['stage']}'",
             f"pass --graphs {','.join(RIGID_GRAPHS)} to export the rigid graphs only, or train stage flow first",
         )
     if cfg.arch and cfg.arch != ckpt["arch"]:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"checkpoint arch is '{ckpt['arch']}', --arch says '{cfg.arch}'",
             "drop --arch when exporting a checkpoint",
         )
     if cfg.seq_length and cfg.seq_length != train_cfg["seq_length"]:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"checkpoint was trained with seq_length {train_cfg['seq_length']}",
             "drop --seq-length; PoseNet's input width is fixed by training",
@@ -235,10 +233,10 @@ def _load_source(cfg: ExportConfig, graphs: list[str]) -> Source:
 
 
 def check_graph_size(height: int, width: int) -> None:
-    """GeoNetInputError unless both sides are positive multiples of ``SIZE_MULTIPLE`` (DepthNet and
+    """GeoNetError unless both sides are positive multiples of ``SIZE_MULTIPLE`` (DepthNet and
     ResFlowNet need them; the runtime refuses other manifests too)."""
     if height % SIZE_MULTIPLE or width % SIZE_MULTIPLE or height <= 0 or width <= 0:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"graph size {height}x{width} is not a positive multiple of {SIZE_MULTIPLE}",
             f"pass --height/--width divisible by {SIZE_MULTIPLE} (GeoNet and its released models use 128x416)",
@@ -252,7 +250,7 @@ def _make_tmp_dir(out: Path) -> Path:
         parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f"{out.name}.tmp-", dir=parent))
     except OSError as exc:
-        raise GeoNetInputError(
+        raise InputError(
             parent,
             f"cannot create the output directory here ({exc.strerror or exc})",
             "choose a writable --out location",
@@ -266,9 +264,7 @@ def _publish(tmp: Path, out: Path, force: bool) -> None:
     old = None
     if out.exists():
         if not force:
-            raise GeoNetInputError(
-                out, "output directory appeared during the export", "pass --force or choose another --out"
-            )
+            raise InputError(out, "output directory appeared during the export", "pass --force or choose another --out")
         old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-", dir=out.parent))
         os.rmdir(old)
         os.replace(out, old)
@@ -448,7 +444,7 @@ def export_model(cfg: ExportConfig) -> Path:
     """Write the model directory ``cfg.out`` and return its path.
 
     Raises:
-        GeoNetInputError: bad config or input (nothing is written).
+        GeoNetError: bad config or input (nothing is written).
         ExportCheckError: an exported graph failed its structural check.
     """
     graphs, precisions = _check(cfg)

@@ -27,7 +27,7 @@ import torch
 import torch.nn as nn
 
 from geonet_infer import conventions
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.manifest import file_sha256
 
 KINDS = ("depth", "pose", "flow")
@@ -122,7 +122,7 @@ def _tf():
     try:
         import tensorflow as tf
     except ImportError:
-        raise GeoNetInputError(None, "--from-tf needs TensorFlow to read the checkpoint", INSTALL_HINT) from None
+        raise InputError(None, "--from-tf needs TensorFlow to read the checkpoint", INSTALL_HINT) from None
     return tf
 
 
@@ -150,12 +150,12 @@ def resolve_prefix(path: str | Path) -> Path:
                     if not found
                     else (f"{len(found)} checkpoints in this folder ({', '.join(f.stem for f in found[:4])}...)")
                 )
-                raise GeoNetInputError(path, problem, PREFIX_HINT)
+                raise InputError(path, problem, PREFIX_HINT)
             index = found[0]
         return index.with_suffix("")
     prefix = path.with_name(_CKPT_SUFFIX.sub("", path.name))
     if not Path(f"{prefix}.index").is_file():
-        raise GeoNetInputError(path, "no TensorFlow checkpoint here (PREFIX.index not found)", PREFIX_HINT)
+        raise InputError(path, "no TensorFlow checkpoint here (PREFIX.index not found)", PREFIX_HINT)
     return prefix
 
 
@@ -177,7 +177,7 @@ class TFCheckpoint:
             shapes = reader.get_variable_to_shape_map()
             dtypes = {k: v.name for k, v in reader.get_variable_to_dtype_map().items()}
         except (tf.errors.OpError, ValueError, OSError) as exc:
-            raise GeoNetInputError(
+            raise InputError(
                 f"{prefix}.index", f"unreadable TensorFlow checkpoint ({_first_line(exc)})", PREFIX_HINT
             ) from None
         return cls(prefix, {k: list(v) for k, v in shapes.items()}, dtypes, reader)
@@ -191,7 +191,7 @@ class TFCheckpoint:
         try:
             return np.asarray(self.reader.get_tensor(name))
         except Exception as exc:  # TF raises DataLossError / OpError subclasses from C++; all mean unreadable
-            raise GeoNetInputError(
+            raise InputError(
                 self.prefix,
                 f"cannot read variable {name} ({_first_line(exc)}): the checkpoint is truncated or corrupt",
                 "download it again",
@@ -226,7 +226,7 @@ class NetSpec:
 
 def _shape(ckpt: TFCheckpoint, name: str, kind: str) -> list[int]:
     if name not in ckpt.shapes:
-        raise GeoNetInputError(
+        raise InputError(
             ckpt.prefix,
             f"variable {name} missing: not an official GeoNet {SCOPES[kind]}",
             "the converter reads the checkpoints of yzcjtr/GeoNet (docs/official_models.md)",
@@ -242,18 +242,18 @@ def detect(ckpt: TFCheckpoint, kind: str) -> NetSpec:
         widths = {64: "resnet50", 32: "vgg"}  # conv1: 7x7x3x64 (resnet50) or 7x7x3x32 (vgg)
         shape = _shape(ckpt, first, kind)
         if len(shape) != 4 or shape[3] not in widths:
-            raise GeoNetInputError(ckpt.prefix, f"variable {first} has shape {shape}: neither resnet50 nor vgg")
+            raise InputError(ckpt.prefix, f"variable {first} has shape {shape}: neither resnet50 nor vgg")
         return NetSpec(kind, arch=widths[shape[3]])
     if kind == "pose":
         last = f"{scope}/Conv_7/weights"
         shape = _shape(ckpt, last, kind)
         if len(shape) != 4 or shape[3] % 6 or shape[3] < 6:
-            raise GeoNetInputError(ckpt.prefix, f"variable {last} has shape {shape}: expected 1x1x256x(6*num_source)")
+            raise InputError(ckpt.prefix, f"variable {last} has shape {shape}: expected 1x1x256x(6*num_source)")
         return NetSpec(kind, num_source=shape[3] // 6)
     first = f"{scope}/Conv/weights"
     shape = _shape(ckpt, first, kind)
     if len(shape) == 4 and shape[2] == 6:
-        raise GeoNetInputError(
+        raise InputError(
             ckpt.prefix,
             f"variable {first} takes 6 channels: this is the 'direct' flow net (geonet_dirflownet)",
             "only the residual ResFlowNet (geonet_resflownet, 12 input channels) is supported",
@@ -265,7 +265,7 @@ def convert_network(ckpt: TFCheckpoint, spec: NetSpec) -> nn.Module:
     """Our network with every parameter and BN statistic set from ``ckpt``.
 
     Every ``<scope>/`` variable is consumed exactly once; a missing, left-over or misshapen
-    variable is a GeoNetInputError naming it. HWIO weights become OIHW. (``num_batches_tracked``,
+    variable is a GeoNetError naming it. HWIO weights become OIHW. (``num_batches_tracked``,
     a PyTorch training counter unused in eval mode, stays 0.)
     """
     net = build_network(spec.kind, spec.arch, spec.num_source)
@@ -274,19 +274,19 @@ def convert_network(ckpt: TFCheckpoint, spec: NetSpec) -> nn.Module:
     what = f"{spec.describe()}; the official one has {len(expected)} variables"
     missing = [n for n, _, _ in expected if n not in present]
     if missing:
-        raise GeoNetInputError(
+        raise InputError(
             ckpt.prefix, f"variable {missing[0]} missing ({len(missing)} missing in all) for {what}", PREFIX_HINT
         )
     extra = sorted(present - {n for n, _, _ in expected})
     if extra:
-        raise GeoNetInputError(
+        raise InputError(
             ckpt.prefix,
             f"unexpected variable {extra[0]} ({len(extra)} left over in all) for {what}",
             "this is not a checkpoint of the official GeoNet code; nothing was converted",
         )
     for name, shape, dtype in expected:
         if ckpt.shapes[name] != shape or ckpt.dtypes[name] != dtype:
-            raise GeoNetInputError(
+            raise InputError(
                 ckpt.prefix,
                 f"variable {name} has shape {ckpt.shapes[name]} {ckpt.dtypes[name]}, "
                 f"the official {SCOPES[spec.kind]} has {shape} {dtype}",
@@ -320,7 +320,7 @@ def parse_spec(text: str) -> tuple[tuple[str, ...], str]:
     if sep and tail and all(k in KINDS for k in kinds):
         return kinds, tail
     if sep and re.fullmatch(r"[a-z_,]+", head):
-        raise GeoNetInputError(None, f"--from-tf {text}: unknown network {head!r}", f"use {'|'.join(KINDS)}=PREFIX")
+        raise InputError(None, f"--from-tf {text}: unknown network {head!r}", f"use {'|'.join(KINDS)}=PREFIX")
     return (), text
 
 
@@ -344,7 +344,7 @@ def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print) -> Conver
     ckpts = [TFCheckpoint.open(path) for _, path in parsed]
     for ckpt in ckpts:
         if not ckpt.kinds():
-            raise GeoNetInputError(
+            raise InputError(
                 f"{ckpt.prefix}.index",
                 "not a GeoNet checkpoint: no depth_net/, pose_net/ or flow_net/ variables",
                 "pass a checkpoint of the official GeoNet code (docs/official_models.md)",
@@ -354,14 +354,14 @@ def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print) -> Conver
     for i, ((kinds, _), ckpt) in enumerate(zip(parsed, ckpts)):
         for kind in kinds:
             if kind not in ckpt.kinds():
-                raise GeoNetInputError(
+                raise InputError(
                     ckpt.prefix,
                     f"holds no {SCOPES[kind]}/ variables (it holds {', '.join(SCOPES[k] for k in ckpt.kinds())})",
                     "pick the release that contains it (docs/official_models.md)",
                 )
         for kind in kinds or [k for k in ckpt.kinds() if k not in explicit]:
             if kind in owner:
-                raise GeoNetInputError(
+                raise InputError(
                     None,
                     f"{SCOPES[kind]} is given twice ({ckpts[owner[kind]].prefix} and {ckpt.prefix})",
                     f"choose one with --from-tf {kind}=PREFIX",
@@ -465,26 +465,26 @@ def tf_source(cfg, requested: list[str], log=print):
     else:
         lacking = [g for g in requested if g not in available]
         if lacking:
-            raise GeoNetInputError(
+            raise InputError(
                 None,
                 f"--graphs {','.join(lacking)}: the --from-tf checkpoints hold no network for it",
                 f"they give {', '.join(g for g in GRAPH_NAMES if g in available)}",
             )
         graphs = list(requested)
     if "resflownet" in graphs and not {"depthnet", "posenet"} <= set(graphs):
-        raise GeoNetInputError(
+        raise InputError(
             None,
             "resflownet.onnx needs depthnet and posenet too (its input is their rigid flow)",
             "the released flow checkpoint holds all three: --from-tf PREFIX converts them together",
         )
     if cfg.scale_normalize and "depth" not in conv.nets:
-        raise GeoNetInputError(None, "--scale-normalize applies to a depth_net, and none is converted")
+        raise InputError(None, "--scale-normalize applies to a depth_net, and none is converted")
     arch = conv.specs["depth"].arch if "depth" in conv.specs else "resnet50"
     if cfg.arch and cfg.arch != arch:
-        raise GeoNetInputError(None, f"the checkpoint's depth_net is {arch}, --arch says {cfg.arch}", "drop --arch")
+        raise InputError(None, f"the checkpoint's depth_net is {arch}, --arch says {cfg.arch}", "drop --arch")
     seq_length = conv.specs["pose"].num_source + 1 if "pose" in conv.specs else (cfg.seq_length or 3)
     if cfg.seq_length and cfg.seq_length != seq_length:
-        raise GeoNetInputError(
+        raise InputError(
             None, f"the checkpoint's pose_net takes {seq_length}-frame snippets, --seq-length says {cfg.seq_length}"
         )
     model = GeoNet(arch, seq_length - 1, with_flow="flow" in conv.nets, scale_normalize=cfg.scale_normalize)

@@ -36,7 +36,7 @@ import numpy as np
 import onnx
 
 from geonet_infer.conventions import kitti_like_K, scale_intrinsics
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import list_images, read_calib_K, read_image
 from geonet_infer.preprocess import InputSpec, snippet_indices
 
@@ -91,7 +91,7 @@ def load_frames(
     """
     files = list_images(folder)[:max_frames]
     if len(files) < min_frames:
-        raise GeoNetInputError(
+        raise InputError(
             folder, f"{len(files)} images, calibration needs at least {min_frames}", "add consecutive frames"
         )
     frames, original = [], None
@@ -125,7 +125,7 @@ def calibration_intrinsics(
         if path.is_file():
             try:
                 K = read_calib_K(path, key)
-            except GeoNetInputError:
+            except GeoNetError:
                 continue
             return scale_intrinsics(K, sx, sy).astype(np.float32), f"{path} ({key})"
     return kitti_like_K(height, width).astype(
@@ -328,7 +328,7 @@ def quantize_graph(
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     if not feeds:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"no calibration inputs for {Path(fp32_path).name}",
             "the calibration folder needs at least seq_length consecutive frames",
@@ -337,7 +337,7 @@ def quantize_graph(
         zip(CALIBRATION_METHODS, (CalibrationMethod.MinMax, CalibrationMethod.Entropy, CalibrationMethod.Percentile))
     )
     if settings.calibrate_method not in methods:
-        raise GeoNetInputError(
+        raise InputError(
             None, f"unknown calibration method {settings.calibrate_method!r}", f"choose one of {', '.join(methods)}"
         )
     fp32_path, out_path = Path(fp32_path), Path(out_path)
@@ -359,7 +359,7 @@ def quantize_graph(
             onnx.save_model(graph, str(pre))
         exclude = downstream_nodes(graph, plan.float_after) if plan.float_after else []
         if plan.float_after and not exclude:
-            raise GeoNetInputError(fp32_path, f"no nodes consume {list(plan.float_after)}", "re-export the fp32 graph")
+            raise InputError(fp32_path, f"no nodes consume {list(plan.float_after)}", "re-export the fp32 graph")
         if plan.float_output_layer:
             exclude += output_layer_nodes(graph)
         if exclude:

@@ -5,7 +5,7 @@ predictor = geonet_infer.load()              # the bundled default model
 result = predictor.depth("frame.png")        # DepthResult: depth (H, W), timings_ms
 """
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import BackendUnavailableError, GeoNetError, GeoNetInputError, InputError, ModelError
 
 try:  # one version, in pyproject.toml
     from importlib.metadata import PackageNotFoundError, version
@@ -25,10 +25,14 @@ from geonet_infer.predictor import (
 )
 
 __all__ = [
+    "BackendUnavailableError",
     "DepthResult",
     "FlowResult",
     "FrameResult",
+    "GeoNetError",
     "GeoNetInputError",
+    "InputError",
+    "ModelError",
     "PoseResult",
     "Predictor",
     "SequenceResult",

@@ -45,7 +45,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from geonet_infer import __version__
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
@@ -146,7 +146,7 @@ def read_input_list(path: Path) -> list[Path]:
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"cannot read this input list ({exc.__class__.__name__})",
             "pass a text file with one input path a line",
@@ -163,7 +163,7 @@ def read_input_list(path: Path) -> list[Path]:
 def expand_inputs(inputs) -> list[Path]:
     """INPUTS as given: ``.txt`` files replaced by the paths they list; every path must exist.
 
-    Raises GeoNetInputError naming the first missing path (and how many are missing).
+    Raises GeoNetError naming the first missing path (and how many are missing).
     """
     paths: list[Path] = []
     for given in map(Path, inputs):
@@ -171,7 +171,7 @@ def expand_inputs(inputs) -> list[Path]:
             listed = read_input_list(given)
             bad = [p for p in listed if p.suffix.lower() == LIST_SUFFIX and p.is_file()]
             if bad:
-                raise GeoNetInputError(
+                raise InputError(
                     bad[0], f"listed in {given}, but input lists do not nest", "list the sequences themselves"
                 )
             paths += listed
@@ -180,11 +180,11 @@ def expand_inputs(inputs) -> list[Path]:
     missing = [p for p in paths if not p.exists()]
     if missing:
         more = f" (and {len(missing) - 1} more missing)" if len(missing) > 1 else ""
-        raise GeoNetInputError(
+        raise InputError(
             missing[0], f"not found{more}", "pass sequence folders, videos, KITTI drives or a .txt file listing them"
         )
     if not paths:
-        raise GeoNetInputError(None, "no inputs", "pass sequence folders, videos, KITTI drives or a .txt list")
+        raise InputError(None, "no inputs", "pass sequence folders, videos, KITTI drives or a .txt list")
     return paths
 
 
@@ -259,7 +259,7 @@ def needs_own_calib(path) -> bool:
 
 # ----------------------------------------------------------------------------- one sequence
 def _reason(exc: BaseException) -> str:
-    if isinstance(exc, GeoNetInputError):
+    if isinstance(exc, GeoNetError):
         return str(exc)
     return f"{exc.__class__.__name__}: {exc}".strip()
 
@@ -272,8 +272,8 @@ def _is_empty(folder: Path) -> bool:
     return folder.is_dir() and next(folder.iterdir(), None) is None
 
 
-def _not_ours(folder: Path) -> GeoNetInputError:
-    return GeoNetInputError(
+def _not_ours(folder: Path) -> GeoNetError:
+    return InputError(
         folder,
         f"holds files that geonet-infer batch did not make (no {OWNER_NAME} in it); it is left alone",
         "choose another --out (a new or empty folder, or one an earlier batch made)",
@@ -299,7 +299,7 @@ def _mark(folder: Path) -> None:
 
 
 def _discard(folder: Path) -> None:
-    """Remove a sequence folder batch made (or an empty one); anything else is left alone (GeoNetInputError)."""
+    """Remove a sequence folder batch made (or an empty one); anything else is left alone (GeoNetError)."""
     if not folder.exists():
         return
     if not _owned(folder):
@@ -355,7 +355,7 @@ def _stale(marker: dict, unit: WorkUnit, folder: Path, own_calib: bool) -> str |
             return f"{rel} changed since it was written"
     try:
         now = _fingerprint(unit.path, _input_files(open_frames(unit.path), own_calib))
-    except (GeoNetInputError, OSError) as exc:
+    except (GeoNetError, OSError) as exc:
         return f"its input cannot be read now ({_reason(exc)})"
     after = {name: (size, mtime) for name, size, mtime in now}
     changed = sorted(n for n in before.keys() | after.keys() if before.get(n) != after.get(n))
@@ -488,10 +488,10 @@ def plan_workers(n_units: int, workers: int | None, threads: int | None, cpus: i
 
 
 def check_counts(workers: int | None, threads: int | None) -> None:
-    """GeoNetInputError (exit 2) for a worker or thread count no machine has (a typo)."""
+    """GeoNetError (exit 2) for a worker or thread count no machine has (a typo)."""
     for flag, value in (("--workers", workers), ("--threads-per-worker", threads)):
         if value is not None and not 1 <= value <= MAX_WORKERS:
-            raise GeoNetInputError(None, f"{flag} {value} is out of range", f"pass 1 to {MAX_WORKERS}")
+            raise InputError(None, f"{flag} {value} is out of range", f"pass 1 to {MAX_WORKERS}")
 
 
 def worker_memory_bytes(manifest, precision: str) -> int:
@@ -793,7 +793,7 @@ def _job_lock(out_dir: Path):
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            raise GeoNetInputError(
+            raise InputError(
                 out_dir, "another batch job is writing to this folder", "wait for it to finish, or pass another --out"
             ) from None
         yield
@@ -851,14 +851,14 @@ def _signals_deferred() -> Iterator[list]:
 
 
 def check_out(out_dir: Path, units: list[WorkUnit]) -> None:
-    """GeoNetInputError (exit 2) when OUT is, holds or is inside an input: batch writes (and
+    """GeoNetError (exit 2) when OUT is, holds or is inside an input: batch writes (and
     deletes its own sequence folders) in OUT, and must never touch an input."""
     out_real = Path(os.path.realpath(out_dir))
     for unit in units:
         root = Path(os.path.realpath(_sequence_root(Path(unit.path))))
         if out_real == root or root in out_real.parents or out_real in root.parents:
             how = "is" if out_real == root else ("is inside" if root in out_real.parents else "holds")
-            raise GeoNetInputError(
+            raise InputError(
                 out_dir,
                 f"--out {how} the input {unit.path}; batch never writes where its inputs are",
                 "choose an --out outside every input",
@@ -881,7 +881,7 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
                 if marker.get("input") != unit.path
                 else "set of options (model, precision, tasks, batch size or camera)"
             )
-            raise GeoNetInputError(
+            raise InputError(
                 folder,
                 f"was made with another {what} than this job has",
                 "resume with the options of the first run, or pass another --out",
@@ -939,7 +939,7 @@ def run_batch(
 
     ``summary["exit_code"]``: 0 all good, 1 something failed (see failures.jsonl), 3 the
     operating system refused a write into OUT, 130 interrupted.
-    Raises GeoNetInputError for bad usage (missing input, unknown model, an OUT that overlaps an
+    Raises GeoNetError for bad usage (missing input, unknown model, an OUT that overlaps an
     input or holds files batch did not make, a resume with other options, a locked OUT);
     OSError after writing the summary when the OS refused a write (the job stops);
     KeyboardInterrupt after stopping the workers and writing the summary
@@ -951,9 +951,9 @@ def run_batch(
 
     log = log or (lambda msg: print(msg, file=sys.stderr))
     if engine not in ENGINES:
-        raise GeoNetInputError(None, f"unknown engine {engine!r}", f"choose one of {', '.join(ENGINES)}")
+        raise InputError(None, f"unknown engine {engine!r}", f"choose one of {', '.join(ENGINES)}")
     if batch_size < 1:
-        raise GeoNetInputError(None, f"batch size must be >= 1, got {batch_size}")
+        raise InputError(None, f"batch size must be >= 1, got {batch_size}")
     check_counts(workers, threads)
     units = plan_units(expand_inputs(inputs))
     model_dir = resolve_model(model)

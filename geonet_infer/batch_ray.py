@@ -38,7 +38,7 @@ from geonet_infer.batch import (
     read_marker,
     run_sequence,
 )
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.session import usable_cpus
 
 INSTALL_HINT = "pip install 'geonet-infer[ray]'"
@@ -46,14 +46,12 @@ LOCAL_OBJECT_STORE_BYTES = 256 * 1024**2  # results are a few hundred bytes a se
 
 
 def import_ray():
-    """``ray`` and ``ray.data``, or GeoNetInputError (exit 2) saying how to install them."""
+    """``ray`` and ``ray.data``, or GeoNetError (exit 2) saying how to install them."""
     try:
         import ray
         import ray.data  # noqa: F401
     except ImportError as exc:
-        raise GeoNetInputError(
-            None, f"--engine ray needs Ray Data, which is not installed ({exc})", INSTALL_HINT
-        ) from None
+        raise InputError(None, f"--engine ray needs Ray Data, which is not installed ({exc})", INSTALL_HINT) from None
     return ray
 
 
@@ -132,7 +130,7 @@ def size_pool(
 
 
 def check_reachable(address: str, timeout_s: float = 5.0) -> None:
-    """Fail fast (GeoNetInputError) when a HOST:PORT or ray://HOST:PORT address does not answer:
+    """Fail fast (GeoNetError) when a HOST:PORT or ray://HOST:PORT address does not answer:
     ``ray.init`` would retry for minutes. ``auto`` and other forms are left to Ray."""
     import socket
 
@@ -144,7 +142,7 @@ def check_reachable(address: str, timeout_s: float = 5.0) -> None:
         with socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=timeout_s):
             pass
     except OSError as exc:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"cannot reach the Ray cluster at {address} ({exc.strerror or exc})",
             "is the cluster up (ray status)? check --ray-address",
@@ -208,7 +206,7 @@ class RayEngine:
                     )
             except (ConnectionError, RuntimeError, ValueError) as exc:
                 where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
-                raise GeoNetInputError(
+                raise InputError(
                     None,
                     f"cannot start or join {where} ({_reason(exc).splitlines()[0]})",
                     "check --ray-address (e.g. ray://HOST:10001, HOST:6379 or auto)",

@@ -2,7 +2,7 @@
 
 Readers only list and load files; scoring lives in :mod:`geonet_infer.evaluation`.
 Every problem (missing file, count mismatch, size mismatch) raises
-:class:`~geonet_infer.errors.GeoNetInputError` naming the file or folder.
+:class:`~geonet_infer.errors.GeoNetError` naming the file or folder.
 
 Layouts (``--layout``; ``auto`` picks from the folder's content, see :func:`detect_layout`):
 
@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import (
     list_images,
     read_calib_file,
@@ -72,20 +72,20 @@ KITTI_CALIB = ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt")
 
 def _require_dir(path: Path, what: str, hint: str) -> Path:
     if not path.is_dir():
-        raise GeoNetInputError(path, f"{what} not found", hint)
+        raise InputError(path, f"{what} not found", hint)
     return path
 
 
 def _require_file(path: Path, what: str, hint: str = "") -> Path:
     if not path.is_file():
-        raise GeoNetInputError(path, f"{what} not found", hint)
+        raise InputError(path, f"{what} not found", hint)
     return path
 
 
 def _frame_number(path: Path) -> int:
     digits = re.findall(r"\d+", path.stem)
     if not digits:
-        raise GeoNetInputError(
+        raise InputError(
             path, "frame file name holds no frame number", "name frames by index (000000.png, 000001.png, ...)"
         )
     return int(digits[-1])
@@ -104,7 +104,7 @@ def synth_sequences(root: Path, sequences: list[str] | None = None) -> list[Path
         ]
     found = sorted(p for p in root.iterdir() if p.is_dir() and (p / "image").is_dir())
     if not found:
-        raise GeoNetInputError(
+        raise InputError(
             root,
             "no sequence folder (with image/) here",
             "pass a folder written by `python -m training.synth` or one of its seq_NNNN folders",
@@ -117,7 +117,7 @@ def read_heldout(path: Path) -> list[str]:
     path = _require_file(Path(path), "held-out list", "written by `python -m training.prepare --kind synth`")
     names = sorted({line.split()[0] for line in path.read_text().splitlines() if line.strip()})
     if not names:
-        raise GeoNetInputError(path, "held-out list is empty", "regenerate it with training.prepare")
+        raise InputError(path, "held-out list is empty", "regenerate it with training.prepare")
     return names
 
 
@@ -128,7 +128,7 @@ def _matched_files(images: list[Path], folder: Path, what: str, suffix: str = ".
         gt = folder / (img.stem + suffix)
         if not gt.is_file():
             have = len(list(folder.glob(f"*{suffix}"))) if folder.is_dir() else 0
-            raise GeoNetInputError(
+            raise InputError(
                 gt,
                 f"{what} missing ({len(images)} frames, {have} {what} files in {folder.name}/)",
                 "every scored frame needs its ground truth file of the same name",
@@ -154,7 +154,7 @@ class DepthItem:
             return velodyne_to_depth_map(self.calib_dir, self.gt, shape, cam=2, vel_depth=True)
         gt = read_depth_kitti(self.gt)
         if gt.shape != tuple(shape):
-            raise GeoNetInputError(
+            raise InputError(
                 self.gt,
                 f"depth ground truth is {gt.shape[1]}x{gt.shape[0]}, its image "
                 f"{self.image.name} is {shape[1]}x{shape[0]}",
@@ -218,7 +218,7 @@ def depth_dataset(
         elif velo_dir.is_dir():
             calib_dir = find_up(root, KITTI_CALIB)
             if calib_dir is None:
-                raise GeoNetInputError(
+                raise InputError(
                     root / KITTI_CALIB[0],
                     "KITTI calibration not found (here or up to two levels up)",
                     "Velodyne ground truth needs calib_cam_to_cam.txt and calib_velo_to_cam.txt of the drive's date",
@@ -226,13 +226,13 @@ def depth_dataset(
             pairs = [(img, velo_dir / f"{img.stem}.bin") for img in images if (velo_dir / f"{img.stem}.bin").is_file()]
             kind, gt_what = "velodyne", "Velodyne scans projected to camera 2"
         else:
-            raise GeoNetInputError(
+            raise InputError(
                 root,
                 "no depth ground truth: neither proj_depth/groundtruth/image_02/ nor velodyne_points/data/",
                 "KITTI raw depth needs sparse depth PNGs or Velodyne scans",
             )
         if not pairs:
-            raise GeoNetInputError(
+            raise InputError(
                 png_dir if kind == "png" else velo_dir,
                 "no frame of image_02/data has ground truth here",
                 "ground truth files are named like the frames",
@@ -324,9 +324,7 @@ def flow_dataset(
         calib_dir = root / ("calib_cam_to_cam" if version == "2015" else "calib")
         firsts = sorted(image_dir.glob("*_10.png"))
         if not firsts:
-            raise GeoNetInputError(
-                image_dir, "no NNNNNN_10.png frame", "KITTI flow pairs are NNNNNN_10.png -> NNNNNN_11.png"
-            )
+            raise InputError(image_dir, "no NNNNNN_10.png frame", "KITTI flow pairs are NNNNNN_10.png -> NNNNNN_11.png")
         fallback = 0
         for first in firsts[::stride]:
             stem = first.name[: -len("_10.png")]
@@ -375,7 +373,7 @@ def flow_dataset(
                 None,
             )
             if image_dir is None:
-                raise GeoNetInputError(
+                raise InputError(
                     root / "other-data-gray" / seq / "frame11.png",
                     "frame pair for this GT not found",
                     "expected other-data[-gray]/<Seq>/frame10.png and frame11.png",
@@ -391,7 +389,7 @@ def flow_dataset(
                 )
             )
         if not items:
-            raise GeoNetInputError(
+            raise InputError(
                 gt_root, "no <Seq>/flow10.flo ground truth", "Middlebury GT is other-gt-flow/<Seq>/flow10.flo"
             )
         notes.append("Middlebury has no occlusion masks: Noc = All")
@@ -425,7 +423,7 @@ def _finite_poses(path: Path) -> np.ndarray:
     poses = read_kitti_poses(path)
     bad = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))
     if bad.size:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"pose line {bad[0] + 1} holds NaN or infinity ({bad.size} such line(s))",
             "ground-truth poses must be finite: fix or regenerate the file",
@@ -445,7 +443,7 @@ def _snippets(
     """5-frame snippets of consecutive frame numbers; poses indexed by frame number."""
     numbers = [_frame_number(f) for f in frames]
     if max(numbers) >= len(poses):
-        raise GeoNetInputError(
+        raise InputError(
             poses_path,
             f"{len(poses)} poses, but frame {frames[numbers.index(max(numbers))].name} "
             f"needs pose line {max(numbers) + 1}",
@@ -474,7 +472,7 @@ def pose_dataset(
             poses_path = seq / "poses.txt"
             poses = _finite_poses(poses_path)
             if len(poses) != len(frames):
-                raise GeoNetInputError(
+                raise InputError(
                     poses_path,
                     f"{len(poses)} poses for {len(frames)} frames in {seq.name}/image",
                     "one camera-to-world pose per frame",
@@ -486,7 +484,7 @@ def pose_dataset(
     elif layout == "kitti-odometry":
         image_name = next((n for n in ("image_2", "image_0") if (root / n).is_dir()), None)
         if image_name is None:
-            raise GeoNetInputError(
+            raise InputError(
                 root / "image_2",
                 "KITTI odometry image folder not found",
                 "pass a sequences/XX folder holding image_2/ or image_0/",
@@ -496,7 +494,7 @@ def pose_dataset(
         if not poses_path.is_file():
             poses_path = root.parent.parent / "poses" / f"{root.name}.txt"
         if not poses_path.is_file():
-            raise GeoNetInputError(
+            raise InputError(
                 root / "poses.txt",
                 f"ground-truth poses not found (nor {poses_path})",
                 "put poses.txt in the sequence folder or keep the dev kit layout poses/XX.txt",
@@ -504,10 +502,10 @@ def pose_dataset(
         calib = _require_file(root / "calib.txt", "calibration", "KITTI odometry sequences hold calib.txt")
         key = "P2" if image_name == "image_2" else "P0"  # each camera's own projection matrix
         if key not in read_calib_file(calib):
-            raise GeoNetInputError(calib, f"missing calibration key '{key}'", f"{image_name}/ frames need {key}")
+            raise InputError(calib, f"missing calibration key '{key}'", f"{image_name}/ frames need {key}")
         items = _snippets(frames, _finite_poses(poses_path), poses_path, stride, "", calib, key)
         if not items:
-            raise GeoNetInputError(
+            raise InputError(
                 root / image_name, f"no {SNIPPET} consecutive frames", "the ATE protocol scores 5-frame snippets"
             )
         first, last = _frame_number(frames[0]), _frame_number(frames[-1])
@@ -520,21 +518,19 @@ def pose_dataset(
 # ----------------------------------------------------------------------------- helpers
 def _limit(items: list, limit: int | None, root: Path) -> list:
     if not items:
-        raise GeoNetInputError(root, "no item to evaluate here", "check --data and --layout")
+        raise InputError(root, "no item to evaluate here", "check --data and --layout")
     return items[:limit] if limit else items
 
 
-def _bad_layout(task: str, layout: str) -> GeoNetInputError:
-    return GeoNetInputError(
-        None, f"unknown {task} layout {layout!r}", f"choose one of {', '.join(LAYOUTS[task])} or auto"
-    )
+def _bad_layout(task: str, layout: str) -> GeoNetError:
+    return InputError(None, f"unknown {task} layout {layout!r}", f"choose one of {', '.join(LAYOUTS[task])} or auto")
 
 
 def detect_layout(task: str, root: Path) -> str:
     """The layout of ``root`` for ``task`` from the folders it holds."""
     root = Path(root)
     if not root.exists():
-        raise GeoNetInputError(root, "data folder not found", "pass --data DIR")
+        raise InputError(root, "data folder not found", "pass --data DIR")
     if task == "depth" and (root / "image_02" / "data").is_dir():
         return "kitti-raw"
     if (
@@ -553,7 +549,7 @@ def detect_layout(task: str, root: Path) -> str:
         return "kitti-odometry"
     if (root / "image").is_dir() or any(p.is_dir() and (p / "image").is_dir() for p in root.iterdir() if root.is_dir()):
         return "synth"
-    raise GeoNetInputError(
+    raise InputError(
         root,
         f"cannot tell the {task} layout of this folder",
         f"pass --layout ({', '.join(LAYOUTS[task])}); see `geonet-infer eval --help`",
@@ -563,7 +559,7 @@ def detect_layout(task: str, root: Path) -> str:
 def load_dataset(task: str, root, layout: str = "auto", **kwargs) -> Dataset:
     """:func:`depth_dataset`, :func:`flow_dataset` or :func:`pose_dataset` by ``task``."""
     if task not in TASKS:
-        raise GeoNetInputError(None, f"unknown task {task!r}", f"choose one of {', '.join(TASKS)}")
+        raise InputError(None, f"unknown task {task!r}", f"choose one of {', '.join(TASKS)}")
     if task != "flow":
         kwargs.pop("multiview", None)
     return {"depth": depth_dataset, "flow": flow_dataset, "pose": pose_dataset}[task](root, layout, **kwargs)

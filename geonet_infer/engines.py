@@ -19,7 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.manifest import IoSpec, Manifest, check_graph_io
 from geonet_infer.session import make_session, make_session_options
 from geonet_infer.timing import Case, time_interleaved
@@ -124,19 +124,19 @@ class OpenVinoEngine:
     def __init__(self, path: str | Path, threads: int | None):
         ov = _openvino()
         if ov is None:
-            raise GeoNetInputError(
+            raise InputError(
                 None,
                 "backend 'openvino' needs the OpenVINO runtime, which is not installed",
                 "pip install 'geonet-infer[openvino]', or use backend='onnxruntime'",
             )
         self.path = Path(path)
         if not self.path.is_file():
-            raise GeoNetInputError(self.path, "ONNX model not found", "export models with `python -m export`")
+            raise InputError(self.path, "ONNX model not found", "export models with `python -m export`")
         self.core = ov.Core()
         try:
             self.model = self.core.read_model(str(self.path))
         except Exception as exc:  # OpenVINO raises RuntimeError subclasses for unreadable graphs
-            raise GeoNetInputError(
+            raise InputError(
                 self.path,
                 f"OpenVINO cannot read this model ({str(exc).splitlines()[0][:300]})",
                 "re-export it, or use backend='onnxruntime'",
@@ -240,7 +240,7 @@ def pick_fastest(path: str | Path, threads: int | None) -> tuple[Engine, dict]:
         cases = [Case(name, lambda e=engine: e.run(feeds)) for name, engine in engines.items()]
         # interleaved blocks, so both see the same background load; no quiet-wait at load time
         time_interleaved(cases, warmup=2, iters=8, block=4, quiet=False, rewarm_ms=0)
-    except GeoNetInputError:
+    except GeoNetError:
         raise
     except Exception as exc:  # noqa: BLE001 -- any OpenVINO failure means: use onnxruntime
         return ort_engine, {"chosen": "onnxruntime", "reason": f"openvino failed: {str(exc).splitlines()[0][:200]}"}
@@ -268,4 +268,4 @@ def make_engine(path: str | Path, backend: str, threads: int | None) -> Engine:
         return OrtEngine(path, threads)
     if backend == "openvino":
         return OpenVinoEngine(path, threads)
-    raise GeoNetInputError(None, f"unknown backend {backend!r}", f"choose one of {', '.join(BACKENDS)}")
+    raise InputError(None, f"unknown backend {backend!r}", f"choose one of {', '.join(BACKENDS)}")

@@ -18,7 +18,7 @@ whose prediction shows no plausible ground plane: such a frame is *not scored* (
 median-scaled instead); ``errors`` and ``ground_fit_failed`` name it, the means cover
 the other frames and ``count`` says how many those are.
 Broken data (missing file, size mismatch, no valid ground-truth pixel) raises
-:class:`~geonet_infer.errors.GeoNetInputError` naming the file.
+:class:`~geonet_infer.errors.GeoNetError` naming the file.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 
 from geonet_infer import metrics
 from geonet_infer.datasets import KITTI_CALIB, SNIPPET, Dataset
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import read_camera, read_image
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.frames import find_up
@@ -87,7 +87,7 @@ def _intrinsics(item, fn, override: np.ndarray | None) -> np.ndarray | None:
         return np.asarray(override, dtype=np.float64)
     K = item.intrinsics()
     if K is None:
-        raise GeoNetInputError(
+        raise InputError(
             item.frames[-1],
             "no camera intrinsics for this pair",
             "the model's rigid flow needs K: add the calibration file of this layout or pass --intrinsics FX,FY,CX,CY",
@@ -99,7 +99,7 @@ def _read_frames(paths: list[Path]) -> list[np.ndarray]:
     frames = [read_image(p) for p in paths]
     for p, f in zip(paths, frames):
         if f.shape != frames[-1].shape:
-            raise GeoNetInputError(
+            raise InputError(
                 p,
                 f"frame is {f.shape[1]}x{f.shape[0]}, {paths[-1].name} is {frames[-1].shape[1]}x{frames[-1].shape[0]}",
                 "frames of one item must share a size",
@@ -146,7 +146,7 @@ def depth_intrinsics(item, layout: str) -> np.ndarray:
     for path in candidates:
         if path.is_file():
             return _calibration_K(path)
-    raise GeoNetInputError(
+    raise InputError(
         candidates[0],
         "no camera intrinsics for this frame",
         "scaling by camera height needs K: add the calibration file or pass --intrinsics FX,FY,CX,CY",
@@ -181,7 +181,7 @@ def evaluate_depth(
     docstring).
     """
     if scaling not in SCALINGS:
-        raise GeoNetInputError(None, f"unknown depth scaling {scaling!r}", f"choose one of {', '.join(SCALINGS)}")
+        raise InputError(None, f"unknown depth scaling {scaling!r}", f"choose one of {', '.join(SCALINGS)}")
     if scaling == "camera_height":
         check_camera_height(camera_height)
     if crop == "auto":
@@ -193,14 +193,14 @@ def evaluate_depth(
         gt = item.load_gt(rgb.shape[:2])
         mask = (gt > min_depth) & (gt < max_depth) & metrics.crop_mask(gt.shape, crop)
         if not mask.any():
-            raise GeoNetInputError(
+            raise InputError(
                 item.gt,
                 f"no ground-truth pixel in ({min_depth:g}, {max_depth:g}) m inside the {crop or 'full-image'} crop",
                 "check the ground truth of this frame",
             )
         pred, info = _call(fn, rgb)
         if pred.ndim != 2:
-            raise GeoNetInputError(
+            raise InputError(
                 item.image,
                 f"predicted depth has shape {pred.shape}, expected (H, W)",
                 "the depth method must return one 2-D map per image",
@@ -217,7 +217,7 @@ def evaluate_depth(
             K = np.asarray(intrinsics, np.float64) if intrinsics is not None else depth_intrinsics(item, dataset.layout)
             try:  # the runtime's own fit (what `predict --camera-height` applies), on the depth at GT size
                 fit = fit_ground_plane(pred, K)
-            except GeoNetInputError as err:  # the prediction shows no road: the method's failure on this frame
+            except GeoNetError as err:  # the prediction shows no road: the method's failure on this frame
                 problem = f"ground plane fit failed: {err.problem}"
                 errors.append({"item": item.name, "problem": problem})
                 fit_failed.append(item.name)
@@ -229,7 +229,7 @@ def evaluate_depth(
             scores = metrics.depth_metrics(
                 gt, pred * scale, min_depth, max_depth, crop=crop, median_scaling=scaling == "median"
             )
-        except GeoNetInputError as err:  # e.g. non-positive median prediction: the method's fault
+        except GeoNetError as err:  # e.g. non-positive median prediction: the method's fault
             errors.append({"item": item.name, "problem": err.problem})
             scores = _nan_row(keys)
         if scaling == "camera_height":
@@ -275,14 +275,14 @@ def evaluate_flow(
         height, width = frames[-1].shape[:2]
         for path, gt in ((item.gt_noc, gt_noc), (item.gt_occ, gt_all)):
             if gt.shape[:2] != (height, width):
-                raise GeoNetInputError(
+                raise InputError(
                     path,
                     f"flow ground truth is {gt.shape[1]}x{gt.shape[0]}, the frames are {width}x{height}",
                     "ground truth and frames must have the same size",
                 )
         pred, info = _call(fn, frames, _intrinsics(item, fn, intrinsics))
         if pred.ndim != 3 or pred.shape[2] != 2:
-            raise GeoNetInputError(
+            raise InputError(
                 item.frames[-2],
                 f"predicted flow has shape {pred.shape}, expected (H, W, 2)",
                 "the flow method must return (u, v) per pixel",
@@ -301,7 +301,7 @@ def evaluate_flow(
             ("all", gt_all, valid_all, item.gt_occ),
         ):
             if not valid.any():
-                raise GeoNetInputError(path, "flow ground truth has no valid pixel", "check the GT's valid channel")
+                raise InputError(path, "flow ground truth has no valid pixel", "check the GT's valid channel")
             r = metrics.flow_epe(gt, valid, pred)
             scored |= {f"epe_{which}": r["epe"], f"fl_{which}": r["fl"], f"n_valid_{which}": r["n_valid"]}
         rows.append(row | scored | info)
@@ -344,7 +344,7 @@ def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", obse
         K = item.intrinsics() if getattr(fn, "needs_intrinsics", False) else None
         pred, info = _call(fn, frames, K)
         if pred.shape != (SNIPPET, 4, 4):
-            raise GeoNetInputError(
+            raise InputError(
                 item.frames[0],
                 f"predicted snippet poses have shape {pred.shape}, expected ({SNIPPET}, 4, 4)",
                 "one pose per snippet frame",
@@ -379,7 +379,7 @@ def _needs_K(fn):
 
 def refuse_random_init(predictor) -> None:
     if predictor.manifest.random_init:
-        raise GeoNetInputError(
+        raise InputError(
             predictor.model_dir,
             "this model directory holds random-init (timing-only) graphs",
             "accuracy needs graphs exported from a trained --checkpoint",
@@ -418,7 +418,7 @@ def snippet_from_pose_calls(pose_fn: Callable, frames: list, seq_length: int) ->
     if seq_length == SNIPPET:
         return metrics.snippet_poses_to_global(pose_fn(frames), target_index=SNIPPET // 2)
     if seq_length != 3:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"pose snippets need a PoseNet of 3 or 5 frames, this one takes {seq_length}",
             "export the model with --seq-length 3 or 5",
@@ -460,7 +460,7 @@ def baseline_fns(task: str, method: str) -> dict[str, Callable]:
         "pose": {"identity": {"identity pose": b.identity_pose}, "orb-vo": {"ORB-VO": _needs_K(b.orb_vo)}},
     }[task]
     if method not in table:
-        raise GeoNetInputError(None, f"no {task} method {method!r}", f"{task} methods: model, {', '.join(table)}")
+        raise InputError(None, f"no {task} method {method!r}", f"{task} methods: model, {', '.join(table)}")
     return table[method]
 
 

@@ -27,7 +27,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from geonet_infer import conventions
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import ModelError
 from geonet_infer.io.atomic import atomic_write
 
 MANIFEST_NAME = "manifest.json"
@@ -262,7 +262,7 @@ class Manifest:
                 if name == "resflownet"
                 else f"graphs present: {', '.join(graphs)}"
             )
-            raise GeoNetInputError(where, f"no '{name}' graph in the {precision} set", hint)
+            raise ModelError(where, f"no '{name}' graph in the {precision} set", hint)
         return graphs[name]
 
     def path(self, name: str, precision: str = "fp32") -> Path:
@@ -279,7 +279,7 @@ class Manifest:
     def _set(self, precision: str) -> dict:
         if precision not in self.graphs:
             where = self.root / MANIFEST_NAME if self.root else None
-            raise GeoNetInputError(
+            raise ModelError(
                 where,
                 f"no {precision} graphs in this model directory",
                 f"precisions present: {', '.join(self.graphs)}; export with --precision fp32,int8",
@@ -348,51 +348,51 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
     and keeps no tensor in external data (which the sha256 would not cover). Graphs
     are checked as listed; which graphs a model needs is the consumer's business.
     The graph's own inputs/outputs are compared with its entry by the engine that
-    loads it (:func:`check_graph_io`). Any problem raises :class:`GeoNetInputError`
+    loads it (:func:`check_graph_io`). Any problem raises :class:`GeoNetError`
     naming the offending file.
     """
     directory = Path(directory)
     path = directory / MANIFEST_NAME
     if not directory.is_dir():
-        raise GeoNetInputError(directory, "model directory not found", REEXPORT_HINT)
+        raise ModelError(directory, "model directory not found", REEXPORT_HINT)
     if not path.is_file():
-        raise GeoNetInputError(path, "no manifest in this model directory", REEXPORT_HINT)
+        raise ModelError(path, "no manifest in this model directory", REEXPORT_HINT)
     try:
         raw: Any = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise GeoNetInputError(path, f"cannot parse the manifest ({exc})", REEXPORT_HINT) from None
+        raise ModelError(path, f"cannot parse the manifest ({exc})", REEXPORT_HINT) from None
     if not isinstance(raw, dict):
-        raise GeoNetInputError(path, "the manifest is not a JSON object", REEXPORT_HINT)
+        raise ModelError(path, "the manifest is not a JSON object", REEXPORT_HINT)
     if raw.get("format") != MANIFEST_FORMAT:
-        raise GeoNetInputError(
+        raise ModelError(
             path,
             f"not a GeoNet model manifest (format {raw.get('format')!r}, expected {MANIFEST_FORMAT!r})",
             REEXPORT_HINT,
         )
     if raw.get("schema_version") != SCHEMA_VERSION:
-        raise GeoNetInputError(
+        raise ModelError(
             path,
             f"manifest schema_version {raw.get('schema_version')!r}, this package reads {SCHEMA_VERSION}",
             REEXPORT_HINT + " with this version of the package",
         )
     conv = raw.get("conventions")
     if not isinstance(conv, dict) or not conv:
-        raise GeoNetInputError(path, "the manifest has no conventions", REEXPORT_HINT)
+        raise ModelError(path, "the manifest has no conventions", REEXPORT_HINT)
     missing_conv = sorted(set(conventions.as_dict()) - set(conv))
     if missing_conv:
-        raise GeoNetInputError(path, f"conventions lack {missing_conv}", REEXPORT_HINT)
+        raise ModelError(path, f"conventions lack {missing_conv}", REEXPORT_HINT)
     _check_sizes(raw, path)
     _check_convention_numbers(conv, path)
     try:
         manifest = Manifest.from_dict(raw, root=directory)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         what = f"missing key {exc}" if isinstance(exc, KeyError) else f"malformed entry ({exc})"
-        raise GeoNetInputError(path, f"invalid manifest: {what}", REEXPORT_HINT) from None
+        raise ModelError(path, f"invalid manifest: {what}", REEXPORT_HINT) from None
     if not manifest.graphs or "fp32" not in manifest.graphs:
-        raise GeoNetInputError(path, "the manifest lists no fp32 graphs", REEXPORT_HINT)
+        raise ModelError(path, "the manifest lists no fp32 graphs", REEXPORT_HINT)
     for precision, graphs in manifest.graphs.items():
         if precision not in PRECISIONS:
-            raise GeoNetInputError(path, f"unknown precision {precision!r}", f"expected one of {PRECISIONS}")
+            raise ModelError(path, f"unknown precision {precision!r}", f"expected one of {PRECISIONS}")
         for name, entry in graphs.items():
             _check_entry_sizes(manifest, f"{precision}/{name}", entry, path)
             file = _graph_path(directory, f"{precision}/{name}", entry.file, path)
@@ -407,14 +407,14 @@ def _check_sizes(raw: dict, path: Path) -> None:
     for key in ("height", "width"):
         value = raw.get(key, MIN_SIDE)  # a missing key is reported by Manifest.from_dict
         if type(value) is not int or not MIN_SIDE <= value <= MAX_SIDE or value % SIZE_MULTIPLE:
-            raise GeoNetInputError(
+            raise ModelError(
                 path,
                 f"{key} {value!r} is not a multiple of {SIZE_MULTIPLE} in [{MIN_SIDE}, {MAX_SIDE}]",
                 REEXPORT_HINT,
             )
     value = raw.get("seq_length", MIN_SEQ_LENGTH)
     if type(value) is not int or not MIN_SEQ_LENGTH <= value <= MAX_SEQ_LENGTH or value % 2 == 0:
-        raise GeoNetInputError(
+        raise ModelError(
             path,
             f"seq_length {value!r} is not an odd number in [{MIN_SEQ_LENGTH}, {MAX_SEQ_LENGTH}]",
             REEXPORT_HINT,
@@ -433,7 +433,7 @@ def _check_convention_numbers(conv: dict, path: Path) -> None:
                 walk(item, f"{where}[{i}]")
         elif isinstance(value, (int, float)) and not isinstance(value, bool):
             if not (math.isfinite(value) and abs(value) <= MAX_CONVENTION_MAGNITUDE):
-                raise GeoNetInputError(
+                raise ModelError(
                     path,
                     f"{where} is {value!r}: not a finite number within ±{MAX_CONVENTION_MAGNITUDE:g}",
                     REEXPORT_HINT,
@@ -442,7 +442,7 @@ def _check_convention_numbers(conv: dict, path: Path) -> None:
     walk(conv, "conventions")
     scale = (conv.get("image_norm") or {}).get("scale")
     if isinstance(scale, (int, float)) and abs(scale) < MIN_NORM_SCALE:
-        raise GeoNetInputError(
+        raise ModelError(
             path, f"conventions.image_norm.scale is {scale!r}: the graphs would see a constant image", REEXPORT_HINT
         )
 
@@ -451,7 +451,7 @@ def _check_entry_sizes(manifest: Manifest, graph: str, entry: GraphEntry, path: 
     """Image inputs (rank 4) of a graph entry are at the manifest's height x width."""
     for spec in entry.inputs:
         if len(spec.shape) == 4 and tuple(spec.shape[-2:]) != (manifest.height, manifest.width):
-            raise GeoNetInputError(
+            raise ModelError(
                 path,
                 f"graph {graph} input {spec.name!r} is {spec.shape[-2]}x{spec.shape[-1]}, the manifest says "
                 f"height x width {manifest.height}x{manifest.width}",
@@ -473,13 +473,13 @@ def check_graph_io(entry: GraphEntry, file: Path, inputs: list[IoSpec], outputs:
 
     Names must match; per tensor the rank, the dtype and every fixed dimension. A manifest ``"B"``
     (batch) must be a dynamic dimension of the graph; a dynamic graph dimension accepts any fixed
-    manifest size. Raises GeoNetInputError naming the graph file and the first difference.
+    manifest size. Raises GeoNetError naming the graph file and the first difference.
     """
     hint = "the graph file does not match its manifest entry; " + REEXPORT_HINT
     for kind, expected, actual in (("inputs", entry.inputs, inputs), ("outputs", entry.outputs, outputs)):
         by_name = {name: (shape, dtype) for name, shape, dtype in actual}
         if set(by_name) != {t.name for t in expected}:
-            raise GeoNetInputError(
+            raise ModelError(
                 file, f"graph {kind} are {sorted(by_name)}, the manifest says {sorted(t.name for t in expected)}", hint
             )
         for spec in expected:
@@ -487,7 +487,7 @@ def check_graph_io(entry: GraphEntry, file: Path, inputs: list[IoSpec], outputs:
             fits = shape is not None and len(shape) == len(spec.shape) and all(map(_dim_fits, spec.shape, shape))
             if not fits or dtype != spec.dtype:
                 got = "?" if shape is None else [d if isinstance(d, int) else "dynamic" for d in shape]
-                raise GeoNetInputError(
+                raise ModelError(
                     file,
                     f"{kind[:-1]} {spec.name!r} is {dtype} {got}, the manifest says {spec.dtype} {list(spec.shape)}",
                     hint,
@@ -497,14 +497,14 @@ def check_graph_io(entry: GraphEntry, file: Path, inputs: list[IoSpec], outputs:
 def _graph_path(directory: Path, graph: str, file: str, path: Path) -> Path:
     """The graph's file, refused if its path (or a symlink on the way) leads out of the model directory."""
     if not _safe_relative(file):
-        raise GeoNetInputError(
+        raise ModelError(
             path,
             f"graph {graph} has an unsafe file path {file!r}",
             "paths must be relative and stay inside the model directory",
         )
     full = directory / file
     if not full.resolve().is_relative_to(directory.resolve()):
-        raise GeoNetInputError(
+        raise ModelError(
             full,
             f"graph file resolves to {full.resolve()}, outside the model directory",
             "the manifest's sha256 vouches for files inside the model directory only: copy the file in",
@@ -515,13 +515,13 @@ def _graph_path(directory: Path, graph: str, file: str, path: Path) -> Path:
 def _verify_file(file: Path, expected: str) -> None:
     """The file has the recorded sha256 and loads nothing the sha256 does not cover (external data)."""
     if not file.is_file():
-        raise GeoNetInputError(file, "graph file listed in the manifest is missing", REEXPORT_HINT)
+        raise ModelError(file, "graph file listed in the manifest is missing", REEXPORT_HINT)
     with open(file, "rb") as f:
         empty = os.fstat(f.fileno()).st_size == 0  # mmap refuses an empty file
         with nullcontext(b"") if empty else mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
             actual = hashlib.sha256(data).hexdigest()
             if actual != expected:
-                raise GeoNetInputError(
+                raise ModelError(
                     file,
                     f"sha256 mismatch: manifest says {expected[:16]}..., file has {actual[:16]}...",
                     "the file is corrupt or was changed after export; " + REEXPORT_HINT,
@@ -529,11 +529,9 @@ def _verify_file(file: Path, expected: str) -> None:
             try:
                 location = external_data_location(data)
             except (IndexError, ValueError):
-                raise GeoNetInputError(
-                    file, "not a valid ONNX file (cannot parse its protobuf)", REEXPORT_HINT
-                ) from None
+                raise ModelError(file, "not a valid ONNX file (cannot parse its protobuf)", REEXPORT_HINT) from None
     if location is not None:
-        raise GeoNetInputError(
+        raise ModelError(
             file,
             f"the graph keeps tensors in external data ({location or 'no location given'}), which the manifest's "
             "sha256 does not cover",

@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 
 # Crop fractions (row_start, row_end, col_start, col_end) of the image size,
 # truncated to int exactly like the official ``.astype(np.int32)``.
@@ -41,9 +41,7 @@ def crop_mask(shape, crop="garg"):
     if crop is None:
         return np.ones((height, width), dtype=bool)
     if crop not in CROPS:
-        raise GeoNetInputError(
-            None, f"unknown depth crop {crop!r}", "use 'garg' (the official protocol), 'eigen' or None"
-        )
+        raise InputError(None, f"unknown depth crop {crop!r}", "use 'garg' (the official protocol), 'eigen' or None")
     f = CROPS[crop]
     # np.int32 truncation as in the official eval (e.g. 0.408*375 = 153.04 -> 153).
     r0, r1 = int(f[0] * height), int(f[1] * height)
@@ -61,7 +59,7 @@ def resize_depth_to(pred, shape):
     """
     pred = np.asarray(pred, dtype=np.float32)
     if pred.ndim != 2:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"predicted depth must be 2-D (h, w), got shape {pred.shape}",
             "squeeze batch/channel axes before evaluating",
@@ -106,14 +104,14 @@ def depth_metrics(gt, pred, min_depth=1e-3, max_depth=80.0, crop="garg", median_
     gt = np.asarray(gt, dtype=np.float64)
     pred = np.asarray(pred, dtype=np.float64)
     if gt.ndim != 2 or gt.shape != pred.shape:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"gt shape {gt.shape} and prediction shape {pred.shape} differ or are not 2-D",
             "resize the prediction with resize_depth_to(pred, gt.shape)",
         )
     mask = (gt > min_depth) & (gt < max_depth) & crop_mask(gt.shape, crop)
     if not mask.any():
-        raise GeoNetInputError(
+        raise InputError(
             None,
             "no ground-truth pixel inside the depth range and crop",
             f"check the GT map (valid depths in ({min_depth}, {max_depth})) and the crop",
@@ -124,7 +122,7 @@ def depth_metrics(gt, pred, min_depth=1e-3, max_depth=80.0, crop="garg", median_
     if median_scaling:
         pred_median = np.median(pred_valid)
         if not pred_median > 0:
-            raise GeoNetInputError(
+            raise InputError(
                 None,
                 f"median predicted depth is {pred_median}, cannot median-scale",
                 "predicted depths must be positive",
@@ -154,7 +152,7 @@ def depth_floor_share(pred, bin_width=FLOOR_BIN):
     """
     pred = np.asarray(pred, dtype=np.float64)
     if pred.ndim != 2 or not (np.isfinite(pred).all() and (pred > 0).all()):
-        raise GeoNetInputError(None, "depth_floor_share needs an (H, W) map of finite positive depth")
+        raise InputError(None, "depth_floor_share needs an (H, W) map of finite positive depth")
     lower = np.log(pred[pred.shape[0] // 2 :].ravel())
     counts = np.bincount(((lower - lower.min()) / bin_width).astype(np.int64))
     return float(counts.max() / lower.size)
@@ -169,7 +167,7 @@ def aggregate(results):
     """
     results = list(results)
     if not results:
-        raise GeoNetInputError(None, "nothing to aggregate", "evaluate at least one sample")
+        raise InputError(None, "nothing to aggregate", "evaluate at least one sample")
     out = {}
     for key in results[0]:
         out[key] = float(np.mean([r[key] for r in results]))
@@ -181,7 +179,7 @@ def aggregate_std(results):
     """Standard deviation (population, np.std) of each numeric key; pose reports mean ± std."""
     results = list(results)
     if not results:
-        raise GeoNetInputError(None, "nothing to aggregate", "evaluate at least one sample")
+        raise InputError(None, "nothing to aggregate", "evaluate at least one sample")
     return {key: float(np.std([r[key] for r in results])) for key in results[0]}
 
 
@@ -200,14 +198,14 @@ def flow_epe(gt, valid, pred):
     pred = np.asarray(pred, dtype=np.float64)
     valid = np.asarray(valid) != 0
     if gt.shape != pred.shape or gt.ndim != 3 or gt.shape[2] != 2 or valid.shape != gt.shape[:2]:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"flow shapes differ: gt {gt.shape}, valid {valid.shape}, pred {pred.shape}",
             "gt and pred must be (H, W, 2) and valid (H, W); resize pred with resize_flow_nearest",
         )
     n_valid = int(valid.sum())
     if n_valid == 0:
-        raise GeoNetInputError(None, "ground-truth flow has no valid pixel", "check the GT mask channel")
+        raise InputError(None, "ground-truth flow has no valid pixel", "check the GT mask channel")
     epe = np.sqrt(np.sum((gt - pred) ** 2, axis=2))[valid]
     mag = np.sqrt(np.sum(gt**2, axis=2))[valid] + 1e-5
     outlier = (epe > FLOW_OUTLIER_PX) & (epe / mag > FLOW_OUTLIER_REL)
@@ -223,7 +221,7 @@ def resize_flow_nearest(flow, shape):
     """
     flow = np.asarray(flow, dtype=np.float32)
     if flow.ndim != 3 or flow.shape[2] != 2:
-        raise GeoNetInputError(None, f"flow must be (h, w, 2), got {flow.shape}", "pass (u, v) channels last")
+        raise InputError(None, f"flow must be (h, w, 2), got {flow.shape}", "pass (u, v) channels last")
     src_h, src_w = flow.shape[:2]
     height, width = int(shape[0]), int(shape[1])
     out = cv2.resize(flow, (width, height), interpolation=cv2.INTER_NEAREST)
@@ -256,7 +254,7 @@ def _align_first_and_scale(gt_xyz, pred_xyz):
     gt_xyz = np.asarray(gt_xyz, dtype=np.float64)
     pred_xyz = np.asarray(pred_xyz, dtype=np.float64)
     if gt_xyz.shape != pred_xyz.shape or gt_xyz.ndim != 2 or gt_xyz.shape[1] != 3 or len(gt_xyz) < 2:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"trajectory shapes differ or are too short: gt {gt_xyz.shape}, pred {pred_xyz.shape}",
             "pass matched (N, 3) positions with N >= 2",
@@ -325,7 +323,7 @@ def snippet_poses_to_global(T_tgt_to_src, target_index=None):
     """
     T = np.asarray(T_tgt_to_src, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4):
-        raise GeoNetInputError(None, f"poses must be (N, 4, 4), got {T.shape}", "stack 4x4 transforms")
+        raise InputError(None, f"poses must be (N, 4, 4), got {T.shape}", "stack 4x4 transforms")
     if target_index is not None:
         T = np.insert(T, target_index, np.eye(4), axis=0)
     return T[0][None] @ rigid_inverse(T)

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer import __version__
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write, leftover_temps, save_npy_atomic
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.flow import write_flow_kitti
@@ -60,7 +60,7 @@ def parse_tasks(text: str) -> tuple[str, ...]:
     tasks = tuple(t.strip() for t in text.split(",") if t.strip())
     unknown = [t for t in tasks if t not in TASKS]
     if unknown or not tasks:
-        raise GeoNetInputError(None, f"unknown task(s) {unknown or text!r}", f"choose from {','.join(TASKS)}")
+        raise InputError(None, f"unknown task(s) {unknown or text!r}", f"choose from {','.join(TASKS)}")
     return tasks
 
 
@@ -69,7 +69,7 @@ def output_path(out_dir: Path, subdir: str, name: str, suffix: str) -> Path:
     path = out_dir / subdir / f"{name}{suffix}"
     root = out_dir.resolve()
     if root not in path.resolve().parents or "/" in name or "\\" in name or name in ("", ".", ".."):
-        raise GeoNetInputError(path, f"frame name {name!r} would write outside {out_dir}", "rename the input file")
+        raise InputError(path, f"frame name {name!r} would write outside {out_dir}", "rename the input file")
     return path
 
 
@@ -176,7 +176,7 @@ class _OwnedFolder:
                 pid = _lock_pid(self.lock)
                 if pid is None or _alive(pid):
                     who = f"another geonet-infer predict (pid {pid})" if pid else "another geonet-infer predict"
-                    raise GeoNetInputError(
+                    raise InputError(
                         self.out_dir,
                         f"{who} is writing into this folder",
                         f"wait for it or pick another --out (if none is running, delete {self.lock})",
@@ -186,14 +186,14 @@ class _OwnedFolder:
             with os.fdopen(fd, "w") as f:
                 f.write(f"{os.getpid()}\n")
             return
-        raise GeoNetInputError(self.out_dir, "another geonet-infer predict took this folder", "pick another --out")
+        raise InputError(self.out_dir, "another geonet-infer predict took this folder", "pick another --out")
 
     def _clear_previous_run(self) -> None:
         others = [p for p in self.out_dir.iterdir() if p.name != OUTPUT_LOCK]
         if not others:
             return
         if not self.marker.is_file():
-            raise GeoNetInputError(
+            raise InputError(
                 self.out_dir,
                 "this folder is not empty and was not written by geonet-infer predict",
                 "pick another --out (predict never overwrites files it did not write)",
@@ -202,7 +202,7 @@ class _OwnedFolder:
             previous = json.loads(self.marker.read_text())["files"]
             assert isinstance(previous, list) and all(isinstance(f, str) for f in previous)
         except (ValueError, KeyError, TypeError, AssertionError):
-            raise GeoNetInputError(
+            raise InputError(
                 self.marker, "unreadable ownership marker", "pick another --out, or delete the folder yourself"
             ) from None
         root = self.out_dir.resolve()
@@ -273,7 +273,7 @@ def predict_to_dir(
         predictor: a loaded :class:`~geonet_infer.predictor.Predictor`.
         source: frames from :func:`geonet_infer.io.frames.open_frames`.
         camera: intrinsics (and distortion) of the frames; required for "flow".
-        tasks: any of "depth", "pose", "flow" (each needs its graphs, else GeoNetInputError before
+        tasks: any of "depth", "pose", "flow" (each needs its graphs, else GeoNetError before
             anything is written); None: all the model can do, the others in ``skipped_tasks``.
         camera_height: metres above a flat road: metric depth and pose translations
             (:mod:`geonet_infer.scale`; needs ``camera``).
@@ -287,7 +287,7 @@ def predict_to_dir(
         The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad
         frames (unreadable, odd size, NaN/inf output, or missing from a truncated video).
     Raises:
-        GeoNetInputError for unusable input (no intrinsics for flow, fewer than 2 good frames
+        GeoNetError for unusable input (no intrinsics for flow, fewer than 2 good frames
         for pose/flow, no readable frame at all, intrinsics that do not fit the frames' size).
         KeyboardInterrupt (Ctrl-C, or SIGTERM where the caller maps it) after writing a summary
         with ``"interrupted": true`` for the frames written so far; no temp file is left.
@@ -295,7 +295,7 @@ def predict_to_dir(
     out_dir = Path(out_dir)
     tasks, skipped_tasks = predictor.resolve_tasks(tasks, metric=camera_height is not None)  # None: all it can
     if "flow" in tasks and camera is None:
-        raise GeoNetInputError(
+        raise InputError(
             source.path,
             "flow needs camera intrinsics and none were found",
             "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
@@ -376,9 +376,9 @@ def _predict(
             bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: a summary of what was written, then stop
         interrupted = True
-    except GeoNetInputError as exc:
+    except GeoNetError as exc:
         if done == 0 and frames.size is None:
-            raise GeoNetInputError(
+            raise InputError(
                 source.path, "no readable frame", "; ".join(f["reason"] for f in frames.failures[:3]) or str(exc)
             ) from None
         raise

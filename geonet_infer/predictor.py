@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer.engines import BACKENDS, Engine, make_engine, pick_fastest
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.images import read_image
 from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, Manifest, check_graph_io, load_manifest
@@ -69,7 +69,7 @@ def missing_graphs(task: str, graphs: Iterable[str]) -> tuple[str, ...]:
 
 
 def require_graphs(task: str, needed: Iterable[str], graphs: Iterable[str], model_dir) -> None:
-    """GeoNetInputError (one line naming the missing graphs and ``model_dir``) unless every graph
+    """GeoNetError (one line naming the missing graphs and ``model_dir``) unless every graph
     ``task`` needs is among the model's ``graphs``."""
     graphs = tuple(graphs)
     missing = [g for g in needed if g not in graphs]
@@ -79,7 +79,7 @@ def require_graphs(task: str, needed: Iterable[str], graphs: Iterable[str], mode
     hint = f"{leave}, or use a model directory that holds {', '.join(missing)}"
     if "resflownet" in missing:
         hint += " (exported from a stage 'flow' checkpoint or the released geonet_resflownet)"
-    raise GeoNetInputError(
+    raise InputError(
         model_dir,
         f"{'task ' if task in TASKS else ''}{task} needs the {' and '.join(missing)} "
         f"graph{'s' if len(missing) > 1 else ''}, which this model lacks (it holds {', '.join(graphs)})",
@@ -93,7 +93,7 @@ def resolve_tasks(
     """(tasks to run in canonical order, {task skipped: the graphs it lacks}) for a model holding ``graphs``.
 
     ``tasks=None``: every task the model can do, the others skipped; given tasks are all
-    required (GeoNetInputError naming a missing graph) and none is skipped. ``metric``: a camera
+    required (GeoNetError naming a missing graph) and none is skipped. ``metric``: a camera
     height will be given (it needs DepthNet whatever the tasks).
     """
     graphs = tuple(graphs)
@@ -103,13 +103,13 @@ def resolve_tasks(
         tasks = list(tasks)
         unknown = [t for t in tasks if t not in TASKS]
         if unknown:
-            raise GeoNetInputError(None, f"unknown task(s) {unknown}", f"choose from {','.join(TASKS)}")
+            raise InputError(None, f"unknown task(s) {unknown}", f"choose from {','.join(TASKS)}")
         for task in tasks:
             require_graphs(task, TASK_GRAPHS[task], graphs, model_dir)
         return tuple(t for t in TASKS if t in tasks), {}
     skipped = {t: missing_graphs(t, graphs) for t in TASKS if missing_graphs(t, graphs)}
     if len(skipped) == len(TASKS):
-        raise GeoNetInputError(
+        raise InputError(
             model_dir,
             f"this model can do none of {', '.join(TASKS)} (it holds {', '.join(graphs)})",
             "export depthnet or posenet into it with `python -m export --graphs`",
@@ -249,11 +249,11 @@ def metric_frames(
     for result in results:
         try:
             scale = fit_ground_plane(result.depth, K_at(result.depth.shape)).scale_for(camera_height)
-        except GeoNetInputError as err:
+        except GeoNetError as err:
             if scale is None:
                 pending.append(result)
                 if len(pending) > MAX_FRAMES_BEFORE_GROUND:
-                    raise GeoNetInputError(
+                    raise InputError(
                         pending[0].name,
                         f"no ground plane in the first {len(pending)} frames ({err.problem})",
                         "metric scale needs the road in view early in the video: start it where the road "
@@ -279,7 +279,7 @@ def metric_frames(
                 pose_world = pose_world @ rigid_inverse(pose_next)
         pending = []
     if pending:
-        raise GeoNetInputError(
+        raise InputError(
             pending[0].name,
             f"no ground plane in any of the {len(pending)} frames",
             "metric scale from camera height needs a visible, roughly flat road; drop --camera-height "
@@ -347,9 +347,9 @@ class Predictor:
         backend: str = "onnxruntime",
     ):
         if precision not in PRECISIONS:
-            raise GeoNetInputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISIONS)}")
+            raise InputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISIONS)}")
         if backend not in BACKENDS:
-            raise GeoNetInputError(None, f"unknown backend {backend!r}", f"choose one of {', '.join(BACKENDS)}")
+            raise InputError(None, f"unknown backend {backend!r}", f"choose one of {', '.join(BACKENDS)}")
         self.manifest = manifest or load_manifest(model_dir)
         self.model_dir = Path(self.manifest.root or model_dir)
         self.precision = precision
@@ -393,7 +393,7 @@ class Predictor:
         return missing_graphs(task, self._engines)
 
     def require_tasks(self, tasks: Iterable[str]) -> None:
-        """Raise GeoNetInputError (one line naming the graph and this directory) unless every task can run."""
+        """Raise GeoNetError (one line naming the graph and this directory) unless every task can run."""
         resolve_tasks(self._engines, tasks, self.model_dir)
 
     def resolve_tasks(
@@ -412,7 +412,7 @@ class Predictor:
     def engine(self, name: str) -> Engine:
         """The engine of graph ``name``: ``run(feeds) -> {output: array}`` (benchmarks, profiling)."""
         if name not in self._engines:
-            raise GeoNetInputError(
+            raise InputError(
                 self.model_dir / MANIFEST_NAME,
                 f"no '{name}' graph in the {self.precision} set",
                 f"graphs present: {', '.join(self._engines)}",
@@ -440,7 +440,7 @@ class Predictor:
             return K.scaled_to(size[1], size[0]).validate(K.source or None)
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3):  # Camera() itself raises a plain ValueError for this
-            raise GeoNetInputError(
+            raise InputError(
                 None,
                 f"intrinsics must be a 3x3 matrix, got shape {K.shape}",
                 "pass K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] at the input resolution",
@@ -459,7 +459,7 @@ class Predictor:
         sizes = {r.shape[:2] for r in rgbs}
         if len(sizes) > 1:
             detail = ", ".join(f"{n}: {r.shape[1]}x{r.shape[0]}" for n, r in zip(names, rgbs))
-            raise GeoNetInputError(
+            raise InputError(
                 None, f"frames of one {what} differ in size ({detail})", "pass consecutive frames of one camera"
             )
         size = rgbs[0].shape[:2]
@@ -471,7 +471,7 @@ class Predictor:
         if isinstance(frames, np.ndarray) and frames.ndim == 4:
             frames = list(frames)
         if not isinstance(frames, (list, tuple)):
-            raise GeoNetInputError(
+            raise InputError(
                 None,
                 f"expected a list of frames, got {type(frames).__name__}",
                 f"pass {L} consecutive frames (target in the middle) or a pair [t, t+1]",
@@ -480,7 +480,7 @@ class Predictor:
             return list(frames)
         if len(frames) == 2:
             return [frames[i] for i in sorted(snippet_indices(0, 2, L))]
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"got {len(frames)} frames; this model takes snippets of {L} (target in the middle) or a pair [t, t+1]",
             "pass consecutive frames of one video",
@@ -524,8 +524,8 @@ class Predictor:
                 if camera_height is not None:
                     try:
                         scale = fit_ground_plane(depth, c.K).scale_for(camera_height)
-                    except GeoNetInputError as err:
-                        raise GeoNetInputError(f"image {i}", err.problem, err.hint) from None
+                    except GeoNetError as err:
+                        raise InputError(f"image {i}", err.problem, err.hint) from None
                     depth, disp = depth * scale, disp / scale
                 results.append((depth, disp, bool(c and c.has_distortion), scale))
         timings = timer.result(1.0 / len(images))
@@ -569,7 +569,7 @@ class Predictor:
         frames = self._snippet_frames(frames)
         rgbs, cam, size = self._load_frames(frames, K, timer, "snippet")
         if cam is None:
-            raise GeoNetInputError(None, "flow needs the camera intrinsics K", "pass K (3x3) or a Camera")
+            raise InputError(None, "flow needs the camera intrinsics K", "pass K (3x3) or a Camera")
         x = np.stack([self._to_network(r, cam, timer) for r in rgbs])
         mid = len(rgbs) // 2
         parts = self._cascade(x[None], [mid], cam.K, size, timer)
@@ -714,7 +714,7 @@ class Predictor:
     ) -> Iterator[FrameResult]:
         """:meth:`iter_sequence` in the model's own (relative) scale, for checked ``tasks``."""
         if batch_size < 1:
-            raise GeoNetInputError(None, f"batch_size must be >= 1, got {batch_size}")
+            raise InputError(None, f"batch_size must be >= 1, got {batch_size}")
         with_flow = "flow" in tasks
         run_depth = need_depth or "depth" in tasks or with_flow
         run_pose = "pose" in tasks or with_flow
@@ -741,11 +741,9 @@ class Predictor:
                     size = rgb.shape[:2]
                     camera = self._camera(K, size)
                     if camera is None and with_flow:
-                        raise GeoNetInputError(
-                            None, "a sequence needs the camera intrinsics K", "pass K (3x3) or a Camera"
-                        )
+                        raise InputError(None, "a sequence needs the camera intrinsics K", "pass K (3x3) or a Camera")
                 elif rgb.shape[:2] != size:
-                    raise GeoNetInputError(
+                    raise InputError(
                         label,
                         f"frame {n_read} is {rgb.shape[1]}x{rgb.shape[0]}, the sequence started at {size[1]}x{size[0]}",
                         "all frames of a sequence must have one size",
@@ -760,7 +758,7 @@ class Predictor:
                 )
                 n_read += 1
             if t0 == 0 and exhausted and n_read < 2:
-                raise GeoNetInputError(
+                raise InputError(
                     None, f"a sequence needs at least 2 frames, got {n_read}", "pass consecutive frames of one video"
                 )
             if t0 >= n_read:

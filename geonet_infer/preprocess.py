@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from geonet_infer import conventions
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.manifest import MANIFEST_NAME, Manifest
 
 # What each graph of a model directory must accept and return for this runtime to drive it.
@@ -63,8 +63,8 @@ class InputSpec:
         where = manifest.root / MANIFEST_NAME if manifest.root else None
         conv = manifest.conventions
 
-        def refuse(problem: str) -> GeoNetInputError:
-            return GeoNetInputError(
+        def refuse(problem: str) -> GeoNetError:
+            return InputError(
                 where,
                 f"unsupported convention: {problem}",
                 "this version of geonet-infer cannot run this model; re-export it with "
@@ -101,7 +101,7 @@ class InputSpec:
             # Any subset runs (a converted depth or pose release); the tasks needing a missing graph
             # are refused by the Predictor when asked for.
             if not any(g in GRAPH_IO for g in names):
-                raise GeoNetInputError(
+                raise InputError(
                     where,
                     f"the {precision} set holds none of the graphs {', '.join(GRAPH_IO)}",
                     "export at least one of them with `python -m export --graphs`",
@@ -164,25 +164,25 @@ class InputSpec:
 def check_image(image, name: str | Path | None = None) -> np.ndarray:
     """Validate one frame: a uint8 array (H, W, 3). Returns it as a C-contiguous array."""
     if not isinstance(image, np.ndarray):
-        raise GeoNetInputError(
+        raise InputError(
             name,
             f"expected a numpy uint8 (H, W, 3) RGB array, got {type(image).__name__}",
             "pass an image array or a path to an image file",
         )
     if image.dtype != np.uint8:
-        raise GeoNetInputError(
+        raise InputError(
             name,
             f"image dtype is {image.dtype}, expected uint8",
             "pass 8-bit RGB; convert float images with (img * 255).round().astype(np.uint8)",
         )
     if image.ndim != 3 or image.shape[2] != 3:
-        raise GeoNetInputError(
+        raise InputError(
             name,
             f"image shape is {image.shape}, expected (H, W, 3) RGB",
             "convert grey images with cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)",
         )
     if min(image.shape[:2]) < 8:
-        raise GeoNetInputError(name, f"image is only {image.shape[1]}x{image.shape[0]} pixels", "pass a real frame")
+        raise InputError(name, f"image is only {image.shape[1]}x{image.shape[0]} pixels", "pass a real frame")
     return np.ascontiguousarray(image)
 
 
@@ -230,7 +230,7 @@ def snippet_indices(t: int, num_frames: int, seq_length: int) -> list[int]:
     This is the only place that order is written down for the runtime.
     """
     if num_frames < 2:
-        raise GeoNetInputError(
+        raise InputError(
             None, f"a sequence needs at least 2 frames, got {num_frames}", "pass consecutive frames of one video"
         )
     k = seq_length // 2

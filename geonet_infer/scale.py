@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 
 MAX_CAMERA_HEIGHT_M = 100.0  # above a road; more is a unit mix-up (mm, cm) and gives depth in kilometres
 
@@ -87,11 +87,11 @@ def fit_ground_plane(
             dense synthetic traffic, a plain inlier count took the top of a car close ahead for
             the road on 10 of 71 frames, all of one scene (0.6-0.8 m instead of 1.65 m).
     Raises:
-        GeoNetInputError if no plausible ground plane is found.
+        GeoNetError if no plausible ground plane is found.
     """
     depth = np.asarray(depth)
     if depth.ndim != 2:
-        raise GeoNetInputError(None, f"depth must be (H, W), got shape {depth.shape}")
+        raise InputError(None, f"depth must be (H, W), got shape {depth.shape}")
     h, _ = depth.shape
     start = int(np.clip((K[1, 2] / h + 0.05) if rows_from is None else rows_from, 0.0, 0.95) * h)
     points = backproject(depth, K)[start:].reshape(-1, 3)
@@ -99,7 +99,7 @@ def fit_ground_plane(
     valid = np.isfinite(points).all(axis=1) & (points[:, 2] > 0)
     points, smooth_z = points[valid], smooth_z[valid]
     if len(points) < 50:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"only {len(points)} valid depth pixels below row {start}",
             "the ground plane needs the road in the lower part of the image",
@@ -123,7 +123,7 @@ def fit_ground_plane(
         if beyond.mean() <= max_seen_through:
             best, best_count = plane, count
     if best is None or best_count < 0.1 * len(points):
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"no ground plane found in the depth map ({best_count} of {len(points)} points on the best candidate)",
             "metric scale from camera height needs a visible, roughly flat road",
@@ -157,7 +157,7 @@ def check_metric_request(camera_height_m: float | None, camera, where=None) -> N
         return
     check_camera_height(camera_height_m)
     if camera is None:
-        raise GeoNetInputError(
+        raise InputError(
             where,
             "camera_height needs the camera intrinsics",
             "pass camera= / K= (a Camera or a 3x3 K), or --calib FILE / --intrinsics FX,FY,CX,CY",
@@ -167,7 +167,7 @@ def check_metric_request(camera_height_m: float | None, camera, where=None) -> N
 def check_camera_height(camera_height_m) -> None:
     ok = isinstance(camera_height_m, (int, float)) and np.isfinite(camera_height_m)
     if not (ok and 0 < camera_height_m <= MAX_CAMERA_HEIGHT_M):
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"camera height (--camera-height / camera_height) must be a positive number of metres, "
             f"at most {MAX_CAMERA_HEIGHT_M:g}, got {camera_height_m!r}",

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import onnxruntime as ort
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError, ModelError
 
 OPT_LEVELS = {
     "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
@@ -71,11 +71,9 @@ def make_session_options(
         opt_level: "disable" | "basic" | "extended" | "all" (graph optimisations).
     """
     if opt_level not in OPT_LEVELS:
-        raise GeoNetInputError(
-            None, f"unknown optimisation level {opt_level!r}", f"choose one of {', '.join(OPT_LEVELS)}"
-        )
+        raise InputError(None, f"unknown optimisation level {opt_level!r}", f"choose one of {', '.join(OPT_LEVELS)}")
     if threads is not None and (not isinstance(threads, int) or threads < 1):
-        raise GeoNetInputError(None, f"threads must be a positive integer or None, got {threads!r}")
+        raise InputError(None, f"threads must be a positive integer or None, got {threads!r}")
     so = ort.SessionOptions()
     so.graph_optimization_level = OPT_LEVELS[opt_level]
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
@@ -94,25 +92,25 @@ def make_session(
 ) -> ort.InferenceSession:
     """Load an ONNX graph; errors name the file.
 
-    Raises GeoNetInputError if the file is missing or onnxruntime cannot load it,
+    Raises GeoNetError if the file is missing or onnxruntime cannot load it,
     or if a requested execution provider did not become active.
     """
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "ONNX model not found", "export models with `python -m export`")
+        raise ModelError(path, "ONNX model not found", "export models with `python -m export`")
     try:
         session = ort.InferenceSession(
             str(path), sess_options=options or make_session_options(), providers=list(providers)
         )
     except Exception as exc:  # ORT raises Fail / InvalidProtobuf / InvalidGraph / RuntimeException
-        raise GeoNetInputError(
+        raise ModelError(
             path,
             f"onnxruntime cannot load this model ({exc.__class__.__name__}: {str(exc).splitlines()[0][:300]})",
             "the file is corrupt or was written by an incompatible exporter; re-export it",
         ) from exc
     missing = [p for p in providers if p not in session.get_providers()]
     if missing:
-        raise GeoNetInputError(
+        raise ModelError(
             path, f"execution provider(s) {missing} not active", f"available: {ort.get_available_providers()}"
         )
     return session

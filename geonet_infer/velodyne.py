@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.calib import read_calib_file
 
 
@@ -27,11 +27,11 @@ def load_velodyne_points(bin_path):
     """Read a KITTI Velodyne scan. Returns (N, 4) float32: x forward, y left, z up, reflectance."""
     bin_path = Path(bin_path)
     if not bin_path.is_file():
-        raise GeoNetInputError(bin_path, "Velodyne scan not found", "expected <drive>/velodyne_points/data/<frame>.bin")
+        raise InputError(bin_path, "Velodyne scan not found", "expected <drive>/velodyne_points/data/<frame>.bin")
     size = os.path.getsize(bin_path)
     if size % 16 != 0:
         # 4 float32 per point = 16 bytes; anything else is truncated or not a scan.
-        raise GeoNetInputError(
+        raise InputError(
             bin_path,
             f"size {size} bytes is not a multiple of 16 (4 float32 per point)",
             "the scan is truncated or not a KITTI Velodyne .bin file",
@@ -40,9 +40,9 @@ def load_velodyne_points(bin_path):
 
 
 def _calib_matrix(calib, key, shape, path):
-    """calib[key] as a float64 array of ``shape``; GeoNetInputError naming ``path`` if absent or malformed."""
+    """calib[key] as a float64 array of ``shape``; GeoNetError naming ``path`` if absent or malformed."""
     if key not in calib:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"calibration key {key!r} is missing",
             "use the official KITTI raw calib_cam_to_cam.txt / calib_velo_to_cam.txt of the drive's date",
@@ -52,7 +52,7 @@ def _calib_matrix(calib, key, shape, path):
     except (TypeError, ValueError):
         values = np.empty(0)  # a non-numeric value: reported as a wrong count below
     if values.size != int(np.prod(shape)):
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"calibration key {key!r} has {values.size} numbers, expected {int(np.prod(shape))}",
             "the calibration file is truncated or not a KITTI raw calibration",

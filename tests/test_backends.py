@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer import GeoNetInputError
+from geonet_infer import GeoNetError
 from geonet_infer.engines import ENGINES, OpenVinoEngine, OrtEngine, timing_feeds
 from geonet_infer.io import read_camera
 from geonet_infer.io.images import list_images
@@ -83,13 +83,13 @@ def test_auto_picks_one_engine_per_graph_and_keeps_the_results(sequence, ort_fp3
 
 
 def test_unknown_backend_is_refused():
-    with pytest.raises(GeoNetInputError, match="unknown backend 'cuda'.*onnxruntime, openvino, auto"):
+    with pytest.raises(GeoNetError, match="unknown backend 'cuda'.*onnxruntime, openvino, auto"):
         geonet_infer.load(backend="cuda")
 
 
 def test_missing_openvino_is_a_clear_error_and_auto_falls_back(monkeypatch, sequence, ort_fp32):
     monkeypatch.setitem(sys.modules, "openvino", None)  # makes `import openvino` raise ImportError
-    with pytest.raises(GeoNetInputError, match=r"pip install 'geonet-infer\[openvino\]'"):
+    with pytest.raises(GeoNetError, match=r"pip install 'geonet-infer\[openvino\]'"):
         geonet_infer.load(backend="openvino")
     predictor = geonet_infer.load(backend="auto")
     assert set(predictor.engines.values()) == {"onnxruntime"}
@@ -118,7 +118,7 @@ def test_timing_feeds_follow_the_graph_inputs():
 def test_openvino_engine_names_an_unreadable_file(tmp_path):
     bad = tmp_path / "broken.onnx"
     bad.write_bytes(b"not a protobuf")
-    with pytest.raises(GeoNetInputError, match="broken.onnx"):
+    with pytest.raises(GeoNetError, match="broken.onnx"):
         OpenVinoEngine(bad, threads=1)
 
 

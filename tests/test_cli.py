@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer import GeoNetInputError
+from geonet_infer import GeoNetError
 from geonet_infer.cli import main
 from geonet_infer.io import read_camera, read_flow_kitti, read_kitti_poses, read_tum_poses
 from geonet_infer.pipeline import OUTPUT_MARKER, output_path
@@ -271,7 +271,7 @@ def test_module_entry_point_help_in_a_subprocess():
 def test_output_path_refuses_names_that_leave_the_output_folder(tmp_path):
     assert output_path(tmp_path, "depth", "000001", ".npy") == tmp_path / "depth" / "000001.npy"
     for name in ("..", ".", "", "../x", "a/b", "..\\x"):
-        with pytest.raises(GeoNetInputError):
+        with pytest.raises(GeoNetError):
             output_path(tmp_path, "depth", name, ".npy")
 
 

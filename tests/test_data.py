@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from geonet_infer.io import write_calib_K, write_depth_kitti, write_flow_kitti
 from training import data as D
 from training import prepare as P
@@ -271,42 +271,42 @@ def test_heldout_split_and_refusal(tmp_path):
     assert "depth_gt" not in train[0]
     # a train list that leaks a held-out sample is refused
     (out / "train.txt").write_text((out / "train.txt").read_text() + "seq_2 000001\n")
-    with pytest.raises(GeoNetInputError, match="heldout"):
+    with pytest.raises(GeoNetError, match="heldout"):
         D.SequenceDataset(out, "train", height=32, width=48)
 
 
 # --------------------------------------------------------------------------- errors
 def test_clear_errors(tmp_path):
-    with pytest.raises(GeoNetInputError, match="training.prepare") as err:
+    with pytest.raises(GeoNetError, match="training.prepare") as err:
         D.SequenceDataset(tmp_path / "nope")
     assert str(tmp_path / "nope") in str(err.value)
     (tmp_path / "empty").mkdir()
-    with pytest.raises(GeoNetInputError, match="training.prepare") as err:
+    with pytest.raises(GeoNetError, match="training.prepare") as err:
         D.SequenceDataset(tmp_path / "empty")
     assert "train.txt" in str(err.value)
-    with pytest.raises(GeoNetInputError, match="heldout"):
+    with pytest.raises(GeoNetError, match="heldout"):
         D.SequenceDataset(tmp_path / "empty", "heldout")
 
     root = tmp_path / "ds"
     write_sample(root, "s", "000001", const_frames([10, 20, 30]), K0)
     write_lists(root, ["s 000001", "s 000002"], [])
-    with pytest.raises(GeoNetInputError, match="empty"):
+    with pytest.raises(GeoNetError, match="empty"):
         D.SequenceDataset(root, "val")
     ds = D.SequenceDataset(root, "train", augment=False)
-    with pytest.raises(GeoNetInputError) as err:  # listed but missing
+    with pytest.raises(GeoNetError) as err:  # listed but missing
         ds[1]
     assert "000002.jpg" in str(err.value)
     (root / "s" / "000002.jpg").write_bytes(b"\xff\xd8garbage")
     (root / "s" / "000002_cam.txt").write_text("1,0,0,0,1,0,0,0,1")
-    with pytest.raises(GeoNetInputError) as err:  # corrupt
+    with pytest.raises(GeoNetError) as err:  # corrupt
         ds[1]
     assert str(root / "s" / "000002.jpg") in str(err.value)
-    with pytest.raises(GeoNetInputError) as err:  # a seq-3 snippet read as seq 5
+    with pytest.raises(GeoNetError) as err:  # a seq-3 snippet read as seq 5
         D.SequenceDataset(root, "train", seq_length=5)[0]
     assert str(root / "s" / "000001.jpg") in str(err.value) and "seq_length=5" in str(err.value)
     assert "holds 3 frames" in str(err.value)
     (root / "s" / "000001_cam.txt").write_text("1,2,3")
-    with pytest.raises(GeoNetInputError, match="_cam.txt"):
+    with pytest.raises(GeoNetError, match="_cam.txt"):
         ds[0]
 
 

@@ -14,7 +14,7 @@ import pytest
 from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.cli import main as cli_main
 from geonet_infer.datasets import depth_dataset, flow_dataset, pose_dataset
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"
 ODOMETRY = "kitti_odometry_00"
@@ -396,7 +396,7 @@ def test_camera_height_bad_input(tmp_path, capsys):
     assert cli_main([*base, "--camera-height", "1.5"]) == 2
     err = capsys.readouterr().err
     assert str(seq / "calib.txt") in err and "--intrinsics" in err and len(err.strip().splitlines()) == 1
-    with pytest.raises(GeoNetInputError, match="unknown depth scaling 'mean'"):
+    with pytest.raises(GeoNetError, match="unknown depth scaling 'mean'"):
         evaluation.evaluate_depth(baselines.constant_depth, depth_dataset(tmp_path), scaling="mean")
 
 
@@ -473,7 +473,7 @@ def test_nonfinite_metric_means_propagate():
 def test_intrinsics_needed_for_model_flow_without_calibration(require_real, tmp_path):
     root = require_real(MIDDLEBURY)
     fn = evaluation._needs_K(lambda frames, K: np.zeros(frames[-1].shape[:2] + (2,), np.float32))
-    with pytest.raises(GeoNetInputError, match="--intrinsics"):
+    with pytest.raises(GeoNetError, match="--intrinsics"):
         evaluation.evaluate_flow(fn, flow_dataset(root))
     r = evaluation.evaluate_flow(fn, flow_dataset(root), intrinsics=np.eye(3))
     assert r["metrics"]["count"] == 1

@@ -25,7 +25,7 @@ from export.to_onnx import ExportCheckError, check_graph, op_types
 from export.verify import compare_graph
 from export.wrappers import GRAPH_NAMES, build_wrapper, io_spec
 from geonet_infer import conventions
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from geonet_infer.io import list_images, read_calib_K, read_image
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest, write_manifest
 from geonet_infer.predictor import Predictor
@@ -361,7 +361,7 @@ def test_manifest_detects_flipped_byte(model_dir, tmp_path):
     data = bytearray(target.read_bytes())
     data[len(data) // 2] ^= 0x01
     target.write_bytes(bytes(data))
-    with pytest.raises(GeoNetInputError, match="sha256 mismatch") as err:
+    with pytest.raises(GeoNetError, match="sha256 mismatch") as err:
         load_manifest(copy)
     assert err.value.path == target and "posenet.onnx" in str(err.value)
 
@@ -370,7 +370,7 @@ def test_manifest_errors_name_the_file(model_dir, tmp_path):
     copy = tmp_path / "m"
     shutil.copytree(model_dir, copy)
     (copy / "posenet.onnx").unlink()
-    with pytest.raises(GeoNetInputError, match="missing") as err:
+    with pytest.raises(GeoNetError, match="missing") as err:
         load_manifest(copy)
     assert err.value.path == copy / "posenet.onnx"
     raw = json.loads((model_dir / MANIFEST_NAME).read_text())
@@ -383,7 +383,7 @@ def test_manifest_errors_name_the_file(model_dir, tmp_path):
         mutate(bad)
         shutil.copytree(model_dir, tmp_path / "b", dirs_exist_ok=True)
         (tmp_path / "b" / MANIFEST_NAME).write_text(json.dumps(bad))
-        with pytest.raises(GeoNetInputError, match=pattern) as err:
+        with pytest.raises(GeoNetError, match=pattern) as err:
             load_manifest(tmp_path / "b")
         assert err.value.path == tmp_path / "b" / MANIFEST_NAME
 
@@ -442,7 +442,7 @@ def test_cli_random_init_small(tmp_path):
     manifest = load_manifest(out)
     assert manifest.random_init and manifest.provenance.random_init and manifest.arch == "small"
     assert manifest.graph_names() == GRAPH_NAMES and manifest.quantization is None
-    with pytest.raises(GeoNetInputError, match="random-init"):
+    with pytest.raises(GeoNetError, match="random-init"):
         onnx_depth_fn(Predictor(out))
     frames = [np.full((64, 208, 3), 100 + 10 * i, np.uint8) for i in range(3)]
     res = Predictor(out).flow(frames, np.array([[100.0, 0, 104], [0, 100, 32], [0, 0, 1]], np.float32))
@@ -466,7 +466,7 @@ def test_cli_wrong_stage_checkpoint(tmp_path, capsys):
     manifest = load_manifest(out)
     assert manifest.graph_names() == ("depthnet", "posenet", "rigidflow")
     assert manifest.provenance.checkpoint_stage == "rigid" and (manifest.height, manifest.width) == (64, 208)
-    with pytest.raises(GeoNetInputError, match="stage 'flow'"):
+    with pytest.raises(GeoNetError, match="stage 'flow'"):
         manifest.graph("resflownet")
 
 

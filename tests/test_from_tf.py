@@ -384,14 +384,14 @@ def test_prefix_file_and_folder_forms(tmp_path, pose_values):
 def test_combining_rules(tmp_path, pose_values):
     """A plain prefix gives every net it holds that no KIND= names; a net given twice is refused."""
     from export.from_tf import convert_checkpoints
-    from geonet_infer.errors import GeoNetInputError
+    from geonet_infer.errors import GeoNetError
 
     seq3 = write_checkpoint(tmp_path / "a" / "model-1", pose_values)
     seq5 = write_checkpoint(tmp_path / "b" / "model-2", _pose_values(4, seed=2))
     conv = convert_checkpoints([str(seq3), f"pose={seq5}"], log=lambda _: None)
     assert conv.specs["pose"].num_source == 4
     assert conv.sources[0]["networks"] == [] and conv.sources[0]["not_converted"] == ["pose_net (30 variables)"]
-    with pytest.raises(GeoNetInputError, match="pose_net is given twice"):
+    with pytest.raises(GeoNetError, match="pose_net is given twice"):
         convert_checkpoints([str(seq3), str(seq5)], log=lambda _: None)
-    with pytest.raises(GeoNetInputError, match="holds no depth_net/ variables"):
+    with pytest.raises(GeoNetError, match="holds no depth_net/ variables"):
         convert_checkpoints([f"depth={seq3}"], log=lambda _: None)

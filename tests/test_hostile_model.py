@@ -18,7 +18,7 @@ import onnx
 import pytest
 
 import geonet_infer
-from geonet_infer import GeoNetInputError
+from geonet_infer import GeoNetError
 from geonet_infer.cli import main as cli_main
 from geonet_infer.manifest import load_manifest
 
@@ -52,8 +52,8 @@ def rehash(model: Path, file: str) -> None:
     edit_manifest(model, edit)
 
 
-def refused(fn, *needles) -> GeoNetInputError:
-    with pytest.raises(GeoNetInputError) as err:
+def refused(fn, *needles) -> GeoNetError:
+    with pytest.raises(GeoNetError) as err:
         fn()
     msg = str(err.value)
     assert "\n" not in msg

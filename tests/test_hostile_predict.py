@@ -143,12 +143,12 @@ def test_frames_over_the_pixel_cap_are_refused_before_decoding(tmp_path, capsys)
 
 def test_video_over_the_pixel_cap_is_refused(tmp_path, monkeypatch):
     import geonet_infer.io.images as images
-    from geonet_infer import GeoNetInputError
+    from geonet_infer import GeoNetError
     from geonet_infer.io import open_frames
 
     video = write_video(tmp_path / "clip.mp4", frames=3)
     monkeypatch.setattr(images, "MAX_IMAGE_PIXELS", 1000)  # the 64x48 frames are 3072 pixels
-    with pytest.raises(GeoNetInputError, match=r"clip\.mp4.*64x48.*1,000 pixels"):
+    with pytest.raises(GeoNetError, match=r"clip\.mp4.*64x48.*1,000 pixels"):
         open_frames(video)
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from geonet_infer import io as gio
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from geonet_infer.io import Camera, Frame, list_images, open_frames, read_camera, save_npy_atomic
 
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"
@@ -62,7 +62,7 @@ def test_flow_png_encode_writes_the_kitti_channel_values(tmp_path):
 
 def test_flow_png_rejects_an_8bit_image(tmp_path):
     cv2.imwrite(str(tmp_path / "x.png"), np.zeros((4, 4, 3), np.uint8))
-    with pytest.raises(GeoNetInputError, match="x.png"):
+    with pytest.raises(GeoNetError, match="x.png"):
         gio.read_flow_kitti(tmp_path / "x.png")
 
 
@@ -110,7 +110,7 @@ def test_flo_roundtrip_and_bad_magic(tmp_path):
     np.testing.assert_array_equal(gio.read_flo(tmp_path / "a.flo"), flow)
     assert raw[:4] == b"PIEH"  # the tag 202021.25 as little-endian float32
     (tmp_path / "b.flo").write_bytes(b"HEIP" + raw[4:])
-    with pytest.raises(GeoNetInputError, match="b.flo"):
+    with pytest.raises(GeoNetError, match="b.flo"):
         gio.read_flo(tmp_path / "b.flo")
 
 
@@ -133,7 +133,7 @@ def test_kitti_poses_roundtrip_and_bad_file(tmp_path):
     gio.write_kitti_poses(tmp_path / "p.txt", poses)
     np.testing.assert_allclose(gio.read_kitti_poses(tmp_path / "p.txt"), poses, rtol=1e-8, atol=1e-12)
     (tmp_path / "bad.txt").write_text("1 2 3\n")
-    with pytest.raises(GeoNetInputError, match="bad.txt"):
+    with pytest.raises(GeoNetError, match="bad.txt"):
         gio.read_kitti_poses(tmp_path / "bad.txt")
 
 
@@ -177,16 +177,16 @@ def test_calib_missing_key_names_file_and_key(tmp_path):
     assert (tmp_path / "calib.txt").read_text().split() == ["K:", "240", "0", "208", "0", "245", "64", "0", "0", "1"]
     np.testing.assert_array_equal(gio.read_calib_K(tmp_path / "calib.txt")[:2], [[240, 0, 208], [0, 245, 64]])
     calib = gio.read_calib_file(tmp_path / "calib.txt")
-    with pytest.raises(GeoNetInputError) as err:
+    with pytest.raises(GeoNetError) as err:
         gio.require_key(calib, "P_rect_02", tmp_path / "calib.txt")
     assert "calib.txt" in str(err.value) and "P_rect_02" in str(err.value)
-    with pytest.raises(GeoNetInputError, match="calib.txt"):
+    with pytest.raises(GeoNetError, match="calib.txt"):
         gio.read_calib_K(tmp_path / "calib.txt", key="P2")
 
 
 def test_calib_malformed_line_names_file(tmp_path):
     (tmp_path / "c.txt").write_text("K: 1 0 0 0 1 0 0 0 1\nthis line has no colon\n")
-    with pytest.raises(GeoNetInputError, match=r"c\.txt.*line 2"):
+    with pytest.raises(GeoNetError, match=r"c\.txt.*line 2"):
         gio.read_calib_file(tmp_path / "c.txt")
 
 
@@ -200,10 +200,10 @@ def test_image_roundtrip_is_rgb(tmp_path):
 
 
 def test_read_image_missing_names_file(tmp_path):
-    with pytest.raises(GeoNetInputError, match="nope.png"):
+    with pytest.raises(GeoNetError, match="nope.png"):
         gio.read_image(tmp_path / "nope.png")
     (tmp_path / "junk.png").write_bytes(b"not a png")
-    with pytest.raises(GeoNetInputError, match="junk.png"):
+    with pytest.raises(GeoNetError, match="junk.png"):
         gio.read_image(tmp_path / "junk.png")
 
 
@@ -273,11 +273,11 @@ def test_list_images_sorts_by_name_and_filters_suffixes(tmp_path):
 
 
 def test_list_images_missing_or_empty_folder_names_it(tmp_path):
-    with pytest.raises(GeoNetInputError, match="nowhere"):
+    with pytest.raises(GeoNetError, match="nowhere"):
         list_images(tmp_path / "nowhere")
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "readme.txt").write_text("no frames here")
-    with pytest.raises(GeoNetInputError) as err:
+    with pytest.raises(GeoNetError) as err:
         list_images(tmp_path / "empty")
     assert str(tmp_path / "empty") in str(err.value) and "no images" in str(err.value)
 
@@ -289,7 +289,7 @@ def test_cam_txt_is_the_official_comma_line(tmp_path):
     assert (tmp_path / "000001_cam.txt").read_text() == "240.5,0.,208.25,0.,245.0,64.125,0.,0.,1.\n"
     np.testing.assert_array_equal(gio.read_cam_txt(tmp_path / "000001_cam.txt"), K)
     (tmp_path / "bad_cam.txt").write_text("1,2,3")
-    with pytest.raises(GeoNetInputError, match="bad_cam.txt"):
+    with pytest.raises(GeoNetError, match="bad_cam.txt"):
         gio.read_cam_txt(tmp_path / "bad_cam.txt")
 
 
@@ -339,7 +339,7 @@ def test_read_camera_euroc_sensor_yaml(realdata):
     np.testing.assert_allclose(cam.dist, [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05], rtol=0, atol=1e-12)
     assert cam.size == (752, 480) and cam.has_distortion
     # The IMU's sensor.yaml of the same recording has no camera in it.
-    with pytest.raises(GeoNetInputError, match="imu0"):
+    with pytest.raises(GeoNetError, match="imu0"):
         read_camera(realdata / "euroc_v1_01_micro/mav0/imu0/sensor.yaml")
 
 
@@ -348,7 +348,7 @@ def test_read_camera_refuses_a_fisheye_yaml(tmp_path):
         "%YAML:1.0\ncamera_model: pinhole\nintrinsics: [400, 401, 320, 240]\n"
         "distortion_model: equidistant\ndistortion_coefficients: [0.1, 0.01, 0, 0]\n"
     )
-    with pytest.raises(GeoNetInputError, match="equidistant"):
+    with pytest.raises(GeoNetError, match="equidistant"):
         read_camera(tmp_path / "sensor.yaml")
 
 
@@ -370,17 +370,17 @@ def test_read_camera_unrecognised_or_missing_names_the_file(tmp_path):
     (tmp_path / "eight.txt").write_text("1 2 3 4 5 6 7 8\n")
     (tmp_path / "binary.bin").write_bytes(bytes(range(256)))
     for name in ("notes.txt", "eight.txt", "binary.bin", "missing.txt"):
-        with pytest.raises(GeoNetInputError) as err:
+        with pytest.raises(GeoNetError) as err:
             read_camera(tmp_path / name)
         assert name in str(err.value)
 
 
 def test_read_camera_rejects_invalid_values(tmp_path):
     (tmp_path / "zero_fy.txt").write_text("K: 500 0 320 0 0 240 0 0 1\n")
-    with pytest.raises(GeoNetInputError, match="zero_fy.txt"):
+    with pytest.raises(GeoNetError, match="zero_fy.txt"):
         read_camera(tmp_path / "zero_fy.txt")
     (tmp_path / "nan.txt").write_text("500 0 nan\n0 510 240\n0 0 1\n")
-    with pytest.raises(GeoNetInputError, match="nan.txt"):
+    with pytest.raises(GeoNetError, match="nan.txt"):
         read_camera(tmp_path / "nan.txt")
 
 
@@ -396,13 +396,13 @@ def test_camera_scaled_to_and_validate():
     assert unknown.scaled_to(10, 10) is unknown  # size unknown: unchanged
     assert cam.validate() is cam and cam.has_distortion
     assert not Camera(np.eye(3), np.zeros(5)).has_distortion
-    with pytest.raises(GeoNetInputError, match="fy=0"):
+    with pytest.raises(GeoNetError, match="fy=0"):
         Camera(np.array([[100.0, 0, 50], [0, 0, 40], [0, 0, 1]])).validate()
-    with pytest.raises(GeoNetInputError, match="cam.txt"):
+    with pytest.raises(GeoNetError, match="cam.txt"):
         Camera(np.array([[100.0, 0, np.nan], [0, 100, 40], [0, 0, 1]])).validate("cam.txt")
-    with pytest.raises(GeoNetInputError):
+    with pytest.raises(GeoNetError):
         Camera(np.array([[np.nan, 0, 50], [0, 100, 40], [0, 0, 1]])).validate()
-    with pytest.raises(GeoNetInputError):
+    with pytest.raises(GeoNetError):
         Camera(np.eye(3), dist=np.array([0.1, 0.2, 0.3])).validate()  # no OpenCV model has 3 coefficients
     with pytest.raises(ValueError):  # frozen and read-only
         cam.K[0, 0] = 1.0
@@ -464,7 +464,7 @@ def test_open_frames_folder_reports_a_corrupt_frame_and_goes_on(tmp_path):
     frames = list(src)
     assert [f.name for f in frames] == ["a", "b", "c", "d"]
     bad = frames[1]
-    assert bad.rgb is None and isinstance(bad.error, GeoNetInputError) and "b.png" in str(bad.error)
+    assert bad.rgb is None and isinstance(bad.error, GeoNetError) and "b.png" in str(bad.error)
     for f in (frames[0], frames[2], frames[3]):
         assert f.error is None
         np.testing.assert_array_equal(f.rgb, written[f.name])
@@ -474,16 +474,16 @@ def test_open_frames_folder_reports_a_corrupt_frame_and_goes_on(tmp_path):
 
 def test_open_frames_corrupt_video_missing_path_and_other_files(tmp_path):
     (tmp_path / "clip.mp4").write_bytes(np.random.default_rng(7).integers(0, 256, 4096, dtype=np.uint8).tobytes())
-    with pytest.raises(GeoNetInputError) as err:
+    with pytest.raises(GeoNetError) as err:
         open_frames(tmp_path / "clip.mp4")
     assert "clip.mp4" in str(err.value) and "cannot open this video" in str(err.value)
-    with pytest.raises(GeoNetInputError, match="not_there"):
+    with pytest.raises(GeoNetError, match="not_there"):
         open_frames(tmp_path / "not_there")
     (tmp_path / "notes.txt").write_text("x")
-    with pytest.raises(GeoNetInputError, match="notes.txt"):
+    with pytest.raises(GeoNetError, match="notes.txt"):
         open_frames(tmp_path / "notes.txt")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(GeoNetInputError, match="empty"):
+    with pytest.raises(GeoNetError, match="empty"):
         open_frames(tmp_path / "empty")
 
 

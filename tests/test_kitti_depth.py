@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from geonet_infer.velodyne import (
     load_velodyne_points,
     project_velodyne,
@@ -119,7 +119,7 @@ def test_rounding_and_min_over_duplicates(tmp_path):
 def test_bad_velodyne_size_names_the_file(tmp_path):
     path = tmp_path / "broken.bin"
     path.write_bytes(b"\x00" * 20)
-    with pytest.raises(GeoNetInputError, match="multiple of 16") as err:
+    with pytest.raises(GeoNetError, match="multiple of 16") as err:
         load_velodyne_points(path)
     assert err.value.path == path
 
@@ -127,6 +127,6 @@ def test_bad_velodyne_size_names_the_file(tmp_path):
 def test_missing_calib_key_names_the_file(tmp_path):
     (tmp_path / "calib_cam_to_cam.txt").write_text("R_rect_00: 1 0 0 0 1 0 0 0 1\n")
     (tmp_path / "calib_velo_to_cam.txt").write_text("R: 1 0 0 0 1 0 0 0 1\nT: 0 0 0\n")
-    with pytest.raises(GeoNetInputError, match="P_rect_02") as err:
+    with pytest.raises(GeoNetError, match="P_rect_02") as err:
         velodyne_to_image_matrix(tmp_path, cam=2)
     assert err.value.path == tmp_path / "calib_cam_to_cam.txt"

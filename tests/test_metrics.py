@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from geonet_infer.metrics import (
     aggregate,
     ate_rmse_true,
@@ -39,7 +39,7 @@ def test_depth_floor_share_of_a_ramp_and_of_a_clamped_ramp():
     # Clamped at row 160's depth: rows 160-199 (40 of the lower 100) share one value.
     assert depth_floor_share(np.maximum(ramp, ramp[160, 0])) == pytest.approx(40 / 100)
     assert depth_floor_share(np.full((4, 6), 3.0)) == 1.0  # a constant map is all floor
-    with pytest.raises(GeoNetInputError, match="finite positive"):
+    with pytest.raises(GeoNetError, match="finite positive"):
         depth_floor_share(np.zeros((4, 6)))
 
 
@@ -143,7 +143,7 @@ def test_garg_crop_applied_in_depth_metrics():
 
 
 def test_depth_shape_mismatch_is_a_clear_error():
-    with pytest.raises(GeoNetInputError, match="resize_depth_to"):
+    with pytest.raises(GeoNetError, match="resize_depth_to"):
         depth_metrics(np.ones((4, 4)), np.ones((2, 2)), crop=None)
 
 

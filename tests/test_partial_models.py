@@ -19,7 +19,7 @@ import onnxruntime as ort
 import pytest
 
 import geonet_infer
-from geonet_infer import GeoNetInputError
+from geonet_infer import GeoNetError
 from geonet_infer.cli import main
 
 pytest.importorskip("torch")  # the tiny models are exported here (train extra)
@@ -142,7 +142,7 @@ def test_depth_only_model_loads_and_predicts_depth(models, frames):
 
 
 def _refused(fn, *needles) -> str:
-    with pytest.raises(GeoNetInputError) as err:
+    with pytest.raises(GeoNetError) as err:
         fn()
     msg = str(err.value)
     for needle in needles:

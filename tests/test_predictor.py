@@ -19,7 +19,7 @@ import onnxruntime as ort
 import pytest
 
 import geonet_infer
-from geonet_infer import GeoNetInputError
+from geonet_infer import GeoNetError
 from geonet_infer.engines import ENGINES, openvino_available
 from geonet_infer.io import Camera, read_camera
 
@@ -303,7 +303,7 @@ def test_every_result_carries_stage_timings(predictor, frames, K):
 
 # ----------------------------------------------------------------------------- 8. errors
 def _raises(fn, *needles):
-    with pytest.raises(GeoNetInputError) as err:
+    with pytest.raises(GeoNetError) as err:
         fn()
     msg = str(err.value)
     for needle in needles:

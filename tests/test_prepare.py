@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from geonet_infer.io import read_flow_kitti, write_calib_K, write_depth_kitti, write_flow_kitti
 from training import prepare as P
 from training import synth
@@ -215,7 +215,7 @@ def test_kitti_odom_grey_fallback(tmp_path, caplog):
     seq09 = tmp_path / "odom_root" / "sequences" / "09"
     (seq09 / "image_0").mkdir(parents=True)
     (seq09 / "calib.txt").write_text((ODOM00 / "sequences" / "00" / "calib.txt").read_text())
-    with pytest.raises(GeoNetInputError, match="no sample"):
+    with pytest.raises(GeoNetError, match="no sample"):
         P.prepare(P.PrepareConfig("kitti_odom", tmp_path / "odom_root", tmp_path / "o2"))
 
 
@@ -244,7 +244,7 @@ def test_synth_heldout(tmp_path):
         )
         assert cv2.imread(str(out / "seq_02" / f"{i:06d}.jpg")).shape == (32, 144, 3)
     assert not (out / "seq_00" / "000001_depth.png").exists()  # GT only for held-out samples
-    with pytest.raises(GeoNetInputError, match="--heldout"):
+    with pytest.raises(GeoNetError, match="--heldout"):
         P.prepare(P.PrepareConfig("synth", src, tmp_path / "o2", heldout=3))
     # --train-depth: train/val samples get their target depth too, the same split and files otherwise
     sup = tmp_path / "sup"
@@ -255,7 +255,7 @@ def test_synth_heldout(tmp_path):
             src_depth = cv2.imread(str(src / f"seq_{s:02d}" / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
             got = cv2.imread(str(sup / f"seq_{s:02d}" / f"{i:06d}_depth.png"), cv2.IMREAD_UNCHANGED)
             np.testing.assert_array_equal(got, src_depth[::2, ::2])
-    with pytest.raises(GeoNetInputError, match="--train-depth only applies"):
+    with pytest.raises(GeoNetError, match="--train-depth only applies"):
         P.prepare(P.PrepareConfig("frames", src / "seq_00" / "image", tmp_path / "o3", train_depth=True))
     # --train-flow: train/val samples get the generator's flow to the next frame, at H x W
     flows = tmp_path / "flows"
@@ -269,7 +269,7 @@ def test_synth_heldout(tmp_path):
             np.testing.assert_array_equal(got_valid, src_valid[::2, ::2])
             np.testing.assert_allclose(got_flow, src_flow[::2, ::2] / 2, atol=1 / 64)
     assert not list((flows / "seq_02").glob("*_flow.png"))  # held-out flow is scored from the source
-    with pytest.raises(GeoNetInputError, match="--train-flow only applies"):
+    with pytest.raises(GeoNetError, match="--train-flow only applies"):
         P.prepare(P.PrepareConfig("frames", src / "seq_00" / "image", tmp_path / "o4", train_flow=True))
 
 
@@ -388,21 +388,21 @@ def test_strict_turns_skips_into_errors(tmp_path, case, fragment):
     _bad_tree(src, cases=(case,))
     make_synth_seq(src / "z_good", 4, seed=9)  # a good sequence does not hide the bad one
     out = tmp_path / "out"
-    with pytest.raises(GeoNetInputError) as err:
+    with pytest.raises(GeoNetError) as err:
         P.prepare(P.PrepareConfig("synth", src, out, heldout=0, height=32, width=48, strict=True))
     assert str(src / case) in str(err.value) and fragment in str(err.value)
     assert_no_partial_files(out)
 
 
 def test_clear_errors_and_help(tmp_path, capsys):
-    with pytest.raises(GeoNetInputError, match="source folder not found"):
+    with pytest.raises(GeoNetError, match="source folder not found"):
         P.prepare(P.PrepareConfig("synth", tmp_path / "missing", tmp_path / "out"))
     (tmp_path / "empty").mkdir()
-    with pytest.raises(GeoNetInputError, match="no KITTI raw drive"):
+    with pytest.raises(GeoNetError, match="no KITTI raw drive"):
         P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "empty", tmp_path / "out"))
-    with pytest.raises(GeoNetInputError, match="seq-length"):
+    with pytest.raises(GeoNetError, match="seq-length"):
         P.prepare(P.PrepareConfig("synth", tmp_path / "empty", tmp_path / "out", seq_length=4))
-    with pytest.raises(GeoNetInputError, match="--split eigen does not apply"):
+    with pytest.raises(GeoNetError, match="--split eigen does not apply"):
         P.prepare(P.PrepareConfig("synth", tmp_path / "empty", tmp_path / "out", split="eigen"))
     with pytest.raises(SystemExit) as ex:
         P.main(["--help"])

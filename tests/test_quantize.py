@@ -14,7 +14,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from export import quantize as qz
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 
 C, HW = 8, 16
 
@@ -114,7 +114,7 @@ def test_output_layer_nodes_are_the_head_and_the_layer_it_reads(tmp_path):
 
 def test_float_after_an_unknown_tensor_is_an_error(tmp_path):
     decoder_level(tmp_path / "level.onnx")
-    with pytest.raises(GeoNetInputError, match="no nodes consume"):
+    with pytest.raises(GeoNetError, match="no nodes consume"):
         qz.quantize_graph(
             tmp_path / "level.onnx", tmp_path / "q.onnx", feeds(2, seed=1), plan=qz.GraphPlan(float_after=("missing",))
         )

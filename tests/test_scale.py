@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from geonet_infer import GeoNetInputError
+from geonet_infer import GeoNetError
 from geonet_infer.io.calib import read_camera
 from geonet_infer.scale import fit_ground_plane, metric_depth
 from geonet_infer.velodyne import velodyne_to_depth_map
@@ -88,9 +88,9 @@ def test_a_deck_that_the_road_is_seen_beside_is_not_taken_for_the_road():
 
 def test_no_ground_is_a_clear_error():
     wall = np.full((H, W), 5.0)  # fronto-parallel wall: no plane near the camera's y axis
-    with pytest.raises(GeoNetInputError, match="no ground plane"):
+    with pytest.raises(GeoNetError, match="no ground plane"):
         fit_ground_plane(wall, K)
-    with pytest.raises(GeoNetInputError, match="camera height"):
+    with pytest.raises(GeoNetError, match="camera height"):
         metric_depth(road_scene(1.65, 0), K, -1.0)
 
 
@@ -151,12 +151,12 @@ def test_a_video_without_a_road_names_its_first_frame(monkeypatch):
     from geonet_infer import predictor as predictor_module
 
     wall = np.full((H, W), 5.0)
-    with pytest.raises(GeoNetInputError, match="no ground plane in any of the 3 frames") as err:
+    with pytest.raises(GeoNetError, match="no ground plane in any of the 3 frames") as err:
         list(predictor_module.metric_frames(iter([_frame(i, wall, None) for i in range(3)]), 1.65, lambda size: K))
     assert str(err.value.path) == "000000"
     monkeypatch.setattr(predictor_module, "MAX_FRAMES_BEFORE_GROUND", 2)
     endless = (_frame(i, wall, None) for i in range(10**6))
-    with pytest.raises(GeoNetInputError, match="no ground plane in the first 3 frames"):
+    with pytest.raises(GeoNetError, match="no ground plane in the first 3 frames"):
         list(predictor_module.metric_frames(endless, 1.65, lambda size: K))
 
 
@@ -194,9 +194,9 @@ def test_sequence_with_camera_height_scales_depth_and_translations_per_frame(sam
 
 def test_camera_height_needs_a_camera_and_a_positive_height(sample):
     predictor, frames, camera = sample
-    with pytest.raises(GeoNetInputError, match="needs the camera intrinsics"):
+    with pytest.raises(GeoNetError, match="needs the camera intrinsics"):
         predictor.depth(frames[0], camera_height=1.65)
-    with pytest.raises(GeoNetInputError, match="positive number of metres"):
+    with pytest.raises(GeoNetError, match="positive number of metres"):
         predictor.depth(frames[0], camera=camera, camera_height=0)
 
 

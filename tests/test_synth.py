@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from geonet_infer import io as gio
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from training import synth
 
 H, W = 128, 416
@@ -231,5 +231,5 @@ def test_dense_traffic_fills_the_view_with_near_vehicles_and_trucks():
         tops = -(scene.box_centre[moving, 1] - scene.box_half[moving, 1])  # y points down, ground at 0
         assert tops.max() > 2.9, f"sequence {i}: no truck (tallest moving box {tops.max():.2f} m)"
     assert np.mean(dense) > 2 * np.mean(light), (light, dense)
-    with pytest.raises(GeoNetInputError, match="traffic"):
+    with pytest.raises(GeoNetError, match="traffic"):
         synth.generate(synth.SynthConfig(out=Path("unused"), traffic="jam"))

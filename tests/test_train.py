@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from tests.conftest import require_realdata
 from training import checkpoint, prepare
 from training.checkpoint import (
@@ -198,7 +198,7 @@ def test_interpolate_puts_a_fine_tuned_model_between_its_base_and_itself(synth_p
 
 def test_init_checkpoint_of_another_arch_is_refused(synth_prepared, tmp_path):
     rigid = train(config(synth_prepared, tmp_path / "rigid", max_steps=1), progress=False)
-    with pytest.raises(GeoNetInputError, match="arch is 'small', expected 'vgg'") as err:
+    with pytest.raises(GeoNetError, match="arch is 'small', expected 'vgg'") as err:
         train(
             config(synth_prepared, tmp_path / "x", arch="vgg", max_steps=1, init_checkpoint=str(rigid["last"])),
             progress=False,
@@ -226,7 +226,7 @@ def test_missing_data_dir_is_a_clear_error(tmp_path, capsys):
 
 def test_empty_split_is_a_clear_error(tmp_path):
     (tmp_path / "train.txt").write_text("")
-    with pytest.raises(GeoNetInputError, match="train.txt"):
+    with pytest.raises(GeoNetError, match="train.txt"):
         train(config(tmp_path, tmp_path / "run", max_steps=1), progress=False)
 
 
@@ -237,7 +237,7 @@ def test_corrupt_image_is_named(synth_prepared, tmp_path):
     victim = data / folder / f"{frame}.jpg"
     victim.write_bytes(b"not a jpeg")
     (data / "train.txt").write_text(f"{folder} {frame}\n" * 4)
-    with pytest.raises(GeoNetInputError) as err:
+    with pytest.raises(GeoNetError) as err:
         train(config(data, tmp_path / "run", max_steps=1), progress=False)
     assert str(victim) in str(err.value)
 
@@ -289,7 +289,7 @@ def test_a_checkpoint_that_runs_code_is_refused_and_the_code_never_runs(tmp_path
 
     path = tmp_path / "evil.pt"
     torch.save({"format": "geonet-checkpoint-v2", "model": Payload()}, path)
-    with pytest.raises(GeoNetInputError, match="refused") as err:
+    with pytest.raises(GeoNetError, match="refused") as err:
         load_checkpoint(path)
     assert str(path) in str(err.value) and "\n" not in str(err.value)
     assert not marker.exists()
@@ -306,7 +306,7 @@ def test_a_checkpoint_that_runs_code_is_refused_and_the_code_never_runs(tmp_path
 def test_a_checkpoint_that_is_not_ours_is_named(tmp_path, content, problem):
     path = tmp_path / "other.pt"
     torch.save(content, path)
-    with pytest.raises(GeoNetInputError, match="not a|lacks") as err:
+    with pytest.raises(GeoNetError, match="not a|lacks") as err:
         load_checkpoint(path)
     assert str(path) in str(err.value) and problem in str(err.value)
 
@@ -321,7 +321,7 @@ def test_an_old_checkpoint_is_refused_with_the_upgrade_command_and_upgrades(tmp_
     )
     del old["grad_scaler"]
     torch.save(old, path)
-    with pytest.raises(GeoNetInputError, match=r"numpy.*--upgrade"):
+    with pytest.raises(GeoNetError, match=r"numpy.*--upgrade"):
         load_checkpoint(path)
     assert checkpoint.main(["--upgrade", str(path)]) == 0
     new = load_checkpoint(path)
@@ -498,7 +498,7 @@ def test_photometric_scores_unlabelled_footage(synth_prepared, tmp_path):
     assert real["terms"]["flow_warp"] < 0.8 * scrambled["terms"]["flow_warp"], (real, scrambled)
     rigid_terms = photometric_terms(rigid["last"], synth_prepared)
     assert rigid_terms["stage"] == "rigid" and "rigid_warp" in rigid_terms["terms"]
-    with pytest.raises(GeoNetInputError, match="no ResFlowNet"):
+    with pytest.raises(GeoNetError, match="no ResFlowNet"):
         photometric_terms(rigid["last"], synth_prepared, stage="flow")
     assert photometric_main(["--checkpoint", str(flow["last"]), str(flow["last"]), "--data-dir", str(noise)]) == 0
 
@@ -519,5 +519,5 @@ def test_extra_data_dirs_are_shuffled_into_one_training_set(synth_prepared, tmp_
     for name in sets[1].names:
         folder, frame = name.split(" ")
         (other / folder / f"{frame}.jpg").write_bytes(b"not a jpeg")
-    with pytest.raises(GeoNetInputError, match="other"):
+    with pytest.raises(GeoNetError, match="other"):
         train(config(synth_prepared, tmp_path / "run", max_steps=4, extra_data_dirs=[str(other)]), progress=False)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from geonet_infer import conventions
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import atomic_write
 from training.config import TrainConfig
 from training.model import GeoNet
@@ -105,7 +105,7 @@ def save_checkpoint(
         torch.save(state, tmp)
 
 
-def _refusal(path: Path, exc: Exception) -> GeoNetInputError:
+def _refusal(path: Path, exc: Exception) -> GeoNetError:
     """The weights-only unpickler refused the file: name what it wanted to import."""
     try:
         names = torch.serialization.get_unsafe_globals_in_checkpoint(path)
@@ -118,7 +118,7 @@ def _refusal(path: Path, exc: Exception) -> GeoNetInputError:
             "a checkpoint of an older training.train (v1) holds numpy RNG state; if you trust the file, "
             f"convert it once: python -m training.checkpoint --upgrade {path}"
         )
-    return GeoNetInputError(
+    return InputError(
         path,
         f"refused: the file holds Python objects beyond tensors and plain values{what}, "
         "which could run code when loaded",
@@ -129,14 +129,14 @@ def _refusal(path: Path, exc: Exception) -> GeoNetInputError:
 def _safe_load(path: Path, what: str):
     """``torch.load(weights_only=True)`` onto the CPU; every failure names the file."""
     if not path.is_file():
-        raise GeoNetInputError(path, f"{what} not found", WRITTEN_BY)
+        raise InputError(path, f"{what} not found", WRITTEN_BY)
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         raise _refusal(path, exc) from None
     except Exception as exc:  # torch raises many types for a corrupt file
         first = str(exc).splitlines()[0] if str(exc) else ""
-        raise GeoNetInputError(path, f"cannot read {what} ({exc.__class__.__name__}: {first})") from exc
+        raise InputError(path, f"cannot read {what} ({exc.__class__.__name__}: {first})") from exc
 
 
 def load_checkpoint(path: str | Path, expect_stage: str | None = None, expect_arch: str | None = None) -> dict:
@@ -144,23 +144,21 @@ def load_checkpoint(path: str | Path, expect_stage: str | None = None, expect_ar
     path = Path(path)
     ckpt = _safe_load(path, "checkpoint")
     if not isinstance(ckpt, dict):
-        raise GeoNetInputError(
-            path, f"not a GeoNet checkpoint: it holds a {type(ckpt).__name__}, not a dict", WRITTEN_BY
-        )
+        raise InputError(path, f"not a GeoNet checkpoint: it holds a {type(ckpt).__name__}, not a dict", WRITTEN_BY)
     if ckpt.get("format") != CHECKPOINT_FORMAT:
         found = f"format {ckpt['format']!r}" if "format" in ckpt else f"keys {sorted(map(str, ckpt))[:6]}"
-        raise GeoNetInputError(path, f"not a {CHECKPOINT_FORMAT} checkpoint ({found})", WRITTEN_BY)
+        raise InputError(path, f"not a {CHECKPOINT_FORMAT} checkpoint ({found})", WRITTEN_BY)
     missing = [k for k in REQUIRED_KEYS if k not in ckpt]
     if missing:
-        raise GeoNetInputError(path, f"checkpoint lacks {', '.join(missing)}", WRITTEN_BY)
+        raise InputError(path, f"checkpoint lacks {', '.join(missing)}", WRITTEN_BY)
     if expect_stage and ckpt["stage"] != expect_stage:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"checkpoint is from stage '{ckpt['stage']}', expected '{expect_stage}'",
             "stage flow needs --init-checkpoint from a stage rigid run",
         )
     if expect_arch and ckpt["arch"] != expect_arch:
-        raise GeoNetInputError(
+        raise InputError(
             path, f"checkpoint arch is '{ckpt['arch']}', expected '{expect_arch}'", f"pass --arch {ckpt['arch']}"
         )
     return ckpt
@@ -197,7 +195,7 @@ def combine_weights(depth_pose: str | Path, flow: str | Path, out: str | Path) -
     fl = load_weights(flow, expect_arch=dp["arch"])
     flow_state = {k: v for k, v in fl["model"].items() if k.startswith("flow_net.")}
     if not flow_state:
-        raise GeoNetInputError(flow, "has no ResFlowNet weights", "pass a stage-flow checkpoint or weights file")
+        raise InputError(flow, "has no ResFlowNet weights", "pass a stage-flow checkpoint or weights file")
     model = {k: v for k, v in dp["model"].items() if not k.startswith("flow_net.")} | flow_state
     config = {**dp["config"], "stage": "flow"}
     source = {"depth_pose": str(depth_pose), "flow": str(flow)}
@@ -214,7 +212,7 @@ def interpolate_weights(base: str | Path, tuned: str | Path, alpha: float, out: 
     Measured use: docs/training.md, "Toward real video".
     """
     if not 0.0 <= alpha <= 1.0:
-        raise GeoNetInputError(None, f"alpha {alpha} is outside [0, 1]", "0 gives base, 1 gives tuned")
+        raise InputError(None, f"alpha {alpha} is outside [0, 1]", "0 gives base, 1 gives tuned")
     tu = load_weights(tuned)
     ba = load_weights(base, expect_arch=tu["arch"])
     model = {}
@@ -223,7 +221,7 @@ def interpolate_weights(base: str | Path, tuned: str | Path, alpha: float, out: 
         if w_base is None or not w_tuned.is_floating_point():
             model[key] = w_tuned
         elif w_base.shape != w_tuned.shape:
-            raise GeoNetInputError(base, f"{key} is {tuple(w_base.shape)}, {tuned} has {tuple(w_tuned.shape)}", "")
+            raise InputError(base, f"{key} is {tuple(w_base.shape)}, {tuned} has {tuple(w_tuned.shape)}", "")
         else:
             model[key] = torch.lerp(w_base, w_tuned, alpha)
     source = {"base": str(base), "tuned": str(tuned), "alpha": alpha}
@@ -242,11 +240,9 @@ def load_weights(path: str | Path, expect_arch: str | None = None) -> dict:
     if isinstance(state, dict) and state.get("format") == CHECKPOINT_FORMAT:
         state = load_checkpoint(path, expect_arch=expect_arch)
     elif not isinstance(state, dict) or state.get("format") != WEIGHTS_FORMAT:
-        raise GeoNetInputError(
-            path, f"neither a {CHECKPOINT_FORMAT} checkpoint nor a {WEIGHTS_FORMAT} file", WRITTEN_BY
-        )
+        raise InputError(path, f"neither a {CHECKPOINT_FORMAT} checkpoint nor a {WEIGHTS_FORMAT} file", WRITTEN_BY)
     if expect_arch and state["arch"] != expect_arch:
-        raise GeoNetInputError(
+        raise InputError(
             path, f"weights arch is '{state['arch']}', expected '{expect_arch}'", f"pass --arch {state['arch']}"
         )
     model = {k: v.float() if v.is_floating_point() else v for k, v in state["model"].items()}
@@ -279,14 +275,14 @@ def upgrade(path: str | Path) -> None:
     """Rewrite a v1 checkpoint as v2 in place. Unpickles it fully: only for files you trust."""
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "checkpoint not found", WRITTEN_BY)
+        raise InputError(path, "checkpoint not found", WRITTEN_BY)
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
-        raise GeoNetInputError(path, f"cannot read checkpoint ({exc.__class__.__name__})") from exc
+        raise InputError(path, f"cannot read checkpoint ({exc.__class__.__name__})") from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != OLD_FORMAT:
         found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
-        raise GeoNetInputError(path, f"not a {OLD_FORMAT} checkpoint ({found!r})", "nothing to upgrade")
+        raise InputError(path, f"not a {OLD_FORMAT} checkpoint ({found!r})", "nothing to upgrade")
     np_state, py_state = ckpt["rng"]["numpy"], ckpt["rng"]["python"]
     saved = (np.random.get_state(), random.getstate())
     np.random.set_state(np_state)
@@ -334,11 +330,11 @@ def main(argv=None) -> int:
                 try:
                     alpha = float(alpha)
                 except ValueError:
-                    raise GeoNetInputError(None, f"ALPHA {alpha!r} is not a number", "e.g. 0.85") from None
+                    raise InputError(None, f"ALPHA {alpha!r} is not a number", "e.g. 0.85") from None
                 interpolate_weights(base, tuned, alpha, dst)
             else:
                 combine_weights(*args.combine)
-        except GeoNetInputError as err:
+        except GeoNetError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
         print(f"wrote {dst} ({Path(dst).stat().st_size / 2**20:.1f} MiB)")
@@ -348,7 +344,7 @@ def main(argv=None) -> int:
         try:
             upgrade(path)
             print(f"upgraded {path}")
-        except GeoNetInputError as err:
+        except GeoNetError as err:
             print(f"error: {err}", file=sys.stderr)
             failed += 1
     if failed == len(args.upgrade):

@@ -16,7 +16,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import read_cam_txt, read_depth_kitti, read_flow_kitti, read_image
 from geonet_infer.metrics import resize_flow_gt
 from geonet_infer.preprocess import snippet_indices
@@ -121,14 +121,14 @@ def augment(
 
 # --------------------------------------------------------------------------- reading
 def read_list(path: Path) -> list[str]:
-    """Lines "<folder> <frame>" -> names; GeoNetInputError on a malformed line."""
+    """Lines "<folder> <frame>" -> names; GeoNetError on a malformed line."""
     names = []
     for lineno, line in enumerate(path.read_text().splitlines(), 1):
         parts = line.split()
         if not parts:
             continue
         if len(parts) != 2:
-            raise GeoNetInputError(path, f"line {lineno} is not '<folder> <frame>': {line.strip()[:60]!r}", PREPARE_CMD)
+            raise InputError(path, f"line {lineno} is not '<folder> <frame>': {line.strip()[:60]!r}", PREPARE_CMD)
         names.append(f"{parts[0]} {parts[1]}")
     return names
 
@@ -137,8 +137,8 @@ def read_cam(path: Path) -> np.ndarray:
     """<frame>_cam.txt "fx,0.,cx,0.,fy,cy,0.,0.,1." -> (3, 3) float64 (:func:`geonet_infer.io.read_cam_txt`)."""
     try:
         return read_cam_txt(path)
-    except GeoNetInputError as err:
-        raise GeoNetInputError(err.path, err.problem, PREPARE_CMD) from None
+    except GeoNetError as err:
+        raise InputError(err.path, err.problem, PREPARE_CMD) from None
 
 
 class SequenceDataset(Dataset):
@@ -176,9 +176,9 @@ class SequenceDataset(Dataset):
         load_flow: bool = False,
     ):
         if split not in SPLITS:
-            raise GeoNetInputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
+            raise InputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
         if seq_length < 3 or seq_length % 2 == 0:
-            raise GeoNetInputError(None, f"seq_length must be odd and >= 3, got {seq_length}", "use 3 or 5")
+            raise InputError(None, f"seq_length must be odd and >= 3, got {seq_length}", "use 3 or 5")
         self.root = Path(root)
         self.split = split
         self.seq_length = seq_length
@@ -191,21 +191,21 @@ class SequenceDataset(Dataset):
         self.epoch = 0
 
         if not self.root.is_dir():
-            raise GeoNetInputError(self.root, "dataset folder not found", PREPARE_CMD)
+            raise InputError(self.root, "dataset folder not found", PREPARE_CMD)
         list_path = self.root / f"{split}.txt"
         if not list_path.is_file():
             hint = ("only --kind synth writes held-out samples; " + PREPARE_CMD) if split == "heldout" else PREPARE_CMD
-            raise GeoNetInputError(list_path, f"no {split}.txt in the dataset folder", hint)
+            raise InputError(list_path, f"no {split}.txt in the dataset folder", hint)
         self.names = read_list(list_path)
         if not self.names:
-            raise GeoNetInputError(
+            raise InputError(
                 list_path, f"the {split} split is empty", "prepare more data or a larger --val-fraction; " + PREPARE_CMD
             )
         heldout_path = self.root / "heldout.txt"
         if split != "heldout" and heldout_path.is_file():
             leaked = set(self.names) & set(read_list(heldout_path))
             if leaked:
-                raise GeoNetInputError(
+                raise InputError(
                     list_path,
                     f"{len(leaked)} samples are also in heldout.txt "
                     f"(e.g. {sorted(leaked)[0]!r}); held-out data must never be trained on",
@@ -223,7 +223,7 @@ class SequenceDataset(Dataset):
         """-> frames (seq_length, H, W, 3) float32 in [0, 1], K (3, 3) float64 at H x W."""
         folder, frame = name.split(" ")
         jpg = self.root / folder / f"{frame}.jpg"
-        img = read_image(jpg)  # raises GeoNetInputError naming the file if missing/corrupt
+        img = read_image(jpg)  # raises GeoNetError naming the file if missing/corrupt
         h, w = self.height, self.width
         if img.shape[:2] != (h, self.seq_length * w):
             held = (
@@ -231,7 +231,7 @@ class SequenceDataset(Dataset):
                 if img.shape[1] % w == 0 and img.shape[0] == h
                 else ""
             )
-            raise GeoNetInputError(
+            raise InputError(
                 jpg,
                 f"snippet is {img.shape[1]}x{img.shape[0]} but seq_length={self.seq_length} at "
                 f"{h}x{w} needs {self.seq_length * w}x{h}",
@@ -251,7 +251,7 @@ class SequenceDataset(Dataset):
             return None
         truth = read(path)
         if truth.shape[:2] != (self.height, self.width):
-            raise GeoNetInputError(
+            raise InputError(
                 path, f"{kind} is {truth.shape[1]}x{truth.shape[0]}, expected {self.width}x{self.height}", PREPARE_CMD
             )
         return truth.astype(np.float32)

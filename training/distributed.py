@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from training.networks import BatchNormNoScale
 
 DEVICE_HINT = "use --device auto, cpu, cuda or cuda:N"
@@ -37,18 +37,18 @@ class Runtime:
         return self.rank == 0
 
 
-def _no_cuda() -> GeoNetInputError:
+def _no_cuda() -> GeoNetError:
     why = "this torch build has no CUDA" if torch.version.cuda is None else "no CUDA device is visible"
-    return GeoNetInputError(None, f"--device cuda: {why}", "use --device cpu (or auto)")
+    return InputError(None, f"--device cuda: {why}", "use --device cpu (or auto)")
 
 
 def resolve_device(spec: str, local_rank: int | None = None) -> torch.device:
-    """``auto|cpu|cuda|cuda:N`` -> a torch.device that exists here; GeoNetInputError otherwise.
+    """``auto|cpu|cuda|cuda:N`` -> a torch.device that exists here; GeoNetError otherwise.
 
     Under torchrun (``local_rank`` given) ``cuda``/``auto`` mean this rank's GPU.
     """
     if spec not in ("auto", "cpu", "cuda") and not re.fullmatch(r"cuda:\d+", spec):
-        raise GeoNetInputError(None, f"--device {spec!r} is not a device", DEVICE_HINT)
+        raise InputError(None, f"--device {spec!r} is not a device", DEVICE_HINT)
     if spec == "cpu" or (spec == "auto" and not torch.cuda.is_available()):
         return torch.device("cpu")
     if not torch.cuda.is_available():
@@ -56,13 +56,11 @@ def resolve_device(spec: str, local_rank: int | None = None) -> torch.device:
     if spec.startswith("cuda:"):
         index = int(spec.split(":")[1])
         if local_rank is not None:
-            raise GeoNetInputError(
+            raise InputError(
                 None, f"--device {spec} under torchrun", "pass --device cuda: each rank takes the GPU of its LOCAL_RANK"
             )
         if index >= torch.cuda.device_count():
-            raise GeoNetInputError(
-                None, f"--device {spec}: only {torch.cuda.device_count()} CUDA device(s)", DEVICE_HINT
-            )
+            raise InputError(None, f"--device {spec}: only {torch.cuda.device_count()} CUDA device(s)", DEVICE_HINT)
         return torch.device(spec)
     return torch.device("cuda", local_rank or 0)
 

@@ -25,7 +25,7 @@ import torch
 
 from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.datasets import LAYOUTS, depth_dataset, flow_dataset, load_dataset, read_heldout
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.preprocess import InputSpec, disparity_to_input, flow_to_input, graph_intrinsics
 from training.checkpoint import load_weights, model_from_checkpoint
 from training.geometry import pose_vec_to_mat
@@ -40,7 +40,7 @@ def heldout_sequences(prepared_dir: str | Path) -> list[str]:
     """Sequence folders listed in ``<prepared_dir>/heldout.txt`` (never trained on)."""
     path = Path(prepared_dir) / "heldout.txt"
     if not path.is_file():
-        raise GeoNetInputError(
+        raise InputError(
             path, "no held-out list", "prepare synthetic data with `python -m training.prepare --kind synth`"
         )
     return read_heldout(path)
@@ -216,7 +216,7 @@ def main(argv=None) -> int:
     try:
         data = args.data or args.synth_dir
         if data is None:
-            raise GeoNetInputError(None, "no data", "pass --data DIR (or --synth-dir with --prepared-dir)")
+            raise InputError(None, "no data", "pass --data DIR (or --synth-dir with --prepared-dir)")
         sequences = (
             read_heldout(args.heldout)
             if args.heldout
@@ -239,7 +239,7 @@ def main(argv=None) -> int:
                 else {}
             )
             results.append((row, evaluation.EVALUATORS[task](fn, dataset, method=row, **kwargs)))
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for _, result in results:

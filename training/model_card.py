@@ -57,7 +57,7 @@ import numpy as np
 
 from geonet_infer import evaluation, metrics
 from geonet_infer.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest
 from geonet_infer.predictor import Predictor
@@ -135,7 +135,7 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 def _require_dir(path: str | Path, what: str, hint: str = "") -> Path:
     path = Path(path)
     if not path.is_dir():
-        raise GeoNetInputError(path, f"{what} not found", hint)
+        raise InputError(path, f"{what} not found", hint)
     return path
 
 
@@ -143,7 +143,7 @@ def _checked(result: dict, what: str, allowed: Sequence[str] = ()) -> dict:
     """``result`` if no item outside ``allowed`` has an error (a NaN prediction would make the card's means NaN)."""
     for error in result["errors"]:
         if error["item"] not in allowed:
-            raise GeoNetInputError(error["item"], f"{what}: {error['problem']}", "the model produced NaN/inf")
+            raise InputError(error["item"], f"{what}: {error['problem']}", "the model produced NaN/inf")
     return result
 
 
@@ -372,7 +372,7 @@ def load_model_dir(path: str | Path, allow_random_init: bool) -> tuple[Path, Man
     model_dir = _require_dir(path, "model directory", "pass a directory written by `python -m export`")
     manifest = load_manifest(model_dir)
     if manifest.random_init and not allow_random_init:
-        raise GeoNetInputError(
+        raise InputError(
             model_dir / MANIFEST_NAME,
             "this model directory holds random-init (timing-only) graphs",
             "export a trained --checkpoint (--allow-random-init is for development)",
@@ -408,7 +408,7 @@ def evaluate_model(
 
 
 def run(args, command: str, progress: Progress) -> dict:
-    """Measure everything; returns the JSON-able result (raises GeoNetInputError on bad input)."""
+    """Measure everything; returns the JSON-able result (raises GeoNetError on bad input)."""
     model_dir, manifest = load_model_dir(args.model, args.allow_random_init)
     before = load_model_dir(args.before, args.allow_random_init) if args.before else None
     synth_dir = _require_dir(args.synth_dir, "synthetic data folder", "generate it with `python -m training.synth`")
@@ -424,7 +424,7 @@ def run(args, command: str, progress: Progress) -> dict:
         limit=args.kitti_frames,
     )
     if len(kitti_data.items) < args.kitti_frames:
-        raise GeoNetInputError(
+        raise InputError(
             args.kitti,
             f"only {len(kitti_data.items)} frames have ground truth, {args.kitti_frames} requested",
             "lower --kitti-frames",
@@ -1180,7 +1180,7 @@ def _check_finite(obj, where: str = "") -> None:
         for i, value in enumerate(obj):
             _check_finite(value, f"{where}[{i}]")
     elif isinstance(obj, float) and not math.isfinite(obj):
-        raise GeoNetInputError(None, f"non-finite result at {where}", "the model produced NaN/inf")
+        raise InputError(None, f"non-finite result at {where}", "the model produced NaN/inf")
 
 
 def main(argv=None) -> int:
@@ -1190,26 +1190,26 @@ def main(argv=None) -> int:
     progress = (lambda msg: None) if args.quiet else (lambda msg: print(f"[model_card] {msg}", file=sys.stderr))
     try:
         if args.stride < 1:
-            raise GeoNetInputError(None, f"--stride must be >= 1, got {args.stride}")
+            raise InputError(None, f"--stride must be >= 1, got {args.stride}")
         if args.kitti_frames < 1:
-            raise GeoNetInputError(None, f"--kitti-frames must be >= 1, got {args.kitti_frames}")
+            raise InputError(None, f"--kitti-frames must be >= 1, got {args.kitti_frames}")
         if args.threads is not None and args.threads < 1:
-            raise GeoNetInputError(None, f"--threads must be >= 1, got {args.threads}")
+            raise InputError(None, f"--threads must be >= 1, got {args.threads}")
         for out in (args.out, args.json):
             if out and not Path(out).parent.is_dir():
-                raise GeoNetInputError(Path(out).parent, "output folder not found", "create it first")
+                raise InputError(Path(out).parent, "output folder not found", "create it first")
         if args.from_json:
             result = recorded_result(args.from_json, args.model)
         else:
             for flag in ("synth_dir", "prepared_dir", "kitti"):
                 if getattr(args, flag) is None:
-                    raise GeoNetInputError(None, f"--{flag.replace('_', '-')} is required", "or pass --from-json")
+                    raise InputError(None, f"--{flag.replace('_', '-')} is required", "or pass --from-json")
             result = run(args, command, progress)
         # the manifests' own numbers (model blocks) are reported, not measured
         _check_finite({k: v for k, v in result.items() if k not in ("model", "before")})
         if result["before"]:
             _check_finite({k: v for k, v in result["before"].items() if k != "model"}, "before")
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     if result["model"]["random_init"]:
@@ -1232,11 +1232,11 @@ def recorded_result(path: str | Path, model: str | Path) -> dict:
         result = json.loads(Path(path).read_text())
         recorded = {(f["precision"], f["graph"]): f["sha256"] for f in result["model"]["files"]}
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise GeoNetInputError(path, f"not a model card's --json ({exc})", "pass the file a --json run wrote") from None
+        raise InputError(path, f"not a model card's --json ({exc})", "pass the file a --json run wrote") from None
     manifest = load_manifest(model)
     current = {(p, n): manifest.graph(n, p).sha256 for p in manifest.precisions for n in manifest.graph_names(p)}
     if recorded != current:
-        raise GeoNetInputError(
+        raise InputError(
             path, f"its numbers were measured on other graph files than those of {model}", "measure this model"
         )
     return result

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import ConcatDataset
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from training.checkpoint import load_weights, model_from_checkpoint
 from training.config import TrainConfig
 from training.data import SequenceDataset, make_loader
@@ -45,9 +45,9 @@ def photometric_terms(
     cfg = TrainConfig.from_dict(state["config"])
     stage = stage or cfg.stage
     if stage not in STAGES:
-        raise GeoNetInputError(None, f"unknown stage {stage!r}", f"choose one of {', '.join(STAGES)}")
+        raise InputError(None, f"unknown stage {stage!r}", f"choose one of {', '.join(STAGES)}")
     if stage == "flow" and cfg.stage != "flow":
-        raise GeoNetInputError(checkpoint, "has no ResFlowNet (stage rigid)", "score it with --stage rigid")
+        raise InputError(checkpoint, "has no ResFlowNet (stage rigid)", "score it with --stage rigid")
     cfg = replace(cfg, weights=LossWeights(), mask_out_of_view=False, automask=False)
     model = model_from_checkpoint({**state, "config": cfg.to_dict()})
     data = ConcatDataset(
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     splits = tuple(s for s in args.splits.split(",") if s)
     try:
         rows = [(c, photometric_terms(c, args.data_dir, splits, args.stage)) for c in args.checkpoint]
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         print(f"python -m training.photometric: error: {err}", file=sys.stderr)
         return 2
     names = list(rows[0][1]["terms"])

@@ -35,7 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import (
     IMAGE_SUFFIXES,
     VIDEO_SUFFIXES,
@@ -179,7 +179,7 @@ class Skips:
 
     def add(self, where, reason: str, hint: str = "") -> None:
         if self.strict:
-            raise GeoNetInputError(where, reason, hint or "fix or remove the file, or run without --strict to skip it")
+            raise InputError(where, reason, hint or "fix or remove the file, or run without --strict to skip it")
         self.items.append(Skip(Path(where), reason))
         log.warning("skip %s: %s", where, reason)
 
@@ -195,7 +195,7 @@ def list_frames(folder: Path, skips: Skips) -> list[Path]:
     if it holds none."""
     try:
         return list_images(folder)
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         skips.add(err.path or folder, err.problem, err.hint)
         return []
 
@@ -219,7 +219,7 @@ def read_scene_list(name: str) -> set[str]:
     """Scene names from training/kitti_lists/<name> (blank lines ignored)."""
     path = LISTS_DIR / name
     if not path.is_file():
-        raise GeoNetInputError(path, "scene list missing from the repository", "restore training/kitti_lists/")
+        raise InputError(path, "scene list missing from the repository", "restore training/kitti_lists/")
     return {line.strip() for line in path.read_text().splitlines() if line.strip()}
 
 
@@ -227,7 +227,7 @@ def read_static_frames() -> set[tuple[str, str]]:
     """{(drive folder, frame stem)} from static_frames.txt ("date drive frame" lines)."""
     path = LISTS_DIR / "static_frames.txt"
     if not path.is_file():
-        raise GeoNetInputError(path, "static frame list missing from the repository", "restore training/kitti_lists/")
+        raise InputError(path, "static frame list missing from the repository", "restore training/kitti_lists/")
     out = set()
     for line in path.read_text().splitlines():
         parts = line.split()
@@ -270,7 +270,7 @@ def collect_kitti_raw(src: Path, split: str, skips: Skips) -> list[Sequence]:
     """One Sequence per (drive, camera 02/03); K = P_rect_0X[:3, :3] of calib_cam_to_cam.txt."""
     drives = _raw_drives(src)
     if not drives:
-        raise GeoNetInputError(
+        raise InputError(
             src,
             "no KITTI raw drive found (no image_02/ or image_03/ folder here or 1-2 levels down)",
             "pass a KITTI raw root (<date>/<drive>/image_02/data/*.png) or one drive folder",
@@ -302,7 +302,7 @@ def collect_kitti_raw(src: Path, split: str, skips: Skips) -> list[Sequence]:
             image_dir = cam_dir / "data" if (cam_dir / "data").is_dir() else cam_dir
             try:
                 P = require_key(calib, f"P_rect_{cam}", calib_path)
-            except GeoNetInputError as err:
+            except GeoNetError as err:
                 skips.add(calib_path, err.problem, f"camera {cam} of {drive.name} needs it")
                 continue
             seqs.append(
@@ -340,7 +340,7 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
             if d.is_dir() and not d.name.startswith(".") and _has_any(d, ("image_2", "image_0"))
         ]
     if not seq_dirs:
-        raise GeoNetInputError(
+        raise InputError(
             src,
             "no KITTI odometry sequence found (expected sequences/XX/image_2 or image_0)",
             "pass the odometry root that holds sequences/",
@@ -363,7 +363,7 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
         calib_path = d / "calib.txt"
         try:
             K = read_calib_K(calib_path, key)
-        except GeoNetInputError as err:
+        except GeoNetError as err:
             skips.add(err.path or calib_path, err.problem, f"sequence {d.name} needs {key}")
             continue
         seqs.append(Sequence(folder=d.name, image_dir=image_dir, frames=list_frames(image_dir, skips), K=K))
@@ -387,13 +387,13 @@ def collect_synth(
             d for d in sorted(src.iterdir()) if d.is_dir() and not d.name.startswith(".") and (d / "image").is_dir()
         ]
     if not seq_dirs:
-        raise GeoNetInputError(
+        raise InputError(
             src,
             "no synthetic sequence found (expected <seq>/image/*.png and <seq>/calib.txt)",
             "pass the output root of the synthetic generator (training.synth)",
         )
     if heldout >= len(seq_dirs):
-        raise GeoNetInputError(
+        raise InputError(
             src,
             f"{len(seq_dirs)} sequences but --heldout {heldout}: nothing left to train on",
             "generate more sequences or lower --heldout",
@@ -403,7 +403,7 @@ def collect_synth(
     for d in seq_dirs:
         try:
             K = read_calib_K(d / "calib.txt", "K")
-        except GeoNetInputError as err:
+        except GeoNetError as err:
             skips.add(err.path or d, err.problem, err.hint)
             continue
         seqs.append(
@@ -430,7 +430,7 @@ def _video_inputs(src: Path, kind: str) -> list[Path]:
         return [src]
     videos = sorted(p for p in src.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if not videos:
-        raise GeoNetInputError(src, f"no video ({', '.join(VIDEO_SUFFIXES)}) in this folder", PREPARE_HINT)
+        raise InputError(src, f"no video ({', '.join(VIDEO_SUFFIXES)}) in this folder", PREPARE_HINT)
     return videos
 
 
@@ -441,7 +441,7 @@ def crop_intrinsics(K: np.ndarray, crop: tuple[int, int, int, int] | None, frame
         return K
     x, y, w, h = crop
     if x < 0 or y < 0 or w < 8 or h < 8 or x + w > frame_size[0] or y + h > frame_size[1]:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"--crop {x},{y},{w},{h} does not fit the {frame_size[0]}x{frame_size[1]} frames",
             "give X,Y,W,H inside the frame (after undistortion, same size)",
@@ -458,7 +458,7 @@ def collect_video(cfg: PrepareConfig, skips: Skips) -> list[Sequence]:
     frames) becomes an ordinary sequence with K at H x W, so snippets are cut as for KITTI.
     """
     if cfg.calib is None:
-        raise GeoNetInputError(
+        raise InputError(
             None, f"--kind {cfg.kind} needs --calib FILE", "a calibration with K (and distortion, if the lens has any)"
         )
     camera = read_camera(cfg.calib)
@@ -587,11 +587,11 @@ def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
 
 def _read_truth(path: Path, kind: str, read, h0: int, w0: int):
     """``read(path)``: an array, or read_flow_kitti's (flow, valid), whose first array must be
-    h0 x w0 like the image; GeoNetInputError naming the file otherwise."""
+    h0 x w0 like the image; GeoNetError naming the file otherwise."""
     truth = read(path)
     shape = (truth[0] if isinstance(truth, tuple) else truth).shape
     if shape[:2] != (h0, w0):
-        raise GeoNetInputError(path, f"{kind} is {shape[1]}x{shape[0]}, image {w0}x{h0}")
+        raise InputError(path, f"{kind} is {shape[1]}x{shape[0]}, image {w0}x{h0}")
     return truth
 
 
@@ -611,7 +611,7 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
     for p in snip.paths:
         try:
             frames.append(read_image(p))
-        except GeoNetInputError as err:
+        except GeoNetError as err:
             return "skipped", p, f"{err.problem} (needed by sample '{snip.name}')"
     h0, w0 = frames[len(frames) // 2].shape[:2]
     for p, f in zip(snip.paths, frames):
@@ -636,7 +636,7 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
         if snip.flow_path is not None:
             flow, valid = _read_truth(snip.flow_path, "flow", read_flow_kitti, h0, w0)
             flow, valid = resize_flow_gt(flow, valid, (height, width))
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         return "skipped", err.path, err.problem
     with atomic_write(paths["jpg"]) as tmp:
         tmp.write_bytes(jpg.tobytes())
@@ -678,42 +678,40 @@ def write_list(path: Path, names: list[str]) -> None:
 def _check(cfg: PrepareConfig) -> tuple[int, str]:
     """Validate ``cfg``; returns (seq_length, split) with the per-kind defaults filled in."""
     if cfg.kind not in KINDS:
-        raise GeoNetInputError(None, f"unknown --kind {cfg.kind!r}", f"choose one of {', '.join(KINDS)}")
+        raise InputError(None, f"unknown --kind {cfg.kind!r}", f"choose one of {', '.join(KINDS)}")
     if cfg.kind == "video" and Path(cfg.src).is_file():
         pass
     elif not Path(cfg.src).is_dir():
-        raise GeoNetInputError(
+        raise InputError(
             cfg.src,
             "source folder not found" if cfg.kind != "video" else "video file or folder not found",
             PREPARE_HINT,
         )
     video_only = {"calib": cfg.calib is not None, "crop": cfg.crop is not None}
     if cfg.kind not in ("video", "frames") and any(video_only.values()):
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"--{next(k for k, v in video_only.items() if v)} only applies to --kind video|frames",
             "the KITTI and synthetic layouts carry their calibration",
         )
     seq_length = cfg.seq_length or (5 if cfg.kind == "kitti_odom" else 3)
     if seq_length < 3 or seq_length % 2 == 0:
-        raise GeoNetInputError(
-            None, f"--seq-length must be odd and >= 3, got {seq_length}", "use 3 (depth/flow) or 5 (pose)"
-        )
+        raise InputError(None, f"--seq-length must be odd and >= 3, got {seq_length}", "use 3 (depth/flow) or 5 (pose)")
     split = cfg.split or DEFAULT_SPLIT[cfg.kind]
     if split not in VALID_SPLITS[cfg.kind]:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"--split {split} does not apply to --kind {cfg.kind}",
             f"choose one of {', '.join(VALID_SPLITS[cfg.kind])}",
         )
     if cfg.remove_static and cfg.kind != "kitti_raw":
-        raise GeoNetInputError(None, "--remove-static only applies to --kind kitti_raw", "drop the flag")
+        raise InputError(None, "--remove-static only applies to --kind kitti_raw", "drop the flag")
     if cfg.train_depth and cfg.kind != "synth":
-        raise GeoNetInputError(None, "--train-depth only applies to --kind synth", "real footage has no dense depth")
+        raise InputError(None, "--train-depth only applies to --kind synth", "real footage has no dense depth")
     if cfg.train_flow and cfg.kind != "synth":
-        raise GeoNetInputError(None, "--train-flow only applies to --kind synth", "real footage has no dense flow")
+        raise InputError(None, "--train-flow only applies to --kind synth", "real footage has no dense flow")
     if cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"need --height/--width >= 8 and --workers >= 1 (got {cfg.height}, {cfg.width}, {cfg.workers})",
             PREPARE_HINT,
@@ -765,7 +763,7 @@ def write_snippets(jobs: list[tuple], workers: int, desc: str):
 def prepare(cfg: PrepareConfig) -> PrepareResult:
     """Prepare one dataset; see the module docstring for the output. Returns what was done.
 
-    Raises GeoNetInputError on a bad config, a missing source or when no sample could be made;
+    Raises GeoNetError on a bad config, a missing source or when no sample could be made;
     inputs that are skipped (``cfg.strict`` off) are listed in the result.
     """
     seq_length, split = _check(cfg)
@@ -776,7 +774,7 @@ def prepare(cfg: PrepareConfig) -> PrepareResult:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise GeoNetInputError(
+        raise InputError(
             out, f"cannot create the output folder ({exc.strerror or exc})", "choose a writable --out"
         ) from None
     done: list[Snippet] = []
@@ -790,7 +788,7 @@ def prepare(cfg: PrepareConfig) -> PrepareResult:
         result.existing += status == "exists"
     result.skipped = skips.items
     if not done:
-        raise GeoNetInputError(
+        raise InputError(
             src,
             f"no sample could be made ({len(skips.items)} skipped)",
             "; ".join(str(s) for s in skips.items[:5]) or PREPARE_HINT,
@@ -937,7 +935,7 @@ def main(argv=None) -> int:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
         result = prepare(PrepareConfig(**vars(args)))
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(result.summary())

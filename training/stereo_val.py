@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import read_calib_file, read_image, require_key, write_depth_kitti, write_image
 
 MAX_DISPARITY = 128  # px at full KITTI resolution: depths down to fx * 0.54 / 128 ≈ 3 m
@@ -66,10 +66,10 @@ def focal_and_baseline(calib_path: Path, left_key: str, right_key: str) -> tuple
     P_right = require_key(calib, right_key, calib_path).reshape(3, 4)
     fx = float(P_left[0, 0])
     if not np.isclose(P_right[0, 0], fx) or not np.isclose(P_right[0, 2], P_left[0, 2]):
-        raise GeoNetInputError(calib_path, f"{left_key} and {right_key} are not a rectified pair", "check calib.txt")
+        raise InputError(calib_path, f"{left_key} and {right_key} are not a rectified pair", "check calib.txt")
     baseline = (P_left[0, 3] - P_right[0, 3]) / fx
     if baseline <= 0:
-        raise GeoNetInputError(calib_path, f"{right_key} is not right of {left_key}", "swap the keys")
+        raise InputError(calib_path, f"{right_key} is not right of {left_key}", "swap the keys")
     return fx, float(baseline)
 
 
@@ -123,7 +123,7 @@ def build(realdata: Path, out: Path) -> list[dict]:
         seq_dir = realdata / seq
         left, right = read_image(seq_dir / pair.left), read_image(seq_dir / pair.right)
         if left.shape != right.shape:
-            raise GeoNetInputError(seq_dir / pair.right, f"size {right.shape} differs from the left image", "")
+            raise InputError(seq_dir / pair.right, f"size {right.shape} differs from the left image", "")
         fx, baseline = focal_and_baseline(seq_dir / "calib.txt", pair.left_key, pair.right_key)
         depth = stereo_depth(left, right, fx, baseline)
         write_image(image_dir / f"{pair.name}.png", left)
@@ -157,7 +157,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     try:
         rows = build(args.realdata, args.out)
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for r in rows:

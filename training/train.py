@@ -27,7 +27,7 @@ from torch.utils.data import ConcatDataset
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from training import distributed
 from training.checkpoint import build_model, load_checkpoint, load_weights, save_checkpoint, set_rng_state
 from training.config import TrainConfig, config_from_args
@@ -93,11 +93,11 @@ def autocast_nets(model: GeoNet, device_type: str, dtype: torch.dtype) -> None:
 
 def check_options(cfg: TrainConfig, device: torch.device) -> None:
     if cfg.amp == "fp16" and device.type != "cuda":
-        raise GeoNetInputError(
+        raise InputError(
             None, f"--amp fp16 needs a CUDA device, this run is on {device}", "use --amp bf16 or --amp off on the CPU"
         )
     if cfg.stage == "flow" and not (cfg.init_checkpoint or cfg.resume):
-        raise GeoNetInputError(None, "stage flow needs --init-checkpoint", "pass the last.pt of a stage rigid run")
+        raise InputError(None, "stage flow needs --init-checkpoint", "pass the last.pt of a stage rigid run")
 
 
 class TrainSet(ConcatDataset):
@@ -167,7 +167,7 @@ def init_from(model: GeoNet, cfg: TrainConfig) -> None:
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("flow_net.")]
     if missing or unexpected:
-        raise GeoNetInputError(
+        raise InputError(
             cfg.init_checkpoint,
             f"weights do not fit this model (missing {missing[:3]}, unexpected {unexpected[:3]})",
             "use weights of the same --arch and --seq-length",
@@ -218,7 +218,7 @@ def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
     )
     if len(sampler) < cfg.batch_size:
         per = f" per rank ({rt.world_size} ranks)" if rt.distributed else ""
-        raise GeoNetInputError(
+        raise InputError(
             Path(cfg.data_dir) / "train.txt",
             f"{len(train_set)} samples, fewer than one batch of {cfg.batch_size}{per}",
             "prepare more data or lower --batch-size",
@@ -355,7 +355,7 @@ def main(argv=None) -> int:
     cfg = config_from_args(argv)
     try:
         result = train(cfg)
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     if distributed.is_main_process():

@@ -14,7 +14,7 @@ import sys
 
 from geonet_infer import __version__
 from geonet_infer.cli import batch, bench, demo, eval, info, predict
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 
 SUBCOMMANDS = (predict, batch, demo, info, bench, eval)
 EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, EXIT_OS_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return args.run(args)
-    except GeoNetInputError as exc:
+    except GeoNetError as exc:
         print(f"geonet-infer {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except BrokenPipeError:  # `geonet-infer info | head`: the reader left, nothing to report

@@ -19,7 +19,7 @@ from geonet_infer.batch import (
     run_batch,
 )
 from geonet_infer.cli.common import add_camera_args, add_model_args, camera_from_args, positive_int
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.pipeline import SUMMARY_NAME, parse_tasks
@@ -152,7 +152,7 @@ def run_command(args: argparse.Namespace) -> int:
         (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
     )
     if args.ray_address and args.engine != "ray":
-        raise GeoNetInputError(None, "--ray-address needs --engine ray")
+        raise InputError(None, "--ray-address needs --engine ray")
     camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own
     if "flow" in tasks and camera is None:
         from geonet_infer.batch import expand_inputs
@@ -160,7 +160,7 @@ def run_command(args: argparse.Namespace) -> int:
         lacking = [p for p in expand_inputs(args.inputs) if needs_own_calib(p)]
         if lacking:
             more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
-            raise GeoNetInputError(
+            raise InputError(
                 lacking[0],
                 f"flow needs camera intrinsics and this input has none{more}",
                 "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",

@@ -49,7 +49,7 @@ from geonet_infer.cli.common import add_model_args
 from geonet_infer.cli.info import environment, model_summary
 from geonet_infer.conventions import scale_intrinsics
 from geonet_infer.engines import BACKENDS, openvino_available
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.images import list_images, read_image
@@ -171,7 +171,7 @@ def _parse_list(text: str, allowed: tuple, what: str) -> list[str]:
     items = [t.strip() for t in str(text).split(",") if t.strip()]
     bad = [t for t in items if t not in allowed]
     if bad or not items:
-        raise GeoNetInputError(
+        raise InputError(
             None, f"unknown {what} {', '.join(bad) if bad else repr(text)}", f"choose from {', '.join(allowed)}"
         )
     return list(dict.fromkeys(items))
@@ -185,7 +185,7 @@ def _parse_batches(text: str) -> list[int]:
         except ValueError:
             value = 0
         if value < 1:
-            raise GeoNetInputError(None, f"--batch {text!r}: batch sizes must be positive integers", "e.g. --batch 1,4")
+            raise InputError(None, f"--batch {text!r}: batch sizes must be positive integers", "e.g. --batch 1,4")
         out.append(value)
     return list(dict.fromkeys(out))
 
@@ -196,28 +196,26 @@ def _parse_size(text: str) -> tuple[int, int] | None:
     try:
         w, h = (int(v) for v in str(text).lower().split("x"))
     except ValueError:
-        raise GeoNetInputError(
-            None, f"--input-size {text!r} is not WxH", "e.g. --input-size 1242x375, or 'graph'"
-        ) from None
+        raise InputError(None, f"--input-size {text!r} is not WxH", "e.g. --input-size 1242x375, or 'graph'") from None
     if w < 8 or h < 8:
-        raise GeoNetInputError(None, f"--input-size {text!r} is too small", "frames need at least 8x8 pixels")
+        raise InputError(None, f"--input-size {text!r} is too small", "frames need at least 8x8 pixels")
     return w, h
 
 
 def _check_args(args) -> dict:
     if args.iters < 1:
-        raise GeoNetInputError(None, f"--iters must be >= 1, got {args.iters}")
+        raise InputError(None, f"--iters must be >= 1, got {args.iters}")
     if args.warmup < 0:
-        raise GeoNetInputError(None, f"--warmup must be >= 0, got {args.warmup}")
+        raise InputError(None, f"--warmup must be >= 0, got {args.warmup}")
     if args.block < 1:
-        raise GeoNetInputError(None, f"--block must be >= 1, got {args.block}")
+        raise InputError(None, f"--block must be >= 1, got {args.block}")
     if args.rewarm_ms < 0:
-        raise GeoNetInputError(None, f"--rewarm-ms must be >= 0, got {args.rewarm_ms}")
+        raise InputError(None, f"--rewarm-ms must be >= 0, got {args.rewarm_ms}")
     if args.seq_frames < 2:
-        raise GeoNetInputError(None, f"--seq-frames must be >= 2, got {args.seq_frames}", "a sequence needs a pair")
+        raise InputError(None, f"--seq-frames must be >= 2, got {args.seq_frames}", "a sequence needs a pair")
     backends = _parse_list(args.backend, BACKENDS, "backend")
     if "openvino" in backends and not openvino_available():
-        raise GeoNetInputError(
+        raise InputError(
             None,
             "--backend openvino needs the OpenVINO runtime, which is not installed",
             "pip install 'geonet-infer[openvino]'",
@@ -231,7 +229,7 @@ def _check_args(args) -> dict:
         precisions = _parse_list(args.precision, PRECISIONS, "precision")
         for p in precisions:
             if p not in manifest.graphs:
-                raise GeoNetInputError(
+                raise InputError(
                     where,
                     f"no {p} graphs in this model directory",
                     f"precisions present: {', '.join(manifest.graphs)}; export with --precision fp32,int8",
@@ -251,7 +249,7 @@ def _check_args(args) -> dict:
                     if "resflownet" in missing
                     else f"graphs present: {', '.join(manifest.graphs[p])}"
                 )
-                raise GeoNetInputError(
+                raise InputError(
                     where,
                     f"task {task} needs the {', '.join(missing)} graph, which the {p} set of this model lacks",
                     hint,

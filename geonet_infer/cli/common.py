@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer.engines import BACKENDS
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.manifest import PRECISIONS
 from geonet_infer.models import DEFAULT_MODEL
@@ -67,7 +67,7 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
     cpus = usable_cpus()
     if getattr(args, "threads", None) is not None and args.threads > cpus:
         # oversubscribed onnxruntime pools spin against each other: --threads 5000 ran 300 s for 6 frames
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"--threads {args.threads} is more than the {cpus} CPUs this process may use",
             f"pass --threads {cpus} or fewer (or leave it out: the default is {cpus})",
@@ -100,7 +100,7 @@ def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None
         try:
             fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
         except ValueError:
-            raise GeoNetInputError(
+            raise InputError(
                 None,
                 f"--intrinsics {args.intrinsics!r} is not four numbers",
                 "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9",

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import geonet_infer
 from geonet_infer.cli.common import add_model_args, load_predictor, sigterm_as_interrupt, stage_table
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.calib import read_camera
 from geonet_infer.io.frames import open_frames
 from geonet_infer.io.images import list_images, read_image, write_image
@@ -30,7 +30,7 @@ def find_real_drive() -> Path:
     for drive in candidates:
         if (drive / "image_02" / "data").is_dir():
             return drive
-    raise GeoNetInputError(
+    raise InputError(
         candidates[0],
         f"KITTI raw extract not found (nor at {candidates[1]})",
         "--real needs the shared reference data (../shared/realdata) beside the repository or the current folder",
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         # the first frames only: a demo, not the whole drive
         source.files, source.frame_names = source.files[:REAL_FRAMES], source.frame_names[:REAL_FRAMES]
         if source.default_calib is None:
-            raise GeoNetInputError(drive, "no calib_cam_to_cam.txt in the drive or above it", "restore ../shared")
+            raise InputError(drive, "no calib_cam_to_cam.txt in the drive or above it", "restore ../shared")
         frames, camera, height = source.files, read_camera(source.default_calib), REAL_PANEL_HEIGHT
     else:
         source, frames, camera, height = (

@@ -11,7 +11,7 @@ import numpy as np
 from geonet_infer import evaluation
 from geonet_infer.cli.common import add_model_args, load_predictor, positive_int
 from geonet_infer.datasets import LAYOUTS, TASKS, load_dataset, read_heldout
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 
 HELP = """\
 Score depth, optical flow or camera pose against ground truth, with the GeoNet paper's
@@ -150,9 +150,9 @@ def parse_intrinsics(text: str | None) -> np.ndarray | None:
     try:
         fx, fy, cx, cy = (float(v) for v in text.split(","))
     except ValueError:
-        raise GeoNetInputError(None, f"--intrinsics {text!r} is not four numbers", "write FX,FY,CX,CY") from None
+        raise InputError(None, f"--intrinsics {text!r} is not four numbers", "write FX,FY,CX,CY") from None
     if not (fx > 0 and fy > 0):
-        raise GeoNetInputError(None, f"--intrinsics {text!r}: focal lengths must be positive")
+        raise InputError(None, f"--intrinsics {text!r}: focal lengths must be positive")
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
 
 
@@ -167,15 +167,15 @@ def methods_for(task: str, text: str, args) -> list[tuple[str, object]]:
         else:
             out += list(evaluation.baseline_fns(task, method).items())
     if not out:
-        raise GeoNetInputError(None, "--method is empty", "e.g. --method model or --method dis")
+        raise InputError(None, "--method is empty", "e.g. --method model or --method dis")
     return out
 
 
 def run(args: argparse.Namespace) -> int:
     if args.max_depth <= evaluation.MIN_DEPTH:
-        raise GeoNetInputError(None, f"--max-depth {args.max_depth:g} must be above {evaluation.MIN_DEPTH:g} m")
+        raise InputError(None, f"--max-depth {args.max_depth:g} must be above {evaluation.MIN_DEPTH:g} m")
     if args.camera_height is not None and args.task != "depth":
-        raise GeoNetInputError(None, f"--camera-height is for depth, not {args.task}")
+        raise InputError(None, f"--camera-height is for depth, not {args.task}")
     if args.camera_height is not None:
         scaling = "camera_height"
     else:

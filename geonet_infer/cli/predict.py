@@ -15,7 +15,7 @@ from geonet_infer.cli.common import (
     sigterm_as_interrupt,
     stage_table,
 )
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.frames import open_frames
 from geonet_infer.pipeline import MAX_BATCH_SIZE, SUMMARY_NAME, TASKS, parse_tasks, predict_to_dir
 from geonet_infer.predictor import MAX_FRAMES_BEFORE_GROUND, describe_skipped
@@ -102,7 +102,7 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     tasks = None if args.tasks is None else parse_tasks(args.tasks)
     if args.batch_size > MAX_BATCH_SIZE:
-        raise GeoNetInputError(
+        raise InputError(
             None, f"--batch-size {args.batch_size} is over the limit of {MAX_BATCH_SIZE}", "4 to 16 is plenty on a CPU"
         )
     source = open_frames(args.input)

@@ -2,7 +2,7 @@
 
 numpy + OpenCV only. Every writer goes through :func:`atomic_write`, so a crash
 never leaves a half-written file where a reader would trust it. Every reader
-raises :class:`~geonet_infer.errors.GeoNetInputError` naming the file.
+raises :class:`~geonet_infer.errors.GeoNetError` naming the file.
 
 Modules: ``atomic`` (atomic writes, ``.npy``), ``images`` (RGB images, masks, image
 folders), ``flow`` (KITTI flow PNG, ``.flo``), ``depth`` (KITTI depth PNG), ``poses``

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from geonet_infer.conventions import scale_intrinsics
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 
 __all__ = [
@@ -132,7 +132,7 @@ class Camera:
         """Check the values; returns ``self``.
 
         Raises:
-            GeoNetInputError (naming ``path`` if given) if K is not finite, fx or fy is
+            GeoNetError (naming ``path`` if given) if K is not finite, fx or fy is
             not > 0, cx or cy is not finite, the last row of K is not (0, 0, 1), the
             distortion has non-finite values, a coefficient over :data:`MAX_DISTORTION` or a
             length OpenCV does not accept (4, 5, 8, 12, 14), or the size is not positive; with a
@@ -141,43 +141,41 @@ class Camera:
         K = self.K
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         if not np.isfinite(K).all():
-            raise GeoNetInputError(
+            raise InputError(
                 path,
                 f"intrinsics contain NaN or infinity (fx={fx}, fy={fy}, cx={cx}, cy={cy})",
                 "check the calibration values",
             )
         if not (fx > 0 and fy > 0):
-            raise GeoNetInputError(
+            raise InputError(
                 path, f"focal lengths must be positive, got fx={fx:g}, fy={fy:g}", "check the calibration values"
             )
         if not (np.isfinite(cx) and np.isfinite(cy)):
-            raise GeoNetInputError(
-                path, f"principal point is not finite (cx={cx}, cy={cy})", "check the calibration values"
-            )
+            raise InputError(path, f"principal point is not finite (cx={cx}, cy={cy})", "check the calibration values")
         if not np.allclose(K[2], (0.0, 0.0, 1.0), rtol=0, atol=1e-9) or abs(K[1, 0]) > 1e-9:
-            raise GeoNetInputError(
+            raise InputError(
                 path,
                 f"not a pinhole K: rows 2-3 are {K[1].tolist()} {K[2].tolist()}",
                 "expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]",
             )
         if self.dist is not None:
             if not np.isfinite(self.dist).all():
-                raise GeoNetInputError(path, "distortion coefficients are not finite", "check the calibration values")
+                raise InputError(path, "distortion coefficients are not finite", "check the calibration values")
             if np.abs(self.dist).max(initial=0.0) > MAX_DISTORTION:
-                raise GeoNetInputError(
+                raise InputError(
                     path,
                     f"distortion coefficients {self.dist.tolist()} exceed {MAX_DISTORTION:g} in magnitude",
                     "check the calibration values (OpenCV order k1 k2 p1 p2 [k3 ...])",
                 )
             if self.dist.size not in OPENCV_DIST_LENGTHS:
-                raise GeoNetInputError(
+                raise InputError(
                     path,
                     f"{self.dist.size} distortion coefficients",
                     "OpenCV takes k1 k2 p1 p2 [k3 [k4 k5 k6 ...]]: 4, 5, 8, 12 or 14 numbers",
                 )
         if self.size is not None:
             if self.size[0] <= 0 or self.size[1] <= 0:
-                raise GeoNetInputError(
+                raise InputError(
                     path,
                     f"image size must be positive, got {self.size[0]}x{self.size[1]}",
                     "check the calibration values",
@@ -189,14 +187,14 @@ class Camera:
         """Check K against the image size it is used at (this camera already scaled to it).
 
         Raises:
-            GeoNetInputError (naming ``path``) if fx / width or fy / height is outside
+            GeoNetError (naming ``path``) if fx / width or fy / height is outside
             :data:`FOCAL_RANGE`, or the principal point lies more than
             :data:`PRINCIPAL_POINT_MARGIN` of the image size outside the image.
         """
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
         low, high = FOCAL_RANGE
         if not (low * width <= fx <= high * width and low * height <= fy <= high * height):
-            raise GeoNetInputError(
+            raise InputError(
                 path,
                 f"focal lengths fx={fx:g}, fy={fy:g} do not fit {width}x{height} images "
                 f"(expected {low:g} to {high:g} times the width / height)",
@@ -204,7 +202,7 @@ class Camera:
             )
         margin = PRINCIPAL_POINT_MARGIN
         if not (-margin * width <= cx <= (1 + margin) * width and -margin * height <= cy <= (1 + margin) * height):
-            raise GeoNetInputError(
+            raise InputError(
                 path,
                 f"principal point cx={cx:g}, cy={cy:g} lies far outside the {width}x{height} image",
                 "check the calibration values and that they belong to these frames",
@@ -219,11 +217,11 @@ def read_calib_file(path) -> dict[str, np.ndarray | str]:
         {key: (n,) float64 array} for numeric values, {key: str} otherwise
         (e.g. ``calib_time``). Blank lines are skipped.
     Raises:
-        GeoNetInputError naming the file for a line without ``:``.
+        GeoNetError naming the file for a line without ``:``.
     """
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "calibration file not found", "check the path")
+        raise InputError(path, "calibration file not found", "check the path")
     out: dict[str, np.ndarray | str] = {}
     for lineno, line in enumerate(path.read_text().splitlines(), 1):
         if not line.strip():
@@ -231,7 +229,7 @@ def read_calib_file(path) -> dict[str, np.ndarray | str]:
         key, sep, value = line.partition(":")
         key = key.strip()
         if not sep or not key:
-            raise GeoNetInputError(
+            raise InputError(
                 path,
                 f"line {lineno} is not 'key: values' ({line.strip()[:60]!r})",
                 "KITTI calibration files have one 'key: v1 v2 ...' per line",
@@ -244,9 +242,9 @@ def read_calib_file(path) -> dict[str, np.ndarray | str]:
 
 
 def require_key(calib: dict, key: str, path) -> np.ndarray:
-    """``calib[key]`` or GeoNetInputError naming the file and the missing key."""
+    """``calib[key]`` or GeoNetError naming the file and the missing key."""
     if key not in calib:
-        raise GeoNetInputError(
+        raise InputError(
             path, f"missing calibration key '{key}'", f"keys present: {', '.join(sorted(calib)) or 'none'}"
         )
     return calib[key]
@@ -268,9 +266,7 @@ def read_calib_K(path, key: str = "K") -> np.ndarray:
     calib = read_calib_file(path)
     v = require_key(calib, key, path)
     if isinstance(v, str) or v.size not in (9, 12):
-        raise GeoNetInputError(
-            path, f"'{key}' must hold 9 (3x3) or 12 (3x4) numbers", "e.g. 'K: fx 0 cx 0 fy cy 0 0 1'"
-        )
+        raise InputError(path, f"'{key}' must hold 9 (3x3) or 12 (3x4) numbers", "e.g. 'K: fx 0 cx 0 fy cy 0 0 1'")
     return v.reshape(3, -1)[:, :3].copy()
 
 
@@ -293,13 +289,13 @@ def read_cam_txt(path) -> np.ndarray:
     """<frame>_cam.txt "fx,0.,cx,0.,fy,cy,0.,0.,1." -> (3, 3) float64 (commas or whitespace)."""
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "intrinsics file not found", "check the path")
+        raise InputError(path, "intrinsics file not found", "check the path")
     try:
         vals = [float(v) for v in path.read_text().replace(",", " ").split()]
     except ValueError:
         vals = []
     if len(vals) != 9:
-        raise GeoNetInputError(path, "expected 9 comma-separated numbers 'fx,0.,cx,0.,fy,cy,0.,0.,1.'")
+        raise InputError(path, "expected 9 comma-separated numbers 'fx,0.,cx,0.,fy,cy,0.,0.,1.'")
     return np.array(vals, dtype=np.float64).reshape(3, 3)
 
 
@@ -308,21 +304,21 @@ _KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 
 
 def _floats(values, path, key: str, counts: tuple[int, ...]) -> np.ndarray:
-    """Parse ``values`` (list of str) as floats; GeoNetInputError unless the count is in ``counts``."""
+    """Parse ``values`` (list of str) as floats; GeoNetError unless the count is in ``counts``."""
     try:
         arr = np.array([float(v) for v in values], dtype=np.float64)
     except ValueError:
         arr = None
     if arr is None or arr.size not in counts:
         want = " or ".join(str(c) for c in counts)
-        raise GeoNetInputError(path, f"'{key}' must hold {want} numbers, got {' '.join(values)[:80]!r}", _FORMATS_HINT)
+        raise InputError(path, f"'{key}' must hold {want} numbers, got {' '.join(values)[:80]!r}", _FORMATS_HINT)
     return arr
 
 
 def _size(width, height, path, what: str) -> tuple[int, int]:
     vals = (float(width), float(height))
     if not all(v.is_integer() and v > 0 for v in vals):
-        raise GeoNetInputError(path, f"image size {what} is not two positive whole numbers: {vals}", _FORMATS_HINT)
+        raise InputError(path, f"image size {what} is not two positive whole numbers: {vals}", _FORMATS_HINT)
     return int(vals[0]), int(vals[1])
 
 
@@ -392,16 +388,14 @@ def _camera_from_euroc_yaml(text: str, path: Path) -> Camera | None:
         return None
     model = _yaml_scalar(text, "camera_model")
     if model is not None and model != "pinhole":
-        raise GeoNetInputError(
-            path, f"camera_model '{model}' is not a pinhole camera", "only pinhole models are supported"
-        )
+        raise InputError(path, f"camera_model '{model}' is not a pinhole camera", "only pinhole models are supported")
     fu, fv, cu, cv = _floats(intr, path, "intrinsics", (4,))
     dist = None
     coeffs = _yaml_list(text, "distortion_coefficients")
     if coeffs is not None:
         dist_model = _yaml_scalar(text, "distortion_model")
         if dist_model is not None and dist_model not in ("radial-tangential", "radtan", "plumb_bob"):
-            raise GeoNetInputError(
+            raise InputError(
                 path,
                 f"distortion_model '{dist_model}' is not OpenCV's radial-tangential (k1 k2 p1 p2)",
                 "undistort the frames with the matching model first",
@@ -445,16 +439,16 @@ def read_camera(path) -> Camera:
       ``distortion_coefficients: [k1, k2, p1, p2]``, ``resolution: [w, h]``.
 
     Raises:
-        GeoNetInputError naming the file if it is missing, in none of these formats,
+        GeoNetError naming the file if it is missing, in none of these formats,
         or holds invalid values (:meth:`Camera.validate`).
     """
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "calibration file not found", "check the path")
+        raise InputError(path, "calibration file not found", "check the path")
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
-        raise GeoNetInputError(path, "not a text calibration file", _FORMATS_HINT) from None
+        raise InputError(path, "not a text calibration file", _FORMATS_HINT) from None
     cam = _camera_from_euroc_yaml(text, path)
     if cam is None:
         cam = _camera_from_plain_matrix(text, path)
@@ -464,5 +458,5 @@ def read_camera(path) -> Camera:
         cam = _camera_from_key_values(kv, path) if kv else None
     if cam is None:
         found = f" (keys: {', '.join(list(kv)[:12])})" if kv else ""
-        raise GeoNetInputError(path, f"unrecognised calibration format{found}", _FORMATS_HINT)
+        raise InputError(path, f"unrecognised calibration format{found}", _FORMATS_HINT)
     return cam.validate(path)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.images import _imread, _imwrite
 
@@ -37,7 +37,7 @@ def read_depth_kitti(path) -> np.ndarray:
     """Read KITTI depth PNG -> (H, W) float32 metres, 0 = no measurement."""
     img = _imread(path)
     if img.dtype != np.uint16 or img.ndim != 2:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"not a KITTI depth PNG (need 16-bit 1-channel, got {img.dtype} shape {img.shape})",
             "KITTI depth is stored as 16-bit grey PNG of depth*256",

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.images import _imread, _imwrite
 
@@ -74,7 +74,7 @@ def read_flow_kitti(path) -> tuple[np.ndarray, np.ndarray]:
     """Read KITTI flow PNG -> (flow (H, W, 2) float32 px, valid (H, W) bool)."""
     img = _imread(path)
     if img.dtype != np.uint16 or img.ndim != 3 or img.shape[2] != 3:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"not a KITTI flow PNG (need 16-bit 3-channel, got {img.dtype} shape {img.shape})",
             "KITTI flow is stored as 16-bit RGB PNG (flow_occ / flow_noc)",
@@ -102,18 +102,16 @@ def read_flo(path) -> np.ndarray:
     """
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "flow file not found", "check the path")
+        raise InputError(path, "flow file not found", "check the path")
     raw = path.read_bytes()
     if len(raw) < 12:
-        raise GeoNetInputError(path, "file too short for a .flo header", "is it a Middlebury .flo file?")
+        raise InputError(path, "file too short for a .flo header", "is it a Middlebury .flo file?")
     magic = np.frombuffer(raw, dtype="<f4", count=1)[0]
     if magic != np.float32(FLO_MAGIC):
-        raise GeoNetInputError(
-            path, f"bad .flo magic {magic!r} (expected {FLO_MAGIC})", "is it a Middlebury .flo file?"
-        )
+        raise InputError(path, f"bad .flo magic {magic!r} (expected {FLO_MAGIC})", "is it a Middlebury .flo file?")
     w, h = (int(x) for x in np.frombuffer(raw, dtype="<i4", count=2, offset=4))
     if w <= 0 or h <= 0 or len(raw) != 12 + 8 * w * h:
-        raise GeoNetInputError(
+        raise InputError(
             path, f".flo header says {w}x{h} but file has {len(raw)} bytes", "the file is truncated or corrupt"
         )
     return np.frombuffer(raw, dtype="<f4", offset=12).reshape(h, w, 2).astype(np.float32)

@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import images
 from geonet_infer.io.images import IMAGE_SUFFIXES, list_images, read_image
 
@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")  # compared lower-case
 # FFmpeg (inside OpenCV) prints its own errors on stderr for a broken video ("moov atom not found"),
-# which :func:`open_frames` reports as a GeoNetInputError naming the file anyway. Its log is quiet
+# which :func:`open_frames` reports as a GeoNetError naming the file anyway. Its log is quiet
 # unless the user set OPENCV_FFMPEG_LOGLEVEL (e.g. 32 to see it). OpenCV reads the variable when it
 # first opens a video in the process, hence at import; cv2.utils.logging.setLogLevel does not reach it.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
@@ -40,12 +40,12 @@ class Frame:
     Attributes:
         name: frame name (file stem, or the zero-padded index ``000000`` for videos).
         rgb: (H, W, 3) uint8 RGB, or None if the frame could not be decoded.
-        error: GeoNetInputError naming the file, or None.
+        error: GeoNetError naming the file, or None.
     """
 
     name: str
     rgb: np.ndarray | None = None
-    error: GeoNetInputError | None = None
+    error: GeoNetError | None = None
 
     def __post_init__(self):
         if (self.rgb is None) == (self.error is None):
@@ -109,7 +109,7 @@ class _ImageFolderSource(FrameSource):
         stems = [p.stem for p in self.files]
         if len(set(stems)) != len(stems):
             dup = sorted({s for s in stems if stems.count(s) > 1})
-            raise GeoNetInputError(
+            raise InputError(
                 folder,
                 f"several images share the frame name '{dup[0]}'",
                 "keep one file per frame (outputs are named after the frame)",
@@ -120,10 +120,10 @@ class _ImageFolderSource(FrameSource):
         for p in self.files:
             try:
                 yield Frame(p.stem, rgb=read_image(p))
-            except GeoNetInputError as err:
+            except GeoNetError as err:
                 yield Frame(p.stem, error=err)
             except OSError as err:  # one unreadable frame (permission, I/O error) fails that frame only
-                yield Frame(p.stem, error=GeoNetInputError(p, f"cannot read it ({err.strerror or err})", ""))
+                yield Frame(p.stem, error=InputError(p, f"cannot read it ({err.strerror or err})", ""))
 
     def __len__(self) -> int:
         return len(self.files)
@@ -136,7 +136,7 @@ class _VideoSource(FrameSource):
         try:
             str(path).encode("utf-8")
         except UnicodeEncodeError:  # cv2.VideoCapture crashes the interpreter on such a name
-            raise GeoNetInputError(
+            raise InputError(
                 path, "OpenCV cannot open a video whose path is not valid UTF-8", "rename the file or its folders"
             ) from None
         cap = cv2.VideoCapture(str(path))
@@ -152,7 +152,7 @@ class _VideoSource(FrameSource):
             cap.release()
         if first is None:
             why = "OpenCV decoded no frame" if ok else "OpenCV could not open it"
-            raise GeoNetInputError(
+            raise InputError(
                 path, f"cannot open this video ({why})", f"is it a valid video file ({' '.join(VIDEO_SUFFIXES)})?"
             )
         self._count = max(count, 1)
@@ -173,7 +173,7 @@ class _VideoSource(FrameSource):
             cap.release()
         # Only reached when read to the end (not when the caller stopped early).
         if not names:
-            raise GeoNetInputError(
+            raise InputError(
                 self.path, "cannot open this video (OpenCV decoded no frame)", "the file changed since it was opened?"
             )
         if len(names) < self._count:
@@ -220,18 +220,18 @@ def open_frames(path) -> FrameSource:
     ``error`` set (naming the file), so callers can report it and go on.
 
     Raises:
-        GeoNetInputError naming the path if it does not exist, is an unsupported file,
+        GeoNetError naming the path if it does not exist, is an unsupported file,
         a folder without images, or a video OpenCV cannot open or decode a frame from.
     """
     given = Path(path)
     if not given.exists():
-        raise GeoNetInputError(given, "not found", "pass a video file, a folder of images or a KITTI raw drive folder")
+        raise InputError(given, "not found", "pass a video file, a folder of images or a KITTI raw drive folder")
     p = Path(os.path.abspath(given))  # lexical: keeps a symlinked image_02/data inside its drive layout
     if p.is_file():
         if p.suffix.lower() in VIDEO_SUFFIXES:
             return _VideoSource(given)
         what = "a single image" if p.suffix.lower() in IMAGE_SUFFIXES else "not a video"
-        raise GeoNetInputError(
+        raise InputError(
             given,
             f"{what}: expected a video ({' '.join(VIDEO_SUFFIXES)}) or a folder of frames",
             "put the frames in a folder and pass the folder",

@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 
 __all__ = [
@@ -36,7 +36,7 @@ MAX_IMAGE_PIXELS = 50_000_000
 def _imwrite(path: Path, array: np.ndarray) -> None:
     """Encode with OpenCV (format from the suffix), then write the bytes with Python.
 
-    An encoder that refuses the array is a GeoNetInputError; the write itself raises the
+    An encoder that refuses the array is a GeoNetError; the write itself raises the
     OSError the OS gave (disk full, read-only), which cv2.imwrite would hide behind False.
     Python opens the file, so any file name the OS accepts works (OpenCV's C++ path
     conversion crashes on names that are not valid UTF-8).
@@ -47,7 +47,7 @@ def _imwrite(path: Path, array: np.ndarray) -> None:
     except cv2.error:
         ok = False
     if not ok:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"OpenCV cannot encode a {array.dtype} image of shape {array.shape} as {path.suffix or '(no suffix)'}",
             f"use one of {' '.join(IMAGE_SUFFIXES)} (16-bit needs .png)",
@@ -90,9 +90,9 @@ def encoded_size(data: bytes) -> tuple[int, int] | None:
 
 
 def check_pixels(path, width: int, height: int) -> None:
-    """GeoNetInputError naming ``path`` if ``width`` x ``height`` is over :data:`MAX_IMAGE_PIXELS`."""
+    """GeoNetError naming ``path`` if ``width`` x ``height`` is over :data:`MAX_IMAGE_PIXELS`."""
     if width * height > MAX_IMAGE_PIXELS:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"{width}x{height} is {width * height:,} pixels, over the limit of {MAX_IMAGE_PIXELS:,} pixels",
             "resize the frames (e.g. to 1920x1080)",
@@ -100,7 +100,7 @@ def check_pixels(path, width: int, height: int) -> None:
 
 
 def _imread(path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    """Decode an image file; GeoNetInputError naming the file and the real reason when it cannot be.
+    """Decode an image file; GeoNetError naming the file and the real reason when it cannot be.
 
     The bytes are read by Python and decoded with cv2.imdecode (any file name works), after the
     header's size was checked against :data:`MAX_IMAGE_PIXELS`. An OSError of the read (permission
@@ -108,12 +108,12 @@ def _imread(path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     """
     path = Path(path)
     if not path.exists():
-        raise GeoNetInputError(path, "image not found", "check the path")
+        raise InputError(path, "image not found", "check the path")
     if not path.is_file():
-        raise GeoNetInputError(path, "not a file", "pass an image file")
+        raise InputError(path, "not a file", "pass an image file")
     data = path.read_bytes()
     if not data:
-        raise GeoNetInputError(path, "empty file (0 bytes)", "was it copied or downloaded completely?")
+        raise InputError(path, "empty file (0 bytes)", "was it copied or downloaded completely?")
     size = encoded_size(data)
     if size is not None:
         check_pixels(path, *size)
@@ -125,10 +125,10 @@ def _imread(path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
         detail = ""
     if img is None:
         if size is None:
-            raise GeoNetInputError(
+            raise InputError(
                 path, "not an image OpenCV can read (unknown file header)", f"expected {' '.join(IMAGE_SUFFIXES)}"
             )
-        raise GeoNetInputError(
+        raise InputError(
             path, f"OpenCV could not decode this {size[0]}x{size[1]} image{detail}", "is the file truncated or damaged?"
         )
     return img
@@ -149,11 +149,11 @@ def list_images(folder) -> list[Path]:
     or macOS ``._*`` files) and sub-folders are not listed.
 
     Raises:
-        GeoNetInputError naming the folder if it does not exist or holds no image.
+        GeoNetError naming the folder if it does not exist or holds no image.
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise GeoNetInputError(
+        raise InputError(
             folder, "image folder not found" if not folder.exists() else "not a folder", "pass a folder of frames"
         )
     files = sorted(
@@ -165,7 +165,7 @@ def list_images(folder) -> list[Path]:
         key=lambda p: natural_key(p.name),
     )
     if not files:
-        raise GeoNetInputError(folder, "no images in this folder", f"expected {' '.join(IMAGE_SUFFIXES)} files")
+        raise InputError(folder, "no images in this folder", f"expected {' '.join(IMAGE_SUFFIXES)} files")
     return files
 
 
@@ -184,7 +184,7 @@ def write_image(path, rgb: np.ndarray) -> None:
     """Write (H, W, 3) uint8 RGB (or (H, W) grey) atomically; format from the suffix."""
     rgb = np.asarray(rgb)
     if rgb.dtype != np.uint8:
-        raise GeoNetInputError(
+        raise InputError(
             path, f"image to write must be uint8, got {rgb.dtype}", "convert with np.clip(x, 0, 255).astype(np.uint8)"
         )
     out = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else rgb

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 
 __all__ = [
@@ -31,13 +31,13 @@ def read_kitti_poses(path) -> np.ndarray:
     """Read KITTI odometry poses -> (N, 4, 4) float64 camera-to-world matrices."""
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "pose file not found", "check the path")
+        raise InputError(path, "pose file not found", "check the path")
     try:
         vals = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as err:
-        raise GeoNetInputError(path, f"could not parse poses ({err})", "expected 12 numbers per line") from None
+        raise InputError(path, f"could not parse poses ({err})", "expected 12 numbers per line") from None
     if vals.size == 0 or vals.shape[1] != 12:
-        raise GeoNetInputError(
+        raise InputError(
             path,
             f"expected 12 numbers per line, got shape {vals.shape}",
             "KITTI odometry poses are row-major 3x4 camera-to-world matrices",
@@ -131,7 +131,7 @@ def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
     """
     path = Path(path)
     if not path.is_file():
-        raise GeoNetInputError(path, "trajectory file not found", "check the path")
+        raise InputError(path, "trajectory file not found", "check the path")
     rows = []
     for lineno, line in enumerate(path.read_text().splitlines(), 1):
         line = line.strip()
@@ -143,12 +143,12 @@ def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
         except ValueError:
             vals = []
         if len(vals) != 8:
-            raise GeoNetInputError(
+            raise InputError(
                 path, f"line {lineno}: expected 8 numbers 'time tx ty tz qx qy qz qw'", "is this a TUM trajectory?"
             )
         rows.append(vals)
     if not rows:
-        raise GeoNetInputError(path, "no poses in file", "is this a TUM trajectory?")
+        raise InputError(path, "no poses in file", "is this a TUM trajectory?")
     a = np.array(rows)
     poses = np.tile(np.eye(4), (len(a), 1, 1))
     poses[:, :3, :3] = quaternion_to_rotation(a[:, 4:8])

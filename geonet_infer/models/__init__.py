@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import ModelError
 from geonet_infer.manifest import MANIFEST_NAME
 
 MODELS_DIR = Path(__file__).resolve().parent
@@ -30,5 +30,5 @@ def resolve_model(model: str | Path | None = None) -> Path:
     if path.is_dir():
         return path
     names = ", ".join(bundled) or "none installed"
-    raise GeoNetInputError(path, "no such model directory or bundled model",
+    raise ModelError(path, "no such model directory or bundled model",
                            f"pass a directory written by `python -m export` or a bundled name ({names})")

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import GeoNetError
 from training.synth.scene import TRAFFIC
 from training.synth.sequence import SynthConfig, generate, open_folder
 
@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     cfg = SynthConfig(**vars(build_parser().parse_args(argv)))
     try:
         open_folder(cfg)  # bad settings fail before the progress bar is drawn
-    except GeoNetInputError as err:
+    except GeoNetError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     from tqdm import tqdm

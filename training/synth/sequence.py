@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
-from geonet_infer.errors import GeoNetInputError
+from geonet_infer.errors import InputError
 from geonet_infer.io import (
     DEPTH_SCALE,
     atomic_write,
@@ -77,7 +77,7 @@ def iter_frames(
     the frame-0 camera coordinates (first pose = identity).
     """
     if frames < 2:
-        raise GeoNetInputError(None, f"--frames must be >= 2 (got {frames})", "flow needs frame pairs")
+        raise InputError(None, f"--frames must be >= 2 (got {frames})", "flow needs frame pairs")
     scene = make_scene(sequence_rng(seed, index), frames, height, width, traffic)
     r = Renderer(scene)
     poses = np.linalg.inv(scene.T_wc[0]) @ scene.T_wc  # relative to frame 0
@@ -169,14 +169,14 @@ def _worker(args):
 
 def check_config(cfg: SynthConfig) -> None:
     if cfg.frames < 2 or cfg.sequences < 1 or cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
-        raise GeoNetInputError(
+        raise InputError(
             None,
             f"bad settings: frames {cfg.frames}, sequences {cfg.sequences}, "
             f"size {cfg.height}x{cfg.width}, workers {cfg.workers}",
             "need --frames >= 2, --sequences >= 1, --height/--width >= 8, --workers >= 1",
         )
     if cfg.traffic not in TRAFFIC:
-        raise GeoNetInputError(None, f"unknown traffic {cfg.traffic!r}", f"choose one of {', '.join(TRAFFIC)}")
+        raise InputError(None, f"unknown traffic {cfg.traffic!r}", f"choose one of {', '.join(TRAFFIC)}")
 
 
 def _record_config(cfg: SynthConfig) -> None:
@@ -195,7 +195,7 @@ def _record_config(cfg: SynthConfig) -> None:
         old = KEY_DEFAULTS | json.loads(path.read_text())
         if any(old.get(k) != config[k] for k in RESUME_KEYS):
             settings = ", ".join(f"{k}={old.get(k)}" for k in RESUME_KEYS)
-            raise GeoNetInputError(
+            raise InputError(
                 path, f"folder was generated with {settings}", "Use a new --out folder, or the same settings to resume"
             )
         config["sequences"] = max(config["sequences"], old.get("sequences", 0))
@@ -204,13 +204,13 @@ def _record_config(cfg: SynthConfig) -> None:
 
 
 def open_folder(cfg: SynthConfig) -> None:
-    """Check the settings, create ``cfg.out`` and record them there (idempotent; GeoNetInputError if
+    """Check the settings, create ``cfg.out`` and record them there (idempotent; GeoNetError if
     the folder holds sequences made with other settings)."""
     check_config(cfg)
     try:
         Path(cfg.out).mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise GeoNetInputError(
+        raise InputError(
             cfg.out, f"cannot create the output folder ({exc.strerror or exc})", "choose a writable --out"
         ) from None
     _record_config(cfg)
@@ -220,7 +220,7 @@ def generate(cfg: SynthConfig, on_sequence: Callable[[str], None] | None = None)
     """Write ``cfg.sequences`` sequences into ``cfg.out``; complete ones are skipped (resumable).
 
     ``on_sequence(status)`` is called as each sequence finishes ("done" / "skipped").
-    Returns {"done": n, "skipped": n}. Raises GeoNetInputError on bad settings or a folder
+    Returns {"done": n, "skipped": n}. Raises GeoNetError on bad settings or a folder
     generated with other settings.
     """
     open_folder(cfg)
