@@ -34,7 +34,7 @@ loaded = current_rss_mib()
 rng = np.random.default_rng(0)
 frames = [rng.integers(0, 255, (375, 1242, 3), dtype=np.uint8) for _ in range(4)]
 K = np.array([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]])
-predictor.predict_sequence(frames, K=K)
+predictor.predict_sequence(frames, camera=K)
 peak = peak_rss_mib()
 print(json.dumps({"model": model, "precision": precision, "backend": backend, "graph_files_mib": graph_mib,
                   "rss_before_load_mib": before, "rss_after_load_mib": loaded, "peak_rss_mib": peak,

@@ -56,11 +56,11 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from geonet_infer.cascade import graph_intrinsics, next_source_position  # noqa: E402
 from geonet_infer.cli.bench import Graphs, bench_frames, cpu_flags, net_cascade, snippet_feeds  # noqa: E402
 from geonet_infer.cli.info import cpu_model  # noqa: E402
 from geonet_infer.manifest import load_manifest  # noqa: E402
 from geonet_infer.predictor import Predictor  # noqa: E402
-from geonet_infer.preprocess import graph_intrinsics, next_source_position  # noqa: E402
 from geonet_infer.session import make_session, make_session_options, usable_cpus  # noqa: E402
 from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mib, time_interleaved, wait_quiet  # noqa: E402
 

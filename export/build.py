@@ -319,8 +319,8 @@ def _export_fp32(cfg: ExportConfig, src: Source, graphs: list[str], tmp: Path) -
 
 
 def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):
+    from geonet_infer.cascade import InputSpec
     from geonet_infer.predictor import Predictor
-    from geonet_infer.preprocess import InputSpec
 
     settings = cfg.quant_settings()
     frames, original = qz.load_frames(

@@ -182,7 +182,10 @@ def build_manifest(
     prov: Provenance,
     metrics: dict | None,
     quantization: Quantization | None,
+    photometric_alpha: float = LossWeights.alpha_recon,
 ) -> Manifest:
+    """``photometric_alpha``: the α baked into ``rigidflow.onnx`` (``export.wrappers.photometric_alpha``
+    of the exported model), recorded beside the conventions ``geonet_infer.conventions`` defines."""
     return Manifest(
         schema_version=SCHEMA_VERSION,
         height=height,
@@ -192,7 +195,7 @@ def build_manifest(
         random_init=random_init,
         precisions=tuple(graphs),
         graphs=graphs,
-        conventions=conventions.as_dict(),
+        conventions={**conventions.as_dict(), conventions.PHOTOMETRIC_ALPHA: photometric_alpha},
         provenance=prov,
         metrics=json_safe(metrics or {}),
         quantization=quantization,

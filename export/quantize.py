@@ -35,10 +35,10 @@ import cv2
 import numpy as np
 import onnx
 
+from geonet_infer.cascade import InputSpec, calibration_input, posenet_order
 from geonet_infer.conventions import kitti_like_K, scale_intrinsics
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import list_images, read_calib_K, read_image
-from geonet_infer.preprocess import InputSpec, snippet_indices
 
 FP32_ONLY_GRAPHS = ("rigidflow",)
 CALIBRATION_METHODS = ("minmax", "entropy", "percentile")  # onnxruntime CalibrationMethod MinMax/Entropy/Percentile
@@ -144,9 +144,9 @@ def snippets(frames: Sequence[np.ndarray], seq_length: int) -> list[list[np.ndar
 
 
 def pose_feeds(frames: Sequence[np.ndarray], spec: InputSpec) -> list[dict]:
-    """PoseNet inputs [target] + sources (``preprocess.snippet_indices`` order) for every window."""
+    """PoseNet inputs [target] + sources (``cascade.posenet_order``) for every window."""
     L = spec.seq_length
-    order = snippet_indices(L // 2, L, L)
+    order = posenet_order(L // 2, L)
     return [
         {"snippet": np.concatenate([spec.to_network(window[i]) for i in order])[None]} for window in snippets(frames, L)
     ]
@@ -156,7 +156,7 @@ def resflow_feeds(predictor, frames: Sequence[np.ndarray], K: np.ndarray) -> lis
     """12-channel inputs target -> every source, from the fp32 runtime cascade (``Predictor``)."""
     L = predictor.seq_length
     return [
-        {"flow_input": predictor.resflow_input(window, K, source_index=src)}
+        {"flow_input": calibration_input(predictor.graph_set, predictor.spec, window, K, source_index=src)}
         for window in snippets(frames, L)
         for src in range(L - 1)
     ]

@@ -123,6 +123,8 @@ class RigidFlowExport(nn.Module):
     rigid_flow (B,2,H,W) px, warped (B,3,H,W) = source warped onto the target
     (network range, zero padding), error (B,1,H,W) = l2_norm(photometric error),
     i.e. the 12th ResFlowNet input channel. K^-1 is closed-form (no Inverse op).
+    ``alpha`` weighs DSSIM against L1 in that error; it is baked into the graph, so the
+    manifest records it (``conventions.photometric_alpha``, :func:`photometric_alpha`).
 
     ``dynamic_spatial``: traced with symbolic H, W (``export.to_onnx``), so the pixel
     grid is computed in the graph from the input shapes instead of being folded
@@ -155,6 +157,11 @@ class ResFlowExport(nn.Module):
         return residual, residual + flow_input[:, RIGID_FLOW_CHANNELS]
 
 
+def photometric_alpha(model: GeoNet) -> float:
+    """The α of ``α·DSSIM + (1−α)·L1`` that ``rigidflow.onnx`` of ``model`` computes: the one it trained with."""
+    return model.weights.alpha_recon
+
+
 def build_wrapper(graph: str, model: GeoNet) -> nn.Module:
     """The export module of ``graph`` around ``model``'s (eval-mode) networks."""
     if graph == "depthnet":
@@ -162,7 +169,7 @@ def build_wrapper(graph: str, model: GeoNet) -> nn.Module:
     elif graph == "posenet":
         wrapper = PoseExport(model.pose_net, model.num_source)
     elif graph == "rigidflow":
-        wrapper = RigidFlowExport(model.weights.alpha_recon)
+        wrapper = RigidFlowExport(photometric_alpha(model))
     elif graph == "resflownet":
         if model.flow_net is None:
             raise ValueError("this GeoNet has no ResFlowNet (stage 'rigid')")

@@ -14,15 +14,8 @@ try:  # one version, in pyproject.toml
 except PackageNotFoundError:  # running from a source tree that was never installed
     __version__ = "0+unknown"
 
-from geonet_infer.predictor import (
-    DepthResult,
-    FlowResult,
-    FrameResult,
-    PoseResult,
-    Predictor,  # noqa: E402
-    SequenceResult,
-    load,
-)
+from geonet_infer.predictor import Predictor, load  # noqa: E402
+from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult  # noqa: E402
 
 __all__ = [
     "BackendUnavailableError",

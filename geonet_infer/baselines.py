@@ -43,7 +43,7 @@ def dis_flow(preset: str):
     code = DIS_PRESETS[preset]
 
     def predict(frames: list, K=None) -> np.ndarray:
-        dis = cv2.DISOpticalFlow_create(code)  # per call: the object keeps no useful state between pairs
+        dis = cv2.DISOpticalFlow.create(code)  # per call: the object keeps no useful state between pairs
         return dis.calc(_grey(frames[-2]), _grey(frames[-1]), None)
 
     return predict
@@ -58,8 +58,8 @@ def _relative_pose(orb, matcher, a: np.ndarray, b: np.ndarray, K: np.ndarray) ->
     matches = matcher.match(des_a, des_b)
     if len(matches) < ORB_MIN_INLIERS:
         return None, len(matches)
-    p_a = np.float64([kp_a[m.queryIdx].pt for m in matches])
-    p_b = np.float64([kp_b[m.trainIdx].pt for m in matches])
+    p_a = np.array([kp_a[m.queryIdx].pt for m in matches], dtype=np.float64)
+    p_b = np.array([kp_b[m.trainIdx].pt for m in matches], dtype=np.float64)
     try:
         E, mask = cv2.findEssentialMat(p_a, p_b, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
     except cv2.error:  # OpenCV 5 asserts (solvePoly) where 4.x returned no solution: no motion to solve
@@ -85,7 +85,7 @@ def orb_vo(frames: list, K: np.ndarray) -> tuple[np.ndarray, dict]:
     step: no motion) and is counted in ``info["failed_pairs"]``.
     """
     cv2.setRNGSeed(0)  # RANSAC draws from OpenCV's global RNG: fixed for reproducible tables
-    orb = cv2.ORB_create(nfeatures=ORB_FEATURES)
+    orb = cv2.ORB.create(nfeatures=ORB_FEATURES)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
     grey = [_grey(f) for f in frames]
     K = np.asarray(K, dtype=np.float64)

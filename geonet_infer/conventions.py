@@ -17,6 +17,11 @@ Facts (from the official TF implementation, see ``docs/conventions.md``):
 * Pixel grid: u = 0..W-1, v = 0..H-1 at pixel centres; sampling is
   corner-aligned (``grid_sample(align_corners=True)``).
 * Disparity heads: ``scale * sigmoid(x) + 0.01``; depth = 1 / disparity.
+* Photometric error (rigidflow.onnx's ``error`` output, ResFlowNet's 12th input channel):
+  ``|| alpha * DSSIM + (1 - alpha) * |warped - target| + 1e-10 ||_2`` over the colour channels,
+  with training's ``alpha_recon`` (0.85, as in GeoNet) baked into the graph. Not a runtime
+  setting: manifests record it as ``conventions.photometric_alpha`` (:data:`PHOTOMETRIC_ALPHA`),
+  and those written before it was recorded lack the key (their graphs bake in 0.85).
 """
 
 from __future__ import annotations
@@ -77,6 +82,9 @@ REFERENCE_WIDTH = 416
 NUM_SCALES = 4
 DISP_HEADS = {"resnet50": DispHead(5.0), "vgg": DispHead(10.0), "small": DispHead(5.0)}
 FLOW_SCALING = 0.1  # ResFlowNet heads output 0.1 * conv, in units of image size
+# Manifest key of the photometric error's alpha (see the module docstring). Optional, so it stays out of
+# as_dict(), whose keys every manifest must have: export adds it beside them.
+PHOTOMETRIC_ALPHA = "photometric_alpha"
 # The camera assumed where none is given (synthetic scenes, INT8 calibration frames without
 # calibration, export trace inputs): KITTI raw 2011_09_26 P_rect_02 at its 1242 x 375 images.
 KITTI_FX, KITTI_FY, KITTI_CX, KITTI_CY, KITTI_WIDTH, KITTI_HEIGHT = 721.5377, 721.5377, 609.5593, 172.854, 1242, 375
@@ -94,6 +102,23 @@ def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     K[..., 0, :] *= sx
     K[..., 1, :] *= sy
     return K
+
+
+def rigid_inverse(T):
+    """Closed-form inverse of rigid 4x4 transforms (``POSE``'s matrices): [R | t]^-1 = [R^T | -R^T t].
+
+    T: (4, 4) or (..., 4, 4). Returns the same shape. Exact for rigid
+    transforms and mirrors what the ONNX graphs do (no general matrix inverse).
+    """
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3:]
+    R_t = np.swapaxes(R, -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = R_t
+    out[..., :3, 3:] = -R_t @ t
+    out[..., 3, 3] = 1.0
+    return out
 
 
 def kitti_like_K(height: int, width: int) -> np.ndarray:

@@ -192,7 +192,7 @@ class Score:
 @dataclass(frozen=True)
 class ModelCard:
     """What the model was trained on and its measured scores, copied from its model card
-    (``python -m training.model_card``); a model directory without one has no measured scores."""
+    (``python -m benchmarks.model_card``); a model directory without one has no measured scores."""
 
     trained_on: str  # one line
     synthetic_only: bool  # trained on synthetic scenes only: predict/batch say so on real video
@@ -237,7 +237,7 @@ class Manifest:
     random_init: bool
     precisions: tuple[str, ...]
     graphs: dict  # precision -> {graph name -> GraphEntry}
-    conventions: dict  # geonet_infer.conventions.as_dict() at export time
+    conventions: dict  # geonet_infer.conventions.as_dict() at export time, and photometric_alpha (optional)
     provenance: Provenance
     metrics: dict  # the checkpoint's validation metrics ({} for random init)
     quantization: Quantization | None = None
@@ -249,6 +249,13 @@ class Manifest:
     @property
     def num_source(self) -> int:
         return self.seq_length - 1
+
+    @property
+    def photometric_alpha(self) -> float | None:
+        """α of the photometric error ``rigidflow.onnx`` computes (``α·DSSIM + (1−α)·L1``, baked in at
+        export); None for a manifest written before export recorded it."""
+        alpha = self.conventions.get(conventions.PHOTOMETRIC_ALPHA)
+        return None if alpha is None else float(alpha)
 
     def graph_names(self, precision: str = "fp32") -> tuple[str, ...]:
         return tuple(self._set(precision))
@@ -422,7 +429,8 @@ def _check_sizes(raw: dict, path: Path) -> None:
 
 
 def _check_convention_numbers(conv: dict, path: Path) -> None:
-    """Every number of the conventions is finite and of sane magnitude; image_norm.scale is not ~0."""
+    """Every number of the conventions is finite and of sane magnitude; image_norm.scale is not ~0; the
+    photometric alpha, where recorded, is in [0, 1]."""
 
     def walk(value, where: str):
         if isinstance(value, dict):
@@ -440,6 +448,11 @@ def _check_convention_numbers(conv: dict, path: Path) -> None:
                 )
 
     walk(conv, "conventions")
+    alpha = conv.get(conventions.PHOTOMETRIC_ALPHA)
+    if alpha is not None and (isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 <= alpha <= 1):
+        raise ModelError(
+            path, f"conventions.{conventions.PHOTOMETRIC_ALPHA} is {alpha!r}: not in [0, 1]", REEXPORT_HINT
+        )
     scale = (conv.get("image_norm") or {}).get("scale")
     if isinstance(scale, (int, float)) and abs(scale) < MIN_NORM_SCALE:
         raise ModelError(

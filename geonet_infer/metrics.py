@@ -12,6 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from geonet_infer.conventions import rigid_inverse  # noqa: F401 -- also part of this module's API
 from geonet_infer.errors import InputError
 
 # Crop fractions (row_start, row_end, col_start, col_end) of the image size,
@@ -290,23 +291,6 @@ def ate_rmse_true(gt_xyz, pred_xyz):
     """
     err = _align_first_and_scale(gt_xyz, pred_xyz)
     return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
-
-
-def rigid_inverse(T):
-    """Closed-form inverse of rigid 4x4 transforms: [R | t]^-1 = [R^T | -R^T t].
-
-    T: (4, 4) or (..., 4, 4). Returns the same shape. Exact for rigid
-    transforms and mirrors what the ONNX graphs do (no general matrix inverse).
-    """
-    T = np.asarray(T, dtype=np.float64)
-    R = T[..., :3, :3]
-    t = T[..., :3, 3:]
-    R_t = np.swapaxes(R, -1, -2)
-    out = np.zeros_like(T)
-    out[..., :3, :3] = R_t
-    out[..., :3, 3:] = -R_t @ t
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def snippet_poses_to_global(T_tgt_to_src, target_index=None):

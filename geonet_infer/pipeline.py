@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer import __version__
+from geonet_infer.cascade import camera_at
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write, leftover_temps, save_npy_atomic
 from geonet_infer.io.calib import Camera
@@ -43,11 +44,11 @@ from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.images import write_image
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.manifest import model_notice
-from geonet_infer.predictor import FrameResult, Predictor, metric_frames
+from geonet_infer.predictor import TASKS, Predictor
+from geonet_infer.results import FrameResult
 from geonet_infer.scale import check_metric_request
 from geonet_infer.viz import depth_to_color, flow_to_color
 
-TASKS = ("depth", "pose", "flow")
 SUMMARY_NAME = "summary.json"
 MAX_BATCH_SIZE = 64  # frames per network batch; memory grows with it, speed does not past a few
 SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
@@ -300,7 +301,8 @@ def predict_to_dir(
             "flow needs camera intrinsics and none were found",
             "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
         )
-    check_metric_request(camera_height, camera, source.path)
+    if camera_height is not None:
+        check_metric_request(camera_height, camera, source.path)
     if not exclusive:
         out_dir.mkdir(parents=True, exist_ok=True)
         return _predict(
@@ -344,19 +346,14 @@ def _predict(
     bar = tqdm(total=len(source) or None, unit="frame", desc=source.name, disable=not progress, leave=False)
     frames = _Frames(source, bar, check_camera)
     try:
-        if tasks == ("depth",):
-            results = _depth_only(predictor, frames, camera, batch_size)
-            if camera_height is not None:
-                results = metric_frames(results, camera_height, lambda size: camera.scaled_to(size[1], size[0]).K)
-        else:
-            results = predictor.iter_sequence(
-                frames,
-                camera,
-                batch_size=batch_size,
-                names=frames.names,
-                tasks=tasks,
-                camera_height=camera_height,
-            )
+        results = predictor.iter_sequence(
+            frames,
+            camera,
+            batch_size=batch_size,
+            names=frames.names,
+            tasks=tasks,
+            camera_height=camera_height,
+        )
         for result in results:
             bad = _non_finite(result, tasks)
             if bad is not None:
@@ -423,9 +420,7 @@ def _predict(
         "camera": None
         if camera is None
         else {
-            "K_input_resolution": (
-                camera.scaled_to(frames.size[1], frames.size[0]).K.tolist() if frames.size else camera.K.tolist()
-            ),
+            "K_input_resolution": (camera_at(camera, frames.size).K.tolist() if frames.size else camera.K.tolist()),
             "dist": None if camera.dist is None else camera.dist.tolist(),
             "source": camera.source,
             "undistorted": camera.has_distortion,
@@ -460,39 +455,6 @@ def _outputs(tasks: tuple[str, ...], vis: bool = True) -> list[str]:
     if "pose" in tasks:
         out += ["poses_kitti.txt", "poses_tum.txt"]
     return out
-
-
-def _depth_only(predictor: Predictor, frames: _Frames, camera: Camera | None, batch_size: int) -> Iterator[FrameResult]:
-    """Depth in batches of ``batch_size`` frames, in the model's relative scale; works on a single image too."""
-    batch: list[np.ndarray] = []
-    index = 0
-
-    def flush():
-        nonlocal index
-        for rgb_result in predictor.depth(batch, camera=camera):
-            yield FrameResult(
-                index=index,
-                name=frames.names[index],
-                depth=rgb_result.depth,
-                disparity=rgb_result.disparity,
-                camera_to_world=np.eye(4),
-                pose_to_next=None,
-                pose_vector_to_next=None,
-                flow=None,
-                rigid_flow=None,
-                residual_flow=None,
-                undistorted=rgb_result.undistorted,
-                timings_ms=rgb_result.timings_ms,
-            )
-            index += 1
-
-    for rgb in frames:
-        batch.append(rgb)
-        if len(batch) == batch_size:
-            yield from flush()
-            batch = []
-    if batch:
-        yield from flush()
 
 
 def _write_frame(out_dir: Path, result: FrameResult, tasks: tuple[str, ...], vis: bool = True) -> None:

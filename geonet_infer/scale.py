@@ -14,12 +14,15 @@ surface above it, such as a car transporter's deck or a truck bed: it is skipped
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from geonet_infer.errors import InputError
+from geonet_infer.conventions import rigid_inverse
+from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.results import FrameResult
 
 MAX_CAMERA_HEIGHT_M = 100.0  # above a road; more is a unit mix-up (mm, cm) and gives depth in kilometres
 
@@ -172,4 +175,64 @@ def check_camera_height(camera_height_m) -> None:
             f"camera height (--camera-height / camera_height) must be a positive number of metres, "
             f"at most {MAX_CAMERA_HEIGHT_M:g}, got {camera_height_m!r}",
             "e.g. 1.65 for KITTI's colour cameras",
+        )
+
+
+MAX_FRAMES_BEFORE_GROUND = 60  # frames held back waiting for a first ground plane (2.4 s at 25 fps)
+
+
+def metric_frames(
+    results: Iterable[FrameResult], camera_height: float, K_at: Callable[[tuple[int, int]], np.ndarray]
+) -> Iterator[FrameResult]:
+    """The frames of a sequence in metres, in order.
+
+    Each frame's depth and pose translation are multiplied by the factor that puts the ground
+    plane fitted to its depth (:func:`geonet_infer.scale.fit_ground_plane`) ``camera_height``
+    metres below the camera. A frame whose road is hidden (a truck ahead) takes the previous
+    frame's factor; frames before the first fit are held back (at most
+    ``MAX_FRAMES_BEFORE_GROUND``) and take the first fit's. ``camera_to_world`` is chained
+    again from the scaled poses. ``K_at((H, W))``: the intrinsics at a depth map's size.
+    """
+    check_camera_height(camera_height)
+    pending: list[FrameResult] = []
+    scale: float | None = None
+    pose_world = np.eye(4)
+    for result in results:
+        try:
+            scale = fit_ground_plane(result.depth, K_at(result.depth.shape)).scale_for(camera_height)
+        except GeoNetError as err:
+            if scale is None:
+                pending.append(result)
+                if len(pending) > MAX_FRAMES_BEFORE_GROUND:
+                    raise InputError(
+                        pending[0].name,
+                        f"no ground plane in the first {len(pending)} frames ({err.problem})",
+                        "metric scale needs the road in view early in the video: start it where the road "
+                        "shows, or drop --camera-height for relative depth",
+                    ) from None
+                continue
+        for frame in [*pending, result]:
+            pose_next, vector = frame.pose_to_next, frame.pose_vector_to_next
+            if pose_next is not None:
+                pose_next, vector = pose_next.copy(), vector.copy()
+                pose_next[:3, 3] *= scale
+                vector[:3] *= scale
+            yield replace(
+                frame,
+                depth=frame.depth * scale,
+                disparity=frame.disparity / scale,
+                camera_to_world=pose_world.copy(),
+                pose_to_next=pose_next,
+                pose_vector_to_next=vector,
+                metric_scale=scale,
+            )
+            if pose_next is not None:
+                pose_world = pose_world @ rigid_inverse(pose_next)
+        pending = []
+    if pending:
+        raise InputError(
+            pending[0].name,
+            f"no ground plane in any of the {len(pending)} frames",
+            "metric scale from camera height needs a visible, roughly flat road; drop --camera-height "
+            "for relative depth",
         )

@@ -93,7 +93,7 @@ if [ -n "${BEFORE:-}" ]; then
     git archive "$BEFORE" geonet_infer/models/small_synth | tar -x -C runs/before
     before=(--before runs/before/geonet_infer/models/small_synth)
 fi
-run $PY -m training.model_card --model geonet_infer/models/small_synth --synth-dir $DATA --prepared-dir $PREP \
+run $PY -m benchmarks.model_card --model geonet_infer/models/small_synth --synth-dir $DATA --prepared-dir $PREP \
     --kitti ../shared/realdata/kitti_raw_2011_09_26_sfnd --out docs/models.md --json docs/models.json "${before[@]}"
 .venv/bin/python -m pip install --quiet -e .
 run .venv/bin/geonet-infer demo --out runs/demo --no-progress

@@ -10,4 +10,8 @@ PY=${PYTHON:-python3}
 # Lint and format first: cheap, and a failure names the file and line.
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
+# The runtime's types ([tool.mypy] in pyproject.toml): geonet_infer/ ships py.typed, so users' checkers read them.
+.venv/bin/mypy
+# Every test, the `slow` ones (> ~20 s on 2 cores) included. The quick run leaves them out:
+#   .venv/bin/python -m pytest -m "not slow"
 exec .venv/bin/python -m pytest -q "$@"

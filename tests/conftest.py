@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 
 REALDATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
+KITTI_RAW = "kitti_raw_2011_09_26_sfnd"  # one KITTI raw drive: image_02, Velodyne scans, calibration
+KITTI_ODOMETRY = "kitti_odometry_00"  # KITTI odometry sequence 00, grey frames and calib.txt
 
 
 def on_ci() -> bool:
@@ -42,6 +44,18 @@ def require_real():
 def realdata() -> Path:
     """Path of ``../shared/realdata`` (fails on CI / skips elsewhere when it is missing)."""
     return require_realdata()
+
+
+@pytest.fixture(scope="session")
+def kitti_raw() -> Path:
+    """Path of ``../shared/realdata/kitti_raw_2011_09_26_sfnd`` (fails on CI / skips elsewhere when missing)."""
+    return require_realdata(KITTI_RAW)
+
+
+@pytest.fixture(scope="session")
+def kitti_odometry() -> Path:
+    """Path of ``../shared/realdata/kitti_odometry_00`` (fails on CI / skips elsewhere when missing)."""
+    return require_realdata(KITTI_ODOMETRY)
 
 
 @pytest.fixture(scope="session")

@@ -53,6 +53,6 @@ def test_adapt_to_clip_script_on_a_real_clip(realdata, tmp_path):
     K = read_camera(calib).K.copy()
     K[1, 2] -= 229
     K = K * np.array([[416 / 1280], [128 / 394], [1]])  # crop, then 1280x394 -> 416x128, by hand
-    seq = predictor.predict_sequence(frames, K=K)
+    seq = predictor.predict_sequence(frames, camera=K)
     assert seq.depth.shape == (3, 128, 416) and np.isfinite(seq.depth).all() and (seq.depth > 0).all()
     assert seq.flow.shape == (2, 128, 416, 2) and np.isfinite(seq.flow).all()

@@ -14,7 +14,15 @@ import pytest
 
 import geonet_infer
 from geonet_infer import GeoNetError
-from geonet_infer.engines import ENGINES, OpenVinoEngine, OrtEngine, timing_feeds
+from geonet_infer.engines import (
+    BACKENDS,
+    ENGINES,
+    OpenVinoEngine,
+    OrtEngine,
+    make_engine,
+    pick_fastest,
+    timing_feeds,
+)
 from geonet_infer.io import read_camera
 from geonet_infer.io.images import list_images
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
@@ -36,7 +44,7 @@ def sequence():
 @pytest.fixture(scope="module")
 def ort_fp32(sequence):
     frames, camera = sequence
-    return geonet_infer.load(precision="fp32").predict_sequence(frames, K=camera)
+    return geonet_infer.load(precision="fp32").predict_sequence(frames, camera=camera)
 
 
 def _assert_close(a, b, depth_rtol: float, flow_atol: float, pose_atol: float):
@@ -51,7 +59,7 @@ def test_openvino_fp32_equals_onnxruntime(sequence, ort_fp32):
     frames, camera = sequence
     predictor = geonet_infer.load(precision="fp32", backend="openvino")
     assert set(predictor.engines.values()) == {"openvino"}
-    ov = predictor.predict_sequence(frames, K=camera)
+    ov = predictor.predict_sequence(frames, camera=camera)
     # f32 both sides; differences are summation order only
     _assert_close(ort_fp32, ov, depth_rtol=1e-4, flow_atol=1e-2, pose_atol=1e-5)
 
@@ -64,7 +72,7 @@ def test_openvino_compiles_each_batch_size_once(sequence):
     batched = predictor.depth(frames[:3])
     for single, result in zip(one, batched):
         np.testing.assert_allclose(result.depth, single, rtol=1e-4)
-    engine = predictor.engine("depthnet")
+    engine = predictor.graph_set.engine("depthnet")
     assert sorted(k[0][0] for k in engine._compiled) == [1, 3]
 
 
@@ -78,7 +86,7 @@ def test_auto_picks_one_engine_per_graph_and_keeps_the_results(sequence, ort_fp3
         timings = choice["p50_ms_batch1"]
         assert timings[choice["chosen"]] == min(timings.values())
     _assert_close(
-        ort_fp32, predictor.predict_sequence(frames, K=camera), depth_rtol=1e-4, flow_atol=1e-2, pose_atol=1e-5
+        ort_fp32, predictor.predict_sequence(frames, camera=camera), depth_rtol=1e-4, flow_atol=1e-2, pose_atol=1e-5
     )
 
 
@@ -95,7 +103,67 @@ def test_missing_openvino_is_a_clear_error_and_auto_falls_back(monkeypatch, sequ
     assert set(predictor.engines.values()) == {"onnxruntime"}
     assert all(c["reason"] == "openvino not installed" for c in predictor.backend_choice.values())
     frames, camera = sequence
-    _assert_close(ort_fp32, predictor.predict_sequence(frames, K=camera), 1e-6, 1e-5, 1e-7)
+    _assert_close(ort_fp32, predictor.predict_sequence(frames, camera=camera), 1e-6, 1e-5, 1e-7)
+
+
+def test_the_registry_drives_the_cli_choices():
+    import argparse
+
+    from geonet_infer.cli.common import add_model_args
+
+    assert BACKENDS == (*ENGINES, "auto")
+    parser = argparse.ArgumentParser()
+    add_model_args(parser)
+    backend = next(a for a in parser._actions if a.dest == "backend")
+    assert tuple(backend.choices) == BACKENDS and backend.default == next(iter(ENGINES))
+    for cls in ENGINES.values():
+        assert cls.name in backend.help and isinstance(cls.available(), bool) and cls.install_hint
+
+
+class _FakeEngine:
+    """A third engine for the registry tests: onnxruntime under another name."""
+
+    name = "fake"
+    summary = "fake (tests only)"
+    requires = "nothing"
+    install_hint = "nothing to install"
+
+    @staticmethod
+    def available() -> bool:
+        return True
+
+    @staticmethod
+    def version() -> str | None:
+        return "0"
+
+    def __init__(self, path, threads):
+        self.ort = OrtEngine(path, threads)
+        self.input_names, self.output_names = self.ort.input_names, self.ort.output_names
+
+    def run(self, feeds):
+        return self.ort.run(feeds)
+
+    def io(self):
+        return self.ort.io()
+
+    def input_shapes(self):
+        return self.ort.input_shapes()
+
+    def describe(self):
+        return {"engine": self.name}
+
+
+def test_an_engine_registered_in_engines_is_offered_by_make_engine_and_auto(monkeypatch):
+    model = geonet_infer.models.resolve_model(None)
+    monkeypatch.setitem(ENGINES, _FakeEngine.name, _FakeEngine)
+    engine = make_engine(model / "depthnet.onnx", "fake", threads=1)
+    assert isinstance(engine, _FakeEngine) and engine.describe() == {"engine": "fake"}
+    monkeypatch.setattr(OpenVinoEngine, "available", staticmethod(lambda: False))
+    chosen, record = pick_fastest(model / "depthnet.onnx", threads=1)
+    assert set(record["p50_ms_batch1"]) == {"onnxruntime", "fake"}
+    assert record["skipped"] == ["openvino not installed"] and chosen.name == record["chosen"]
+    with pytest.raises(GeoNetError, match="unknown backend 'cuda'"):
+        make_engine(model / "depthnet.onnx", "cuda", threads=1)
 
 
 def test_timing_feeds_follow_the_graph_inputs():

@@ -22,7 +22,7 @@ CASES = [
     ("training.train", ["--data-dir", "{missing}", "--out-dir", "{out}", "--max-steps", "1"], "{missing}"),
     ("training.evaluate", ["--checkpoint", "{missing}", "--data", "{missing}"], "{missing}"),
     (
-        "training.model_card",
+        "benchmarks.model_card",
         [
             "--model",
             "{missing}",

@@ -3,7 +3,8 @@
 One module-scoped export (``small`` arch at 128x416, seeded random weights with
 perturbed BN statistics, stage-flow checkpoint, fp32 + int8 with the accuracy
 delta on a tiny synthetic held-out set) is shared by most tests. Parity tests
-need the KITTI frames in ``<repo>/../shared/realdata`` and skip without them.
+need the KITTI frames in ``../shared/realdata`` (the ``kitti_raw`` fixture: skipped
+without them, failed on CI).
 """
 
 from __future__ import annotations
@@ -25,19 +26,18 @@ from export.to_onnx import ExportCheckError, check_graph, op_types
 from export.verify import compare_graph
 from export.wrappers import GRAPH_NAMES, build_wrapper, io_spec
 from geonet_infer import conventions
+from geonet_infer.cascade import InputSpec
 from geonet_infer.errors import GeoNetError
 from geonet_infer.io import list_images, read_calib_K, read_image
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest, write_manifest
 from geonet_infer.predictor import Predictor
-from geonet_infer.preprocess import InputSpec
 from geonet_infer.session import make_session
+from tests.conftest import KITTI_RAW, REALDATA
 from training.evaluate import onnx_depth_fn
+from training.losses import LossWeights
 
 REPO = Path(__file__).resolve().parents[1]
-KITTI = REPO.parent / "shared" / "realdata" / "kitti_raw_2011_09_26_sfnd"
-KITTI_FRAMES = KITTI / "image_02" / "data"
 H, W = 128, 416
-needs_kitti = pytest.mark.skipif(not KITTI_FRAMES.is_dir(), reason="KITTI sample frames not available")
 
 # Tolerances of the acceptance criteria.
 DEPTH_REL_TOL = 1e-4  # max |ORT - torch| / range(torch)
@@ -89,13 +89,13 @@ def save_small_checkpoint(path: Path, stage: str, height: int = H, width: int = 
     )
 
 
-def kitti_frames(n: int = 3, start: int = 0) -> list[np.ndarray]:
-    files = list_images(KITTI_FRAMES)[start : start + n]
+def kitti_frames(kitti: Path, n: int = 3, start: int = 0) -> list[np.ndarray]:
+    files = list_images(kitti / "image_02" / "data")[start : start + n]
     return [cv2.resize(read_image(f), (W, H), interpolation=cv2.INTER_AREA) for f in files]
 
 
-def kitti_K() -> np.ndarray:
-    K = read_calib_K(KITTI / "calib_cam_to_cam.txt", "P_rect_02")
+def kitti_K(kitti: Path) -> np.ndarray:
+    K = read_calib_K(kitti / "calib_cam_to_cam.txt", "P_rect_02")
     return conventions.scale_intrinsics(K, W / 1242, H / 375).astype(np.float32)
 
 
@@ -156,7 +156,9 @@ def synth(work) -> tuple[Path, Path]:
 def model_dir(work, flow_ckpt, synth) -> Path:
     """fp32 + int8 export of the flow checkpoint through the CLI (batch-1 example inputs)."""
     synth_dir, prepared = synth
-    calib = KITTI_FRAMES if KITTI_FRAMES.is_dir() else synth_dir / "seq_0000" / "image"
+    calib = REALDATA / KITTI_RAW / "image_02" / "data"  # real frames where present, else synthetic ones
+    if not calib.is_dir():
+        calib = synth_dir / "seq_0000" / "image"
     out = work / "model"
     code = export_main(
         [
@@ -222,10 +224,9 @@ def test_check_graph_rejects_wrong_io_names(model_dir, tmp_path):
 
 
 # --------------------------------------------------------------------------- parity
-@needs_kitti
-def test_per_graph_parity_on_real_frames(model_dir, torch_model):
-    frames = kitti_frames(3)
-    K = kitti_K()
+def test_per_graph_parity_on_real_frames(model_dir, torch_model, kitti_raw):
+    frames = kitti_frames(kitti_raw, 3)
+    K = kitti_K(kitti_raw)
     report = {}
     # depthnet: a batch of 3 real frames (the graph was exported from a batch-1 example)
     spec = InputSpec.from_conventions(H, W, 3)
@@ -264,11 +265,10 @@ def test_per_graph_parity_on_real_frames(model_dir, torch_model):
     print("\nper-graph parity (ORT vs torch):", json.dumps({k: float(f"{v:.3g}") for k, v in report.items()}))
 
 
-@needs_kitti
-def test_cascade_matches_torch_flow_forward(model_dir, torch_model):
+def test_cascade_matches_torch_flow_forward(model_dir, torch_model, kitti_raw):
     """depth -> pose -> rigid op -> ResFlowNet in ORT vs GeoNet.flow_forward, scale 0, t -> t+1."""
-    frames = kitti_frames(3, start=10)
-    K = kitti_K()
+    frames = kitti_frames(kitti_raw, 3, start=10)
+    K = kitti_K(kitti_raw)
     predictor = Predictor(model_dir)
     flow = predictor.flow(frames, K)
     out = {
@@ -337,7 +337,9 @@ def test_provenance_names_every_prepared_folder_the_stage_trained_on():
 
 def test_manifest_round_trip_and_conventions(model_dir, tmp_path):
     manifest = load_manifest(model_dir)
-    assert manifest.conventions == conventions_json()
+    # the alpha baked into rigidflow.onnx is recorded beside the conventions every manifest has
+    assert manifest.conventions == conventions_json() | {"photometric_alpha": LossWeights.alpha_recon}
+    assert manifest.photometric_alpha == 0.85
     assert (manifest.height, manifest.width, manifest.seq_length, manifest.arch) == (H, W, 3, "small")
     assert manifest.precisions == ("fp32", "int8") and not manifest.random_init
     assert Manifest.from_dict(json.loads(json.dumps(manifest.to_dict())), root=model_dir) == manifest
@@ -352,6 +354,23 @@ def test_manifest_round_trip_and_conventions(model_dir, tmp_path):
     shutil.copytree(model_dir, copy)
     write_manifest(manifest, copy)
     assert load_manifest(copy) == manifest
+
+
+@pytest.mark.parametrize("alpha", [None, 1.5, -0.1, "0.85", True])
+def test_photometric_alpha_is_optional_and_in_0_1(tmp_path, alpha):
+    """A manifest written before export recorded the alpha (the bundled one) reads None; a recorded
+    alpha outside [0, 1] or not a number is refused, naming the manifest."""
+    model = tmp_path / "small_synth"
+    shutil.copytree(REPO / "geonet_infer" / "models" / "small_synth", model)
+    if alpha is None:
+        assert load_manifest(model).photometric_alpha is None
+        return
+    raw = json.loads((model / MANIFEST_NAME).read_text())
+    raw["conventions"]["photometric_alpha"] = alpha
+    (model / MANIFEST_NAME).write_text(json.dumps(raw))
+    with pytest.raises(GeoNetError, match="photometric_alpha") as err:
+        load_manifest(model)
+    assert str(model / MANIFEST_NAME) in str(err.value)
 
 
 def test_manifest_detects_flipped_byte(model_dir, tmp_path):
@@ -529,6 +548,7 @@ def test_cli_failure_leaves_no_partial_directory(tmp_path, monkeypatch):
     assert len(calls) == 2 and no_leftovers(out)
 
 
+@pytest.mark.slow
 def test_cli_and_library_write_the_same_model_directory(tmp_path):
     """``python -m export`` only parses flags into an ExportConfig and calls export_model."""
     from export import ExportConfig, export_model

@@ -245,6 +245,7 @@ CASES = {  # graph -> (input name, outputs compared)
 }
 
 
+@pytest.mark.slow  # the `converted` fixture builds official graphs in TensorFlow and exports: ~2 min
 @pytest.mark.parametrize("graph", list(CASES))
 def test_fp32_graph_equals_official_forward(converted, graph):
     """resnet50 DepthNet, 5-frame PoseNet, resnet50 ResFlowNet: the converted fp32 graphs give the
@@ -269,6 +270,7 @@ INT8_MIN_CORRELATION = 0.6
 INT8_MAX_ERROR = 0.2  # mean |int8 - official| / output range
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("graph", list(CASES))
 def test_int8_graph_follows_official_forward(converted, graph):
     name, outputs = CASES[graph]
@@ -280,6 +282,7 @@ def test_int8_graph_follows_official_forward(converted, graph):
         assert corr > INT8_MIN_CORRELATION and err < INT8_MAX_ERROR, (out, corr, err)
 
 
+@pytest.mark.slow
 def test_manifest_records_sources_and_official_conventions(converted):
     """Each checkpoint with its prefix and the sha256 of its files; what was and was not converted;
     the official conventions; the note that the flow net's own depth/pose were not used."""

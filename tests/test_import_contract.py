@@ -63,3 +63,75 @@ def test_importing_every_runtime_module_loads_none_of_them():
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "[]", run.stdout
+
+
+def module_imports(path: Path, name: str, known: set[str]) -> set[str]:
+    """The ``geonet_infer`` modules that module ``name`` (file ``path``) imports, anywhere in it.
+
+    ``from a.b import c`` counts as an import of ``a.b.c`` when that is a module, else of ``a.b``;
+    relative imports are resolved against ``name``'s package.
+    """
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(parts + ([base] if base else []))
+            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in node.names]
+        else:
+            continue
+        found |= {t for t in targets if t in known and t != name}
+    return found
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` (module -> modules it imports) as [a, b, ..., a], or None."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return path[path.index(nxt) :] + [nxt]
+            if nxt not in state and (cycle := visit(nxt)):
+                return cycle
+        state[node] = 2
+        path.pop()
+        return None
+
+    for start in sorted(graph):
+        if start not in state and (cycle := visit(start)):
+            return cycle
+    return None
+
+
+def runtime_import_graph() -> dict[str, set[str]]:
+    files = {
+        ".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"): f for f in RUNTIME.rglob("*.py")
+    }
+    known = set(files)
+    return {name: module_imports(path, name, known) for name, path in files.items()}
+
+
+def test_the_cycle_finder_finds_a_cycle_and_accepts_a_tree():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
+
+
+def test_the_import_graph_sees_this_package():
+    graph = runtime_import_graph()
+    assert "geonet_infer.errors" in graph["geonet_infer.predictor"]
+    assert "geonet_infer.cli.predict" in graph["geonet_infer.cli"]  # `from geonet_infer.cli import predict`
+
+
+def test_no_import_cycle_inside_geonet_infer():
+    """Every import counts, also inside functions and TYPE_CHECKING blocks: a cycle hidden in a
+    function body is still two modules that cannot be understood (or moved) one without the other."""
+    cycle = find_cycle(runtime_import_graph())
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)

@@ -18,7 +18,7 @@ DATA = (Path(__file__).resolve().parent / ".." / ".." / "shared" / "realdata" / 
 VELO0 = DATA / "velodyne_points" / "data" / "0000000000.bin"
 IMAGE0 = DATA / "image_02" / "data" / "0000000000.png"
 
-needs_data = pytest.mark.skipif(not VELO0.is_file(), reason=f"KITTI sample data not found at {DATA}")
+needs_data = pytest.mark.usefixtures("kitti_raw")  # tests/conftest.py: skips without ../shared, fails on CI
 
 
 def _parse_calib(path):

@@ -1,4 +1,4 @@
-"""``python -m training.model_card`` on tiny inputs (a few seconds).
+"""``python -m benchmarks.model_card`` on tiny inputs (a few seconds).
 
 The model directories here are built with ``onnx.helper``: stand-in graphs with the
 exact I/O contract of the exported ones (``export.wrappers.io_spec``), a valid
@@ -24,6 +24,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from benchmarks.model_card import main, render_card, sig3
 from export.wrappers import io_spec
 from geonet_infer import conventions
 from geonet_infer.io import read_image
@@ -40,7 +41,6 @@ from geonet_infer.manifest import (
 from geonet_infer.metrics import depth_floor_share
 from geonet_infer.predictor import Predictor
 from geonet_infer.velodyne import velodyne_to_depth_map
-from training.model_card import main, render_card, sig3
 
 ROOT = Path(__file__).resolve().parents[1]
 H, W = 32, 96  # graph size of the stand-in models
@@ -261,11 +261,6 @@ def synth(tmp_path_factory) -> tuple[Path, Path]:
     return synth_dir, prepared
 
 
-@pytest.fixture(scope="module")
-def kitti(realdata) -> Path:
-    return realdata / "kitti_raw_2011_09_26_sfnd"
-
-
 def _args(model: Path, synth: tuple[Path, Path], kitti: Path, out: Path, *extra: str) -> list[str]:
     return [
         "--model",
@@ -290,13 +285,13 @@ def _args(model: Path, synth: tuple[Path, Path], kitti: Path, out: Path, *extra:
 
 
 @pytest.fixture(scope="module")
-def card3(tmp_path_factory, synth, kitti):
+def card3(tmp_path_factory, synth, kitti_raw):
     """The card of a 3-frame stand-in with FP32 and INT8 graphs (INT8 pose matrices without motion),
     with a shifted stand-in (INT8 pose moving) as the ``--before`` model."""
     out = tmp_path_factory.mktemp("card3")
     model = make_model_dir(out / "model", int8_static_pose=True)
     before = make_model_dir(out / "before", shift=0.05)
-    assert main(_args(model, synth, kitti, out, "--allow-random-init", "--before", str(before))) == 0
+    assert main(_args(model, synth, kitti_raw, out, "--allow-random-init", "--before", str(before))) == 0
     return (out / "models.md").read_text(), json.loads((out / "card.json").read_text())
 
 
@@ -315,7 +310,7 @@ def _numbers(obj, where=""):
 def test_card_has_every_table_and_finite_numbers(card3):
     md, result = card3
     assert md.startswith("# Model card")
-    assert "```bash\n.venv/bin/python -m training.model_card --model " in md
+    assert "```bash\n.venv/bin/python -m benchmarks.model_card --model " in md
     assert "WARNING: RANDOM-INIT MODEL" in md
     assert "graphs kept in FP32: rigidflow.\n\n- resflownet: fp32 nodes: head_conv\n" in md
     for heading in (
@@ -403,11 +398,11 @@ def test_card_writes_its_headline_scores_into_the_model_manifest(card3):
     assert result["model"]["dir_bytes"] == sum(f.stat().st_size for f in model_dir.rglob("*") if f.is_file())
 
 
-def test_depth_floor_is_the_metric_of_the_predictions(card3, kitti):
+def test_depth_floor_is_the_metric_of_the_predictions(card3, kitti_raw):
     """The floor share in the card is depth_floor_share of what the runtime predicts, frame by frame."""
     md, result = card3
     predictor = Predictor(result["model"]["dir"], precision="fp32")
-    frames = sorted((kitti / "image_02" / "data").glob("*.png"))[:2]  # the card's --kitti-frames 2
+    frames = sorted((kitti_raw / "image_02" / "data").glob("*.png"))[:2]  # the card's --kitti-frames 2
     shares = [depth_floor_share(predictor.depth(read_image(f)).depth) for f in frames]
     assert result["kitti"]["depth"]["fp32"]["floor_share"] == pytest.approx(np.mean(shares), rel=1e-6)
     assert f"model, FP32 {sig3(np.mean(shares))}" in md.split("Depth floor")[1].split("\n")[0]
@@ -562,12 +557,12 @@ def test_card_renders_a_partly_successful_camera_height_fit(card3):
     assert "| 0000000000 | " in md and "| 0.123 |" in md.split("Per KITTI frame")[1].splitlines()[4]
 
 
-def test_kitti_constant_baseline_equals_numpy(card3, kitti):
+def test_kitti_constant_baseline_equals_numpy(card3, kitti_raw):
     """Constant-depth baseline abs_rel = that of the median GT depth as prediction (Garg crop, < 80 m)."""
     _, result = card3
     ours = []
     for stem in ("0000000000", "0000000001"):
-        gt = velodyne_to_depth_map(kitti, kitti / "velodyne_points" / "data" / f"{stem}.bin", (375, 1242))
+        gt = velodyne_to_depth_map(kitti_raw, kitti_raw / "velodyne_points" / "data" / f"{stem}.bin", (375, 1242))
         h, w = gt.shape
         crop = np.zeros_like(gt, dtype=bool)
         crop[int(0.40810811 * h) : int(0.99189189 * h), int(0.03594771 * w) : int(0.96405229 * w)] = True
@@ -593,10 +588,10 @@ def test_pose_straight_ahead_model_beats_identity(card3):
     assert "**model, INT8: in 2 of 2 snippets the predicted camera does not move at all**" in md
 
 
-def test_five_frame_model_without_int8(tmp_path, synth, kitti):
+def test_five_frame_model_without_int8(tmp_path, synth, kitti_raw):
     """seq_length 5: PoseNet on each snippet (paper protocol); no INT8 set -> no INT8 rows."""
     model = make_model_dir(tmp_path / "model5", seq_length=5, int8=False)
-    assert main(_args(model, synth, kitti, tmp_path, "--allow-random-init")) == 0
+    assert main(_args(model, synth, kitti_raw, tmp_path, "--allow-random-init")) == 0
     md = (tmp_path / "models.md").read_text()
     result = json.loads((tmp_path / "card.json").read_text())
     assert "| model, INT8 |" not in md and "has no INT8 graphs" in md and result["int8_delta"] == []
@@ -606,18 +601,18 @@ def test_five_frame_model_without_int8(tmp_path, synth, kitti):
     assert pose["fp32"]["ate_snippet"]["mean"] < 0.2 * pose["identity_baseline"]["ate_snippet"]["mean"]
 
 
-def test_random_init_refused_without_flag(tmp_path, synth, kitti, capsys):
+def test_random_init_refused_without_flag(tmp_path, synth, kitti_raw, capsys):
     model = make_model_dir(tmp_path / "model")
-    assert main(_args(model, synth, kitti, tmp_path)) == 2
+    assert main(_args(model, synth, kitti_raw, tmp_path)) == 2
     err = capsys.readouterr().err
     assert "random-init" in err and str(model) in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "models.md").exists()
 
 
 @pytest.mark.parametrize("which", ["model", "synth", "prepared", "kitti"])
-def test_missing_input_exits_2_naming_the_path(tmp_path, synth, kitti, capsys, which):
+def test_missing_input_exits_2_naming_the_path(tmp_path, synth, kitti_raw, capsys, which):
     model = tmp_path / "no_such_model"
-    paths = {"model": model, "synth": synth[0], "prepared": synth[1], "kitti": kitti}
+    paths = {"model": model, "synth": synth[0], "prepared": synth[1], "kitti": kitti_raw}
     if which != "model":
         model = paths["model"] = make_model_dir(tmp_path / "model")
         paths[which] = tmp_path / f"no_such_{which}"

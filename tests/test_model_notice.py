@@ -1,6 +1,6 @@
 """What the bundled model is, said where users meet it (issue 33).
 
-The manifest's ``model_card`` (written by ``training.model_card`` from the card's measurement)
+The manifest's ``model_card`` (written by ``benchmarks.model_card`` from the card's measurement)
 makes ``predict`` and ``batch`` print one line for a synthetic-only model and record it in
 summary.json, ``info`` show the scores or "not measured", and ``demo --real`` draw the real
 KITTI frame. Golden numbers come from the card's own record (docs/models.json), never from the
@@ -129,8 +129,8 @@ def test_info_on_an_export_without_scores_says_not_measured(capsys, unscored):
 def test_card_from_json_writes_the_manifest_scores_and_renders_the_same_card(
     tmp_path, capsys, monkeypatch, card, unscored
 ):
-    pytest.importorskip("training.model_card")
-    from training.model_card import main as card_main
+    pytest.importorskip("benchmarks.model_card")
+    from benchmarks.model_card import main as card_main
 
     model = tmp_path / "small_synth"
     shutil.copytree(unscored, model)
@@ -151,8 +151,8 @@ def test_card_from_json_writes_the_manifest_scores_and_renders_the_same_card(
 
 
 def test_card_from_json_refuses_numbers_of_other_graphs(tmp_path, capsys, card, unscored):
-    pytest.importorskip("training.model_card")
-    from training.model_card import main as card_main
+    pytest.importorskip("benchmarks.model_card")
+    from benchmarks.model_card import main as card_main
 
     other = dict(card, model=dict(card["model"], files=[dict(f, sha256="0" * 64) for f in card["model"]["files"]]))
     (tmp_path / "other.json").write_text(json.dumps(other))

@@ -20,6 +20,7 @@ import pytest
 
 import geonet_infer
 from geonet_infer import GeoNetError
+from geonet_infer.cascade import calibration_input
 from geonet_infer.engines import ENGINES, openvino_available
 from geonet_infer.io import Camera, read_camera
 
@@ -134,7 +135,7 @@ def test_depth_pose_flow_match_the_graphs_driven_by_hand(predictor, frames, K):
     np.testing.assert_allclose(f.depth, 1.0 / disp[0, 0], **depth_tol)
     np.testing.assert_allclose(f.pose, pose["pose_matrix"][0, 1], **TOL)  # target -> NEXT frame
     # ResFlowNet input [target, source, warped, rigid flow, error]: built here vs the runtime's ...
-    flow_input = predictor.resflow_input([prev, tgt, nxt], K)
+    flow_input = calibration_input(predictor.graph_set, predictor.spec, [prev, tgt, nxt], K)
     assert flow_input.shape == (1, 12, H, W)
     # A sampling point off by the rigid-flow tolerance (1.5e-4 px) moves a bilinear sample of the
     # warped image (and so the error channel) by up to that times the largest step between

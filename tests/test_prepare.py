@@ -23,11 +23,6 @@ from training import prepare as P
 from training import synth
 
 ROOT = Path(__file__).resolve().parents[1]
-REALDATA = ROOT / ".." / "shared" / "realdata"
-RAW = REALDATA / "kitti_raw_2011_09_26_sfnd"
-ODOM00 = REALDATA / "kitti_odometry_00"
-needs_raw = pytest.mark.skipif(not RAW.is_dir(), reason="realdata KITTI raw extract absent")
-needs_odom = pytest.mark.skipif(not ODOM00.is_dir(), reason="realdata KITTI odometry extract absent")
 
 
 def calib_values(path: Path, key: str) -> np.ndarray:
@@ -80,8 +75,7 @@ def make_synth_seq(folder: Path, n_frames: int, size=(64, 96), seed=0, K=None) -
 
 
 # --------------------------------------------------------------------------- KITTI raw (real)
-@needs_raw
-def test_kitti_raw_extract(tmp_path):
+def test_kitti_raw_extract(kitti_raw, tmp_path):
     out = tmp_path / "raw"
     assert (
         P.main(
@@ -89,7 +83,7 @@ def test_kitti_raw_extract(tmp_path):
                 "--kind",
                 "kitti_raw",
                 "--src",
-                str(RAW),
+                str(kitti_raw),
                 "--out",
                 str(out),
                 "--max-frames",
@@ -111,11 +105,11 @@ def test_kitti_raw_extract(tmp_path):
     lines = (out / "train.txt").read_text().split("\n")[:-1] + (out / "val.txt").read_text().split("\n")[:-1]
     assert sorted(lines) == names
 
-    P_rect = calib_values(RAW / "calib_cam_to_cam.txt", "P_rect_02").reshape(3, 4)
+    P_rect = calib_values(kitti_raw / "calib_cam_to_cam.txt", "P_rect_02").reshape(3, 4)
     K_expected = P_rect[:3, :3].copy()
     K_expected[0] *= 416 / 1242  # README: frames are 1242x375
     K_expected[1] *= 128 / 375
-    src = RAW / "image_02" / "data"
+    src = kitti_raw / "image_02" / "data"
     frames = {
         i: cv2.resize(cv2.imread(str(src / f"{i:010d}.png")), (416, 128), interpolation=cv2.INTER_AREA).astype(
             np.float64
@@ -135,22 +129,21 @@ def test_kitti_raw_extract(tmp_path):
 
     # resumable: a second run writes nothing; a missing _cam.txt is redone
     (folder / "0000000004_cam.txt").unlink()
-    res2 = P.prepare(P.PrepareConfig("kitti_raw", RAW, out, max_frames=12))
+    res2 = P.prepare(P.PrepareConfig("kitti_raw", kitti_raw, out, max_frames=12))
     assert (res2.written, res2.existing) == (1, 9)
     np.testing.assert_allclose(read_cam_txt(folder / "0000000004_cam.txt"), K_expected, atol=1e-6)
 
 
-@needs_raw
-def test_kitti_raw_root_layout_split_and_static(tmp_path):
+def test_kitti_raw_root_layout_split_and_static(kitti_raw, tmp_path):
     """A raw root (<date>/<drive>/image_02, calib in the date folder) with a test-scene drive."""
     root = tmp_path / "raw_root" / "2011_09_26"
     root.mkdir(parents=True)
-    (root / "calib_cam_to_cam.txt").write_text((RAW / "calib_cam_to_cam.txt").read_text())
+    (root / "calib_cam_to_cam.txt").write_text((kitti_raw / "calib_cam_to_cam.txt").read_text())
     for drive in ("2011_09_26_drive_0001_sync", "2011_09_26_drive_0002_sync"):  # 0002 is an Eigen test scene
         d = root / drive / "image_02" / "data"
         d.mkdir(parents=True)
         for i in range(5):
-            (d / f"{i:010d}.png").symlink_to((RAW / "image_02" / "data" / f"{i:010d}.png").resolve())
+            (d / f"{i:010d}.png").symlink_to((kitti_raw / "image_02" / "data" / f"{i:010d}.png").resolve())
     out = tmp_path / "out"
     res = P.prepare(P.PrepareConfig("kitti_raw", tmp_path / "raw_root", out, split="eigen"))
     assert sorted(res.train + res.val) == [f"2011_09_26_drive_0001_sync_02 {i:010d}" for i in (1, 2, 3)]
@@ -162,7 +155,7 @@ def test_kitti_raw_root_layout_split_and_static(tmp_path):
     d = root / "2011_09_26_drive_0009_sync" / "image_02" / "data"
     d.mkdir(parents=True)
     for i in range(384, 392):
-        (d / f"{i:010d}.png").symlink_to((RAW / "image_02" / "data" / f"{i - 384:010d}.png").resolve())
+        (d / f"{i:010d}.png").symlink_to((kitti_raw / "image_02" / "data" / f"{i - 384:010d}.png").resolve())
     res = P.prepare(
         P.PrepareConfig(
             "kitti_raw", tmp_path / "raw_root", tmp_path / "out_static", split="stereo", remove_static=True, workers=1
@@ -195,15 +188,14 @@ def test_scene_lists_are_official_sizes():
 
 
 # --------------------------------------------------------------------------- KITTI odometry (real, grey)
-@needs_odom
-def test_kitti_odom_grey_fallback(tmp_path, caplog):
+def test_kitti_odom_grey_fallback(kitti_odometry, tmp_path, caplog):
     out = tmp_path / "odom"
     with caplog.at_level(logging.WARNING, logger="training.prepare"):
-        res = P.prepare(P.PrepareConfig("kitti_odom", ODOM00, out))
+        res = P.prepare(P.PrepareConfig("kitti_odom", kitti_odometry, out))
     assert "greyscale" in caplog.text
     # 6 frames, seq 5 (odom default) -> targets 2, 3
     assert sorted(res.train + res.val) == ["00 000002", "00 000003"]
-    K = calib_values(ODOM00 / "sequences" / "00" / "calib.txt", "P0").reshape(3, 4)[:, :3].copy()
+    K = calib_values(kitti_odometry / "sequences" / "00" / "calib.txt", "P0").reshape(3, 4)[:, :3].copy()
     K[0] *= 416 / 1241  # README: 1241x376
     K[1] *= 128 / 376
     for t in (2, 3):
@@ -214,7 +206,7 @@ def test_kitti_odom_grey_fallback(tmp_path, caplog):
     # the pose test sequences are left out by default
     seq09 = tmp_path / "odom_root" / "sequences" / "09"
     (seq09 / "image_0").mkdir(parents=True)
-    (seq09 / "calib.txt").write_text((ODOM00 / "sequences" / "00" / "calib.txt").read_text())
+    (seq09 / "calib.txt").write_text((kitti_odometry / "sequences" / "00" / "calib.txt").read_text())
     with pytest.raises(GeoNetError, match="no sample"):
         P.prepare(P.PrepareConfig("kitti_odom", tmp_path / "odom_root", tmp_path / "o2"))
 

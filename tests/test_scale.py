@@ -108,7 +108,7 @@ def test_kitti_velodyne_ground_is_1_65_m_below_the_camera(realdata):
 # ----------------------------------------------------------------------------- along a video
 def _frame(index: int, depth: np.ndarray, forward_m: float | None):
     """A FrameResult in relative units whose pose to the next frame moves ``forward_m`` along z."""
-    from geonet_infer.predictor import FrameResult
+    from geonet_infer.results import FrameResult
 
     pose = None
     if forward_m is not None:
@@ -134,7 +134,7 @@ def test_frames_before_the_first_road_take_its_scale_and_later_ones_the_previous
     """Frames 0-1 and 3 show a wall (no road); 2 and 4 a road in units of 1/0.25 and 1/0.5 of a
     metre. Expected factors by hand: 0.25 -> 4 for frames 0-3, 0.5 -> 2 for frame 4; each
     pair's 1-unit translation becomes that many metres, chained into the trajectory."""
-    from geonet_infer.predictor import metric_frames
+    from geonet_infer.scale import metric_frames
 
     wall, road = np.full((H, W), 5.0), road_scene(1.65, 0.0)
     units = [(wall, None), (wall, None), (road, 0.25), (wall, None), (road, 0.5)]
@@ -148,16 +148,16 @@ def test_frames_before_the_first_road_take_its_scale_and_later_ones_the_previous
 
 
 def test_a_video_without_a_road_names_its_first_frame(monkeypatch):
-    from geonet_infer import predictor as predictor_module
+    from geonet_infer import scale as scale_module
 
     wall = np.full((H, W), 5.0)
     with pytest.raises(GeoNetError, match="no ground plane in any of the 3 frames") as err:
-        list(predictor_module.metric_frames(iter([_frame(i, wall, None) for i in range(3)]), 1.65, lambda size: K))
+        list(scale_module.metric_frames(iter([_frame(i, wall, None) for i in range(3)]), 1.65, lambda size: K))
     assert str(err.value.path) == "000000"
-    monkeypatch.setattr(predictor_module, "MAX_FRAMES_BEFORE_GROUND", 2)
+    monkeypatch.setattr(scale_module, "MAX_FRAMES_BEFORE_GROUND", 2)
     endless = (_frame(i, wall, None) for i in range(10**6))
     with pytest.raises(GeoNetError, match="no ground plane in the first 3 frames"):
-        list(predictor_module.metric_frames(endless, 1.65, lambda size: K))
+        list(scale_module.metric_frames(endless, 1.65, lambda size: K))
 
 
 # ----------------------------------------------------------------------------- wiring in the runtime
@@ -182,8 +182,8 @@ def test_depth_with_camera_height_is_the_relative_depth_times_one_factor(sample)
 
 def test_sequence_with_camera_height_scales_depth_and_translations_per_frame(sample):
     predictor, frames, camera = sample
-    rel = predictor.predict_sequence(frames, K=camera)
-    met = predictor.predict_sequence(frames, K=camera, camera_height=1.65)
+    rel = predictor.predict_sequence(frames, camera=camera)
+    met = predictor.predict_sequence(frames, camera=camera, camera_height=1.65)
     for a, b in zip(rel.frames, met.frames):
         np.testing.assert_allclose(b.depth, a.depth * b.metric_scale, rtol=1e-6)
         if a.pose_to_next is not None:

@@ -6,7 +6,7 @@
 This module only turns a checkpoint into the numpy callables that
 :mod:`geonet_infer.evaluation` scores (so a checkpoint, its ONNX fp32 export and the
 INT8 twin are measured by one code path). Frames go through the runtime's own pre- and
-post-processing (:mod:`geonet_infer.preprocess`: area resize to the training size,
+post-processing (:mod:`geonet_infer.cascade`: area resize to the training size,
 normalisation, outputs mapped back to the input size), so any layout works, KITTI included.
 
 ``evaluate_depth`` / ``evaluate_flow`` keep the summary format that ``export`` reads
@@ -24,9 +24,9 @@ import numpy as np
 import torch
 
 from geonet_infer import baselines, evaluation, metrics
+from geonet_infer.cascade import InputSpec, disparity_to_input, flow_to_input, graph_intrinsics
 from geonet_infer.datasets import LAYOUTS, depth_dataset, flow_dataset, load_dataset, read_heldout
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.preprocess import InputSpec, disparity_to_input, flow_to_input, graph_intrinsics
 from training.checkpoint import load_weights, model_from_checkpoint
 from training.geometry import pose_vec_to_mat
 from training.model import GeoNet

@@ -13,6 +13,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from geonet_infer.cascade import RESFLOW_INPUT
 from geonet_infer.conventions import IMAGE_NORM, NUM_SCALES
 from training.geometry import (
     flow_consistency,
@@ -82,12 +83,14 @@ def normalize_disparity_scale(disp: torch.Tensor) -> torch.Tensor:
 
 
 def flownet_input(frame_from, frame_to, warped, flow, error) -> torch.Tensor:
-    """The 12 ResFlowNet channels, in the official order.
+    """The 12 ResFlowNet channels, in the official order, which the runtime reads from the same
+    :data:`geonet_infer.cascade.RESFLOW_INPUT`.
 
     ``[I_from (3), I_to (3), I_to rigidly warped to I_from (3), rigid flow (2),
     L2 norm of the rigid photometric error (1)]`` -> (B, 12, H, W).
     """
-    return torch.cat([frame_from, frame_to, warped, flow, l2_norm(error)], dim=1)
+    parts = {"target": frame_from, "source": frame_to, "warped": warped, "rigid_flow": flow, "error": l2_norm(error)}
+    return torch.cat([parts[name] for name, _ in RESFLOW_INPUT], dim=1)
 
 
 @dataclass

@@ -19,6 +19,7 @@ import random
 import sys
 import time
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import torch
@@ -181,7 +182,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict:
     """
     rt = distributed.setup(cfg.device)
     try:
-        result = _train(cfg, rt, progress)
+        result = Trainer(cfg, rt, progress).run()
     except BaseException:
         distributed.teardown(rt, clean=False)
         raise
@@ -189,44 +190,76 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict:
     return result
 
 
-def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
-    check_options(cfg, rt.device)
-    out_dir = Path(cfg.out_dir)
-    seed_everything(cfg.seed)
-    depth_supervised = cfg.stage == "rigid" and cfg.weights.depth_supervision > 0
-    flow_supervised = cfg.stage == "flow" and cfg.weights.flow_supervision > 0
-    train_set = TrainSet(
-        [
-            SequenceDataset(
-                root,
-                "train",
-                cfg.seq_length,
-                cfg.height,
-                cfg.width,
-                augment=cfg.augment,
-                share_color_gain=cfg.share_color_gain,
-                seed=cfg.seed + k,  # another augmentation stream per folder
-                load_depth=depth_supervised,
-                load_flow=flow_supervised,
-            )
-            for k, root in enumerate([cfg.data_dir, *cfg.extra_data_dirs])
-        ]
-    )
-    # drop_last: every rank gets as many samples, none twice (no padding with repeats)
-    sampler = DistributedSampler(
-        train_set, num_replicas=rt.world_size, rank=rt.rank, shuffle=True, seed=cfg.seed, drop_last=True
-    )
-    if len(sampler) < cfg.batch_size:
-        per = f" per rank ({rt.world_size} ranks)" if rt.distributed else ""
-        raise InputError(
-            Path(cfg.data_dir) / "train.txt",
-            f"{len(train_set)} samples, fewer than one batch of {cfg.batch_size}{per}",
-            "prepare more data or lower --batch-size",
+class Trainer:
+    """One stage's run, monodepth2-style: ``__init__`` builds the data, the model, the optimizer and
+    (``--resume``) the saved state; :meth:`run` loops :meth:`train_step` and, on rank 0,
+    :meth:`end_of_step` (validate, log, checkpoint).
+
+    The order of the calls that draw random numbers (seeding, model init, resumed RNG state, data
+    order) is part of the ``--resume`` bit-for-bit contract: keep it when editing.
+    """
+
+    def __init__(self, cfg: TrainConfig, rt: distributed.Runtime, progress: bool):
+        check_options(cfg, rt.device)
+        self.cfg, self.rt, self.progress = cfg, rt, progress
+        self.out_dir = Path(cfg.out_dir)
+        self.log_path = self.out_dir / "log.jsonl"
+        # the samples carry their ground truth when the stage's loss is supervised by it
+        self.load_depth = cfg.stage == "rigid" and cfg.weights.depth_supervision > 0
+        self.load_flow = cfg.stage == "flow" and cfg.weights.flow_supervision > 0
+        seed_everything(cfg.seed)
+        self.train_set, self.sampler = self._train_data()
+        self.val_set = self._val_data() if rt.is_main else None
+        self.model, self.optimizer, self.scaler = self._build_model()
+        self.step, self.best = 0, float("inf")
+        if cfg.resume:
+            self._resume()
+        self.loss_fn = self._loss_fn()
+        self.metrics: dict = {"best_val_total": self.best}
+        self.epoch = 0
+        self.started = 0.0
+
+    # ------------------------------------------------------------------ setup
+    def _train_data(self) -> tuple[TrainSet, DistributedSampler]:
+        """The training samples of every data folder and this rank's sampler over them."""
+        cfg, rt = self.cfg, self.rt
+        train_set = TrainSet(
+            [
+                SequenceDataset(
+                    root,
+                    "train",
+                    cfg.seq_length,
+                    cfg.height,
+                    cfg.width,
+                    augment=cfg.augment,
+                    share_color_gain=cfg.share_color_gain,
+                    seed=cfg.seed + k,  # another augmentation stream per folder
+                    load_depth=self.load_depth,
+                    load_flow=self.load_flow,
+                )
+                for k, root in enumerate([cfg.data_dir, *cfg.extra_data_dirs])
+            ]
         )
-    val_path = Path(cfg.data_dir) / "val.txt"
-    val_set = None
-    if rt.is_main and val_path.is_file() and val_path.read_text().strip():
-        val_set = SequenceDataset(
+        # drop_last: every rank gets as many samples, none twice (no padding with repeats)
+        sampler = DistributedSampler(
+            train_set, num_replicas=rt.world_size, rank=rt.rank, shuffle=True, seed=cfg.seed, drop_last=True
+        )
+        if len(sampler) < cfg.batch_size:
+            per = f" per rank ({rt.world_size} ranks)" if rt.distributed else ""
+            raise InputError(
+                Path(cfg.data_dir) / "train.txt",
+                f"{len(train_set)} samples, fewer than one batch of {cfg.batch_size}{per}",
+                "prepare more data or lower --batch-size",
+            )
+        return train_set, sampler
+
+    def _val_data(self) -> SequenceDataset | None:
+        """``val.txt`` of ``--data-dir`` (rank 0 validates alone); None when there is none."""
+        cfg = self.cfg
+        val_path = Path(cfg.data_dir) / "val.txt"
+        if not (val_path.is_file() and val_path.read_text().strip()):
+            return None
+        return SequenceDataset(
             cfg.data_dir,
             "val",
             cfg.seq_length,
@@ -234,121 +267,155 @@ def _train(cfg: TrainConfig, rt: distributed.Runtime, progress: bool) -> dict:
             cfg.width,
             augment=False,
             seed=cfg.seed,
-            load_depth=depth_supervised,
-            load_flow=flow_supervised,
+            load_depth=self.load_depth,
+            load_flow=self.load_flow,
         )
 
-    model = build_model(cfg)
-    if cfg.init_checkpoint and not cfg.resume:
-        init_from(model, cfg)
-    if cfg.sync_bn:
-        distributed.convert_sync_bn(model)
-    model = model.to(rt.device, memory_format=torch.channels_last if cfg.channels_last else torch.preserve_format)
-    params = [p for m in trainable_modules(model, cfg.stage) for p in m.parameters() if p.requires_grad]
-    frozen = [m for m in (model.depth_net, model.pose_net) if cfg.stage == "flow"]
-    for module in frozen:
-        module.requires_grad_(False)
-    optimizer = torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
-    scaler = torch.amp.GradScaler(rt.device.type, enabled=cfg.amp == "fp16")
+    def _build_model(self) -> tuple[GeoNet, torch.optim.Optimizer, torch.amp.GradScaler]:
+        """The model on its device (``--init-checkpoint`` loaded, stage flow's rigid nets frozen), the
+        optimizer of the stage's trainable parameters and the fp16 grad scaler (disabled otherwise)."""
+        cfg, rt = self.cfg, self.rt
+        model = build_model(cfg)
+        if cfg.init_checkpoint and not cfg.resume:
+            init_from(model, cfg)
+        if cfg.sync_bn:
+            distributed.convert_sync_bn(model)
+        model = model.to(rt.device, memory_format=torch.channels_last if cfg.channels_last else torch.preserve_format)
+        params = [p for m in trainable_modules(model, cfg.stage) for p in m.parameters() if p.requires_grad]
+        frozen = [m for m in (model.depth_net, model.pose_net) if cfg.stage == "flow"]
+        for module in frozen:
+            module.requires_grad_(False)
+        optimizer = torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
+        scaler = torch.amp.GradScaler(rt.device.type, enabled=cfg.amp == "fp16")
+        return model, optimizer, scaler
 
-    step, best = 0, float("inf")
-    if cfg.resume:
-        ckpt = load_checkpoint(cfg.resume, expect_stage=cfg.stage, expect_arch=cfg.arch)
-        model.load_state_dict(ckpt["model"])
-        optimizer.load_state_dict(ckpt["optimizer"])
+    def _resume(self) -> None:
+        """Model, optimizer, grad scaler, step, best validation loss and every RNG state of ``--resume``."""
+        ckpt = load_checkpoint(self.cfg.resume, expect_stage=self.cfg.stage, expect_arch=self.cfg.arch)
+        self.model.load_state_dict(ckpt["model"])
+        self.optimizer.load_state_dict(ckpt["optimizer"])
         if ckpt.get("grad_scaler"):
-            scaler.load_state_dict(ckpt["grad_scaler"])
-        step = ckpt["step"]
-        best = ckpt["metrics"].get("best_val_total", best)
+            self.scaler.load_state_dict(ckpt["grad_scaler"])
+        self.step = ckpt["step"]
+        self.best = ckpt["metrics"].get("best_val_total", self.best)
         set_rng_state(ckpt["rng"])
 
-    if cfg.amp != "off":
-        autocast_nets(model, rt.device.type, AMP_DTYPES[cfg.amp])
-    loss_fn: torch.nn.Module = StageLossModule(model, cfg.stage)
-    if rt.distributed:
-        loss_fn = DistributedDataParallel(loss_fn, device_ids=[rt.device] if rt.device.type == "cuda" else None)
-    if cfg.compile:
-        loss_fn = torch.compile(loss_fn)
+    def _loss_fn(self) -> torch.nn.Module:
+        """The stage loss as one module: under autocast (``--amp``), DDP (torchrun) and torch.compile."""
+        cfg, rt = self.cfg, self.rt
+        if cfg.amp != "off":
+            autocast_nets(self.model, rt.device.type, AMP_DTYPES[cfg.amp])
+        loss_fn: torch.nn.Module = StageLossModule(self.model, cfg.stage)
+        if rt.distributed:
+            loss_fn = DistributedDataParallel(loss_fn, device_ids=[rt.device] if rt.device.type == "cuda" else None)
+        if cfg.compile:
+            loss_fn = torch.compile(loss_fn)
+        return loss_fn
 
-    log_path = out_dir / "log.jsonl"
-    if rt.is_main:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
-        if progress:
-            print(
-                f"training on {rt.device}: {rt.world_size} process(es) x batch {cfg.batch_size} "
-                f"= effective batch {rt.world_size * cfg.batch_size}"
-            )
-    steps_per_epoch = len(sampler) // cfg.batch_size
-    epoch = step // steps_per_epoch
-    batches = epoch_loader(train_set, sampler, cfg, epoch, skip_batches=step % steps_per_epoch)
-    set_modes(model, cfg.stage, training=True)
-    metrics: dict = {"best_val_total": best}
-    bar = tqdm(
-        total=cfg.max_steps,
-        initial=step,
-        desc=f"train {cfg.stage}",
-        disable=not (progress and rt.is_main),
-        dynamic_ncols=True,
-    )
-    started = time.perf_counter()
-    log = open(log_path, "a") if rt.is_main else None
-    try:
-        while step < cfg.max_steps:
-            try:
-                batch = next(batches)
-            except StopIteration:
-                epoch += 1
-                batches = epoch_loader(train_set, sampler, cfg, epoch)
-                continue
-            loss = loss_fn(*to_device(batch, rt.device))
-            optimizer.zero_grad(set_to_none=True)
-            scaler.scale(loss.total).backward()
-            scaler.step(optimizer)
-            scaler.update()
-            step += 1
-            bar.update(1)
-            out_of_time = cfg.max_minutes is not None and time.perf_counter() - started > 60 * cfg.max_minutes
-            terms = loss.terms
-            if rt.distributed:  # one collective: mean losses for the log, and stop if any rank ran out of time
-                names = sorted(terms)
-                packed = torch.tensor(
-                    [terms[k] for k in names] + [float(out_of_time)], dtype=torch.float64, device=rt.device
+    # ------------------------------------------------------------------- loop
+    def run(self) -> dict:
+        """Train to ``--max-steps`` (or ``--max-minutes``); returns {'step', 'log', 'last', 'best', 'metrics'}."""
+        cfg, rt = self.cfg, self.rt
+        if rt.is_main:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            (self.out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+            if self.progress:
+                print(
+                    f"training on {rt.device}: {rt.world_size} process(es) x batch {cfg.batch_size} "
+                    f"= effective batch {rt.world_size * cfg.batch_size}"
                 )
-                summed = distributed.all_reduce_sum(packed).tolist()
-                terms = {k: v / rt.world_size for k, v in zip(names, summed)}
-                out_of_time = summed[-1] > 0
-            row = {"step": step, "epoch": epoch, **terms}
-            last_step = step == cfg.max_steps or out_of_time
-            if not rt.is_main:
+        steps_per_epoch = len(self.sampler) // cfg.batch_size
+        self.epoch = self.step // steps_per_epoch
+        batches = epoch_loader(self.train_set, self.sampler, cfg, self.epoch, skip_batches=self.step % steps_per_epoch)
+        set_modes(self.model, cfg.stage, training=True)
+        bar = tqdm(
+            total=cfg.max_steps,
+            initial=self.step,
+            desc=f"train {cfg.stage}",
+            disable=not (self.progress and rt.is_main),
+            dynamic_ncols=True,
+        )
+        self.started = time.perf_counter()
+        log = open(self.log_path, "a") if rt.is_main else None
+        try:
+            while self.step < cfg.max_steps:
+                try:
+                    batch = next(batches)
+                except StopIteration:
+                    self.epoch += 1
+                    batches = epoch_loader(self.train_set, self.sampler, cfg, self.epoch)
+                    continue
+                loss = self.train_step(batch)
+                bar.update(1)
+                terms, out_of_time = self._gather(loss.terms, self._out_of_time())
+                if rt.is_main:
+                    self.end_of_step(terms, self.step == cfg.max_steps or out_of_time, log, bar)
                 if out_of_time:
+                    if rt.is_main:
+                        print(f"stopping at step {self.step}: --max-minutes {cfg.max_minutes} reached")
                     break
-                continue
-            if step % cfg.val_every == 0 or last_step:
-                row.update(validate(model, cfg, val_set, rt.device))
-                if row.get("val_total", float("inf")) < best:
-                    best = row["val_total"]
-                    metrics.update({k: v for k, v in row.items() if k.startswith("val_")})
-                    metrics["best_val_total"] = best
-                    metrics["best_step"] = step
-                    save_checkpoint(out_dir / "best.pt", model, optimizer, step, cfg, metrics, scaler)
-            if step % cfg.log_every == 0 or "val_total" in row:
-                row["elapsed_s"] = round(time.perf_counter() - started, 2)
-                if rt.device.type == "cuda":
-                    row["cuda_max_mem_gb"] = round(torch.cuda.max_memory_allocated(rt.device) / 2**30, 2)
-                log.write(json.dumps(row) + "\n")
-                log.flush()
-                bar.set_postfix({k: f"{v:.4f}" for k, v in terms.items()})
-            if step % cfg.save_every == 0 or last_step:
-                save_checkpoint(out_dir / "last.pt", model, optimizer, step, cfg, metrics, scaler)
-            if out_of_time:
-                print(f"stopping at step {step}: --max-minutes {cfg.max_minutes} reached")
-                break
-    finally:
-        if log is not None:
-            log.close()
-        bar.close()
-    return {"step": step, "log": log_path, "last": out_dir / "last.pt", "best": out_dir / "best.pt", "metrics": metrics}
+        finally:
+            if log is not None:
+                log.close()
+            bar.close()
+        return {
+            "step": self.step,
+            "log": self.log_path,
+            "last": self.out_dir / "last.pt",
+            "best": self.out_dir / "best.pt",
+            "metrics": self.metrics,
+        }
+
+    def train_step(self, batch: dict) -> StageLoss:
+        """One optimizer step on ``batch`` (every rank); returns its loss."""
+        loss = self.loss_fn(*to_device(batch, self.rt.device))
+        self.optimizer.zero_grad(set_to_none=True)
+        self.scaler.scale(loss.total).backward()
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        self.step += 1
+        return loss
+
+    def _out_of_time(self) -> bool:
+        return self.cfg.max_minutes is not None and time.perf_counter() - self.started > 60 * self.cfg.max_minutes
+
+    def _gather(self, terms: dict[str, float], out_of_time: bool) -> tuple[dict[str, float], bool]:
+        """Under torchrun, one collective: the losses averaged over the ranks for the log, and whether
+        any rank ran out of time (then all stop at the same step)."""
+        if not self.rt.distributed:
+            return terms, out_of_time
+        names = sorted(terms)
+        packed = torch.tensor(
+            [terms[k] for k in names] + [float(out_of_time)], dtype=torch.float64, device=self.rt.device
+        )
+        summed = distributed.all_reduce_sum(packed).tolist()
+        return {k: v / self.rt.world_size for k, v in zip(names, summed)}, summed[-1] > 0
+
+    def end_of_step(self, terms: dict[str, float], last_step: bool, log: TextIO, bar: tqdm) -> None:
+        """Rank 0, after each step: validate (``best.pt`` on a new best), log, save ``last.pt``, each when
+        its ``--*-every`` says or at the last step."""
+        cfg, step = self.cfg, self.step
+        row = {"step": step, "epoch": self.epoch, **terms}
+        if step % cfg.val_every == 0 or last_step:
+            row.update(validate(self.model, cfg, self.val_set, self.rt.device))
+            if row.get("val_total", float("inf")) < self.best:
+                self.best = row["val_total"]
+                self.metrics.update({k: v for k, v in row.items() if k.startswith("val_")})
+                self.metrics["best_val_total"] = self.best
+                self.metrics["best_step"] = step
+                self._save("best.pt")
+        if step % cfg.log_every == 0 or "val_total" in row:
+            row["elapsed_s"] = round(time.perf_counter() - self.started, 2)
+            if self.rt.device.type == "cuda":
+                row["cuda_max_mem_gb"] = round(torch.cuda.max_memory_allocated(self.rt.device) / 2**30, 2)
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            bar.set_postfix({k: f"{v:.4f}" for k, v in terms.items()})
+        if step % cfg.save_every == 0 or last_step:
+            self._save("last.pt")
+
+    def _save(self, name: str) -> None:
+        save_checkpoint(self.out_dir / name, self.model, self.optimizer, self.step, self.cfg, self.metrics, self.scaler)
 
 
 def main(argv=None) -> int:

@@ -45,6 +45,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from geonet_infer.cascade import flow_to_input, graph_intrinsics, next_source_position, snippet_indices
 from geonet_infer.cli.common import add_model_args
 from geonet_infer.cli.info import environment, model_summary
 from geonet_infer.conventions import scale_intrinsics
@@ -56,7 +57,6 @@ from geonet_infer.io.images import list_images, read_image
 from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.predictor import Predictor, load
-from geonet_infer.preprocess import flow_to_input, graph_intrinsics, next_source_position, snippet_indices
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mib, time_interleaved
 
@@ -301,7 +301,7 @@ class Graphs:
     """Calls the predictor's engines directly: feeds must be C-contiguous float32."""
 
     def __init__(self, predictor: Predictor):
-        self.engines = {n: predictor.engine(n) for n in predictor.graphs}
+        self.engines = {n: predictor.graph_set.engine(n) for n in predictor.graphs}
 
     def __contains__(self, name: str) -> bool:
         return name in self.engines
@@ -592,7 +592,7 @@ def run(args: argparse.Namespace) -> int:
             rss_loaded = current_rss_mib()
             graphs_mib = manifest.files_mib(precision)
             env.setdefault("threads", predictor.threads)
-            ort_engines = [predictor.engine(n) for n, e in predictor.engines.items() if e == "onnxruntime"]
+            ort_engines = [predictor.graph_set.engine(n) for n, e in predictor.engines.items() if e == "onnxruntime"]
             if ort_engines:
                 env.setdefault("session_options", ort_engines[0].describe())
             for batch in plan["batches"]:
@@ -614,7 +614,7 @@ def run(args: argparse.Namespace) -> int:
                 results += [_row(t, m, precision, backend, batch, c, x) for t, m, c, x in cases]
             env.setdefault("engines", {})[f"{backend}/{precision}"] = {
                 name: {
-                    **predictor.engine(name).describe(),
+                    **predictor.graph_set.engine(name).describe(),
                     **({"auto": predictor.backend_choice[name]} if name in predictor.backend_choice else {}),
                 }
                 for name in predictor.graphs

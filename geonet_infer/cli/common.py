@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.engines import BACKENDS
+from geonet_infer.engines import AUTO, BACKENDS, ENGINES
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.manifest import PRECISIONS
@@ -28,6 +28,16 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
     return value
+
+
+def backend_help() -> str:
+    """--backend's help, one clause per registered engine (:data:`geonet_infer.engines.ENGINES`)."""
+    engines = "; ".join(cls.summary for cls in ENGINES.values())
+    both, faster = ("both", "faster") if len(ENGINES) == 2 else ("each", "fastest")
+    return (
+        f"inference engine: {engines}; {AUTO} (times {both} per graph at load, keeps the {faster}) "
+        f"(default: {BACKENDS[0]})"
+    )
 
 
 def add_model_args(parser: argparse.ArgumentParser, threads: bool = True) -> None:
@@ -49,9 +59,7 @@ def add_model_args(parser: argparse.ArgumentParser, threads: bool = True) -> Non
         "--backend",
         default=BACKENDS[0],
         choices=BACKENDS,
-        help="inference engine: onnxruntime; openvino (pip install 'geonet-infer[openvino]', 2-4x "
-        "faster int8 on VNNI CPUs); auto (times both per graph at load, keeps the faster) "
-        f"(default: {BACKENDS[0]})",
+        help=backend_help(),
     )
     if threads:
         group.add_argument(

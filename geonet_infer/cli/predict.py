@@ -18,7 +18,8 @@ from geonet_infer.cli.common import (
 from geonet_infer.errors import InputError
 from geonet_infer.io.frames import open_frames
 from geonet_infer.pipeline import MAX_BATCH_SIZE, SUMMARY_NAME, TASKS, parse_tasks, predict_to_dir
-from geonet_infer.predictor import MAX_FRAMES_BEFORE_GROUND, describe_skipped
+from geonet_infer.predictor import describe_skipped
+from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND
 
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.

@@ -122,7 +122,7 @@ class Camera:
         The remap tables are built once per camera and image size (``cv2.undistort`` rebuilds
         them on every call, about two thirds of its time on a 1280x720 frame).
         """
-        if not self.has_distortion:
+        if self.dist is None or not self.has_distortion:
             return image
         h, w = image.shape[:2]
         map1, map2 = _undistort_maps(self.K.tobytes(), self.dist.tobytes(), w, h)
@@ -344,7 +344,8 @@ def _camera_from_key_values(kv: dict[str, list[str]], path: Path) -> Camera | No
         P = _floats(kv["P_rect_02"], path, "P_rect_02", (12,))
         size = None
         if "S_rect_02" in kv:
-            size = _size(*_floats(kv["S_rect_02"], path, "S_rect_02", (2,)), path, "S_rect_02")
+            width, height = _floats(kv["S_rect_02"], path, "S_rect_02", (2,))
+            size = _size(width, height, path, "S_rect_02")
         return Camera(P.reshape(3, 4)[:, :3], None, size, f"{path} (KITTI raw, P_rect_02)")
     for key in ("P2", "P0"):  # KITTI odometry calib.txt: colour cam 2, else grey cam 0
         if key in kv:
@@ -404,7 +405,8 @@ def _camera_from_euroc_yaml(text: str, path: Path) -> Camera | None:
     size = None
     res = _yaml_list(text, "resolution")
     if res is not None:
-        size = _size(*_floats(res, path, "resolution", (2,)), path, "resolution")
+        width, height = _floats(res, path, "resolution", (2,))
+        size = _size(width, height, path, "resolution")
     K = np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
     return Camera(K, dist, size, f"{path} (EuRoC sensor.yaml)")
 

@@ -160,7 +160,7 @@ class _VideoSource(FrameSource):
 
     def __iter__(self) -> Iterator[Frame]:
         cap = cv2.VideoCapture(str(self.path))
-        names = []
+        names: list[str] = []
         try:
             while True:
                 ok, bgr = cap.read()

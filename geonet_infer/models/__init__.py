@@ -4,6 +4,7 @@ Each sub-folder holding a ``manifest.json`` is a bundled model, named after the
 folder. ``scripts/build_bundled_model.sh`` reproduces them from our own training
 code; ``docs/models.md`` is their model card.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -30,5 +31,8 @@ def resolve_model(model: str | Path | None = None) -> Path:
     if path.is_dir():
         return path
     names = ", ".join(bundled) or "none installed"
-    raise ModelError(path, "no such model directory or bundled model",
-                           f"pass a directory written by `python -m export` or a bundled name ({names})")
+    raise ModelError(
+        path,
+        "no such model directory or bundled model",
+        f"pass a directory written by `python -m export` or a bundled name ({names})",
+    )

@@ -1,6 +1,6 @@
 """Write the model card (``docs/models.md``) of an exported model directory.
 
-``python -m training.model_card --model geonet_infer/models/small_synth --synth-dir data/synth40
+``python -m benchmarks.model_card --model geonet_infer/models/small_synth --synth-dir data/synth40
 --prepared-dir data/synth40_prepared --kitti ../shared/realdata/kitti_raw_2011_09_26_sfnd
 --out docs/models.md [--json OUT.json] [--before DIR] [--stride N] [--kitti-frames N]``
 
@@ -741,8 +741,11 @@ def _side_text(label: str, model: dict) -> str:
 
 
 def _before_after(result: dict) -> list[str]:
-    """The headline numbers of the previous model and this one, with baseline, target and verdict."""
-    before = result["before"]
+    """Section "Before / after": the headline numbers of the previous model and this one, with baseline,
+    target and verdict; nothing without ``--before``."""
+    before = result.get("before")
+    if not before:
+        return []
     rows = []
     for h in HEADLINES:
         baseline = _flatten(result[h.where][h.task][h.baseline])[h.metric]
@@ -830,13 +833,27 @@ def _dir_bytes(model_dir: Path) -> int:
 
 
 def render_card(result: dict) -> str:
+    """The Markdown card of a result (:func:`run`'s, or an earlier run's ``--json``), one function per section."""
+    sections = (
+        _header_section,
+        _model_section,
+        _before_after,
+        _files_section,
+        _measured_section,
+        _depth_section,
+        _flow_pose_section,
+        _int8_section,
+        _limitations_section,
+    )
+    return "\n".join(line for section in sections for line in section(result)) + "\n"
+
+
+def _header_section(result: dict) -> list[str]:
+    """Title, the command that regenerates the card, and the random-init warning."""
     m = result["model"]
-    prov = m["provenance"]
-    s, k = result["synthetic"], result["kitti"]
-    synth_data, kitti_data = _data_synth(result), _data_kitti(result)
-    name = Path(m["dir"]).name
-    L: list[str] = [f"# Model card: `{name}`", ""]
-    L += [
+    L = [
+        f"# Model card: `{Path(m['dir']).name}`",
+        "",
         "Regenerate this file (from the repository root; every number below comes from that run, "
         "none is typed by hand):",
         "",
@@ -845,7 +862,7 @@ def render_card(result: dict) -> str:
         "```",
         "",
         f"Generated {result['generated_utc']} at git commit `{(result['git_commit'] or 'unknown')[:12]}` "
-        "by `training/model_card.py`. All models run through the pip runtime "
+        "by `benchmarks/model_card.py`. All models run through the pip runtime "
         "(`geonet_infer.predictor.Predictor` on onnxruntime), exactly as users run them.",
         "",
     ]
@@ -857,9 +874,13 @@ def render_card(result: dict) -> str:
             "or compare them; regenerate the card from a trained export.**",
             "",
         ]
+    return L
 
-    # ------------------------------------------------------------ what
-    L += ["## The model", ""]
+
+def _model_section(result: dict) -> list[str]:
+    """Section "The model": architecture and provenance, then the manifest's training metrics and INT8 settings."""
+    m = result["model"]
+    prov = m["provenance"]
     origin = _stage_origin(prov.get("training_command"))
     stage = prov.get("checkpoint_stage")
     stages = (f"`{stage}`, {origin}" if origin else f"`{stage}`") if stage else "n/a"
@@ -884,9 +905,9 @@ def render_card(result: dict) -> str:
         ["checkpoint", _checkpoint_text(prov)],
         ["exported", f"{prov.get('export_date')} at git commit `{(prov.get('git_commit') or 'unknown')[:12]}`"],
         ["exporter", prov.get("exporter") or "n/a"],
-        ["versions", ", ".join(f"{k_} {v}" for k_, v in sorted(prov.get("versions", {}).items())) or "n/a"],
+        ["versions", ", ".join(f"{k} {v}" for k, v in sorted(prov.get("versions", {}).items())) or "n/a"],
     ]
-    L += _table(["", ""], rows) + [""]
+    L = ["## The model", "", *_table(["", ""], rows), ""]
     if m["metrics"]:
         L += [
             "Checkpoint metrics recorded by training (from the manifest; validation split of the "
@@ -895,10 +916,7 @@ def render_card(result: dict) -> str:
         ]
         L += _table(
             ["metric", "value"],
-            [
-                [f"`{k_}`", sig3(v) if isinstance(v, (int, float)) else str(v)]
-                for k_, v in _flatten(m["metrics"]).items()
-            ],
+            [[f"`{k}`", sig3(v) if isinstance(v, (int, float)) else str(v)] for k, v in _flatten(m["metrics"]).items()],
         ) + [""]
     q = m["quantization"]
     if q:
@@ -913,11 +931,13 @@ def render_card(result: dict) -> str:
         ]
         for graph, notes in (q.get("graph_notes") or {}).items():
             L += [f"- {graph}: {line}" for line in notes] + [""]
-    if result.get("before"):
-        L += _before_after(result)
+    return L
 
-    # ------------------------------------------------------------ files
-    L += [
+
+def _files_section(result: dict) -> list[str]:
+    """Section "Files": every graph file with its size and sha256 prefix, and the totals."""
+    m = result["model"]
+    L = [
         "## Files",
         "",
         f"Model directory `{m['dir']}`; sha256 from `manifest.json` (checked against the "
@@ -937,25 +957,27 @@ def render_card(result: dict) -> str:
             for f in m["files"]
         ],
     ) + [""]
-    totals = {}
+    totals: dict[str, int] = {}
     for f in m["files"]:
-        totals.setdefault(f["precision"], 0)
-        totals[f["precision"]] += f["bytes"]
+        totals[f["precision"]] = totals.get(f["precision"], 0) + f["bytes"]
     L += [
         "Total per precision (a precision's set includes the shared FP32 `rigidflow`): "
         + ", ".join(f"{p} {_mib(b)}" for p, b in totals.items())
         + f"; the whole directory, manifest included: {m['dir_bytes']:,} bytes ({_mib(m['dir_bytes'])}).",
         "",
     ]
+    return L
 
-    # ------------------------------------------------------------ data and protocol
-    seqs = s["sequences"]
+
+def _measured_section(result: dict) -> list[str]:
+    """Section "What was measured": data, protocol and baselines of each task."""
+    s, k = result["synthetic"], result["kitti"]
     orb = s["pose"]["orb_vo_baseline"]
-    L += [
+    return [
         "## What was measured",
         "",
-        f"* **Synthetic held-out**: {synth_data}: sequences {', '.join(f'`{x}`' for x in seqs)} listed in "
-        f"`{s['prepared_dir']}/heldout.txt`, generated by `training.synth` and never trained on"
+        f"* **Synthetic held-out**: {_data_synth(result)}: sequences {', '.join(f'`{x}`' for x in s['sequences'])} "
+        f"listed in `{s['prepared_dir']}/heldout.txt`, generated by `training.synth` and never trained on"
         + (f"; one frame / pair / snippet in {s['stride']} (`--stride {s['stride']}`)" if s["stride"] > 1 else "")
         + ". Depth: every pixel with ground truth (no crop), per-image median scaling, clamp to "
         f"[{MIN_DEPTH:g}, {result['settings']['max_depth']:g}] m "
@@ -976,7 +998,7 @@ def render_card(result: dict) -> str:
         "√(Σ‖e‖²)/N, i.e. the true RMSE ÷ √5, with only a scale (no rotation) fitted per snippet. "
         "`ATE, true RMSE` is `metrics.ate_rmse_true` after the same alignment "
         "(`geonet_infer.evaluation.evaluate_pose`). Units are the synthetic world's metres.",
-        f"* **Real KITTI**: {kitti_data}, never trained on. Ground truth: "
+        f"* **Real KITTI**: {_data_kitti(result)}, never trained on. Ground truth: "
         + (
             "the Velodyne scans projected by `geonet_infer.velodyne.velodyne_to_depth_map` (camera 2, Velodyne "
             "forward distance)"
@@ -999,34 +1021,45 @@ def render_card(result: dict) -> str:
         "",
     ]
 
-    # ------------------------------------------------------------ tables
-    d = s["depth"]
-    L += ["## Depth", "", "### Synthetic held-out sequences", ""]
-    L += _depth_table(d, synth_data, "frames") + [""]
+
+def _per_frame_label(key: str) -> str:
+    """Column header of the per-frame AbsRel table: "FP32", "FP32, camera height", "constant depth"."""
+    if key.endswith("_camera_height"):
+        return f"{PRECISION_LABEL[key[: -len('_camera_height')]].removeprefix('model, ')}, camera height"
+    return PRECISION_LABEL.get(key, "constant depth")
+
+
+def _per_frame_cell(row: dict) -> str:
+    return "no ground plane" if row.get("ground_fit") == "failed" else sig3(row["abs_rel"])
+
+
+def _depth_section(result: dict) -> list[str]:
+    """Section "Depth": synthetic and KITTI tables, the depth-floor and camera-height notes, AbsRel per KITTI frame."""
+    d, kd = result["synthetic"]["depth"], result["kitti"]["depth"]
+    L = ["## Depth", "", "### Synthetic held-out sequences", ""]
+    L += _depth_table(d, _data_synth(result), "frames") + [""]
     L += ["### Real KITTI (Velodyne ground truth)", ""]
-    L += _depth_table(k["depth"], kitti_data, "frames") + [""]
-    L += _floor_text(k["depth"], result["before"]["kitti"]["depth"] if result["before"] else None)
-    L += _camera_height_text(k["depth"])
+    L += _depth_table(kd, _data_kitti(result), "frames") + [""]
+    L += _floor_text(kd, result["before"]["kitti"]["depth"] if result["before"] else None)
+    L += _camera_height_text(kd)
     L += ["Per KITTI frame (AbsRel):", ""]
-    keys = [c for p in ("fp32", "int8") if p in k["depth"] for c in (p, f"{p}_camera_height")]
+    keys = [c for p in ("fp32", "int8") if p in kd for c in (p, f"{p}_camera_height")]
     keys.append("constant_baseline")
-
-    def label(key: str) -> str:
-        if key.endswith("_camera_height"):
-            return f"{PRECISION_LABEL[key[: -len('_camera_height')]].removeprefix('model, ')}, camera height"
-        return PRECISION_LABEL.get(key, "constant depth")
-
-    def cell(row: dict) -> str:
-        return "no ground plane" if row.get("ground_fit") == "failed" else sig3(row["abs_rel"])
-
     L += _table(
-        ["frame"] + [label(c) for c in keys] + ["GT pixels"],
+        ["frame"] + [_per_frame_label(c) for c in keys] + ["GT pixels"],
         [
-            [f["frame"]] + [cell(f[c]) for c in keys] + [sig3(f["constant_baseline"]["n_valid"])]
-            for f in k["depth"]["per_frame"]
+            [f["frame"]] + [_per_frame_cell(f[c]) for c in keys] + [sig3(f["constant_baseline"]["n_valid"])]
+            for f in kd["per_frame"]
         ],
     ) + [""]
-    L += ["## Optical flow (synthetic held-out sequences)", ""]
+    return L
+
+
+def _flow_pose_section(result: dict) -> list[str]:
+    """Sections "Optical flow" and "Camera pose": their tables, and a warning per precision whose camera stays put."""
+    s = result["synthetic"]
+    synth_data = _data_synth(result)
+    L = ["## Optical flow (synthetic held-out sequences)", ""]
     L += _flow_table(s["flow"], synth_data) + [""]
     L += ["## Camera pose (synthetic held-out sequences, 5-frame snippets)", ""]
     L += _pose_table(s["pose"], synth_data) + [""]
@@ -1040,35 +1073,42 @@ def render_card(result: dict) -> str:
                 "PoseNet graph.",
                 "",
             ]
+    return L
 
-    # ------------------------------------------------------------ int8
-    L += ["## INT8 versus FP32", ""]
+
+INT8_METRIC_NAMES = {
+    "abs_rel": "AbsRel",
+    "sq_rel": "SqRel",
+    "rmse": "RMSE",
+    "rmse_log": "RMSElog",
+    "a1": "δ<1.25",
+    "noc.epe": "EPE noc",
+    "occ.epe": "EPE occ",
+    "noc.fl": "Fl noc",
+    "occ.fl": "Fl occ",
+    "ate_snippet.mean": "ATE paper (mean)",
+    "ate_rmse_true.mean": "ATE true RMSE (mean)",
+}
+
+
+def _int8_section(result: dict) -> list[str]:
+    """Section "INT8 versus FP32": this run's differences, then the check the export recorded in the manifest."""
+    m = result["model"]
+    L = ["## INT8 versus FP32", ""]
     if result["int8_delta"]:
+        data = {"synthetic": _data_synth(result), "kitti": _data_kitti(result)}
         L += [
             "Difference INT8 − FP32 on the same frames (positive = INT8 larger; for δ<1.25 larger is "
             "better, for the errors smaller is better):",
             "",
         ]
-        names = {
-            "abs_rel": "AbsRel",
-            "sq_rel": "SqRel",
-            "rmse": "RMSE",
-            "rmse_log": "RMSElog",
-            "a1": "δ<1.25",
-            "noc.epe": "EPE noc",
-            "occ.epe": "EPE occ",
-            "noc.fl": "Fl noc",
-            "occ.fl": "Fl occ",
-            "ate_snippet.mean": "ATE paper (mean)",
-            "ate_rmse_true.mean": "ATE true RMSE (mean)",
-        }
         L += _table(
             ["data", "task", "metric", "FP32", "INT8", "INT8 − FP32", "relative"],
             [
                 [
-                    synth_data if r["data"] == "synthetic" else kitti_data,
+                    data["synthetic"] if r["data"] == "synthetic" else data["kitti"],
                     r["task"],
-                    names[r["metric"]],
+                    INT8_METRIC_NAMES[r["metric"]],
                     sig3(r["fp32"]),
                     sig3(r["int8"]),
                     signed3(r["delta"]),
@@ -1079,11 +1119,12 @@ def render_card(result: dict) -> str:
         ) + [""]
     else:
         L += [f"This model directory has no INT8 graphs (the manifest lists only {', '.join(m['precisions'])}).", ""]
+    q = m["quantization"]
     if q and isinstance(q.get("accuracy_delta"), dict):
         acc = q["accuracy_delta"]
         rows = [
-            [f"`{k_}`", sig3(v["fp32"]), sig3(v["int8"]), signed3(v["delta"])]
-            for k_, v in acc.items()
+            [f"`{k}`", sig3(v["fp32"]), sig3(v["int8"]), signed3(v["delta"])]
+            for k, v in acc.items()
             if isinstance(v, dict) and {"fp32", "int8", "delta"} <= set(v)
         ]
         if rows:
@@ -1096,11 +1137,16 @@ def render_card(result: dict) -> str:
             L += _table(["metric", "FP32", "INT8", "INT8 − FP32"], rows) + [""]
     if q and q.get("accuracy_delta_reason"):
         L += [f"Export note on the INT8 check: {q['accuracy_delta_reason']}.", ""]
+    return L
 
-    # ------------------------------------------------------------ limitations
+
+def _limitations_section(result: dict) -> list[str]:
+    """Section "Limitations", with the FP32 numbers each one rests on."""
+    m = result["model"]
+    prov = m["provenance"]
+    s, kd, sd = result["synthetic"], result["kitti"]["depth"], result["synthetic"]["depth"]
     best = "fp32"
-    kd, sd = k["depth"], s["depth"]
-    L += ["## Limitations", ""]
+    L = ["## Limitations", ""]
     if m["random_init"]:
         L += ["* **The weights are random (development card).** Nothing below describes a trained model."]
     trained_on = f" (`{prov['data_dir']}`)" if prov.get("data_dir") else ""
@@ -1128,13 +1174,15 @@ def render_card(result: dict) -> str:
         f"{sig3(s['flow']['dis_medium_baseline']['noc']['epe'])} px for DIS medium), on synthetic data only.",
         "",
     ]
-    return "\n".join(L) + "\n"
+    return L
 
 
 # ----------------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m training.model_card", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m benchmarks.model_card",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--model", required=True, help="model directory written by `python -m export`")
     p.add_argument("--synth-dir", help="(measuring) output of training.synth")
@@ -1186,7 +1234,7 @@ def _check_finite(obj, where: str = "") -> None:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
-    command = ".venv/bin/python -m training.model_card " + shlex.join(argv)
+    command = ".venv/bin/python -m benchmarks.model_card " + shlex.join(argv)
     progress = (lambda msg: None) if args.quiet else (lambda msg: print(f"[model_card] {msg}", file=sys.stderr))
     try:
         if args.stride < 1:

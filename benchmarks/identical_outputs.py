@@ -1,0 +1,115 @@
+"""Does this checkout's `geonet-infer predict` write the same bytes as an older revision?
+
+A restructure must not change what users get. This runs the documented `predict` commands
+on the KITTI drive in ../shared with the working tree and with REVISION (checked out into a
+temporary git worktree, run from there), then compares the two output folders file by file:
+the same names, the same bytes. ``summary.json`` is compared as JSON without what is
+measured or per-run (timings, frames/s, dates, the output path); every other file must match
+byte for byte (depth .npy, colour maps, KITTI flow PNGs, pose files).
+
+    python benchmarks/identical_outputs.py --against 3c9be22
+    python benchmarks/identical_outputs.py --against 3c9be22 --cases kitti_depth_metric
+
+Exit 0 when every case is identical, 1 otherwise (the differing files are listed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+KITTI = (REPO / "../shared/realdata/kitti_raw_2011_09_26_sfnd").resolve()
+CASES = {  # name -> predict arguments after INPUT (all on the KITTI drive, calibration found there)
+    "kitti_all": [],
+    "kitti_depth_metric": ["--tasks", "depth", "--camera-height", "1.65"],
+    "kitti_int8_batch3": ["--precision", "int8", "--batch-size", "3", "--no-vis"],
+    "kitti_pose": ["--tasks", "pose"],
+}
+# summary.json keys that differ between any two runs of the same code
+PER_RUN_KEYS = {"timings_ms_per_frame", "wall_s", "frames_per_s"}
+
+
+def run_predict(tree: Path, args: list[str], out: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    cmd = [sys.executable, "-m", "geonet_infer.cli", "predict", str(KITTI), "--out", str(out), "--no-progress", *args]
+    # cwd = the tree: `python -m` puts the working directory first on sys.path
+    done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{tree}: predict {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
+
+
+def _strip(obj):
+    if isinstance(obj, dict):
+        return {k: _strip(v) for k, v in obj.items() if k not in PER_RUN_KEYS}
+    if isinstance(obj, list):
+        return [_strip(v) for v in obj]
+    return obj
+
+
+def _unrooted(text: bytes, roots: tuple[Path, Path]) -> str:
+    out = text.decode()
+    for root in roots:
+        out = out.replace(str(root), "<tree>")
+    return out
+
+
+def compare(before: Path, after: Path, roots: tuple[Path, Path]) -> list[str]:
+    """The differences between two output folders, one line each (empty: identical).
+
+    ``roots``: the two source trees, whose paths (the bundled model's folder) may appear in summary.json.
+    """
+    files_before = {p.relative_to(before) for p in before.rglob("*") if p.is_file()}
+    files_after = {p.relative_to(after) for p in after.rglob("*") if p.is_file()}
+    diffs = [f"only before: {p}" for p in sorted(files_before - files_after)]
+    diffs += [f"only after: {p}" for p in sorted(files_after - files_before)]
+    for rel in sorted(files_before & files_after):
+        a, b = (before / rel).read_bytes(), (after / rel).read_bytes()
+        if rel.name == "summary.json":
+            if _strip(json.loads(_unrooted(a, roots))) != _strip(json.loads(_unrooted(b, roots))):
+                diffs.append(f"differs (beyond timings): {rel}")
+        elif rel.name.startswith(".geonet-predict"):
+            continue  # ownership marker and lock: paths and pids of this run
+        elif a != b:
+            diffs.append(f"differs: {rel}")
+    return diffs
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--against", required=True, help="git revision to compare with (e.g. the last release)")
+    parser.add_argument("--cases", default=",".join(CASES), help=f"comma list of {','.join(CASES)}")
+    args = parser.parse_args(argv)
+    cases = args.cases.split(",")
+    unknown = [c for c in cases if c not in CASES]
+    if unknown:
+        parser.error(f"unknown case(s) {unknown}; choose from {','.join(CASES)}")
+    failed = 0
+    with tempfile.TemporaryDirectory(prefix="geonet_identical_") as tmp:
+        old_tree = Path(tmp) / "tree"
+        subprocess.run(["git", "worktree", "add", "--detach", "-q", str(old_tree), args.against], cwd=REPO, check=True)
+        try:
+            for case in cases:
+                outs = {}
+                for label, tree in (("before", old_tree), ("after", REPO)):
+                    outs[label] = Path(tmp) / f"{case}_{label}"
+                    run_predict(tree, CASES[case], outs[label])
+                diffs = compare(outs["before"], outs["after"], (old_tree, REPO))
+                n_files = sum(1 for p in outs["after"].rglob("*") if p.is_file())
+                print(f"{case}: {'identical' if not diffs else 'DIFFERENT'} ({n_files} files)")
+                for line in diffs[:20]:
+                    print(f"  {line}")
+                failed += bool(diffs)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(old_tree)], cwd=REPO, check=False)
+    print(f"{len(cases) - failed}/{len(cases)} cases identical to {args.against}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

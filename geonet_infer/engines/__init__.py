@@ -1,0 +1,201 @@
+"""Inference engines behind the Predictor: one ONNX file -> ``run(feeds) -> {output name: array}``.
+
+One module per engine, collected by name in :data:`ENGINES` (order matters: the first is
+the default and the always-installed reference):
+
+* ``onnxruntime`` (:mod:`.onnxruntime`, always installed): sessions from
+  :func:`geonet_infer.session.make_session`.
+* ``openvino`` (:mod:`.openvino`, extra ``geonet-infer[openvino]``): the same ONNX files
+  compiled by OpenVINO's CPU plugin, f32 inference precision forced.
+* ``auto`` (not an engine): times every installed engine on each graph at load and keeps
+  the fastest per graph (:func:`pick_fastest`); onnxruntime alone when no other is installed.
+
+What the CLI (``--backend`` choices, ``info``, ``bench``) reads, without importing any backend
+library itself::
+
+    for cls in ENGINES.values():
+        cls.name            # "openvino": the registry key and the --backend value
+        cls.available()     # False when its optional package is not installed
+        cls.version()       # its package's version, or None when not installed
+        cls.install_hint    # "pip install 'geonet-infer[openvino]'"
+        cls.requires        # "the OpenVINO runtime": what is missing when available() is False
+        cls.summary         # the engine in --backend's help text
+
+and an engine (``make_engine(path, name, threads)`` or ``pick_fastest(path, threads)``) has
+``name``, ``input_names``, ``output_names``, ``run(feeds)``, ``io()``, ``input_shapes()``
+and ``describe()`` (:class:`Engine`).
+
+Adding an engine is one new module plus one registry line. A TensorRT engine, say, would be
+``engines/tensorrt.py``::
+
+    class TensorRtEngine:
+        name = "tensorrt"
+        summary = "tensorrt (pip install 'geonet-infer[tensorrt]', NVIDIA GPUs)"
+        requires = "TensorRT"
+        install_hint = "pip install 'geonet-infer[tensorrt]'"
+
+        @staticmethod
+        def available() -> bool: ...   # try: import tensorrt -- lazily, never at module top
+
+        @staticmethod
+        def version() -> str | None: ...
+
+        def __init__(self, path, threads):  # raise BackendUnavailableError(None, ..., install_hint)
+            ...                             # when not available(); ModelError for a bad file
+        # run / io / input_shapes / describe as in the Engine protocol
+
+and in this file ``ENGINES[TensorRtEngine.name] = TensorRtEngine`` (next to the others):
+``--backend tensorrt``, ``auto``, ``info`` and ``bench`` then offer it.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from geonet_infer.engines.onnxruntime import OrtEngine, ort_io
+from geonet_infer.engines.openvino import OpenVinoEngine, openvino_available, openvino_version
+from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.manifest import IoSpec, Manifest, check_graph_io
+from geonet_infer.session import make_session, make_session_options
+from geonet_infer.timing import Case, time_interleaved
+
+__all__ = [
+    "AUTO",
+    "BACKENDS",
+    "ENGINES",
+    "Engine",
+    "OpenVinoEngine",
+    "OrtEngine",
+    "check_graphs",
+    "make_engine",
+    "openvino_available",
+    "openvino_version",
+    "pick_fastest",
+    "timing_feeds",
+]
+
+
+class Engine(Protocol):
+    """One ONNX graph loaded by one backend. Feeds and outputs are float32 arrays keyed by the
+    graph's input/output names; the batch dimension is free."""
+
+    name: str
+    summary: str
+    requires: str
+    install_hint: str
+    input_names: list[str]
+    output_names: list[str]
+
+    def __init__(self, path: str | Path, threads: int | None) -> None: ...
+
+    @staticmethod
+    def available() -> bool: ...
+
+    @staticmethod
+    def version() -> str | None: ...
+
+    def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
+
+    def io(self) -> tuple[list[IoSpec], list[IoSpec]]: ...
+
+    def input_shapes(self) -> dict[str, list]: ...
+
+    def describe(self) -> dict: ...
+
+
+# name -> engine class; the first is the default backend and what "auto" falls back to
+ENGINES: dict[str, type[Engine]] = {
+    OrtEngine.name: OrtEngine,
+    OpenVinoEngine.name: OpenVinoEngine,
+}
+AUTO = "auto"  # the faster engine per graph (pick_fastest)
+BACKENDS = (*ENGINES, AUTO)  # what load(backend=) and --backend accept
+
+
+def make_engine(path: str | Path, backend: str, threads: int | None) -> Engine:
+    """The engine ``backend`` (a key of :data:`ENGINES`) for one graph file.
+
+    Raises InputError for an unknown name, BackendUnavailableError (from the engine) when its
+    package is not installed, ModelError when the file is missing or unreadable.
+    """
+    if backend not in ENGINES:
+        raise InputError(None, f"unknown backend {backend!r}", f"choose one of {', '.join(BACKENDS)}")
+    return ENGINES[backend](path, threads)
+
+
+def timing_feeds(engine: Engine, seed: int = 0) -> dict[str, np.ndarray]:
+    """Batch-1 inputs of realistic range for timing a graph: images ~N(0, 0.5), depth 10 m, zero pose,
+    a pinhole K with fx = fy = W centred on the image."""
+    rng = np.random.default_rng(seed)
+    shapes = {
+        name: [d if isinstance(d, int) and d > 0 else 1 for d in shape] for name, shape in engine.input_shapes().items()
+    }
+    h, w = next(s[-2:] for s in shapes.values() if len(s) == 4)
+    feeds = {}
+    for name, shape in shapes.items():
+        if name == "intrinsics":
+            value = np.broadcast_to(np.array([[w, 0, w / 2], [0, w, h / 2], [0, 0, 1]]), shape)
+        elif name == "depth":
+            value = np.full(shape, 10.0)
+        elif name == "pose":
+            value = np.zeros(shape)
+        else:
+            value = rng.normal(0.0, 0.5, shape)
+        feeds[name] = np.ascontiguousarray(value, dtype=np.float32)
+    return feeds
+
+
+def _first_line(exc: Exception) -> str:
+    return str(exc).splitlines()[0][:200]
+
+
+def pick_fastest(path: str | Path, threads: int | None) -> tuple[Engine, dict]:
+    """The fastest engine for one graph on this machine (batch 1), and the record behind the choice.
+
+    Every installed engine is timed against the first of :data:`ENGINES`. The record is
+    ``{"chosen": name, "p50_ms_batch1": {name: ms}}``, or ``{"chosen": first, "reason": ...}``
+    when no other engine is installed or one fails to load or run the graph (an engine that
+    is not installed is skipped; "skipped" lists them when others were timed). Timing noise
+    only matters when two are within a few %.
+    """
+    first, *others = ENGINES.values()
+    fallback = first(path, threads)
+    skipped = [f"{cls.name} not installed" for cls in others if not cls.available()]
+    others = [cls for cls in others if cls.available()]
+    if not others:
+        return fallback, {"chosen": fallback.name, "reason": "; ".join(skipped)}
+    try:
+        engines = {fallback.name: fallback, **{cls.name: cls(path, threads) for cls in others}}
+        feeds = timing_feeds(fallback)
+        cases = [Case(name, partial(engine.run, feeds)) for name, engine in engines.items()]
+        # interleaved blocks, so all see the same background load; no quiet-wait at load time
+        time_interleaved(cases, warmup=2, iters=8, block=4, quiet=False, rewarm_ms=0)
+    except GeoNetError:
+        raise
+    except Exception as exc:  # noqa: BLE001 -- any failure of another engine means: use the first
+        failed = ", ".join(cls.name for cls in others)
+        return fallback, {"chosen": fallback.name, "reason": f"{failed} failed: {_first_line(exc)}"}
+    p50 = {case.name: case.stats().p50_ms for case in cases}
+    chosen = min(p50, key=lambda name: p50[name])
+    record = {"chosen": chosen, "p50_ms_batch1": {k: round(v, 3) for k, v in p50.items()}}
+    if skipped:
+        record["skipped"] = skipped
+    return engines[chosen], record
+
+
+def check_graphs(manifest: Manifest) -> None:
+    """Load every graph file the manifest lists in onnxruntime (no optimisation: only its declared
+    inputs and outputs are read) and compare them with the manifest (:func:`check_graph_io`)."""
+    seen = set()
+    for precision, graphs in manifest.graphs.items():
+        for name, entry in graphs.items():
+            path = manifest.path(name, precision)
+            if (path, entry) in seen:
+                continue
+            seen.add((path, entry))
+            session = make_session(path, make_session_options(threads=1, opt_level="disable"))
+            check_graph_io(entry, path, *ort_io(session))

@@ -1,0 +1,140 @@
+"""What the Predictor returns: frozen records of arrays, every one at the caller's input resolution.
+
+Conventions for all of them: depth in the model's relative units (metres when a camera
+height was given, then ``metric_scale`` is the factor applied), disparity = 1 / depth,
+flow (u, v) in input pixels from a frame to the next one, poses as 4x4 rigid transforms in
+the pose convention of :data:`geonet_infer.conventions.POSE`, ``timings_ms`` per stage of
+:data:`geonet_infer.cascade.STAGES` plus "total".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DepthResult:
+    """Depth of one image (:meth:`Predictor.depth`).
+
+    Attributes:
+        depth: (H, W) float32; relative scale, or metres with a camera height.
+        disparity: (H, W) float32, 1 / depth.
+        undistorted: the image was undistorted first (its camera has lens distortion).
+        timings_ms: stage -> ms for this image (a batch's time divided evenly).
+        metric_scale: the factor that made depth metric, or None (relative depth).
+    """
+
+    depth: np.ndarray
+    disparity: np.ndarray
+    undistorted: bool
+    timings_ms: dict[str, float]
+    metric_scale: float | None = None
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    """Poses from the target (middle frame of a snippet) to each source (:meth:`Predictor.pose`).
+
+    Attributes:
+        matrices: (L-1, 4, 4) float64 rigid transforms mapping target-camera points to
+            source-camera points, sources in temporal order.
+        vectors: (L-1, 6) float32 [tx, ty, tz, rx, ry, rz] (Euler radians, R = Rx Ry Rz);
+            translation in the depth's relative units.
+        timings_ms: stage -> ms for the snippet.
+    """
+
+    matrices: np.ndarray
+    vectors: np.ndarray
+    timings_ms: dict[str, float]
+
+
+@dataclass(frozen=True)
+class FlowResult:
+    """Flow from the target to the next frame (:meth:`Predictor.flow`).
+
+    Attributes:
+        flow: (H, W, 2) float32 (u, v) in input pixels = rigid_flow + residual_flow; for a model
+            without ResFlowNet (a stage 'rigid' export) it is the rigid flow.
+        rigid_flow: (H, W, 2) float32, the flow of the static scene from depth and pose.
+        residual_flow: (H, W, 2) float32, ResFlowNet's correction; None without ResFlowNet.
+        depth: (H, W) float32, the target's depth (relative scale).
+        pose: (4, 4) float64, the transform target -> next frame.
+        undistorted: the frames were undistorted first.
+        timings_ms: stage -> ms for the snippet.
+    """
+
+    flow: np.ndarray
+    rigid_flow: np.ndarray
+    residual_flow: np.ndarray | None
+    depth: np.ndarray
+    pose: np.ndarray
+    undistorted: bool
+    timings_ms: dict[str, float]
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One frame of :meth:`Predictor.iter_sequence`; a task left out leaves its fields None.
+
+    Attributes:
+        index: the frame's position in the sequence (0-based).
+        name: the frame's file stem, the given name, or its index as 6 digits.
+        depth, disparity: (H, W) float32 (None without "depth", unless flow or a camera
+            height needed them).
+        camera_to_world: (4, 4) float64, this frame's pose in the first frame's camera
+            coordinates (first frame = identity; without "pose" always the identity).
+        pose_to_next: (4, 4) float64 transform this frame -> the next (None for the last frame
+            or without "pose").
+        pose_vector_to_next: (6,) float32 [tx, ty, tz, rx, ry, rz] of ``pose_to_next``.
+        flow, rigid_flow, residual_flow: (H, W, 2) float32 flow to the next frame (None for
+            the last frame or without "flow"; residual None without ResFlowNet).
+        undistorted: the frame was undistorted first.
+        timings_ms: this frame's share of each stage (batched stages divided evenly).
+        metric_scale: with a camera height, the factor that made depth and translations metres.
+    """
+
+    index: int
+    name: str
+    depth: np.ndarray | None
+    disparity: np.ndarray | None
+    camera_to_world: np.ndarray
+    pose_to_next: np.ndarray | None
+    pose_vector_to_next: np.ndarray | None
+    flow: np.ndarray | None
+    rigid_flow: np.ndarray | None
+    residual_flow: np.ndarray | None
+    undistorted: bool
+    timings_ms: dict[str, float]
+    metric_scale: float | None = None
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    """All frames of a sequence (:meth:`Predictor.predict_sequence`).
+
+    Attributes:
+        frames: one :class:`FrameResult` per frame, in order.
+        timings_ms: stage -> ms summed over the sequence.
+    """
+
+    frames: list[FrameResult]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def depth(self) -> np.ndarray:
+        """(N, H, W) depth of every frame."""
+        return np.stack([f.depth for f in self.frames])
+
+    @property
+    def trajectory(self) -> np.ndarray:
+        """(N, 4, 4) camera-to-world poses, first frame = identity."""
+        return np.stack([f.camera_to_world for f in self.frames])
+
+    @property
+    def flow(self) -> np.ndarray:
+        """(N-1, H, W, 2) flow t -> t+1."""
+        if any(f.flow is None for f in self.frames[:-1]):
+            raise ValueError("this sequence was predicted without flow (with_flow=False)")
+        return np.stack([f.flow for f in self.frames[:-1]])
