@@ -86,7 +86,7 @@ def run_once(
         str(out),
         "--calib",
         str(calib),
-        "--engine",
+        "--runner",
         engine,
         "--workers",
         str(workers),
@@ -150,7 +150,7 @@ def main() -> int:
             print("ray not installed: local engine only (pip install '.[ray]')", file=sys.stderr)
             engines = [e for e in engines if not e.startswith("ray")]
     if "ray-joined" in engines:
-        from geonet_infer.session import usable_cpus
+        from geonet_infer.engines import usable_cpus
 
         ray.init(address="local", num_cpus=usable_cpus(), include_dashboard=False, logging_level="ERROR")
         ray_address = ray.get_runtime_context().gcs_address

@@ -12,7 +12,7 @@ Engines ("backends"), per graph (DepthNet, PoseNet, ResFlowNet, the rigid-flow o
 * ``compile``  ``torch.compile`` (inductor, ``freezing=True``, ``dynamic=False``,
   ``compile_threads=1``); a failure is caught and reported, the run goes on;
 * ``ort_fp32`` / ``ort_int8``  onnxruntime through the runtime's one session factory
-  (``geonet_infer.session``: the shipped options, spinning off unless ``--ort-spinning``);
+  (``geonet_infer.engines.onnxruntime``: the shipped options, spinning off unless ``--ort-spinning``);
 * ``ov_f32`` / ``ov_int8``  OpenVINO CPU on the same ONNX files (static shapes per batch,
   ``PERFORMANCE_HINT=LATENCY``, ``INFERENCE_PRECISION_HINT=f32``: its bf16 default is slower
   on CPUs without AMX and breaks the rigid op). ``pip install -e '.[openvino]'``.
@@ -59,9 +59,10 @@ import torch  # noqa: E402
 from geonet_infer.cascade import graph_intrinsics, next_source_position  # noqa: E402
 from geonet_infer.cli.bench import Graphs, bench_frames, cpu_flags, net_cascade, snippet_feeds  # noqa: E402
 from geonet_infer.cli.info import cpu_model  # noqa: E402
+from geonet_infer.engines import usable_cpus  # noqa: E402
+from geonet_infer.engines.onnxruntime import make_session, make_session_options  # noqa: E402
 from geonet_infer.manifest import load_manifest  # noqa: E402
 from geonet_infer.predictor import Predictor  # noqa: E402
-from geonet_infer.session import make_session, make_session_options, usable_cpus  # noqa: E402
 from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mib, time_interleaved, wait_quiet  # noqa: E402
 
 NETS = ("depthnet", "posenet", "resflownet", "rigidflow")

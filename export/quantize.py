@@ -209,7 +209,7 @@ def activation_max_abs(model: onnx.ModelProto, feeds: Sequence[dict], tensors: S
     """max |x| of each named intermediate tensor of an fp32 graph over the feeds."""
     import onnxruntime as ort
 
-    from geonet_infer.session import make_session_options
+    from geonet_infer.engines.onnxruntime import make_session_options
 
     probe = onnx.ModelProto()
     probe.CopyFrom(model)

@@ -2,7 +2,7 @@
 
 The ORT-side GeoNet cascade is the runtime's :class:`geonet_infer.predictor.Predictor`;
 export uses it for INT8 calibration inputs and accuracy deltas, so there is one cascade.
-onnxruntime sessions always come from :func:`geonet_infer.session.make_session`.
+onnxruntime sessions always come from :func:`geonet_infer.engines.onnxruntime.make_session`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.session import make_session
+from geonet_infer.engines.onnxruntime import make_session
 
 
 def max_abs_diff(a, b) -> float:

@@ -38,6 +38,7 @@ from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, overload
 
 import cv2
 import numpy as np
@@ -104,7 +105,7 @@ class InputSpec:
                 raise refuse(f"{key} {conv.get(key)!r} (implemented: {implemented[key]!r})")
         # The disparity head (scale * sigmoid + offset) is inside depthnet.onnx; mapping depth back
         # as 1 / resized disparity needs a head that keeps disparity > 0 (offset > 0).
-        head = (conv.get("disp_heads") or {}).get(manifest.arch)
+        head = (conv.get("disp_heads") or {}).get(manifest.arch) or {}
         try:
             head_ok = float(head["scale"]) > 0 and float(head["offset"]) > 0
         except (KeyError, TypeError, ValueError):
@@ -302,6 +303,14 @@ def read_frame(image: ImageLike, timer: StageTimer, index: int = 0) -> tuple[np.
     return check_image(image, label), label
 
 
+@overload
+def camera_at(camera: None, size: tuple[int, int]) -> None: ...
+
+
+@overload
+def camera_at(camera: Intrinsics, size: tuple[int, int]) -> Camera: ...
+
+
 def camera_at(camera: Intrinsics | None, size: tuple[int, int]) -> Camera | None:
     """K or a Camera as a validated Camera at the input size (H, W); a Camera calibrated at
     another size is rescaled to it (:meth:`Camera.scaled_to`). None stays None."""
@@ -448,7 +457,7 @@ def run_cascade(
     source_position: int | None = None,
     run_resflow: bool = True,
     with_flow: bool = True,
-) -> dict[str, np.ndarray]:
+) -> dict[str, Any]:
     """Steps 1-4 on a batch of normalised snippets (B, L, 3, h, w) in temporal order.
 
     Args:
@@ -477,9 +486,15 @@ def run_cascade(
     with timer.stage("posenet"):
         stacked = np.stack([np.concatenate(list(snippets[b, order])) for b, order in enumerate(orders)])
         pose = graphs.run("posenet", snippet=stacked)
-    out = {"disparity": disparity, "pose": pose["pose"][:, src_pos], "pose_matrix": pose["pose_matrix"][:, src_pos]}
+    out: dict[str, Any] = {
+        "disparity": disparity,
+        "pose": pose["pose"][:, src_pos],
+        "pose_matrix": pose["pose_matrix"][:, src_pos],
+    }
     if not with_flow:
         return out
+    if K is None or disparity is None:  # DepthNet ran above unless disparity was given
+        raise InputError(None, "flow needs the camera intrinsics K", "pass K (3x3) or a Camera")
     K_graph = np.repeat(graph_intrinsics(K, size, spec)[None], B, axis=0)
     with timer.stage("rigidflow"):
         rigid = graphs.run(
@@ -498,14 +513,17 @@ def run_cascade(
     return out
 
 
-def flows_to_input(parts: dict[str, np.ndarray], b: int, size: tuple[int, int]) -> dict[str, np.ndarray | None]:
-    """Snippet ``b``'s flows of :func:`run_cascade` at the input size: flow, rigid_flow, residual_flow."""
+def flows_to_input(
+    parts: dict[str, np.ndarray], b: int, size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Snippet ``b``'s flows of :func:`run_cascade` at the input size: (flow, rigid flow, residual
+    flow), each (H, W, 2); residual None without ResFlowNet (then flow = rigid flow)."""
     rigid = flow_to_input(parts["rigid_flow"][b], size)
     if "flow" not in parts:
-        return {"flow": rigid, "rigid_flow": rigid, "residual_flow": None}
+        return rigid, rigid, None
     flow = flow_to_input(parts["flow"][b], size)
     # flow = rigid + residual in the graph, and resizing is linear: one resize saved per frame
-    return {"flow": flow, "rigid_flow": rigid, "residual_flow": flow - rigid}
+    return flow, rigid, flow - rigid
 
 
 def calibration_input(
@@ -637,7 +655,7 @@ def iter_frames(
                 with_flow=with_flow,
             )
         results = []
-        no_flow: dict[str, np.ndarray | None] = {"flow": None, "rigid_flow": None, "residual_flow": None}
+        no_flow: tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None] = (None, None, None)
         with timer.stage("postprocess"):
             for j, t in enumerate(batch):
                 depth, disp = (None, None) if disparity is None else disparity_to_input(disparity[j], size)
@@ -657,7 +675,9 @@ def iter_frames(
                 pose_vector_to_next=vector,
                 undistorted=bool(cam and cam.has_distortion),
                 timings_ms=dict(share),
-                **flows,
+                flow=flows[0],
+                rigid_flow=flows[1],
+                residual_flow=flows[2],
             )
             if pose_next is not None:
                 pose_world = pose_world @ rigid_inverse(pose_next)

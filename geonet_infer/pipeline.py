@@ -92,7 +92,7 @@ class _Frames:
     def __iter__(self) -> Iterator[np.ndarray]:
         frames = iter(self.source)
         head = list(itertools.islice(frames, SIZE_VOTE_FRAMES))
-        sizes = Counter(frame.rgb.shape[:2] for frame in head if frame.ok)
+        sizes = Counter(frame.rgb.shape[:2] for frame in head if frame.ok and frame.rgb is not None)
         if sizes:
             self.size = sizes.most_common(1)[0][0]  # Counter keeps first-seen order among equal counts
             if self.on_size is not None:
@@ -104,12 +104,14 @@ class _Frames:
                 self.failures.append({"frame": frame.name, "reason": str(frame.error)})
                 pending_bad.append(frame.name)
                 continue
+            rgb = frame.rgb
+            assert rgb is not None  # a frame without an error has pixels
             if self.size is None:  # no readable frame among the first ones
-                self.size = frame.rgb.shape[:2]
+                self.size = rgb.shape[:2]
                 if self.on_size is not None:
                     self.on_size(self.size[1], self.size[0])
-            if frame.rgb.shape[:2] != self.size:
-                h, w = frame.rgb.shape[:2]
+            if rgb.shape[:2] != self.size:
+                h, w = rgb.shape[:2]
                 self.failures.append(
                     {"frame": frame.name, "reason": f"frame is {w}x{h}, the sequence is {self.size[1]}x{self.size[0]}"}
                 )
@@ -119,7 +121,7 @@ class _Frames:
                 self.skipped_before[frame.name] = pending_bad
             pending_bad = []
             self.names.append(frame.name)
-            yield frame.rgb
+            yield rgb
 
 
 def _frame_files(name: str, tasks: tuple[str, ...], vis: bool) -> set[str]:
@@ -220,7 +222,7 @@ class _OwnedFolder:
                 (self.out_dir / sub).rmdir()
 
     def _write_marker(self) -> None:
-        marker = {"written_by": "geonet-infer predict", "version": __version__, "input": self.input}
+        marker: dict[str, object] = {"written_by": "geonet-infer predict", "version": __version__, "input": self.input}
         marker["files"] = sorted(self.files)
         with atomic_write(self.marker) as tmp:
             tmp.write_text(json.dumps(marker) + "\n")
@@ -245,12 +247,12 @@ def _alive(pid: int) -> bool:
 def _non_finite(result: FrameResult, tasks: tuple[str, ...]) -> str | None:
     """The first output of ``result`` that would be written and holds NaN or inf, or None."""
     checks = (
-        ("depth", "depth" in tasks, result.depth),
+        ("depth", "depth" in tasks and result.depth is not None, result.depth),
         ("flow", "flow" in tasks and result.flow is not None, result.flow),
         ("pose", "pose" in tasks, result.camera_to_world),
     )
     for what, written, value in checks:
-        if written and not np.isfinite(value).all():
+        if written and value is not None and not np.isfinite(value).all():
             return what
     return None
 
@@ -459,17 +461,18 @@ def _outputs(tasks: tuple[str, ...], vis: bool = True) -> list[str]:
 
 def _write_frame(out_dir: Path, result: FrameResult, tasks: tuple[str, ...], vis: bool = True) -> None:
     """All files of one frame, or none: an interrupt or a failed write removes the ones already written."""
-    writes = []
-    if "depth" in tasks:
-        writes.append((output_path(out_dir, "depth", result.name, ".npy"), lambda p: save_npy_atomic(p, result.depth)))
+    writes: list[tuple[Path, Callable[[Path], object]]] = []
+    depth, flow = result.depth, result.flow
+    if "depth" in tasks and depth is not None:
+        writes.append((output_path(out_dir, "depth", result.name, ".npy"), lambda p: save_npy_atomic(p, depth)))
         if vis:
             path = output_path(out_dir, "depth", result.name, ".png")
-            writes.append((path, lambda p: write_image(p, depth_to_color(result.depth))))
-    if "flow" in tasks and result.flow is not None:
-        writes.append((output_path(out_dir, "flow", result.name, ".png"), lambda p: write_flow_kitti(p, result.flow)))
+            writes.append((path, lambda p: write_image(p, depth_to_color(depth))))
+    if "flow" in tasks and flow is not None:
+        writes.append((output_path(out_dir, "flow", result.name, ".png"), lambda p: write_flow_kitti(p, flow)))
         if vis:
             path = output_path(out_dir, "flow_vis", result.name, ".png")
-            writes.append((path, lambda p: write_image(p, flow_to_color(result.flow))))
+            writes.append((path, lambda p: write_image(p, flow_to_color(flow))))
     written: list[Path] = []
     try:
         for path, write in writes:

@@ -35,13 +35,12 @@ from geonet_infer.cascade import (
     run_cascade,
     to_network,
 )
-from geonet_infer.engines import BACKENDS
+from geonet_infer.engines import BACKENDS, usable_cpus
 from geonet_infer.errors import GeoNetError, InputError, ModelError
 from geonet_infer.manifest import PRECISIONS, Manifest, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
 from geonet_infer.scale import check_metric_request, fit_ground_plane, metric_frames
-from geonet_infer.session import usable_cpus
 
 __all__ = [
     "STAGES",
@@ -254,12 +253,16 @@ class Predictor:
 
     @overload
     def depth(
-        self, image: Sequence[ImageLike], camera: Intrinsics | None = None, *, camera_height: float | None = None
+        self,
+        image: list[ImageLike] | tuple[ImageLike, ...],
+        camera: Intrinsics | None = None,
+        *,
+        camera_height: float | None = None,
     ) -> list[DepthResult]: ...
 
     def depth(
         self,
-        image: ImageLike | Sequence[ImageLike],
+        image: ImageLike | list[ImageLike] | tuple[ImageLike, ...],
         camera: Intrinsics | None = None,
         *,
         camera_height: float | None = None,
@@ -276,7 +279,7 @@ class Predictor:
         """
         require_graphs("depth", TASK_GRAPHS["depth"], self.graphs, self.model_dir)
         single = not isinstance(image, (list, tuple))
-        images = [image] if single else list(image)
+        images: list[ImageLike] = list(image) if isinstance(image, (list, tuple)) else [image]
         if not images:
             return []
         if camera_height is not None:
@@ -293,6 +296,7 @@ class Predictor:
                 depth, disp = disparity_to_input(d, r.shape[:2])
                 scale = None
                 if camera_height is not None:
+                    assert c is not None  # check_metric_request refused a missing camera
                     try:
                         scale = fit_ground_plane(depth, c.K).scale_for(camera_height)
                     except GeoNetError as err:
@@ -343,13 +347,15 @@ class Predictor:
         parts = run_cascade(self.graph_set, self.spec, x[None], [len(x) // 2], cam.K, size, timer=timer)
         with timer.stage("postprocess"):
             depth, _ = disparity_to_input(parts["disparity"][0], size)
-            flows = flows_to_input(parts, 0, size)
+            flow, rigid_flow, residual_flow = flows_to_input(parts, 0, size)
         return FlowResult(
             depth=depth,
             pose=parts["pose_matrix"][0].astype(np.float64),
             undistorted=cam.has_distortion,
             timings_ms=timer.result(),
-            **flows,
+            flow=flow,
+            rigid_flow=rigid_flow,
+            residual_flow=residual_flow,
         )
 
     # ------------------------------------------------------------------ sequences
@@ -406,7 +412,9 @@ class Predictor:
             need_depth=camera_height is not None,
         )
         if camera_height is not None:
-            results = metric_frames(results, camera_height, lambda size: camera_at(camera, size).K)
+            metric_camera = camera
+            assert metric_camera is not None  # check_metric_request refused a missing camera
+            results = metric_frames(results, camera_height, lambda size: camera_at(metric_camera, size).K)
         return results
 
     def predict_sequence(

@@ -125,7 +125,10 @@ class SequenceResult:
     @property
     def depth(self) -> np.ndarray:
         """(N, H, W) depth of every frame."""
-        return np.stack([f.depth for f in self.frames])
+        depths = [f.depth for f in self.frames if f.depth is not None]
+        if len(depths) < len(self.frames):
+            raise ValueError("this sequence was predicted without depth")
+        return np.stack(depths)
 
     @property
     def trajectory(self) -> np.ndarray:
@@ -135,6 +138,7 @@ class SequenceResult:
     @property
     def flow(self) -> np.ndarray:
         """(N-1, H, W, 2) flow t -> t+1."""
-        if any(f.flow is None for f in self.frames[:-1]):
+        flows = [f.flow for f in self.frames[:-1] if f.flow is not None]
+        if len(flows) < len(self.frames) - 1:
             raise ValueError("this sequence was predicted without flow (with_flow=False)")
-        return np.stack([f.flow for f in self.frames[:-1]])
+        return np.stack(flows)

@@ -198,8 +198,9 @@ def metric_frames(
     scale: float | None = None
     pose_world = np.eye(4)
     for result in results:
+        depth = _depth_of(result)
         try:
-            scale = fit_ground_plane(result.depth, K_at(result.depth.shape)).scale_for(camera_height)
+            scale = fit_ground_plane(depth, K_at(depth.shape)).scale_for(camera_height)
         except GeoNetError as err:
             if scale is None:
                 pending.append(result)
@@ -211,16 +212,17 @@ def metric_frames(
                         "shows, or drop --camera-height for relative depth",
                     ) from None
                 continue
+        assert scale is not None  # fitted on this frame or an earlier one
         for frame in [*pending, result]:
             pose_next, vector = frame.pose_to_next, frame.pose_vector_to_next
-            if pose_next is not None:
+            if pose_next is not None and vector is not None:
                 pose_next, vector = pose_next.copy(), vector.copy()
                 pose_next[:3, 3] *= scale
                 vector[:3] *= scale
             yield replace(
                 frame,
-                depth=frame.depth * scale,
-                disparity=frame.disparity / scale,
+                depth=_depth_of(frame) * scale,
+                disparity=_depth_of(frame, "disparity") / scale,
                 camera_to_world=pose_world.copy(),
                 pose_to_next=pose_next,
                 pose_vector_to_next=vector,
@@ -236,3 +238,11 @@ def metric_frames(
             "metric scale from camera height needs a visible, roughly flat road; drop --camera-height "
             "for relative depth",
         )
+
+
+def _depth_of(frame: FrameResult, field: str = "depth") -> np.ndarray:
+    """``frame``'s depth (or disparity): a sequence made metric must have been predicted with depth."""
+    value = getattr(frame, field)
+    if value is None:
+        raise InputError(frame.name, f"metric scale needs the frame's {field}", "predict with the depth task")
+    return value

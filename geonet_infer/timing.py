@@ -34,7 +34,7 @@ import numpy as np
 try:  # Unix only
     import resource
 except ImportError:  # pragma: no cover - Windows
-    resource = None
+    resource = None  # type: ignore[assignment]  # peak_rss_mib reports None then
 
 PERCENTILES = (50, 90, 99)
 

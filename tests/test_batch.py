@@ -179,7 +179,7 @@ def test_ray_engine_matches_predict(three, tmp_path, cluster):
         str(out),
         "--calib",
         str(SAMPLE_CALIB),
-        "--engine",
+        "--runner",
         "ray",
         "--no-progress",
         "--batch-size",
@@ -373,7 +373,7 @@ def test_ray_missing_is_a_usage_error(tmp_path, capfd, monkeypatch):
     (seq,) = make_sequences(tmp_path / "in", ["s"], 2)
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
     rc, _, stderr = cli(
-        capfd, "batch", seq, "--out", tmp_path / "out", "--engine", "ray", "--tasks", "depth", "--no-progress"
+        capfd, "batch", seq, "--out", tmp_path / "out", "--runner", "ray", "--tasks", "depth", "--no-progress"
     )
     assert rc == 2 and len(stderr.strip().splitlines()) == 1
     assert "pip install 'geonet-infer[ray]'" in stderr
@@ -407,7 +407,7 @@ def test_bad_usage_exits_2_with_one_line(tmp_path, capfd, case):
     elif case == "address_without_ray":
         argv += ["--ray-address", "auto"]
     elif case == "unreachable_ray_cluster":  # fails fast (ray.init alone would retry for minutes)
-        argv += ["--engine", "ray", "--ray-address", "127.0.0.1:1"]
+        argv += ["--runner", "ray", "--ray-address", "127.0.0.1:1"]
     elif case == "empty_list":
         (tmp_path / "list.txt").write_text("# nothing\n")
         argv[1] = tmp_path / "list.txt"
@@ -448,10 +448,34 @@ def test_default_workers_times_threads_fit_the_cpus():
 
 
 def test_ray_pool_never_asks_for_more_cpus_than_the_nodes_have():
-    from geonet_infer.batch_ray import size_pool  # importable without ray (ray is imported lazily)
+    from geonet_infer.batch.ray import size_pool  # importable without ray (ray is imported lazily)
 
     assert size_pool([2], 3, None, None)[:2] == (2, 1)
     assert size_pool([2], 3, 4, 1)[:2] == (2, 1)  # asked for 4 actors on 2 CPUs
     assert size_pool([2], 3, None, 4)[:2] == (1, 2)  # threads capped at the node's CPUs
     assert size_pool([4, 4], 10, None, 3)[:2] == (2, 3)  # per node: 4 // 3 = 1 actor each
     assert size_pool([2], 3, 4, 1)[2] is not None  # and says so
+
+
+def test_engine_is_the_deprecated_name_of_runner(tmp_path, capfd):
+    """`--engine` (0.x) still works for one release, with a note; `--runner` is the flag."""
+    seq = tmp_path / "seq"
+    shutil.copytree(SAMPLE / "image", seq)
+    rc, _, stderr = cli(
+        capfd,
+        "batch",
+        seq,
+        "--out",
+        tmp_path / "out",
+        "--calib",
+        SAMPLE_CALIB,
+        "--engine",
+        "local",
+        "--tasks",
+        "depth",
+        "--no-progress",
+        "--no-vis",
+    )
+    assert rc == 0, stderr
+    assert "--engine is deprecated, use --runner" in stderr
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["engine"] == "local"

@@ -17,8 +17,11 @@ from pathlib import Path
 
 import pytest
 
+import geonet_infer
 from geonet_infer import batch as batch_mod
 from geonet_infer.batch import MARKER_NAME
+from geonet_infer.batch import local as batch_local
+from geonet_infer.batch import run as batch_run
 from geonet_infer.manifest import load_manifest
 from tests.test_batch import CLI, FRAMES, SAMPLE_CALIB, _wait_for, cli, make_sequences, require_ray
 
@@ -154,7 +157,7 @@ def test_workers_are_capped_by_cpus_and_memory():
     )  # unknown memory: no cap
     assert batch_mod.cap_workers(16, 1, cpus=16, mem_available=64 * 1024**3, per_worker=per) == (16, 1, [])
     # the estimate grows with the model's graphs
-    model = Path(batch_mod.__file__).parent / "models" / "small_synth"
+    model = Path(geonet_infer.__file__).parent / "models" / "small_synth"
     assert (
         batch_mod.worker_memory_bytes(load_manifest(model), "fp32")
         > batch_mod.WORKER_BASE_BYTES + (model / "depthnet.onnx").stat().st_size
@@ -163,7 +166,8 @@ def test_workers_are_capped_by_cpus_and_memory():
 
 def test_too_many_workers_warns_and_records_the_cap(tmp_path, capfd, monkeypatch):
     seqs = make_sequences(tmp_path / "in", ["s1", "s2"], 2)
-    monkeypatch.setattr(batch_mod, "usable_cpus", lambda: 1)
+    for module in (batch_local, batch_run):  # the runner's sizing and the summary's record
+        monkeypatch.setattr(module, "usable_cpus", lambda: 1)
     out = tmp_path / "out"
     rc, _, stderr = cli(capfd, "batch", *seqs, "--out", out, *DEPTH, "--workers", 16)
     assert rc == 0, stderr
@@ -187,7 +191,7 @@ def _sigterm_run(tmp_path, engine: str, first_output_timeout: float):
     seqs = make_sequences(tmp_path / "in", names, 12)
     out = tmp_path / "out"
     argv = [*CLI, "batch", *map(str, seqs), "--out", str(out), "--tasks", "depth", "--no-progress"]
-    argv += ["--workers", "1", "--threads-per-worker", "1", "--batch-size", "1", "--engine", engine]
+    argv += ["--workers", "1", "--threads-per-worker", "1", "--batch-size", "1", "--runner", engine]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         started = lambda: any(out.glob("t*/depth/*.npy"))  # noqa: E731

@@ -23,8 +23,8 @@ from export.verify import compare_graph
 from export.wrappers import RigidFlowExport, example_inputs, io_spec
 from geonet_infer import conventions
 from geonet_infer.cascade import InputSpec
+from geonet_infer.engines.onnxruntime import make_session
 from geonet_infer.io import list_images, read_calib_K, read_image
-from geonet_infer.session import make_session
 
 H, W = 48, 64
 FX, FY, CX, CY = 50.0, 40.0, 31.5, 23.5

@@ -10,20 +10,20 @@ import threading
 from pathlib import Path
 
 from geonet_infer.batch import (
-    ENGINES,
     FAILURES_NAME,
     MARKER_NAME,
     OWNER_NAME,
+    RUNNERS,
     model_tasks,
     needs_own_calib,
     run_batch,
 )
 from geonet_infer.cli.common import add_camera_args, add_model_args, camera_from_args, positive_int
+from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.pipeline import SUMMARY_NAME, parse_tasks
-from geonet_infer.session import usable_cpus
 
 HELP = f"""\
 Predict depth, optical flow and camera poses for many sequences.
@@ -41,7 +41,7 @@ sequence folders it made. Next to the sequences:
   {"":<22} output's size and sha256 and the inputs' sizes and times)
   {"OUT/" + FAILURES_NAME:<22} one JSON object a line: sequence, input, frame (null = whole
   {"":<22} sequence), reason; a failure never stops the job
-  {"OUT/" + SUMMARY_NAME:<22} sequences done/failed/skipped, frames, frames/s, engine, workers
+  {"OUT/" + SUMMARY_NAME:<22} sequences done/failed/skipped, frames, frames/s, runner (key "engine"), workers
 
 Every file is written to a temporary name and renamed. After a crash, Ctrl-C or a
 kill, run the same command with --resume: complete sequences whose outputs and
@@ -63,7 +63,7 @@ examples:
   geonet-infer batch runs/a runs/b runs/c --out out/batch --calib calib.txt
   geonet-infer batch sequences.txt --out out/batch --workers 2 --threads-per-worker 1
   geonet-infer batch ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/batch --resume
-  geonet-infer batch videos.txt --out out/batch --engine ray --ray-address auto --tasks depth
+  geonet-infer batch videos.txt --out out/batch --runner ray --ray-address auto --tasks depth
 """
 
 
@@ -86,8 +86,9 @@ def add_parser(sub) -> None:
     )
     run = parser.add_argument_group("workers")
     run.add_argument(
-        "--engine", choices=ENGINES, default="local", help="local process pool or Ray Data (default: local)"
+        "--runner", choices=list(RUNNERS), default=None, help="local process pool or Ray Data (default: local)"
     )
+    run.add_argument("--engine", choices=list(RUNNERS), default=None, help="deprecated name of --runner")
     run.add_argument(
         "--workers",
         type=positive_int,
@@ -151,8 +152,13 @@ def run_command(args: argparse.Namespace) -> int:
         None if args.tasks is None else parse_tasks(args.tasks),
         (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
     )
-    if args.ray_address and args.engine != "ray":
-        raise InputError(None, "--ray-address needs --engine ray")
+    if args.engine is not None:
+        print("geonet-infer batch: note: --engine is deprecated, use --runner", file=sys.stderr)
+        if args.runner not in (None, args.engine):
+            raise InputError(None, f"--engine {args.engine} and --runner {args.runner} disagree", "pass --runner only")
+    runner = args.runner or args.engine or "local"
+    if args.ray_address and runner != "ray":
+        raise InputError(None, "--ray-address needs --runner ray")
     camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own
     if "flow" in tasks and camera is None:
         from geonet_infer.batch import expand_inputs
@@ -172,7 +178,7 @@ def run_command(args: argparse.Namespace) -> int:
         summary = run_batch(
             args.inputs,
             args.out,
-            engine=args.engine,
+            runner=runner,
             workers=args.workers,
             threads=args.threads_per_worker,
             model=args.model,

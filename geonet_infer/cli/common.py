@@ -11,13 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.engines import AUTO, BACKENDS, ENGINES
+from geonet_infer.engines import AUTO, BACKENDS, ENGINES, usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.manifest import PRECISIONS
 from geonet_infer.models import DEFAULT_MODEL
 from geonet_infer.predictor import STAGES, Predictor, load
-from geonet_infer.session import usable_cpus
 
 
 def positive_int(text: str) -> int:

@@ -63,10 +63,11 @@ def run(args: argparse.Namespace) -> int:
         drive = find_real_drive()
         source = open_frames(drive)
         # the first frames only: a demo, not the whole drive
-        source.files, source.frame_names = source.files[:REAL_FRAMES], source.frame_names[:REAL_FRAMES]
+        files, names = source.files[:REAL_FRAMES], source.frame_names[:REAL_FRAMES]  # type: ignore[attr-defined,index]
+        source.files, source.frame_names = files, names  # type: ignore[attr-defined]  # a drive: an image folder
         if source.default_calib is None:
             raise InputError(drive, "no calib_cam_to_cam.txt in the drive or above it", "restore ../shared")
-        frames, camera, height = source.files, read_camera(source.default_calib), REAL_PANEL_HEIGHT
+        frames, camera, height = files, read_camera(source.default_calib), REAL_PANEL_HEIGHT
     else:
         source, frames, camera, height = (
             open_frames(SAMPLE_FRAMES),

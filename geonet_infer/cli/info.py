@@ -13,11 +13,10 @@ import numpy as np
 import onnxruntime as ort
 
 from geonet_infer import __version__
-from geonet_infer.engines import check_graphs, openvino_version
+from geonet_infer.engines import check_graphs, openvino_version, usable_cpus
 from geonet_infer.manifest import ModelCard, load_manifest
 from geonet_infer.models import DEFAULT_MODEL, bundled_models, resolve_model
 from geonet_infer.predictor import RIGID_FLOW_GRAPHS, TASK_GRAPHS, missing_graphs
-from geonet_infer.session import usable_cpus
 
 
 def add_parser(sub) -> None:

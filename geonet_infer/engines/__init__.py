@@ -4,7 +4,7 @@ One module per engine, collected by name in :data:`ENGINES` (order matters: the 
 the default and the always-installed reference):
 
 * ``onnxruntime`` (:mod:`.onnxruntime`, always installed): sessions from
-  :func:`geonet_infer.session.make_session`.
+  :func:`geonet_infer.engines.onnxruntime.make_session`.
 * ``openvino`` (:mod:`.openvino`, extra ``geonet-infer[openvino]``): the same ONNX files
   compiled by OpenVINO's CPU plugin, f32 inference precision forced.
 * ``auto`` (not an engine): times every installed engine on each graph at load and keeps
@@ -50,17 +50,17 @@ and in this file ``ENGINES[TensorRtEngine.name] = TensorRtEngine`` (next to the 
 
 from __future__ import annotations
 
+import os
 from functools import partial
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
-from geonet_infer.engines.onnxruntime import OrtEngine, ort_io
+from geonet_infer.engines.onnxruntime import OrtEngine, make_session, make_session_options, ort_io
 from geonet_infer.engines.openvino import OpenVinoEngine, openvino_available, openvino_version
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.manifest import IoSpec, Manifest, check_graph_io
-from geonet_infer.session import make_session, make_session_options
 from geonet_infer.timing import Case, time_interleaved
 
 __all__ = [
@@ -76,7 +76,39 @@ __all__ = [
     "openvino_version",
     "pick_fastest",
     "timing_feeds",
+    "usable_cpus",
 ]
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on: its affinity mask, capped by a cgroup v2/v1 CPU quota.
+
+    ``os.cpu_count()`` reports the host's CPUs, which oversubscribes a container
+    limited by a quota or a cpuset (onnxruntime issues #29510, #10273).
+    """
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    quota = _cgroup_quota()
+    return max(1, min(cpus, quota)) if quota else max(1, cpus)
+
+
+def _cgroup_quota() -> int | None:
+    """CPUs allowed by the cgroup CPU quota (rounded up), or None if unlimited/unknown."""
+    try:  # cgroup v2: "max 100000" or "150000 100000"
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        if quota != "max":
+            return -(-int(quota) // int(period))
+        return None
+    except (OSError, ValueError):
+        pass
+    try:  # cgroup v1
+        quota_us = int(Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us").read_text())
+        period_us = int(Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us").read_text())
+        return -(-quota_us // period_us) if quota_us > 0 and period_us > 0 else None
+    except (OSError, ValueError):
+        return None
 
 
 class Engine(Protocol):

@@ -1,10 +1,10 @@
-"""The ``ray`` engine of ``geonet-infer batch``: Ray Data with an actor pool (extra ``geonet-infer[ray]``).
+"""The ``ray`` runner of ``geonet-infer batch``: Ray Data with an actor pool (extra ``geonet-infer[ray]``).
 
 The work units (one per sequence) are a dataset (``ray.data.from_items``); ``map_batches``
 sends them one at a time to an actor pool; each actor loads one predictor
 (``num_cpus`` = its onnxruntime threads) and writes its sequences itself, with
 :func:`geonet_infer.batch.run_sequence` (so the layout, the markers and the failure records
-are those of the local engine). Only small JSON results come back to the driver.
+are those of the local runner). Only small JSON results come back to the driver.
 
 Sizing: Ray Data deadlocks when read tasks and actors together ask for more CPUs than the
 cluster has (``../shared/reference/onnx_notes.md`` section 4). ``from_items`` has no read
@@ -28,18 +28,18 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.batch import (
+from geonet_infer.batch.units import (
     BatchConfig,
     WorkUnit,
-    _discard,
-    _failed,
-    _reason,
+    describe_error,
+    discard,
+    failed_result,
     plan_workers,
     read_marker,
     run_sequence,
 )
-from geonet_infer.errors import InputError
-from geonet_infer.session import usable_cpus
+from geonet_infer.engines import usable_cpus
+from geonet_infer.errors import BackendUnavailableError, InputError
 
 INSTALL_HINT = "pip install 'geonet-infer[ray]'"
 LOCAL_OBJECT_STORE_BYTES = 256 * 1024**2  # results are a few hundred bytes a sequence
@@ -51,7 +51,9 @@ def import_ray():
         import ray
         import ray.data  # noqa: F401
     except ImportError as exc:
-        raise InputError(None, f"--engine ray needs Ray Data, which is not installed ({exc})", INSTALL_HINT) from None
+        raise BackendUnavailableError(
+            None, f"--runner ray needs Ray Data, which is not installed ({exc})", INSTALL_HINT
+        ) from None
     return ray
 
 
@@ -83,7 +85,7 @@ class _SequenceActor:
         for index, name, path in zip(batch["index"], batch["name"], batch["path"]):
             unit = WorkUnit(int(index), str(name), str(path))
             if self.predictor is None:
-                result = _failed(unit, f"the actor could not load the model: {_reason(self.error)}")
+                result = failed_result(unit, f"the actor could not load the model: {describe_error(self.error)}")
             else:
                 result = run_sequence(unit, self.config, self.predictor, options=self.options)
             out.append(json.dumps(result))
@@ -149,7 +151,7 @@ def check_reachable(address: str, timeout_s: float = 5.0) -> None:
         ) from None
 
 
-class RayEngine:
+class RayRunner:
     name = "ray"
 
     def __init__(
@@ -165,6 +167,7 @@ class RayEngine:
         self.ray, self.options = ray, options
         self.config = BatchConfig(**{**asdict(config), "camera": config.camera, "threads": threads})
         self.workers, self.threads, self.address, self._started_here = workers, threads, address, started_here
+        self.limits: list[str] = []  # the pool is sized from the cluster's CPUs (size_pool notes it)
         self._frames = 0
         self._pending: list[WorkUnit] = []
 
@@ -176,9 +179,11 @@ class RayEngine:
         n_units: int,
         workers: int | None,
         threads: int | None,
-        address: str | None,
+        *,
+        manifest=None,
+        address: str | None = None,
         log,
-    ) -> RayEngine:
+    ) -> RayRunner:
         """Start a local cluster (no address) or join ``address``, and size the actor pool."""
         ray = import_ray()
         started_here = False
@@ -208,7 +213,7 @@ class RayEngine:
                 where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
                 raise InputError(
                     None,
-                    f"cannot start or join {where} ({_reason(exc).splitlines()[0]})",
+                    f"cannot start or join {where} ({describe_error(exc).splitlines()[0]})",
                     "check --ray-address (e.g. ray://HOST:10001, HOST:6379 or auto)",
                 ) from None
             except SystemExit as exc:  # Ray's handler: SIGTERM while the cluster was starting
@@ -260,10 +265,10 @@ class RayEngine:
                 self._frames += result["frames"]
                 yield result
         except Exception as exc:  # noqa: BLE001 - e.g. an actor process died: the rest is reported, not lost
-            reason = f"Ray Data stopped: {_reason(exc).splitlines()[0][:300]}"
+            reason = f"Ray Data stopped: {describe_error(exc).splitlines()[0][:300]}"
             for unit in units:
                 if unit.index not in returned:
-                    yield _failed(unit, reason)
+                    yield failed_result(unit, reason)
 
     def close(self) -> None:
         """Disconnect (and stop the cluster if this job started it): the job's actors end with it.
@@ -278,5 +283,5 @@ class RayEngine:
             folder = Path(self.config.out_dir) / unit.name
             if read_marker(folder) is None:
                 with contextlib.suppress(Exception):
-                    _discard(folder)
+                    discard(folder)
         self._pending = []
