@@ -47,7 +47,6 @@ import math
 import operator
 import re
 import shlex
-import subprocess
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -56,6 +55,7 @@ from typing import NamedTuple
 import numpy as np
 
 from geonet_infer import evaluation, metrics
+from geonet_infer.benchmark import git_commit
 from geonet_infer.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
@@ -319,20 +319,6 @@ def evaluate_kitti(
 
 
 # ----------------------------------------------------------------------------- run
-def _git_commit() -> str | None:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-            cwd=Path(__file__).resolve().parents[1],
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() or None
-
-
 def model_info(manifest: Manifest, model_dir: Path) -> dict:
     files = []
     for precision in manifest.precisions:
@@ -435,7 +421,7 @@ def run(args, command: str, progress: Progress) -> dict:
     result = {
         "command": command,
         "generated_utc": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(Path(__file__).resolve().parents[1]),
         "allow_random_init": bool(args.allow_random_init),
         "model": after["model"],
         "synthetic": {

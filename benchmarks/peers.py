@@ -56,9 +56,12 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from geonet_infer.cascade import graph_intrinsics, next_source_position  # noqa: E402
-from geonet_infer.cli.bench import Graphs, bench_frames, cpu_flags, net_cascade, snippet_feeds  # noqa: E402
-from geonet_infer.cli.info import cpu_model  # noqa: E402
+from geonet_infer.benchmark import (  # noqa: E402
+    bench_frames,
+    cascade_feeds,
+    cpu_flags,
+    cpu_model,  # noqa: E402
+)
 from geonet_infer.engines import usable_cpus  # noqa: E402
 from geonet_infer.engines.onnxruntime import make_session, make_session_options  # noqa: E402
 from geonet_infer.manifest import load_manifest  # noqa: E402
@@ -155,7 +158,7 @@ def _export_args(args, out: Path) -> list[str]:
 def load_weights_and_graphs(args, log) -> tuple[object, Path, dict]:
     """(training GeoNet in eval mode, model dir with fp32 + int8 graphs, provenance notes)."""
     from export.__main__ import build_parser as export_parser
-    from export.build import ExportConfig, _load_source, export_model
+    from export.build import ExportConfig, export_model, load_source
 
     temp = None
     if args.onnx_dir is None and args.keep_export is None:
@@ -172,7 +175,7 @@ def load_weights_and_graphs(args, log) -> tuple[object, Path, dict]:
         notes["export_s"] = round(time.perf_counter() - t0, 1)
     manifest = load_manifest(out)
     graphs = list(manifest.graphs["fp32"])
-    source = _load_source(eargs, graphs)
+    source = load_source(eargs, graphs)
     if source.height != manifest.height or source.width != manifest.width:
         raise SystemExit(
             f"error: {out} is {manifest.height}x{manifest.width}, the weights' export size is "
@@ -197,27 +200,12 @@ def realistic_feeds(model_dir: Path, batch: int, threads: int) -> dict[str, dict
     """Per graph, its feeds at ``batch``: sample frames, and depth/pose/flow input from the fp32 cascade."""
     predictor = Predictor(model_dir, "fp32", threads=threads)
     spec = predictor.spec
-    L, k = spec.seq_length, spec.seq_length // 2
+    L = spec.seq_length
     frames, camera = bench_frames(None, spec.size, L + batch)
     x = np.stack([spec.to_network(f) for f in frames])
-    feeds = snippet_feeds(x, [k + b for b in range(batch)], len(frames), L)
-    K_graph = np.ascontiguousarray(np.repeat(graph_intrinsics(camera.K, spec.size, spec)[None], batch, axis=0))
-    g = Graphs(predictor)
-    ref = net_cascade(g, feeds, K_graph, next_source_position(L))
-    out = {
-        "depthnet": {"image": feeds["target"]},
-        "posenet": {"snippet": feeds["snippet"]},
-        "rigidflow": {
-            "depth": np.ascontiguousarray(1.0 / ref["disparity"]),
-            "pose": ref["pose"],
-            "intrinsics": K_graph,
-            "target": feeds["target"],
-            "source": feeds["source"],
-        },
-        "resflownet": {"flow_input": np.ascontiguousarray(ref["flow_input"], dtype=np.float32)},
-    }
-    del predictor, g
-    return out
+    feeds = cascade_feeds(predictor, x, camera, spec.size, batch)
+    del predictor
+    return feeds
 
 
 # ----------------------------------------------------------------------------- engines

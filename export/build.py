@@ -25,7 +25,7 @@ import torch
 from export import manifest as mf
 from export import quantize as qz
 from export.to_onnx import OPSET, export_graph
-from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_inputs, io_spec
+from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_inputs, io_spec, photometric_alpha
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
@@ -221,7 +221,7 @@ def _checkpoint_source(cfg: ExportConfig, graphs: list[str]) -> Source:
     )
 
 
-def _load_source(cfg: ExportConfig, graphs: list[str]) -> Source:
+def load_source(cfg: ExportConfig, graphs: list[str]) -> Source:
     if cfg.from_tf:
         from export.from_tf import tf_source
 
@@ -292,6 +292,7 @@ def _interim_manifest(src: Source, graphs: dict, tmp: Path) -> None:
             prov=mf.provenance(src.arch, src.random_init, ""),
             metrics={},
             quantization=None,
+            photometric_alpha=photometric_alpha(src.model),
         ),
         tmp,
     )
@@ -433,6 +434,7 @@ def _write_graphs(cfg: ExportConfig, src: Source, graphs: list[str], precisions:
         prov=prov,
         metrics=(src.ckpt or {}).get("metrics", {}),
         quantization=quant,
+        photometric_alpha=photometric_alpha(src.model),
     )
     if src.official is not None:
         manifest = dataclasses.replace(manifest, conventions={**manifest.conventions, "official_tf": src.official})
@@ -448,7 +450,7 @@ def export_model(cfg: ExportConfig) -> Path:
         ExportCheckError: an exported graph failed its structural check.
     """
     graphs, precisions = _check(cfg)
-    src = _load_source(cfg, graphs)
+    src = load_source(cfg, graphs)
     graphs = src.graphs or graphs
     out = Path(cfg.out)
     tmp = _make_tmp_dir(out)

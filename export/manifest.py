@@ -9,11 +9,11 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-import subprocess
 from pathlib import Path
 
 from export.wrappers import io_spec
 from geonet_infer import conventions
+from geonet_infer.benchmark import git_commit
 from geonet_infer.manifest import (
     SCHEMA_VERSION,
     GraphEntry,
@@ -50,17 +50,6 @@ def graph_notes(graph: str) -> str:
         "residual_flow (B,2,H,W) px, flow = residual_flow + rigid_flow, scale 0",
     }
     return notes[graph]
-
-
-def git_commit() -> str | None:
-    """``git rev-parse HEAD`` of the repository, or None (no git, not a checkout)."""
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10, check=True
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() or None
 
 
 def versions() -> dict:
@@ -159,7 +148,7 @@ def provenance(
         architecture=arch,
         random_init=random_init,
         export_date=utc_now(),
-        git_commit=git_commit(),
+        git_commit=git_commit(REPO_ROOT),
         checkpoint=str(checkpoint) if checkpoint else None,
         checkpoint_sha256=file_sha256(checkpoint) if checkpoint else None,
         checkpoint_stage=(ckpt or {}).get("stage"),

@@ -457,6 +457,7 @@ def run_cascade(
     source_position: int | None = None,
     run_resflow: bool = True,
     with_flow: bool = True,
+    feeds: dict[str, dict[str, np.ndarray]] | None = None,
 ) -> dict[str, Any]:
     """Steps 1-4 on a batch of normalised snippets (B, L, 3, h, w) in temporal order.
 
@@ -468,12 +469,20 @@ def run_cascade(
             after the target (:func:`next_source_position`).
         run_resflow: False stops before ResFlowNet (its input is still built: INT8 calibration).
         with_flow: False stops after PoseNet (and then needs no DepthNet).
+        feeds: a dict that gets each graph's inputs as it was called with them (graph name ->
+            {input name: float32 array}): realistic inputs for timing one graph alone.
     Returns:
         "disparity" (B, h, w), "pose" (B, 6) and "pose_matrix" (B, 4, 4) target -> source; with flow
         also "rigid_flow" (B, 2, h, w) and "flow_input" (B, 12, h, w), and after ResFlowNet
         "residual_flow" and "flow" (B, 2, h, w), all at the graph size.
     """
     timer = timer or StageTimer()
+
+    def call(name: str, **inputs: np.ndarray) -> dict[str, np.ndarray]:
+        if feeds is not None:
+            feeds[name] = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in inputs.items()}
+        return graphs.run(name, **inputs)
+
     B, L = snippets.shape[:2]
     rows = np.arange(B)
     target = snippets[rows, targets]
@@ -482,10 +491,10 @@ def run_cascade(
     source = snippets[rows, [order[1 + src_pos] for order in orders]]
     if disparity is None and with_flow:
         with timer.stage("depthnet"):
-            disparity = graphs.run("depthnet", image=target)["disparity"][:, 0]
+            disparity = call("depthnet", image=target)["disparity"][:, 0]
     with timer.stage("posenet"):
         stacked = np.stack([np.concatenate(list(snippets[b, order])) for b, order in enumerate(orders)])
-        pose = graphs.run("posenet", snippet=stacked)
+        pose = call("posenet", snippet=stacked)
     out: dict[str, Any] = {
         "disparity": disparity,
         "pose": pose["pose"][:, src_pos],
@@ -497,7 +506,7 @@ def run_cascade(
         raise InputError(None, "flow needs the camera intrinsics K", "pass K (3x3) or a Camera")
     K_graph = np.repeat(graph_intrinsics(K, size, spec)[None], B, axis=0)
     with timer.stage("rigidflow"):
-        rigid = graphs.run(
+        rigid = call(
             "rigidflow",
             depth=1.0 / disparity[:, None],
             pose=pose["pose"][:, src_pos],
@@ -509,7 +518,7 @@ def run_cascade(
     out.update(rigid_flow=rigid["rigid_flow"], flow_input=flow_input)
     if run_resflow and "resflownet" in graphs:
         with timer.stage("resflownet"):
-            out.update(graphs.run("resflownet", flow_input=flow_input))
+            out.update(call("resflownet", flow_input=flow_input))
     return out
 
 

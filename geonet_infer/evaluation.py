@@ -23,7 +23,6 @@ Broken data (missing file, size mismatch, no valid ground-truth pixel) raises
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 from collections.abc import Callable
@@ -32,11 +31,10 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer import metrics
-from geonet_infer.datasets import KITTI_CALIB, SNIPPET, Dataset
+from geonet_infer.datasets import SNIPPET, Dataset, layout_class
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.io import read_camera, read_image
+from geonet_infer.io import read_image
 from geonet_infer.io.atomic import atomic_write
-from geonet_infer.io.frames import find_up
 from geonet_infer.scale import check_camera_height, fit_ground_plane
 
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
@@ -128,29 +126,9 @@ def _result(
 
 
 # ----------------------------------------------------------------------------- depth
-@functools.lru_cache(maxsize=16)
-def _calibration_K(path: Path) -> np.ndarray:
-    """K of a calibration file, read once: every frame of a sequence shares it (read-only array)."""
-    return read_camera(path).K
-
-
 def depth_intrinsics(item, layout: str) -> np.ndarray:
-    """K at the image size of a depth item: ``calib.txt`` of a synthetic sequence, or KITTI raw
-    ``calib_cam_to_cam.txt`` (``P_rect_02``) in the drive folder or up to two levels up."""
-    if layout == "synth":
-        candidates = [item.image.parents[1] / "calib.txt"]
-    else:
-        drive = item.image.parents[2]  # DRIVE/image_02/data/frame.png
-        found = item.calib_dir or find_up(drive, KITTI_CALIB[:1])
-        candidates = [(found or drive) / KITTI_CALIB[0]]
-    for path in candidates:
-        if path.is_file():
-            return _calibration_K(path)
-    raise InputError(
-        candidates[0],
-        "no camera intrinsics for this frame",
-        "scaling by camera height needs K: add the calibration file or pass --intrinsics FX,FY,CX,CY",
-    )
+    """K at the image size of a depth item, as its layout reads it (:meth:`Layout.depth_intrinsics`)."""
+    return layout_class(layout).depth_intrinsics(item)
 
 
 def evaluate_depth(
@@ -185,7 +163,7 @@ def evaluate_depth(
     if scaling == "camera_height":
         check_camera_height(camera_height)
     if crop == "auto":
-        crop = "garg" if dataset.layout == "kitti-raw" else None
+        crop = layout_class(dataset.layout).depth_crop
     keys = [k for _, k, _ in COLUMNS["depth"]]
     rows, errors, fit_failed = [], [], []
     for item in dataset.items:
@@ -223,6 +201,7 @@ def evaluate_depth(
                 fit_failed.append(item.name)
                 rows.append(row | _nan_row(keys) | {"ground_fit": "failed", "problem": problem} | info)
                 continue
+            assert camera_height is not None  # checked above: scaling by camera height needs one
             scale = fit.scale_for(camera_height)
             info = {"ground_height": fit.height, "ground_inliers": fit.inlier_fraction} | info
         try:
@@ -295,7 +274,7 @@ def evaluate_flow(
             continue
         if pred.shape[:2] != (height, width):
             pred = metrics.resize_flow_nearest(pred, (height, width))
-        scored = {}
+        scored: dict[str, dict] = {}
         for which, gt, valid, path in (
             ("noc", gt_noc, valid_noc, item.gt_noc),
             ("all", gt_all, valid_all, item.gt_occ),

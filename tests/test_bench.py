@@ -19,8 +19,8 @@ import pytest
 
 import geonet_infer
 from geonet_infer import timing
+from geonet_infer.benchmark import MODES, TASKS
 from geonet_infer.cli import main
-from geonet_infer.cli.bench import MODES, TASKS
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 MODEL_DIR = PKG / "models" / "small_synth"

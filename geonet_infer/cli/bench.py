@@ -33,66 +33,37 @@ Inputs are fixed: the bundled sample frames (``geonet_infer.samples``), resized 
 from __future__ import annotations
 
 import argparse
-import collections
 import gc
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
-
-from geonet_infer.cascade import flow_to_input, graph_intrinsics, next_source_position, snippet_indices
-from geonet_infer.cli.common import add_model_args
-from geonet_infer.cli.info import environment, model_summary
-from geonet_infer.conventions import scale_intrinsics
-from geonet_infer.engines import BACKENDS, openvino_available
-from geonet_infer.errors import InputError
+from geonet_infer.benchmark import (
+    DEFAULT_INPUT_SIZE,
+    MODES,
+    TASK_GRAPHS,
+    TASKS,
+    Environment,
+    bench_frames,
+    build_cases,
+    cpu_flags,
+    format_table,
+    git_commit,
+    model_summary,
+    paper_line,
+    result_row,
+    thread_env,
+)
+from geonet_infer.cli.common import add_model_args, backend_help
+from geonet_infer.engines import BACKENDS, ENGINES, OrtEngine
+from geonet_infer.errors import BackendUnavailableError, InputError
 from geonet_infer.io.atomic import atomic_write
-from geonet_infer.io.calib import Camera, read_camera
-from geonet_infer.io.images import list_images, read_image
 from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, load_manifest
 from geonet_infer.models import resolve_model
-from geonet_infer.predictor import Predictor, load
-from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
-from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mib, time_interleaved
-
-TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
-MODES = ("graph", "e2e")
-DEFAULT_INPUT_SIZE = (1242, 375)  # (W, H) of KITTI raw frames
-# Graphs each task needs; flow and sequence also use resflownet when the model has it.
-TASK_GRAPHS = {
-    "depth": ("depthnet",),
-    "pose": ("posenet",),
-    "rigid_flow": ("rigidflow",),
-    "resflow": ("resflownet",),
-    "flow": ("depthnet", "posenet", "rigidflow"),
-    "sequence": ("depthnet", "posenet", "rigidflow"),
-}
-PER_SNIPPET_TASKS = ("pose", "flow")  # e2e: Predictor.pose/flow take one snippet (batch 1 only)
-CPU_FLAGS = (
-    "avx2",
-    "fma",
-    "avx512f",
-    "avx512bw",
-    "avx512_vnni",
-    "avx_vnni",
-    "avx512_bf16",
-    "amx_tile",
-    "amx_int8",
-    "amx_bf16",
-)
-THREAD_ENV = (
-    "ORT_INTRA_OP_NUM_THREADS",
-    "ORT_INTER_OP_NUM_THREADS",
-    "OMP_NUM_THREADS",
-    "OMP_WAIT_POLICY",
-    "MKL_NUM_THREADS",
-    "OPENBLAS_NUM_THREADS",
-)
+from geonet_infer.predictor import load
+from geonet_infer.samples import SAMPLE_FRAMES
+from geonet_infer.timing import current_rss_mib, load_average, peak_rss_mib, time_interleaved
 
 
 def add_parser(sub) -> None:
@@ -134,8 +105,7 @@ def add_parser(sub) -> None:
         "--backend",
         default=BACKENDS[0],
         metavar="LIST",
-        help=f"comma list of inference backends: {', '.join(BACKENDS)} (default: {BACKENDS[0]}; "
-        "openvino needs the [openvino] extra; auto keeps the faster engine per graph)",
+        help=f"comma list of inference backends: {', '.join(BACKENDS)} ({backend_help()})",
     )
     group.add_argument("--warmup", type=int, default=3, help="untimed calls per case before timing (default: 3)")
     group.add_argument("--iters", type=int, default=20, help="timed calls per case (default: 20)")
@@ -214,12 +184,12 @@ def _check_args(args) -> dict:
     if args.seq_frames < 2:
         raise InputError(None, f"--seq-frames must be >= 2, got {args.seq_frames}", "a sequence needs a pair")
     backends = _parse_list(args.backend, BACKENDS, "backend")
-    if "openvino" in backends and not openvino_available():
-        raise InputError(
-            None,
-            "--backend openvino needs the OpenVINO runtime, which is not installed",
-            "pip install 'geonet-infer[openvino]'",
-        )
+    for name in backends:
+        engine = ENGINES.get(name)
+        if engine is not None and not engine.available():
+            raise BackendUnavailableError(
+                None, f"--backend {name} needs {engine.requires}, which is not installed", engine.install_hint
+            )
     model_dir = resolve_model(args.model)
     manifest = load_manifest(model_dir)
     where = Path(manifest.root or model_dir) / MANIFEST_NAME
@@ -271,289 +241,20 @@ def _check_args(args) -> dict:
 
 
 # ----------------------------------------------------------------------------- inputs
-def _pingpong(n: int, count: int) -> list[int]:
-    """``count`` indices into n frames that run forward then back (no jump between neighbours)."""
-    if n == 1:
-        return [0] * count
-    cycle = list(range(n)) + list(range(n - 2, 0, -1))
-    return [cycle[i % len(cycle)] for i in range(count)]
-
-
-def bench_frames(
-    input_size: tuple[int, int] | None, graph_size: tuple[int, int], count: int
-) -> tuple[list[np.ndarray], Camera]:
-    """``count`` consecutive uint8 RGB frames of the bundled sample at ``input_size`` (W, H) and their camera.
-
-    ``input_size`` None = the graphs' size (H, W given as ``graph_size``): no resize at all.
-    """
-    base = [read_image(f) for f in list_images(SAMPLE_FRAMES)]
-    h0, w0 = base[0].shape[:2]
-    width, height = input_size if input_size is not None else (graph_size[1], graph_size[0])
-    if (height, width) != (h0, w0):
-        base = [cv2.resize(f, (width, height), interpolation=cv2.INTER_LINEAR) for f in base]
-    K = scale_intrinsics(read_camera(SAMPLE_CALIB).K, width / w0, height / h0)
-    camera = Camera(K, None, (width, height), f"bundled sample calib.txt scaled to {width}x{height}")
-    return [base[i] for i in _pingpong(len(base), count)], camera
-
-
-# ----------------------------------------------------------------------------- graphs
-class Graphs:
-    """Calls the predictor's engines directly: feeds must be C-contiguous float32."""
-
-    def __init__(self, predictor: Predictor):
-        self.engines = {n: predictor.graph_set.engine(n) for n in predictor.graphs}
-
-    def __contains__(self, name: str) -> bool:
-        return name in self.engines
-
-    def __call__(self, name: str, **feeds: np.ndarray) -> dict[str, np.ndarray]:
-        return self.engines[name].run(feeds)
-
-
-def _c(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.float32)
-
-
-def snippet_feeds(x: np.ndarray, targets: list[int], n: int, L: int) -> dict[str, np.ndarray]:
-    """Prepared network inputs for the pairs target t -> t+1 (frames x: (n, 3, h, w) normalised)."""
-    orders = [snippet_indices(t, n, L) for t in targets]
-    src = next_source_position(L)
-    return {
-        "target": _c(x[[o[0] for o in orders]]),
-        "source": _c(x[[o[1 + src] for o in orders]]),
-        "snippet": _c(np.stack([np.concatenate([x[i] for i in o]) for o in orders])),
-    }
-
-
-def net_cascade(
-    g: Graphs, feeds: dict, K_graph: np.ndarray, src_pos: int, disparity: np.ndarray | None = None
-) -> dict[str, np.ndarray]:
-    """depth -> pose -> rigid-flow op -> ResFlowNet on prepared feeds; returns every intermediate."""
-    if disparity is None:
-        disparity = g("depthnet", image=feeds["target"])["disparity"]
-    pose = _c(g("posenet", snippet=feeds["snippet"])["pose"][:, src_pos])
-    rigid = g(
-        "rigidflow",
-        depth=1.0 / disparity,
-        pose=pose,
-        intrinsics=K_graph,
-        target=feeds["target"],
-        source=feeds["source"],
-    )
-    flow_input = np.concatenate(
-        [feeds["target"], feeds["source"], rigid["warped"], rigid["rigid_flow"], rigid["error"]], axis=1
-    )
-    out = {"disparity": disparity, "pose": pose, "flow_input": flow_input, **rigid}
-    if "resflownet" in g:
-        out.update(g("resflownet", flow_input=flow_input))
-    return out
-
-
-# ----------------------------------------------------------------------------- cases
-def build_cases(
-    predictor: Predictor,
-    tasks: list[str],
-    modes: list[str],
-    batch: int,
-    frames: list[np.ndarray],
-    camera: Camera,
-    seq_frames: int,
-) -> tuple[list[tuple[str, str, Case, dict]], list[dict]]:
-    """The timed callables for one predictor and batch -> ([(task, mode, case, extra)], skipped)."""
-    g = Graphs(predictor)
-    spec = predictor.spec
-    L, k = spec.seq_length, spec.seq_length // 2
-    src_pos = next_source_position(L)
-    size = frames[0].shape[:2]
-    n = len(frames)
-    x = np.stack([spec.to_network(f) for f in frames])  # (n, 3, h, w) prepared once
-    targets = [k + b for b in range(batch)]  # full snippets for every pair
-    feeds = snippet_feeds(x, targets, n, L)
-    K_graph = _c(np.repeat(graph_intrinsics(camera.K, size, spec)[None], batch, axis=0))
-    ref = net_cascade(g, feeds, K_graph, src_pos)  # realistic inputs of the single-graph cases
-    rigid_feeds = {
-        "depth": _c(1.0 / ref["disparity"]),
-        "pose": ref["pose"],
-        "intrinsics": K_graph,
-        "target": feeds["target"],
-        "source": feeds["source"],
-    }
-    flow_input = _c(ref["flow_input"])
-    tgt_frames = [frames[snippet_indices(t, n, L)[0]] for t in targets]
-    src_frames = [frames[snippet_indices(t, n, L)[1 + src_pos]] for t in targets]
-    snippet = frames[0:L]
-    seq = frames[:seq_frames]
-
-    # sequence, network only: the graph calls iter_sequence makes, on prepared frames
-    seq_chunks = []
-    for t0 in range(0, seq_frames, batch):
-        chunk = list(range(t0, min(t0 + batch, seq_frames)))
-        paired = [t for t in chunk if t + 1 < seq_frames]
-        sf = snippet_feeds(x[:seq_frames], paired, seq_frames, L) if paired else None
-        kg = _c(np.repeat(K_graph[:1], len(paired), axis=0)) if paired else None
-        seq_chunks.append((_c(x[chunk]), len(paired), sf, kg))
-
-    def sequence_graph():
-        for images, n_paired, sf, kg in seq_chunks:
-            disparity = g("depthnet", image=images)["disparity"]
-            if n_paired:
-                net_cascade(g, sf, kg, src_pos, disparity=_c(disparity[:n_paired]))
-
-    def rigid_e2e():
-        t = np.stack([spec.to_network(f) for f in tgt_frames])
-        s = np.stack([spec.to_network(f) for f in src_frames])
-        kg = _c(np.repeat(graph_intrinsics(camera.K, size, spec)[None], batch, axis=0))
-        out = g("rigidflow", depth=rigid_feeds["depth"], pose=rigid_feeds["pose"], intrinsics=kg, target=t, source=s)
-        return [flow_to_input(f, size) for f in out["rigid_flow"]]
-
-    def resflow_e2e():
-        out = g("resflownet", flow_input=flow_input)
-        return [(flow_to_input(f, size), flow_to_input(r, size)) for f, r in zip(out["flow"], out["residual_flow"])]
-
-    def depth_e2e():
-        return predictor.depth(frames[0]) if batch == 1 else predictor.depth(frames[:batch])
-
-    flow_graphs = ["depthnet", "posenet", "rigidflow"] + (["resflownet"] if "resflownet" in g else [])
-    calls = {
-        ("depth", "graph"): lambda: g("depthnet", image=feeds["target"]),
-        ("depth", "e2e"): depth_e2e,
-        ("pose", "graph"): lambda: g("posenet", snippet=feeds["snippet"]),
-        ("pose", "e2e"): lambda: predictor.pose(snippet, camera),
-        ("rigid_flow", "graph"): lambda: g("rigidflow", **rigid_feeds),
-        ("rigid_flow", "e2e"): rigid_e2e,
-        ("resflow", "graph"): lambda: g("resflownet", flow_input=flow_input),
-        ("resflow", "e2e"): resflow_e2e,
-        ("flow", "graph"): lambda: net_cascade(g, feeds, K_graph, src_pos),
-        ("flow", "e2e"): lambda: predictor.flow(snippet, camera),
-        ("sequence", "graph"): sequence_graph,
-        ("sequence", "e2e"): lambda: collections.deque(
-            predictor.iter_sequence(seq, camera, batch_size=batch), maxlen=0
-        ),
-    }
-    graphs_of = {
-        "depth": ["depthnet"],
-        "pose": ["posenet"],
-        "rigid_flow": ["rigidflow"],
-        "resflow": ["resflownet"],
-        "flow": flow_graphs,
-        "sequence": flow_graphs,
-    }
-    cases, skipped = [], []
-    for task in tasks:
-        for mode in modes:
-            if mode == "e2e" and task in PER_SNIPPET_TASKS and batch > 1:
-                skipped.append(
-                    {
-                        "task": task,
-                        "mode": mode,
-                        "batch": batch,
-                        "reason": f"Predictor.{task}() takes one snippet (batch 1); batched {task} "
-                        "runs inside the sequence task",
-                    }
-                )
-                continue
-            items = seq_frames if task == "sequence" else batch
-            extra = {
-                "graphs": graphs_of[task],
-                "items_per_call": items,
-                "unit": "frame" if task == "sequence" else "call",
-            }
-            if task == "sequence":
-                extra.update(frames=seq_frames, pairs=seq_frames - 1)
-            cases.append((task, mode, Case(f"{task}/{mode}", calls[(task, mode)], items), extra))
-    return cases, skipped
-
-
-# ----------------------------------------------------------------------------- environment
-def cpu_flags() -> list[str]:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
-                have = set(line.split(":", 1)[1].split())
-                return [f for f in CPU_FLAGS if f in have]
-    except OSError:
-        pass
-    return []
-
-
-def _git_commit() -> str | None:
-    root = Path(__file__).resolve().parents[2]
-    if not (root / ".git").exists():
-        return None
-    try:
-        out = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False
-        )
-        return out.stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
-# ----------------------------------------------------------------------------- output
-def _row(task: str, mode: str, precision: str, backend: str, batch: int, case: Case, extra: dict) -> dict:
-    stats = case.stats()
-    if task == "sequence":
-        per_frame = stats.scaled(1.0 / extra["frames"])
-        row = per_frame.as_dict()
-        row["per_pair_p50_ms"] = stats.p50_ms / extra["pairs"]
-        row["per_item_p50_ms"] = per_frame.p50_ms
-    else:
-        row = stats.as_dict()
-        row["per_item_p50_ms"] = stats.p50_ms / batch
-    row["first_call_ms"] = case.first_call_ms
-    return {"task": task, "mode": mode, "precision": precision, "backend": backend, "batch": batch, **row, **extra}
-
-
-def format_table(results: list[dict]) -> str:
-    head = (
-        f"{'task':<11} {'mode':<5} {'prec':<4} {'backend':<11} {'batch':>5} {'p50 ms':>9} {'p90 ms':>9} "
-        f"{'p99 ms':>9} {'mean +- std ms':>17} {'ms/item':>9} {'items/s':>8}"
-    )
-    lines = [head, "-" * len(head)]
-    for r in results:
-        unit = "/frame" if r["unit"] == "frame" else ""
-        lines.append(
-            f"{r['task']:<11} {r['mode']:<5} {r['precision']:<4} {r['backend']:<11} {r['batch']:>5} "
-            f"{r['p50_ms']:>9.2f} {r['p90_ms']:>9.2f} {r['p99_ms']:>9.2f} "
-            f"{r['mean_ms']:>8.2f} +- {r['std_ms']:<6.2f} {r['per_item_p50_ms']:>9.2f} {r['fps']:>8.1f}"
-            + (f"  ({unit})" if unit else "")
-        )
-    return "\n".join(lines)
-
-
-def paper_line(results: list[dict], precision: str, backend: str) -> str | None:
-    """'per example' like the paper (batch 1, p50): depth, flow per pair in a sequence, pose."""
-    pick = {
-        (r["task"], r["mode"]): r
-        for r in results
-        if r["precision"] == precision and r["backend"] == backend and r["batch"] == 1
-    }
-    parts = []
-    for label, key, field in (
-        ("depth", ("depth", "e2e"), "p50_ms"),
-        ("flow/pair (sequence)", ("sequence", "e2e"), "per_pair_p50_ms"),
-        ("flow (one pair)", ("flow", "e2e"), "p50_ms"),
-        ("pose", ("pose", "e2e"), "p50_ms"),
-    ):
-        if key in pick:
-            parts.append(f"{label} {pick[key][field]:.1f} ms")
-    return f"per example, {precision}, {backend}, batch 1, e2e p50: " + ", ".join(parts) if parts else None
-
-
 # ----------------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     plan = _check_args(args)
     manifest = plan["manifest"]
     log = (lambda msg: None) if args.quiet else (lambda msg: print(f"bench: {msg}", file=sys.stderr, flush=True))
-    env = environment()
+    env = Environment.current().as_dict()
     load_start = load_average()
     env.update(
         {
             "cpu_flags": cpu_flags(),
             "load_average_start": load_start,
-            "git_commit": _git_commit(),
-            "thread_env": {k: os.environ.get(k) for k in THREAD_ENV},
+            "git_commit": git_commit(),
+            "thread_env": thread_env(),
             "command": ["geonet-infer", *sys.argv[1:]],
             "model": model_summary(plan["model_dir"]),
             "input_size": list(plan["input_size"]) if plan["input_size"] else [manifest.width, manifest.height],
@@ -592,7 +293,7 @@ def run(args: argparse.Namespace) -> int:
             rss_loaded = current_rss_mib()
             graphs_mib = manifest.files_mib(precision)
             env.setdefault("threads", predictor.threads)
-            ort_engines = [predictor.graph_set.engine(n) for n, e in predictor.engines.items() if e == "onnxruntime"]
+            ort_engines = [predictor.graph_set.engine(n) for n, e in predictor.engines.items() if e == OrtEngine.name]
             if ort_engines:
                 env.setdefault("session_options", ort_engines[0].describe())
             for batch in plan["batches"]:
@@ -611,7 +312,7 @@ def run(args: argparse.Namespace) -> int:
                     block=args.block,
                     rewarm_ms=args.rewarm_ms,
                 )
-                results += [_row(t, m, precision, backend, batch, c, x) for t, m, c, x in cases]
+                results += [result_row(t, m, precision, backend, batch, c, x) for t, m, c, x in cases]
             env.setdefault("engines", {})[f"{backend}/{precision}"] = {
                 name: {
                     **predictor.graph_set.engine(name).describe(),

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from geonet_infer import evaluation
 from geonet_infer.cli.common import add_model_args, load_predictor, positive_int
-from geonet_infer.datasets import LAYOUTS, TASKS, load_dataset, read_heldout
+from geonet_infer.datasets import LAYOUTS, REGISTRY, TASKS, load_dataset, read_heldout
 from geonet_infer.errors import InputError
 
-HELP = """\
+HELP_TEMPLATE = """\
 Score depth, optical flow or camera pose against ground truth, with the GeoNet paper's
 protocols, and print a table in the paper's column order (JSON with every item via --json).
 
@@ -35,21 +36,7 @@ protocols, and print a table in the paper's column order (JSON with every item v
   pose:  orb-vo (ORB + essential matrix + recoverPose per pair, unit steps, scale-aligned), identity
 Comma-separate several to get one table (--method model,dis,zero).
 
-Layouts (--layout, default auto):
-  depth  synth       training.synth folders: seq_NNNN/image + depth/ (KITTI depth PNG)
-         kitti-raw   drive folder: image_02/data + proj_depth/groundtruth/image_02 (uint16/256 PNG)
-                     or velodyne_points/data + calib_cam_to_cam.txt, calib_velo_to_cam.txt
-                     (here or up to two levels up), projected on the fly
-  flow   synth       seq_NNNN/image, flow_noc/, flow_occ/, calib.txt
-         kitti       KITTI 2015 (image_2/, calib_cam_to_cam/) or 2012 (colored_0/, calib/):
-                     NNNNNN_10.png -> _11.png, flow_noc/, flow_occ/; the model's 3-frame snippet
-                     takes NNNNNN_09.png (multi-view extension: same folder or --multiview DIR);
-                     without it the pair is padded [_10, _10, _11] as at a video start
-         middlebury  other-data[-gray]/<Seq>/frame10.png, frame11.png + other-gt-flow/<Seq>/flow10.flo
-                     (no intrinsics: the model needs --intrinsics)
-  pose   synth       seq_NNNN/image + poses.txt + calib.txt
-         kitti-odometry  sequences/XX with image_2/ (or image_0/), calib.txt, and poses.txt
-                     there or poses/XX.txt two levels up; frames matched to poses by number
+{layouts}
 
 Ground truth: a frame of a KITTI raw drive without its ground-truth file (sparse depth PNG or
 Velodyne scan) is not scored; a warning on stderr says how many and which, the JSON lists them
@@ -70,6 +57,21 @@ examples:
   geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 --method model,orb-vo,identity
   geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --json flow.json
 """
+
+
+def layouts_help() -> str:
+    """The layouts block of ``--help``, from the registry (a new layout describes itself)."""
+    out = ["Layouts (--layout, default auto):"]
+    for task in TASKS:
+        for n, name in enumerate(LAYOUTS[task]):
+            first, *more = REGISTRY[name].help[task]
+            label = f"{task:<6}" if n == 0 else " " * 6
+            out.append(f"  {label} {name:<11}{' ' if len(name) < 11 else '  '}{first}")
+            out += [" " * 21 + line for line in more]
+    return "\n".join(out) + "\n"
+
+
+HELP = HELP_TEMPLATE.replace("{layouts}", layouts_help(), 1)
 
 
 def add_parser(sub) -> None:
@@ -156,7 +158,7 @@ def parse_intrinsics(text: str | None) -> np.ndarray | None:
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
 
 
-def methods_for(task: str, text: str, args) -> list[tuple[str, object]]:
+def methods_for(task: str, text: str, args) -> list[tuple[str, Callable]]:
     """[(row label, fn)] for the comma list ``text``; loads the model only if asked for."""
     out = []
     for method in [m.strip() for m in text.split(",") if m.strip()]:

@@ -4,19 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-from dataclasses import asdict
-from pathlib import Path
 
-import cv2
-import numpy as np
-import onnxruntime as ort
-
-from geonet_infer import __version__
-from geonet_infer.engines import check_graphs, openvino_version, usable_cpus
-from geonet_infer.manifest import ModelCard, load_manifest
-from geonet_infer.models import DEFAULT_MODEL, bundled_models, resolve_model
-from geonet_infer.predictor import RIGID_FLOW_GRAPHS, TASK_GRAPHS, missing_graphs
+from geonet_infer.benchmark import NOT_MEASURED, Environment, model_summary
+from geonet_infer.engines import ENGINES
+from geonet_infer.models import DEFAULT_MODEL
+from geonet_infer.predictor import RIGID_FLOW_GRAPHS
 
 
 def add_parser(sub) -> None:
@@ -33,96 +25,6 @@ def add_parser(sub) -> None:
     parser.set_defaults(run=run)
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def environment() -> dict:
-    return {
-        "geonet_infer": __version__,
-        "python": platform.python_version(),
-        "onnxruntime": ort.__version__,
-        "openvino": openvino_version(),
-        "numpy": np.__version__,
-        "opencv": cv2.__version__,
-        "providers": ort.get_available_providers(),
-        "platform": platform.platform(),
-        "cpu": cpu_model(),
-        "usable_cpus": usable_cpus(),
-        "default_threads": usable_cpus(),
-        "bundled_models": list(bundled_models()),
-    }
-
-
-def model_summary(model) -> dict:
-    manifest = load_manifest(resolve_model(model))
-    check_graphs(manifest)  # what the Predictor would refuse at load, info refuses too
-    graphs = {
-        p: {
-            name: {
-                "file": g.file,
-                "sha256": g.sha256[:16],
-                "opset": g.opset,
-                "mib": round((manifest.root / g.file).stat().st_size / 2**20, 2),
-            }
-            for name, g in manifest.graphs[p].items()
-        }
-        for p in manifest.graphs
-    }
-    prov = manifest.provenance
-    present = manifest.graph_names("fp32")
-    tasks = {}
-    for task, needed in TASK_GRAPHS.items():
-        missing = missing_graphs(task, present)
-        tasks[task] = {"available": not missing, "graphs": list(needed), "missing": list(missing)}
-    return {
-        "dir": str(manifest.root),
-        "arch": manifest.arch,
-        "size": [manifest.height, manifest.width],
-        "seq_length": manifest.seq_length,
-        "random_init": manifest.random_init,
-        "precisions": list(manifest.graphs),
-        "graphs": graphs,
-        "tasks": tasks,
-        "provenance": {
-            "checkpoint_stage": prov.checkpoint_stage,
-            "checkpoint_step": prov.checkpoint_step,
-            "training_command": prov.training_command,
-            "data_dir": prov.data_dir,
-            "git_commit": prov.git_commit,
-            "export_date": prov.export_date,
-        },
-        "metrics": manifest.metrics,
-        "model_card": card_summary(manifest.model_card),
-        "int8_accuracy_delta": manifest.quantization.accuracy_delta if manifest.quantization else None,
-    }
-
-
-NOT_MEASURED = "not measured"
-
-
-def card_summary(card: ModelCard | None) -> dict:
-    """What the model was trained on and its measured scores (from the model card), or "not measured"."""
-    if card is None:
-        return {"trained_on": "not recorded", "real": NOT_MEASURED, "synthetic": NOT_MEASURED, "measured_in": None}
-    scores = {
-        key: [{**asdict(s), "verdict": s.verdict} for s in getattr(card, key)] or NOT_MEASURED
-        for key in ("real", "synthetic")
-    }
-    return {
-        "trained_on": card.trained_on,
-        "synthetic_only": card.synthetic_only,
-        **scores,
-        "measured_in": card.measured_in,
-    }
-
-
 def _score_text(s: dict) -> str:
     return (
         f"{s['task']} {s['metric']} {s['value']:.3g} vs {s['baseline_value']:.3g} for {s['baseline']} "
@@ -131,21 +33,24 @@ def _score_text(s: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    info = {"environment": environment(), "model": model_summary(args.model)}
+    info = {"environment": Environment.current().as_dict(), "model": model_summary(args.model)}
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
     env, model = info["environment"], info["model"]
+    default, *optional = ENGINES.values()  # the default engine is always installed
     print(
-        f"geonet-infer {env['geonet_infer']}  python {env['python']}  onnxruntime {env['onnxruntime']}  "
+        f"geonet-infer {env['geonet_infer']}  python {env['python']}  {default.name} {env[default.name]}  "
         f"numpy {env['numpy']}  opencv {env['opencv']}"
     )
     print(f"providers: {', '.join(env['providers'])}")
-    print(
-        f"openvino: {env['openvino']} (--backend openvino|auto)"
-        if env["openvino"]
-        else "openvino: not installed (pip install 'geonet-infer[openvino]' for --backend openvino|auto)"
-    )
+    for engine in optional:
+        version = env[engine.name]
+        print(
+            f"{engine.name}: {version} (--backend {engine.name}|auto)"
+            if version
+            else f"{engine.name}: not installed ({engine.install_hint} for --backend {engine.name}|auto)"
+        )
     print(f"cpu: {env['cpu']}; usable CPUs {env['usable_cpus']} (default threads per graph)")
     print(f"bundled models: {', '.join(env['bundled_models']) or 'none'}")
     print(f"model: {model['dir']}")
