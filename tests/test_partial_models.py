@@ -22,6 +22,8 @@ import geonet_infer
 from geonet_infer import GeoNetError
 from geonet_infer.cli import main
 
+pytestmark = pytest.mark.slow  # its module fixture exports four partial models: ~40 s
+
 pytest.importorskip("torch")  # the tiny models are exported here (train extra)
 from export import ExportConfig, export_model  # noqa: E402
 
