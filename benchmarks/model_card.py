@@ -55,11 +55,10 @@ from typing import NamedTuple
 import numpy as np
 
 from geonet_infer import evaluation, metrics
-from geonet_infer.benchmark import git_commit
 from geonet_infer.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
-from geonet_infer.manifest import MANIFEST_NAME, Manifest, load_manifest
+from geonet_infer.manifest import MANIFEST_NAME, Manifest, git_commit, load_manifest
 from geonet_infer.predictor import Predictor
 
 KITTI_CROP = "garg"

@@ -13,7 +13,6 @@ from pathlib import Path
 
 from export.wrappers import io_spec
 from geonet_infer import conventions
-from geonet_infer.benchmark import git_commit
 from geonet_infer.manifest import (
     SCHEMA_VERSION,
     GraphEntry,
@@ -22,6 +21,7 @@ from geonet_infer.manifest import (
     Quantization,
     TensorSpec,
     file_sha256,
+    git_commit,
 )
 from training.losses import LossWeights
 

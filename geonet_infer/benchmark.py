@@ -2,8 +2,6 @@
 record of the machine (:class:`Environment`). The CLI (:mod:`geonet_infer.cli.bench`) parses
 arguments and prints; ``benchmarks/peers.py`` builds on the same pieces.
 
-Reports (``geonet-infer bench``, ``geonet-infer info``, the model card, export manifests)
-record which commit they measured with :func:`git_commit`.
 """
 
 from __future__ import annotations
@@ -11,7 +9,6 @@ from __future__ import annotations
 import collections
 import os
 import platform
-import subprocess
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -30,25 +27,6 @@ from geonet_infer.predictor import TASK_GRAPHS as MODEL_TASK_GRAPHS  # depth, po
 from geonet_infer.predictor import Predictor, missing_graphs
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 from geonet_infer.timing import Case
-
-SOURCE_ROOT = Path(__file__).resolve().parents[1]  # the checkout, when running from one
-
-
-def git_commit(root: Path | None = None, short: bool = False) -> str | None:
-    """``git rev-parse [--short] HEAD`` in ``root`` (default: the checkout holding this package),
-    or None where there is no git or no checkout (an installed wheel)."""
-    root = SOURCE_ROOT if root is None else Path(root)
-    if not (root / ".git").exists():
-        return None
-    cmd = ["git", "-C", str(root), "rev-parse", *(["--short"] if short else []), "HEAD"]
-    try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=10, check=False)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    if out.returncode != 0:
-        return None
-    return out.stdout.strip() or None
-
 
 TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
 MODES = ("graph", "e2e")

@@ -21,6 +21,7 @@ import json
 import math
 import mmap
 import os
+import subprocess
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path, PurePosixPath
@@ -629,3 +630,23 @@ def _tensor_location(buf, start: int, end: int) -> str | None:
         elif field_number == _TENSOR_DATA_LOCATION and wire == 0 and value == _EXTERNAL:
             external = ""
     return external
+
+
+SOURCE_ROOT = Path(__file__).resolve().parents[1]  # the checkout holding this package, when run from one
+
+
+def git_commit(root: Path | None = None, short: bool = False) -> str | None:
+    """``git rev-parse [--short] HEAD`` in ``root`` (default: the checkout holding this package),
+    or None where there is no git or no checkout (an installed wheel). Provenance of manifests,
+    bench reports, the model card and the results report."""
+    root = SOURCE_ROOT if root is None else Path(root)
+    if not (root / ".git").exists():
+        return None
+    cmd = ["git", "-C", str(root), "rev-parse", *(["--short"] if short else []), "HEAD"]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=10, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if out.returncode != 0:
+        return None
+    return out.stdout.strip() or None

@@ -362,25 +362,10 @@ def run_batch(
                 "precision": precision,
                 "backend": backend,
                 "camera": "per input (its own calibration, if any)" if camera is None else camera.source,
-                "per_sequence": [
-                    {
-                        "sequence": r["sequence"],
-                        "input": r["input"],
-                        "status": r["status"],
-                        "frames": r["frames"],
-                        "failures": len(r["failures"]),
-                        "wall_s": round(r["wall_s"], 3),
-                    }
-                    for r in ordered
-                ],
+                "per_sequence": [_sequence_row(r) for r in ordered],
                 "versions": {"geonet_infer": __version__, "python": platform.python_version()},
+                "exit_code": _exit_code(interrupted, os_error, bool(records or n_failed)),
             }
-            if interrupted:
-                summary["exit_code"] = 130
-            elif os_error is not None:
-                summary["exit_code"] = 3
-            else:
-                summary["exit_code"] = 1 if records or n_failed else 0
             with atomic_write(out_dir / SUMMARY_NAME) as tmp:
                 tmp.write_text(json.dumps(summary, indent=2) + "\n")
     if interrupted:
@@ -388,6 +373,27 @@ def run_batch(
     if os_error is not None:
         raise os_error
     return summary
+
+
+def _sequence_row(result: dict) -> dict:
+    """One sequence's line in summary.json."""
+    return {
+        "sequence": result["sequence"],
+        "input": result["input"],
+        "status": result["status"],
+        "frames": result["frames"],
+        "failures": len(result["failures"]),
+        "wall_s": round(result["wall_s"], 3),
+    }
+
+
+def _exit_code(interrupted: bool, os_error: OSError | None, failed: bool) -> int:
+    """130 interrupted, 3 the OS refused a write into OUT, 1 something failed, else 0."""
+    if interrupted:
+        return 130
+    if os_error is not None:
+        return 3
+    return 1 if failed else 0
 
 
 def _stop(bar, stream, active) -> None:

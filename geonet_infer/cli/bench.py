@@ -49,7 +49,6 @@ from geonet_infer.benchmark import (
     build_cases,
     cpu_flags,
     format_table,
-    git_commit,
     model_summary,
     paper_line,
     result_row,
@@ -59,7 +58,7 @@ from geonet_infer.cli.common import add_model_args, backend_help
 from geonet_infer.engines import BACKENDS, ENGINES, OrtEngine
 from geonet_infer.errors import BackendUnavailableError, InputError
 from geonet_infer.io.atomic import atomic_write
-from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, load_manifest
+from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, git_commit, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.predictor import load
 from geonet_infer.samples import SAMPLE_FRAMES
