@@ -276,7 +276,7 @@ STAGES = ("read", "preprocess", "depthnet", "posenet", "rigidflow", "resflownet"
 class StageTimer:
     """Accumulates wall time per stage in ms: ``with timer.stage("depthnet"): ...``."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.ms: dict[str, float] = defaultdict(float)
 
     @contextmanager
