@@ -16,11 +16,13 @@ Exit 0 when every case is identical, 1 otherwise (the differing files are listed
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,6 +44,17 @@ def run_predict(tree: Path, args: list[str], out: Path) -> None:
     done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"{tree}: predict {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
+
+
+@contextlib.contextmanager
+def revision_tree(revision: str, parent: Path) -> Iterator[Path]:
+    """``revision`` checked out into a temporary git worktree under ``parent`` (removed after)."""
+    tree = parent / "tree"
+    subprocess.run(["git", "worktree", "add", "--detach", "-q", str(tree), revision], cwd=REPO, check=True)
+    try:
+        yield tree
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, check=False)
 
 
 def _strip(obj):
@@ -90,23 +103,21 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unknown case(s) {unknown}; choose from {','.join(CASES)}")
     failed = 0
-    with tempfile.TemporaryDirectory(prefix="geonet_identical_") as tmp:
-        old_tree = Path(tmp) / "tree"
-        subprocess.run(["git", "worktree", "add", "--detach", "-q", str(old_tree), args.against], cwd=REPO, check=True)
-        try:
-            for case in cases:
-                outs = {}
-                for label, tree in (("before", old_tree), ("after", REPO)):
-                    outs[label] = Path(tmp) / f"{case}_{label}"
-                    run_predict(tree, CASES[case], outs[label])
-                diffs = compare(outs["before"], outs["after"], (old_tree, REPO))
-                n_files = sum(1 for p in outs["after"].rglob("*") if p.is_file())
-                print(f"{case}: {'identical' if not diffs else 'DIFFERENT'} ({n_files} files)")
-                for line in diffs[:20]:
-                    print(f"  {line}")
-                failed += bool(diffs)
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(old_tree)], cwd=REPO, check=False)
+    with (
+        tempfile.TemporaryDirectory(prefix="geonet_identical_") as tmp,
+        revision_tree(args.against, Path(tmp)) as old_tree,
+    ):
+        for case in cases:
+            outs = {}
+            for label, tree in (("before", old_tree), ("after", REPO)):
+                outs[label] = Path(tmp) / f"{case}_{label}"
+                run_predict(tree, CASES[case], outs[label])
+            diffs = compare(outs["before"], outs["after"], (old_tree, REPO))
+            n_files = sum(1 for p in outs["after"].rglob("*") if p.is_file())
+            print(f"{case}: {'identical' if not diffs else 'DIFFERENT'} ({n_files} files)")
+            for line in diffs[:20]:
+                print(f"  {line}")
+            failed += bool(diffs)
     print(f"{len(cases) - failed}/{len(cases)} cases identical to {args.against}")
     return 1 if failed else 0
 

@@ -51,6 +51,7 @@ from geonet_infer.io.calib import Camera
 from geonet_infer.io.images import read_image
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, check_graph_io
 from geonet_infer.results import FrameResult
+from geonet_infer.rigid import RigidFlowOp
 
 # What each graph of a model directory must accept and return for this runtime to drive it.
 GRAPH_IO = {
@@ -396,20 +397,36 @@ def posenet_order(target: int, seq_length: int) -> list[int]:
     return [target] + [i for i in range(seq_length) if i != target]
 
 
+RIGID_OPS = ("graph", "numpy")  # how the rigid-flow op runs: geonet_infer.rigid, or rigidflow.onnx
+
+
 class GraphSet:
     """One engine per graph of a model directory at one precision (sessions made once).
 
     ``backend``: a name of :data:`geonet_infer.engines.ENGINES`, or "auto" (the faster engine per
     graph, timed here). Every graph's inputs and outputs are checked against the manifest.
+    ``rigid_op``: "graph" runs ``rigidflow.onnx`` on ``backend`` like the other graphs; "numpy" runs
+    the weightless op with :class:`geonet_infer.rigid.RigidFlowOp` (about twice as fast, within
+    2e-4 px of the graph) where the manifest's sampler is the one it implements.
     """
 
-    def __init__(self, manifest: Manifest, precision: str, backend: str, threads: int):
+    def __init__(self, manifest: Manifest, precision: str, backend: str, threads: int, rigid_op: str = "graph"):
+        if rigid_op not in RIGID_OPS:
+            raise InputError(None, f"unknown rigid_op {rigid_op!r}", f"choose one of {', '.join(RIGID_OPS)}")
         self.manifest = manifest
         self.precision = precision
         self.backend_choice: dict[str, dict] = {}  # backend="auto": per graph, the timings behind the choice
-        self._engines: dict[str, Engine] = {}
+        self._engines: dict[str, Engine | RigidFlowOp] = {}
         for name in manifest.graph_names(precision):
             path = manifest.path(name, precision)
+            if name == "rigidflow" and rigid_op == "numpy" and RigidFlowOp.supports(manifest.conventions):
+                graph = make_engine(path, "onnxruntime", 1)  # read once: its declared io is the op's
+                check_graph_io(manifest.graph(name, precision), path, *graph.io())
+                alpha = manifest.photometric_alpha
+                self._engines[name] = RigidFlowOp(
+                    conventions.UNRECORDED_PHOTOMETRIC_ALPHA if alpha is None else alpha, graph.io()
+                )
+                continue
             if backend == AUTO:
                 self._engines[name], self.backend_choice[name] = pick_fastest(path, threads)
             else:
@@ -429,7 +446,7 @@ class GraphSet:
     def __contains__(self, name: object) -> bool:
         return name in self._engines
 
-    def engine(self, name: str) -> Engine:
+    def engine(self, name: str) -> Engine | RigidFlowOp:
         """The engine of graph ``name`` (``run(feeds) -> {output: array}``); ModelError when absent."""
         if name not in self._engines:
             raise ModelError(

@@ -85,6 +85,7 @@ FLOW_SCALING = 0.1  # ResFlowNet heads output 0.1 * conv, in units of image size
 # Manifest key of the photometric error's alpha (see the module docstring). Optional, so it stays out of
 # as_dict(), whose keys every manifest must have: export adds it beside them.
 PHOTOMETRIC_ALPHA = "photometric_alpha"
+UNRECORDED_PHOTOMETRIC_ALPHA = 0.85  # what graphs exported before the key existed bake in
 # The camera assumed where none is given (synthetic scenes, INT8 calibration frames without
 # calibration, export trace inputs): KITTI raw 2011_09_26 P_rect_02 at its 1242 x 375 images.
 KITTI_FX, KITTI_FY, KITTI_CX, KITTI_CY, KITTI_WIDTH, KITTI_HEIGHT = 721.5377, 721.5377, 609.5593, 172.854, 1242, 375

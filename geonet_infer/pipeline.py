@@ -28,8 +28,9 @@ import json
 import os
 import platform
 import time
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,7 @@ from geonet_infer.viz import depth_to_color, flow_to_color
 
 SUMMARY_NAME = "summary.json"
 MAX_BATCH_SIZE = 64  # frames per network batch; memory grows with it, speed does not past a few
+WRITE_THREADS = 2  # frames written while the next are predicted; PNG encoding is most of a frame's cost
 SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
 OUTPUT_MARKER = ".geonet-predict"  # JSON: the files the run that owns OUT may write
 OUTPUT_LOCK = ".geonet-predict.lock"  # the pid of the run writing into OUT now
@@ -347,6 +349,19 @@ def _predict(
 
     bar = tqdm(total=len(source) or None, unit="frame", desc=source.name, disable=not progress, leave=False)
     frames = _Frames(source, bar, check_camera)
+    writer = _FrameWriter(out_dir, tasks, vis)
+
+    def record(result: FrameResult, write_ms: float) -> None:
+        nonlocal done
+        totals["write"] += write_ms
+        poses.append(result.camera_to_world)
+        if result.metric_scale is not None:
+            scales.append(result.metric_scale)
+        for stage, ms in result.timings_ms.items():
+            totals[stage] += ms
+        done += 1
+        bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
+
     try:
         results = predictor.iter_sequence(
             frames,
@@ -361,20 +376,18 @@ def _predict(
             if bad is not None:
                 frames.failures.append({"frame": result.name, "reason": f"model produced NaN/inf {bad}"})
                 continue
-            t0 = time.perf_counter()
             if owned is not None:
                 owned.add(_frame_files(result.name, tasks, vis))
-            _write_frame(out_dir, result, tasks, vis)
-            totals["write"] += (time.perf_counter() - t0) * 1e3
-            poses.append(result.camera_to_world)
-            if result.metric_scale is not None:
-                scales.append(result.metric_scale)
-            for stage, ms in result.timings_ms.items():
-                totals[stage] += ms
-            done += 1
-            bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
+            written = writer.submit(result)
+            for result, write_ms in written:
+                record(result, write_ms)
+        for result, write_ms in writer.drain():
+            record(result, write_ms)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: a summary of what was written, then stop
         interrupted = True
+        with contextlib.suppress(KeyboardInterrupt):  # frames already handed to the writer are finished
+            for result, write_ms in writer.drain():
+                record(result, write_ms)
     except GeoNetError as exc:
         if done == 0 and frames.size is None:
             raise InputError(
@@ -382,6 +395,7 @@ def _predict(
             ) from None
         raise
     finally:
+        writer.close()
         bar.close()
     truncated = None if interrupted else getattr(source, "truncated", None)
     if truncated:
@@ -457,6 +471,48 @@ def _outputs(tasks: tuple[str, ...], vis: bool = True) -> list[str]:
     if "pose" in tasks:
         out += ["poses_kitti.txt", "poses_tum.txt"]
     return out
+
+
+class _FrameWriter:
+    """Writes each frame's files on worker threads while the next frames are predicted.
+
+    PNG/zlib encoding, the colour maps and file writes release the GIL, so on a 2-core machine
+    the writing overlaps the networks instead of following them. Results come back in frame
+    order with their write time; at most ``in_flight`` frames wait (bounded memory). A failed
+    write raises from :meth:`submit` or :meth:`drain`; :meth:`close` finishes the writes already
+    started (every file is atomic) and drops the ones not started.
+    """
+
+    def __init__(self, out_dir: Path, tasks: tuple[str, ...], vis: bool, workers: int = WRITE_THREADS):
+        self.out_dir, self.tasks, self.vis = out_dir, tasks, vis
+        self.in_flight = 2 * workers
+        self.pool = ThreadPoolExecutor(workers, thread_name_prefix="geonet-write")
+        self.pending: deque[tuple[FrameResult, Future[float]]] = deque()
+
+    def _write(self, result: FrameResult) -> float:
+        t0 = time.perf_counter()
+        _write_frame(self.out_dir, result, self.tasks, self.vis)
+        return (time.perf_counter() - t0) * 1e3
+
+    def submit(self, result: FrameResult) -> list[tuple[FrameResult, float]]:
+        """Queue ``result``'s files; returns the frames finished meanwhile (waits while too many are queued)."""
+        self.pending.append((result, self.pool.submit(self._write, result)))
+        return self._settle(self.in_flight)
+
+    def drain(self) -> list[tuple[FrameResult, float]]:
+        return self._settle(0)
+
+    def _settle(self, keep: int) -> list[tuple[FrameResult, float]]:
+        finished = []
+        while self.pending and (len(self.pending) > keep or self.pending[0][1].done()):
+            result, future = self.pending[0]
+            write_ms = future.result()
+            self.pending.popleft()
+            finished.append((result, write_ms))
+        return finished
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _write_frame(out_dir: Path, result: FrameResult, tasks: tuple[str, ...], vis: bool = True) -> None:

@@ -155,6 +155,7 @@ def load(
     precision: str = "fp32",
     threads: int | None = None,
     backend: str = "onnxruntime",
+    rigid_op: str = "graph",
 ) -> Predictor:
     """Load a model: None = the bundled default, a bundled name, or a model directory.
 
@@ -164,8 +165,12 @@ def load(
         threads: intra-op threads per graph; None = the CPUs this process may use.
         backend: "onnxruntime", "openvino" (extra ``geonet-infer[openvino]``) or "auto"
             (times both on each graph at load, keeps the faster; see :mod:`geonet_infer.engines`).
+        rigid_op: "graph" (default: ``rigidflow.onnx`` on ``backend``, the reference) or "numpy"
+            (the weightless rigid-flow op in numpy + OpenCV, :mod:`geonet_infer.rigid`: about twice
+            as fast; flows agree with the graph's to 2e-4 px, so a KITTI flow PNG may differ by
+            one 1/64 px step in a few values).
     """
-    return Predictor(resolve_model(model), precision=precision, threads=threads, backend=backend)
+    return Predictor(resolve_model(model), precision=precision, threads=threads, backend=backend, rigid_op=rigid_op)
 
 
 class Predictor:
@@ -182,6 +187,7 @@ class Predictor:
         threads: int | None = None,
         manifest: Manifest | None = None,
         backend: str = "onnxruntime",
+        rigid_op: str = "graph",
     ):
         if precision not in PRECISIONS:
             raise InputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISIONS)}")
@@ -194,7 +200,7 @@ class Predictor:
         self.threads = usable_cpus() if threads is None else threads
         self.backend = backend
         # One engine per graph; for benchmarks and export's INT8 calibration (geonet_infer.cascade).
-        self.graph_set = GraphSet(self.manifest, precision, backend, self.threads)
+        self.graph_set = GraphSet(self.manifest, precision, backend, self.threads, rigid_op)
 
     @property
     def graphs(self) -> tuple[str, ...]:

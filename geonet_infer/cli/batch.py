@@ -114,7 +114,7 @@ def add_parser(sub) -> None:
         action="store_true",
         help="skip the sequences OUT already has complete (outputs and inputs as recorded); redo the others",
     )
-    add_model_args(parser, threads=False)
+    add_model_args(parser, threads=False, rigid_op=False)
     add_camera_args(parser)
     parser.add_argument(
         "--tasks",

@@ -287,7 +287,9 @@ def run(args: argparse.Namespace) -> int:
             gc.collect()
             rss_before = current_rss_mib()
             t0 = time.perf_counter()
-            predictor = load(plan["model_dir"], precision=precision, threads=args.threads, backend=backend)
+            predictor = load(
+                plan["model_dir"], precision=precision, threads=args.threads, backend=backend, rigid_op=args.rigid_op
+            )
             load_s = time.perf_counter() - t0
             rss_loaded = current_rss_mib()
             graphs_mib = manifest.files_mib(precision)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from geonet_infer.cascade import RIGID_OPS
 from geonet_infer.engines import AUTO, BACKENDS, ENGINES, usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
@@ -39,8 +40,9 @@ def backend_help() -> str:
     )
 
 
-def add_model_args(parser: argparse.ArgumentParser, threads: bool = True) -> None:
-    """--model, --precision, --backend and (unless ``threads=False``: batch has per-worker threads) --threads."""
+def add_model_args(parser: argparse.ArgumentParser, threads: bool = True, rigid_op: bool = True) -> None:
+    """--model, --precision, --backend and (unless ``threads=False``: batch has per-worker threads)
+    --threads, and (unless ``rigid_op=False``) --rigid-op."""
     group = parser.add_argument_group("model")
     group.add_argument(
         "--model",
@@ -60,6 +62,15 @@ def add_model_args(parser: argparse.ArgumentParser, threads: bool = True) -> Non
         choices=BACKENDS,
         help=backend_help(),
     )
+    if rigid_op:
+        group.add_argument(
+            "--rigid-op",
+            default=RIGID_OPS[0],
+            choices=RIGID_OPS,
+            help="how the weightless rigid-flow op runs: 'graph' (rigidflow.onnx on --backend, the "
+            "reference) or 'numpy' (numpy + OpenCV, about twice as fast; flows within 2e-4 px of the "
+            "graph's) (default: graph)",
+        )
     if threads:
         group.add_argument(
             "--threads",
@@ -79,7 +90,13 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
             f"--threads {args.threads} is more than the {cpus} CPUs this process may use",
             f"pass --threads {cpus} or fewer (or leave it out: the default is {cpus})",
         )
-    return load(args.model, precision=args.precision, threads=args.threads, backend=args.backend)
+    return load(
+        args.model,
+        precision=args.precision,
+        threads=args.threads,
+        backend=args.backend,
+        rigid_op=getattr(args, "rigid_op", RIGID_OPS[0]),
+    )
 
 
 def add_camera_args(parser: argparse.ArgumentParser) -> None:

@@ -6,6 +6,7 @@ import contextlib
 import os
 import re
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,9 +30,14 @@ def leftover_temps(path) -> list[Path]:
     return [p for p in path.parent.iterdir() if name.fullmatch(p.name) and p.is_file()]
 
 
+_UMASK_LOCK = threading.Lock()
+
+
 def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
+    # os.umask can only be read by setting it: two threads doing this at once could leave it at 0.
+    with _UMASK_LOCK:
+        mask = os.umask(0)
+        os.umask(mask)
     return mask
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from geonet_infer.errors import InputError
@@ -34,17 +35,33 @@ def encode_flow_kitti(flow: np.ndarray, valid: np.ndarray | None = None) -> np.n
     Values are rounded to the 1/64 px grid and clipped to the uint16 range;
     invalid (or non-finite) pixels become (0, 0, 0).
     """
-    flow = np.asarray(flow, dtype=np.float64)
+    return cv2.merge(_flow_planes(flow, valid))
+
+
+def _flow_planes(flow: np.ndarray, valid: np.ndarray | None) -> list[np.ndarray]:
+    """The KITTI flow PNG's R, G, B planes: (H, W) uint16 each (u code, v code, valid)."""
+    flow = np.asarray(flow)
+    if flow.dtype not in (np.float32, np.float64):
+        flow = flow.astype(np.float64)
     if flow.ndim != 3 or flow.shape[2] != 2:
         raise ValueError(f"flow must be (H, W, 2), got {flow.shape}")
-    finite = np.isfinite(flow).all(axis=2)
-    valid = finite if valid is None else (np.asarray(valid, dtype=bool) & finite)
-    enc = np.zeros(flow.shape[:2] + (3,), dtype=np.uint16)
-    uv = np.clip(np.round(np.where(finite[..., None], flow, 0.0) * FLOW_SCALE + FLOW_OFFSET), 0, 65535)
-    enc[..., 0] = np.where(valid, uv[..., 0], 0)
-    enc[..., 1] = np.where(valid, uv[..., 1], 0)
-    enc[..., 2] = valid
-    return enc
+    finite = np.isfinite(flow[..., 0]) & np.isfinite(flow[..., 1])
+    if valid is not None:
+        finite &= np.asarray(valid, dtype=bool)
+    everywhere = bool(finite.all())
+    planes = []
+    for c in range(2):
+        # Scaling by 64 is exact, and rint(x + 2**15) == rint(x) + 2**15 (an even integer keeps
+        # round-half-even's choice): the codes of rounding in float64, computed in the flow's dtype.
+        steps = flow[..., c] * flow.dtype.type(FLOW_SCALE)
+        np.rint(steps, out=steps)
+        np.clip(steps, -FLOW_OFFSET, FLOW_OFFSET - 1, out=steps)
+        steps += FLOW_OFFSET
+        if not everywhere:
+            steps[~finite] = 0  # before the cast: NaN has no integer value
+        planes.append(steps.astype(np.uint16))
+    planes.append(finite.astype(np.uint16))
+    return planes
 
 
 def decode_flow_kitti(rgb16: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -65,9 +82,9 @@ def write_flow_kitti(path, flow: np.ndarray, valid: np.ndarray | None = None) ->
         flow: (H, W, 2) float, pixels (u right, v down).
         valid: (H, W) bool; None = every finite pixel.
     """
-    enc = encode_flow_kitti(flow, valid)
+    red, green, blue = _flow_planes(flow, valid)
     with atomic_write(path) as tmp:
-        _imwrite(tmp, enc[..., ::-1].copy())  # cv2 writes BGR
+        _imwrite(tmp, cv2.merge([blue, green, red]))  # cv2 writes BGR
 
 
 def read_flow_kitti(path) -> tuple[np.ndarray, np.ndarray]:
