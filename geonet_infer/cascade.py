@@ -225,7 +225,7 @@ def disparity_to_input(disparity: np.ndarray, input_size: tuple[int, int]) -> tu
     if disparity.shape != (h, w):
         disparity = cv2.resize(disparity, (w, h), interpolation=cv2.INTER_LINEAR)
     disparity = disparity.astype(np.float32, copy=False)
-    return (1.0 / disparity).astype(np.float32), disparity
+    return np.divide(np.float32(1), disparity), disparity
 
 
 def flow_to_input(flow_chw: np.ndarray, input_size: tuple[int, int]) -> np.ndarray:

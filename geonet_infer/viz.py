@@ -60,8 +60,9 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None, valid: np.nda
     u = np.where(ok, u, zero)  # fresh float32 planes, modified in place below
     v = np.where(ok, v, zero)
     rad = np.hypot(u, v)
+    everywhere = bool(ok.all())  # the usual case: no boolean indexing (slow on full frames)
     if max_flow is None:
-        max_flow = float(rad[ok].max()) if ok.any() else 0.0
+        max_flow = float(rad.max() if everywhere else rad[ok].max()) if ok.any() else 0.0
     scale = np.float32(1.0 / max(max_flow, 1e-9))
     u *= scale
     v *= scale
@@ -71,7 +72,8 @@ def flow_to_color(flow: np.ndarray, max_flow: float | None = None, valid: np.nda
     for r0 in range(0, flow.shape[0], rows):
         band = slice(r0, r0 + rows)
         _wheel_colours(u[band], v[band], rad[band], img[band])
-    img[~ok] = 0
+    if not everywhere:
+        img[~ok] = 0
     return img
 
 
@@ -122,13 +124,20 @@ def depth_to_color(
     """
     x = np.asarray(depth_or_disp, dtype=np.float64)
     ok = np.isfinite(x) & (x > 0)
+    everywhere = bool(ok.all())  # the usual case: no boolean indexing (slow on full frames)
     inv = np.zeros_like(x)
-    inv[ok] = x[ok] if is_disparity else 1.0 / x[ok]
+    if is_disparity:
+        np.copyto(inv, x, where=ok)
+    else:
+        np.divide(1.0, x, out=inv, where=ok)
     if vmax is None:
-        vmax = float(np.percentile(inv[ok], 95)) if ok.any() else 1.0
-    norm = np.clip(inv / max(vmax, 1e-12), 0, 1)
-    bgr = cv2.applyColorMap((norm * 255).astype(np.uint8), colormap)
-    bgr[~ok] = 0
+        vmax = float(np.percentile(inv if everywhere else inv[ok], 95)) if ok.any() else 1.0
+    inv /= max(vmax, 1e-12)  # in place: each full-frame float64 temporary costs page faults
+    np.clip(inv, 0, 1, out=inv)
+    inv *= 255
+    bgr = cv2.applyColorMap(inv.astype(np.uint8), colormap)
+    if not everywhere:
+        bgr[~ok] = 0
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
