@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-KEPT_SECTIONS = ("## Batch throughput",)
+KEPT_SECTIONS = ("## Batch throughput", "## Speed targets")  # written by batch_throughput.py, speed_targets.py
 TASK_LABELS = {
     "depth": "depth",
     "pose": "pose",
