@@ -704,6 +704,7 @@ def iter_frames(
                 flow=flows[0],
                 rigid_flow=flows[1],
                 residual_flow=flows[2],
+                intrinsics=None if cam is None else cam.K,
             )
             if pose_next is not None:
                 pose_world = pose_world @ rigid_inverse(pose_next)

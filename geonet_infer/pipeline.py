@@ -23,35 +23,48 @@ the listed files of the previous one before writing.
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import json
 import os
 import platform
+import sys
+import tempfile
 import time
 from collections import Counter, defaultdict, deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from geonet_infer import __version__
 from geonet_infer.cascade import camera_at
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.io.atomic import atomic_write, leftover_temps, save_npy_atomic
-from geonet_infer.io.calib import Camera
+from geonet_infer.io.atomic import _umask, atomic_write, leftover_temps, save_npy_atomic
+from geonet_infer.io.calib import Camera, write_kitti_camera
 from geonet_infer.io.flow import write_flow_kitti
 from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.images import write_image
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.manifest import model_notice
+from geonet_infer.points import write_ply
 from geonet_infer.predictor import TASKS, Predictor
 from geonet_infer.results import FrameResult
 from geonet_infer.scale import check_metric_request
-from geonet_infer.viz import depth_to_color, flow_to_color
+from geonet_infer.viz import SteadyScale, depth_to_color, flow_to_color, side_by_side
 
 SUMMARY_NAME = "summary.json"
 MAX_BATCH_SIZE = 64  # frames per network batch; memory grows with it, speed does not past a few
+DEFAULT_COLOUR_SCALE = "first:8"
+POINT_CLOUDS = ("camera", "world")
+VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}  # what OpenCV's own FFmpeg writes everywhere
+VIDEO_HEIGHT = 256  # panel height of the result video: three panels side by side stay under ~1400 px
+FOLDER_FPS = 10.0  # the result video's rate for frame folders (KITTI raw is 10 Hz)
+CAMERA_NAME = "camera.txt"
+WORLD_CLOUD_NAME = "points_world.ply"
 WRITE_THREADS = 2  # frames written while the next are predicted; PNG encoding is most of a frame's cost
 SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
 OUTPUT_MARKER = ".geonet-predict"  # JSON: the files the run that owns OUT may write
@@ -84,8 +97,18 @@ class _Frames:
     ``on_size(width, height)`` is called once the size is known, before any frame is yielded.
     """
 
-    def __init__(self, source: FrameSource, progress, on_size: Callable[[int, int], None] | None = None):
+    def __init__(
+        self,
+        source: FrameSource,
+        progress,
+        on_size: Callable[[int, int], None] | None = None,
+        max_frames: int | None = None,
+        keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    ):
         self.source, self.progress, self.on_size = source, progress, on_size
+        self.max_frames = max_frames
+        self.keep = keep  # the frames' pictures are needed after prediction (points' colours, video)
+        self.kept: dict[int, np.ndarray] = {}  # position among the good frames -> keep(rgb)
         self.names: list[str] = []
         self.failures: list[dict] = []
         self.size: tuple[int, int] | None = None
@@ -122,13 +145,60 @@ class _Frames:
             if pending_bad and self.names:
                 self.skipped_before[frame.name] = pending_bad
             pending_bad = []
+            if self.keep is not None:
+                self.kept[len(self.names)] = self.keep(rgb)
             self.names.append(frame.name)
             yield rgb
+            if self.max_frames is not None and len(self.names) >= self.max_frames:
+                if hasattr(frames, "close"):
+                    frames.close()  # a camera or stream is released now
+                return
 
 
-def _frame_files(name: str, tasks: tuple[str, ...], vis: bool) -> set[str]:
+@dataclass(frozen=True)
+class OutputOptions:
+    """What ``predict`` writes beyond the standard layout, and how its pictures are scaled.
+
+    Attributes:
+        point_cloud: None, "camera" (``points/<frame>.ply`` per frame, camera frame) or "world"
+            (those and ``points_world.ply``: every frame placed by the chained poses in the first
+            camera's frame, subsampled to ``world_points``).
+        point_stride: keep every n-th pixel in u and v.
+        max_depth: drop points farther than this (depth units: metres with a camera height).
+        world_points: points in ``points_world.ply`` at most.
+        colour_scale: "first:N", "running" or "frame" (:class:`geonet_infer.viz.SteadyScale`).
+        video_out: a side-by-side video (frame | depth | flow) written here (.mp4, .avi).
+        video_fps: its frame rate; None = the input's (10 for frame folders).
+    """
+
+    point_cloud: str | None = None
+    point_stride: int = 2
+    max_depth: float | None = None
+    world_points: int = 500_000
+    colour_scale: str = DEFAULT_COLOUR_SCALE
+    video_out: Path | None = None
+    video_fps: float | None = None
+
+    def __post_init__(self):
+        if self.point_cloud not in (None, *POINT_CLOUDS):
+            raise InputError(None, f"point cloud {self.point_cloud!r}", f"choose one of {', '.join(POINT_CLOUDS)}")
+        if self.point_stride < 1 or self.world_points < 1:
+            raise InputError(None, "point stride and world points must be >= 1")
+        if self.max_depth is not None and not self.max_depth > 0:
+            raise InputError(None, f"max depth {self.max_depth} must be > 0")
+        try:
+            SteadyScale(self.colour_scale)
+        except ValueError as err:
+            raise InputError(None, str(err), "e.g. --colour-scale first:8") from None
+        if self.video_out is not None and Path(self.video_out).suffix.lower() not in VIDEO_CODECS:
+            raise InputError(self.video_out, "unsupported video suffix", f"use one of {' '.join(VIDEO_CODECS)}")
+        if self.video_fps is not None and not self.video_fps > 0:
+            raise InputError(None, f"video frame rate {self.video_fps} must be > 0")
+
+
+def _frame_files(name: str, tasks: tuple[str, ...], vis: bool, options: OutputOptions = OutputOptions()) -> set[str]:
     """The files (relative to OUT) a frame may get."""
-    files = set()
+    files = {f"points/{name}.ply"} if options.point_cloud and "depth" in tasks else set()
     if "depth" in tasks:
         files |= {f"depth/{name}.npy"} | ({f"depth/{name}.png"} if vis else set())
     if "flow" in tasks:
@@ -271,6 +341,8 @@ def predict_to_dir(
     vis: bool = True,
     exclusive: bool = False,
     extra_outputs: tuple[str, ...] = (),
+    options: OutputOptions = OutputOptions(),
+    max_frames: int | None = None,
 ) -> dict:
     """Predict every frame of ``source`` into ``out_dir`` (layout in the module docstring).
 
@@ -288,6 +360,8 @@ def predict_to_dir(
             predict did not write or one another predict is writing, remove the previous run's files.
         extra_outputs: more files (relative to ``out_dir``) the caller writes there, recorded as
             this run's (``exclusive`` only).
+        options: point clouds, the colour scale of the pictures, a result video (:class:`OutputOptions`).
+        max_frames: stop after this many good frames (live sources).
     Returns:
         The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad
         frames (unreadable, odd size, NaN/inf output, or missing from a truncated video).
@@ -307,18 +381,44 @@ def predict_to_dir(
         )
     if camera_height is not None:
         check_metric_request(camera_height, camera, source.path)
+    if options.point_cloud and ("depth" not in tasks or camera is None):
+        raise InputError(
+            source.path,
+            "point clouds need depth and the camera intrinsics",
+            "pass --calib FILE or --intrinsics FX,FY,CX,CY, and keep depth in --tasks",
+        )
+    if options.point_cloud == "world" and "pose" not in tasks:
+        raise InputError(
+            source.path, "a world point cloud needs poses", "keep pose in --tasks, or use --point-cloud camera"
+        )
+    video_in_out = options.video_out is not None and _inside(Path(options.video_out), out_dir)
+    if options.video_out is not None and not video_in_out and Path(options.video_out).exists():
+        raise InputError(
+            options.video_out,
+            "exists, and predict does not overwrite files it did not write",
+            "remove it or pick a new name",
+        )
+    run = functools.partial(
+        _predict,
+        predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis,
+        skipped_tasks=skipped_tasks, options=options, max_frames=max_frames,
+    )  # fmt: skip
     if not exclusive:
         out_dir.mkdir(parents=True, exist_ok=True)
-        return _predict(
-            predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis, None, skipped_tasks
-        )
+        return run(owned=None)
     names = source.frame_names if source.frame_names is not None else [f"{i:06d}" for i in range(len(source))]
     files = {SUMMARY_NAME, *extra_outputs, *(_POSE_FILES if "pose" in tasks else ())}
-    files |= set().union(*(_frame_files(name, tasks, vis) for name in names))
+    files |= {CAMERA_NAME} if camera is not None else set()
+    files |= {WORLD_CLOUD_NAME} if options.point_cloud == "world" else set()
+    if video_in_out:
+        files.add(os.path.relpath(os.path.abspath(options.video_out), os.path.abspath(out_dir)))  # type: ignore[arg-type]
+    files |= set().union(*(_frame_files(name, tasks, vis, options) for name in names))
     with _OwnedFolder(out_dir, files, source.path) as owned:
-        return _predict(
-            predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis, owned, skipped_tasks
-        )
+        return run(owned=owned)
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return os.path.abspath(path).startswith(os.path.abspath(folder) + os.sep)
 
 
 def _predict(
@@ -331,8 +431,11 @@ def _predict(
     progress: bool,
     camera_height: float | None,
     vis: bool,
+    *,
     owned: _OwnedFolder | None,
     skipped_tasks: dict[str, tuple[str, ...]],
+    options: OutputOptions,
+    max_frames: int | None,
 ) -> dict:
     from tqdm import tqdm
 
@@ -348,8 +451,17 @@ def _predict(
             camera.scaled_to(width, height).check_image_size(width, height, camera.source or None)
 
     bar = tqdm(total=len(source) or None, unit="frame", desc=source.name, disable=not progress, leave=False)
-    frames = _Frames(source, bar, check_camera)
-    writer = _FrameWriter(out_dir, tasks, vis)
+    keep = None
+    if options.point_cloud or options.video_out is not None:  # the pictures are needed after prediction
+        keep = functools.partial(_as_predicted, camera)
+    frames = _Frames(source, bar, check_camera, max_frames, keep)
+    writer = _FrameWriter(out_dir, tasks, vis, options, camera_height)
+    colours = SteadyScale(options.colour_scale)
+    waiting: list[FrameResult] = []  # predicted, waiting for the colour scale ("first:N")
+    world = _WorldCloud(options) if options.point_cloud == "world" else None
+    video = None
+    if options.video_out is not None:
+        video = _VideoOut(Path(options.video_out), options.video_fps or getattr(source, "fps", None) or FOLDER_FPS)
 
     def record(result: FrameResult, write_ms: float) -> None:
         nonlocal done
@@ -361,6 +473,20 @@ def _predict(
             totals[stage] += ms
         done += 1
         bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
+
+    def emit(ready: list[FrameResult]) -> None:
+        scale = colours.scales()
+        for result in ready:
+            rgb = frames.kept.pop(result.index, None)
+            if owned is not None:
+                owned.add(_frame_files(result.name, tasks, vis, options))
+            for written, write_ms in writer.submit(result, scale, rgb):
+                record(written, write_ms)
+            if video is not None and rgb is not None:
+                video.write(rgb, result, scale)
+            if world is not None and rgb is not None:
+                world.add(result, rgb)
+        ready.clear()
 
     try:
         results = predictor.iter_sequence(
@@ -375,17 +501,21 @@ def _predict(
             bad = _non_finite(result, tasks)
             if bad is not None:
                 frames.failures.append({"frame": result.name, "reason": f"model produced NaN/inf {bad}"})
+                frames.kept.pop(result.index, None)
                 continue
-            if owned is not None:
-                owned.add(_frame_files(result.name, tasks, vis))
-            written = writer.submit(result)
-            for result, write_ms in written:
-                record(result, write_ms)
+            colours.observe(result.depth if "depth" in tasks else None, result.flow if "flow" in tasks else None)
+            waiting.append(result)
+            if colours.ready:
+                emit(waiting)
+        colours.finish()
+        emit(waiting)
         for result, write_ms in writer.drain():
             record(result, write_ms)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: a summary of what was written, then stop
         interrupted = True
-        with contextlib.suppress(KeyboardInterrupt):  # frames already handed to the writer are finished
+        with contextlib.suppress(KeyboardInterrupt):  # frames already predicted are finished
+            colours.finish()
+            emit(waiting)
             for result, write_ms in writer.drain():
                 record(result, write_ms)
     except GeoNetError as exc:
@@ -397,6 +527,13 @@ def _predict(
     finally:
         writer.close()
         bar.close()
+        if video is not None:
+            video.close(keep=done > 0 and sys.exc_info()[0] is None)
+    if world is not None:
+        world.write(out_dir / WORLD_CLOUD_NAME, camera_height)
+    if camera is not None and frames.size is not None:
+        height, width = frames.size
+        write_kitti_camera(out_dir / CAMERA_NAME, camera_at(camera, frames.size).K, width, height)
     truncated = None if interrupted else getattr(source, "truncated", None)
     if truncated:
         reason = f"{source.path}: video truncated: {truncated}"
@@ -423,7 +560,17 @@ def _predict(
         "truncated": truncated,
         "tasks": list(tasks),
         "skipped_tasks": {task: list(graphs) for task, graphs in skipped_tasks.items()},  # tasks=None only
-        "outputs": _outputs(tasks, vis),
+        "outputs": _outputs(tasks, vis, options, camera is not None),
+        "colour_scale": colours.describe() if vis or video is not None else None,
+        "point_cloud": None
+        if not options.point_cloud
+        else {
+            "mode": options.point_cloud,
+            "stride": options.point_stride,
+            "max_depth": options.max_depth,
+            "units": "metres" if camera_height is not None else "relative scale",
+        },
+        "video": None if video is None else {"path": str(options.video_out), "frames": video.frames, "fps": video.fps},
         "model": {
             "dir": str(predictor.model_dir),
             "arch": predictor.manifest.arch,
@@ -462,8 +609,12 @@ def _predict(
     return summary
 
 
-def _outputs(tasks: tuple[str, ...], vis: bool = True) -> list[str]:
-    out = []
+def _outputs(
+    tasks: tuple[str, ...], vis: bool = True, options: OutputOptions = OutputOptions(), camera: bool = False
+) -> list[str]:
+    out = [CAMERA_NAME] if camera else []
+    if options.point_cloud and "depth" in tasks:
+        out += ["points/*.ply"] + ([WORLD_CLOUD_NAME] if options.point_cloud == "world" else [])
     if "depth" in tasks:
         out += ["depth/*.npy"] + (["depth/*.png"] if vis else [])
     if "flow" in tasks:
@@ -483,20 +634,43 @@ class _FrameWriter:
     started (every file is atomic) and drops the ones not started.
     """
 
-    def __init__(self, out_dir: Path, tasks: tuple[str, ...], vis: bool, workers: int = WRITE_THREADS):
+    def __init__(
+        self,
+        out_dir: Path,
+        tasks: tuple[str, ...],
+        vis: bool,
+        options: OutputOptions = OutputOptions(),
+        camera_height: float | None = None,
+        workers: int = WRITE_THREADS,
+    ):
         self.out_dir, self.tasks, self.vis = out_dir, tasks, vis
+        self.options, self.camera_height = options, camera_height
         self.in_flight = 2 * workers
         self.pool = ThreadPoolExecutor(workers, thread_name_prefix="geonet-write")
         self.pending: deque[tuple[FrameResult, Future[float]]] = deque()
 
-    def _write(self, result: FrameResult) -> float:
+    def _write(self, result: FrameResult, scale: tuple[float | None, float | None], rgb: np.ndarray | None) -> float:
         t0 = time.perf_counter()
-        _write_frame(self.out_dir, result, self.tasks, self.vis)
+        _write_frame(self.out_dir, result, self.tasks, self.vis, scale)
+        if self.options.point_cloud and result.depth is not None and result.intrinsics is not None:
+            xyz, rgb_points = result.points(rgb, self.options.point_stride, self.options.max_depth)
+            write_ply(
+                output_path(self.out_dir, "points", result.name, ".ply"),
+                xyz,
+                rgb_points,
+                _ply_comments(f"frame {result.name}, in its camera's frame", self.camera_height),
+            )
         return (time.perf_counter() - t0) * 1e3
 
-    def submit(self, result: FrameResult) -> list[tuple[FrameResult, float]]:
-        """Queue ``result``'s files; returns the frames finished meanwhile (waits while too many are queued)."""
-        self.pending.append((result, self.pool.submit(self._write, result)))
+    def submit(
+        self,
+        result: FrameResult,
+        scale: tuple[float | None, float | None] = (None, None),
+        rgb: np.ndarray | None = None,
+    ) -> list[tuple[FrameResult, float]]:
+        """Queue ``result``'s files (pictures at ``scale``: inverse-depth max, flow max; None = the frame's
+        own); returns the frames finished meanwhile (waits while too many are queued)."""
+        self.pending.append((result, self.pool.submit(self._write, result, scale, rgb)))
         return self._settle(self.in_flight)
 
     def drain(self) -> list[tuple[FrameResult, float]]:
@@ -515,20 +689,28 @@ class _FrameWriter:
         self.pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _write_frame(out_dir: Path, result: FrameResult, tasks: tuple[str, ...], vis: bool = True) -> None:
-    """All files of one frame, or none: an interrupt or a failed write removes the ones already written."""
+def _write_frame(
+    out_dir: Path,
+    result: FrameResult,
+    tasks: tuple[str, ...],
+    vis: bool = True,
+    scale: tuple[float | None, float | None] = (None, None),
+) -> None:
+    """All files of one frame, or none: an interrupt or a failed write removes the ones already written.
+
+    ``scale``: the pictures' (inverse-depth max, flow max); None = the frame's own range."""
     writes: list[tuple[Path, Callable[[Path], object]]] = []
     depth, flow = result.depth, result.flow
     if "depth" in tasks and depth is not None:
         writes.append((output_path(out_dir, "depth", result.name, ".npy"), lambda p: save_npy_atomic(p, depth)))
         if vis:
             path = output_path(out_dir, "depth", result.name, ".png")
-            writes.append((path, lambda p: write_image(p, depth_to_color(depth))))
+            writes.append((path, lambda p: write_image(p, depth_to_color(depth, vmax=scale[0]))))
     if "flow" in tasks and flow is not None:
         writes.append((output_path(out_dir, "flow", result.name, ".png"), lambda p: write_flow_kitti(p, flow)))
         if vis:
             path = output_path(out_dir, "flow_vis", result.name, ".png")
-            writes.append((path, lambda p: write_image(p, flow_to_color(flow))))
+            writes.append((path, lambda p: write_image(p, flow_to_color(flow, max_flow=scale[1]))))
     written: list[Path] = []
     try:
         for path, write in writes:
@@ -538,3 +720,97 @@ def _write_frame(out_dir: Path, result: FrameResult, tasks: tuple[str, ...], vis
         for path in written:
             path.unlink(missing_ok=True)
         raise
+
+
+def _ply_comments(where: str, camera_height: float | None) -> tuple[str, ...]:
+    unit = f"metres (camera height {camera_height:g} m)" if camera_height is not None else "relative scale"
+    return (f"geonet-infer predict: {where}", f"units: {unit}", "axes: x right, y down, z forward")
+
+
+def _as_predicted(camera: Camera | None, rgb: np.ndarray) -> np.ndarray:
+    """The frame as the networks saw it at the input size: undistorted when the camera has distortion."""
+    if camera is None or not camera.has_distortion:
+        return rgb
+    return camera.scaled_to(rgb.shape[1], rgb.shape[0]).undistort(rgb)
+
+
+class _WorldCloud:
+    """Every frame's points placed in the first camera's frame by the chained poses, subsampled.
+
+    Memory stays bounded: whenever more than twice ``world_points`` are held, a random half goes.
+    """
+
+    def __init__(self, options: OutputOptions):
+        self.options = options
+        self.rng = np.random.default_rng(0)
+        self.points: list[np.ndarray] = []
+        self.colours: list[np.ndarray] = []
+        self.held = 0
+
+    def add(self, result: FrameResult, rgb: np.ndarray) -> None:
+        if result.depth is None or result.intrinsics is None:
+            return
+        xyz, colours = result.points(rgb, self.options.point_stride, self.options.max_depth)
+        R, t = result.camera_to_world[:3, :3], result.camera_to_world[:3, 3]
+        self.points.append((xyz @ R.T + t).astype(np.float32))
+        self.colours.append(colours if colours is not None else np.full((len(xyz), 3), 255, np.uint8))
+        self.held += len(xyz)
+        if self.held > 2 * self.options.world_points:
+            self._subsample(self.options.world_points)
+
+    def _subsample(self, n: int) -> None:
+        points, colours = np.concatenate(self.points), np.concatenate(self.colours)
+        if len(points) > n:
+            keep = np.sort(self.rng.choice(len(points), n, replace=False))
+            points, colours = points[keep], colours[keep]
+        self.points, self.colours, self.held = [points], [colours], len(points)
+
+    def write(self, path: Path, camera_height: float | None) -> None:
+        if not self.points:
+            return
+        self._subsample(self.options.world_points)
+        where = "every frame in the first camera's frame, placed by the predicted poses"
+        write_ply(path, self.points[0], self.colours[0], _ply_comments(where, camera_height))
+
+
+class _VideoOut:
+    """The side-by-side result video (frame | depth | flow), streamed to a temporary file next to
+    ``path`` and renamed onto it at the end (removed instead on failure)."""
+
+    def __init__(self, path: Path, fps: float):
+        self.path, self.fps = path, fps
+        self.writer: cv2.VideoWriter | None = None
+        self.tmp: Path | None = None
+        self.frames = 0
+
+    def write(self, rgb: np.ndarray, result: FrameResult, scale: tuple[float | None, float | None]) -> None:
+        depth = np.zeros_like(rgb) if result.depth is None else depth_to_color(result.depth, vmax=scale[0])
+        flow = np.zeros_like(rgb) if result.flow is None else flow_to_color(result.flow, max_flow=scale[1])
+        panel = side_by_side([rgb, depth, flow], ["frame", "depth", "flow"], height=min(VIDEO_HEIGHT, rgb.shape[0]))
+        panel = panel[: panel.shape[0] // 2 * 2, : panel.shape[1] // 2 * 2]  # even sizes: what codecs expect
+        if self.writer is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, name = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.stem}.", suffix=self.path.suffix)
+            os.close(fd)
+            self.tmp = Path(name)
+            codec = cv2.VideoWriter.fourcc(*VIDEO_CODECS[self.path.suffix.lower()])
+            self.writer = cv2.VideoWriter(str(self.tmp), codec, self.fps, (panel.shape[1], panel.shape[0]))
+            if not self.writer.isOpened():
+                self.close(keep=False)
+                raise InputError(
+                    self.path, "OpenCV cannot write this video", f"try another suffix ({' '.join(VIDEO_CODECS)})"
+                )
+        self.writer.write(cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
+        self.frames += 1
+
+    def close(self, keep: bool) -> None:
+        if self.writer is not None:
+            self.writer.release()
+            self.writer = None
+        if self.tmp is not None:
+            if keep and self.frames:
+                os.chmod(self.tmp, 0o666 & ~_umask())
+                os.replace(self.tmp, self.path)
+            else:
+                self.tmp.unlink(missing_ok=True)
+            self.tmp = None

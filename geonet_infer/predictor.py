@@ -308,11 +308,11 @@ class Predictor:
                     except GeoNetError as err:
                         raise InputError(f"image {i}", err.problem, err.hint) from None
                     depth, disp = depth * scale, disp / scale
-                results.append((depth, disp, bool(c and c.has_distortion), scale))
+                results.append((depth, disp, bool(c and c.has_distortion), scale, None if c is None else c.K))
         timings = timer.result(1.0 / len(images))
         out = [
-            DepthResult(depth=d, disparity=p, undistorted=u, timings_ms=dict(timings), metric_scale=m)
-            for d, p, u, m in results
+            DepthResult(depth=d, disparity=p, undistorted=u, timings_ms=dict(timings), metric_scale=m, intrinsics=k)
+            for d, p, u, m, k in results
         ]
         return out[0] if single else out
 

@@ -13,9 +13,30 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geonet_infer.points import backproject
+
+
+class _Points:
+    """``points()`` for results with ``depth`` and ``intrinsics`` (K at the input resolution)."""
+
+    depth: np.ndarray | None
+    intrinsics: np.ndarray | None
+
+    def points(
+        self, image: np.ndarray | None = None, stride: int = 1, max_depth: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The depth back-projected with the K the runtime used: (N, 3) float32 points in this
+        camera's frame (x right, y down, z forward; depth's units), and their (N, 3) uint8 colours
+        from ``image`` (the input frame, RGB) or None. ``stride`` keeps every n-th pixel in u and v."""
+        if self.depth is None or self.intrinsics is None:
+            raise ValueError("points need depth and the camera intrinsics (pass a camera)")
+        xyz, pixels = backproject(self.depth, self.intrinsics, stride, max_depth)
+        colours = None if image is None else np.asarray(image)[pixels[:, 0], pixels[:, 1]]
+        return xyz, colours
+
 
 @dataclass(frozen=True)
-class DepthResult:
+class DepthResult(_Points):
     """Depth of one image (:meth:`Predictor.depth`).
 
     Attributes:
@@ -24,6 +45,8 @@ class DepthResult:
         undistorted: the image was undistorted first (its camera has lens distortion).
         timings_ms: stage -> ms for this image (a batch's time divided evenly).
         metric_scale: the factor that made depth metric, or None (relative depth).
+        intrinsics: (3, 3) float64 K at the image's resolution that was used (after undistortion),
+            or None without a camera; :meth:`points` back-projects with it.
     """
 
     depth: np.ndarray
@@ -31,6 +54,7 @@ class DepthResult:
     undistorted: bool
     timings_ms: dict[str, float]
     metric_scale: float | None = None
+    intrinsics: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -75,7 +99,7 @@ class FlowResult:
 
 
 @dataclass(frozen=True)
-class FrameResult:
+class FrameResult(_Points):
     """One frame of :meth:`Predictor.iter_sequence`; a task left out leaves its fields None.
 
     Attributes:
@@ -93,6 +117,8 @@ class FrameResult:
         undistorted: the frame was undistorted first.
         timings_ms: this frame's share of each stage (batched stages divided evenly).
         metric_scale: with a camera height, the factor that made depth and translations metres.
+        intrinsics: (3, 3) float64 K at the input resolution that was used, or None without a
+            camera; :meth:`points` back-projects with it.
     """
 
     index: int
@@ -108,6 +134,7 @@ class FrameResult:
     undistorted: bool
     timings_ms: dict[str, float]
     metric_scale: float | None = None
+    intrinsics: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

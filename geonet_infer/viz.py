@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["flow_to_color", "depth_to_color", "side_by_side"]
+__all__ = ["flow_to_color", "depth_to_color", "side_by_side", "SteadyScale", "inverse_depth_range", "flow_range"]
 
 
 def _make_color_wheel() -> np.ndarray:
@@ -202,3 +202,87 @@ def side_by_side(
             out[:strip_h, x : x + p.shape[1]] = canvas
         x += p.shape[1] + gap
     return out
+
+
+def inverse_depth_range(depth: np.ndarray) -> float | None:
+    """The top of :func:`depth_to_color`'s default scale: the 95th percentile of inverse depth over
+    pixels with depth (None: no such pixel)."""
+    x = np.asarray(depth, dtype=np.float64)
+    ok = np.isfinite(x) & (x > 0)
+    return float(np.percentile(1.0 / x[ok], 95)) if ok.any() else None
+
+
+def flow_range(flow: np.ndarray) -> float | None:
+    """The top of :func:`flow_to_color`'s default scale: the largest finite flow magnitude."""
+    f = np.asarray(flow, dtype=np.float32)
+    mag = np.hypot(f[..., 0], f[..., 1])
+    mag = mag[np.isfinite(mag)]
+    return float(mag.max()) if mag.size else None
+
+
+COLOUR_SCALES = ("first:N", "running", "frame")
+
+
+class SteadyScale:
+    """One colour scale for the frames of a video, so a still scene keeps its colours.
+
+    ``mode``: "first:N" (default "first:8") fixes the depth and flow scales at the median of the
+    first N frames' own ranges (:func:`inverse_depth_range`, :func:`flow_range`); "running" uses the
+    median of every frame seen so far (it settles, it does not flicker); "frame" gives each frame its
+    own range (the pictures of single images). Feed each frame to :meth:`observe` in order;
+    :meth:`scales` is (inverse-depth max, flow max) for ``depth_to_color(vmax=)`` /
+    ``flow_to_color(max_flow=)``, None meaning the frame's own.
+    """
+
+    def __init__(self, mode: str = "first:8"):
+        self.mode, self.first_n = _parse_colour_scale(mode)
+        self._depth: list[float] = []
+        self._flow: list[float] = []
+        self._seen = 0
+        self._fixed: tuple[float | None, float | None] | None = None
+
+    @property
+    def ready(self) -> bool:
+        """Whether :meth:`scales` is final for the frames observed so far ("first:N": N seen)."""
+        return self.mode != "first" or self._fixed is not None
+
+    def observe(self, depth: np.ndarray | None, flow: np.ndarray | None) -> None:
+        if self.mode == "frame" or self._fixed is not None:
+            return
+        if depth is not None and (value := inverse_depth_range(depth)) is not None:
+            self._depth.append(value)
+        if flow is not None and (value := flow_range(flow)) is not None:
+            self._flow.append(value)
+        self._seen += 1
+        if self.mode == "first" and self._seen >= self.first_n:
+            self.finish()
+
+    def finish(self) -> None:
+        """The input ended: "first:N" fixes its scale from the frames it got."""
+        if self.mode == "first" and self._fixed is None:
+            self._fixed = self._medians()
+
+    def scales(self) -> tuple[float | None, float | None]:
+        if self.mode == "frame":
+            return None, None
+        return self._fixed if self._fixed is not None else self._medians()
+
+    def _medians(self) -> tuple[float | None, float | None]:
+        return tuple(float(np.median(v)) if v else None for v in (self._depth, self._flow))  # type: ignore[return-value]
+
+    def describe(self) -> dict:
+        depth, flow = self.scales()
+        return {
+            "mode": self.mode if self.mode != "first" else f"first:{self.first_n}",
+            "inverse_depth_max": depth,
+            "flow_max_px": flow,
+        }
+
+
+def _parse_colour_scale(text: str) -> tuple[str, int]:
+    if text in ("frame", "running"):
+        return text, 0
+    head, _, n = text.partition(":")
+    if head == "first" and n.isdigit() and int(n) >= 1:
+        return "first", int(n)
+    raise ValueError(f"colour scale {text!r}: expected first:N (N >= 1), running or frame")

@@ -76,3 +76,22 @@ def synth_prepared(tmp_path_factory) -> Path:
         )
     )
     return root / "prepared"
+
+
+@pytest.fixture(scope="session")
+def dashcam() -> Path:
+    """Path of ``../shared/realdata/udacity_dashcam`` (fails on CI / skips elsewhere when missing)."""
+    return require_realdata("udacity_dashcam")
+
+
+@pytest.fixture(scope="session")
+def ffmpeg() -> str:
+    """Path of the ffmpeg program (.ci/run installs it): fails on CI / skips elsewhere when missing."""
+    import shutil
+
+    path = shutil.which("ffmpeg")
+    if path is None:
+        if on_ci():
+            pytest.fail("ffmpeg not installed; CI is set, so .ci/run should have installed it", pytrace=False)
+        pytest.skip("ffmpeg not installed (Debian: apt-get install ffmpeg)")
+    return path

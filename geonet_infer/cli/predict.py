@@ -16,8 +16,20 @@ from geonet_infer.cli.common import (
     stage_table,
 )
 from geonet_infer.errors import InputError
-from geonet_infer.io.frames import open_frames
-from geonet_infer.pipeline import MAX_BATCH_SIZE, SUMMARY_NAME, TASKS, parse_tasks, predict_to_dir
+from geonet_infer.io.frames import FrameSource, open_frames, open_stdin, open_stream
+from geonet_infer.pipeline import (
+    DEFAULT_COLOUR_SCALE,
+    FOLDER_FPS,
+    MAX_BATCH_SIZE,
+    POINT_CLOUDS,
+    SUMMARY_NAME,
+    TASKS,
+    VIDEO_CODECS,
+    WORLD_CLOUD_NAME,
+    OutputOptions,
+    parse_tasks,
+    predict_to_dir,
+)
 from geonet_infer.predictor import describe_skipped
 from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND
 
@@ -57,7 +69,13 @@ def add_parser(sub) -> None:
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("input", type=Path, metavar="INPUT", help="video file, folder of frames or KITTI drive")
+    parser.add_argument(
+        "input",
+        type=Path,
+        nargs="?",
+        metavar="INPUT",
+        help="video file, folder of frames or KITTI drive; '-' = raw frames on stdin (with --stdin-frames)",
+    )
     parser.add_argument(
         "--out", type=Path, required=True, help="output folder: new, empty, or an earlier predict's (created)"
     )
@@ -90,6 +108,62 @@ def add_parser(sub) -> None:
         action="store_true",
         help="skip the depth colour maps and flow colour wheels (the data files only; much faster writes)",
     )
+    live = parser.add_argument_group("live sources")
+    live.add_argument(
+        "--source",
+        default=None,
+        metavar="CAMERA|URL",
+        help="read a camera (its index: 0 is the first) or a stream URL OpenCV can open, instead of INPUT",
+    )
+    live.add_argument(
+        "--stdin-frames",
+        type=_size,
+        default=None,
+        metavar="WxH",
+        help="INPUT '-': raw rgb24 frames of this size on stdin (ffmpeg ... -f rawvideo -pix_fmt rgb24 -)",
+    )
+    live.add_argument("--max-frames", type=positive_int, default=None, help="stop after this many good frames")
+    live.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help=f"frame rate of stdin frames and of --video-out (default: the input's; {FOLDER_FPS:g} for folders)",
+    )
+    extra = parser.add_argument_group("3-D, pictures and video")
+    extra.add_argument(
+        "--point-cloud",
+        choices=POINT_CLOUDS,
+        default=None,
+        help="write points/<frame>.ply (binary PLY, x y z + colour, camera frame: x right, y down, z forward); "
+        f"'world' also writes {WORLD_CLOUD_NAME}, every frame placed by the predicted poses in the first "
+        "camera's frame (needs intrinsics; metres with --camera-height, else relative scale)",
+    )
+    extra.add_argument(
+        "--point-stride", type=positive_int, default=OutputOptions.point_stride, help="every n-th pixel (default: 2)"
+    )
+    extra.add_argument("--max-depth", type=float, default=None, help="drop points farther than this")
+    extra.add_argument(
+        "--world-points",
+        type=positive_int,
+        default=OutputOptions.world_points,
+        help=f"points in {WORLD_CLOUD_NAME} at most, randomly kept (default: {OutputOptions.world_points})",
+    )
+    extra.add_argument(
+        "--colour-scale",
+        default=DEFAULT_COLOUR_SCALE,
+        metavar="first:N|running|frame",
+        help="one colour scale for the depth and flow pictures of the whole video, so a still scene keeps "
+        "its colours: fixed from the first N frames, or the running median of the frames' ranges; 'frame' "
+        f"= each frame its own (the .npy and KITTI flow files never change) (default: {DEFAULT_COLOUR_SCALE})",
+    )
+    extra.add_argument(
+        "--video-out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help=f"also write a side-by-side video, frame | depth | flow ({' '.join(VIDEO_CODECS)}), streamed, "
+        "at the input's frame rate",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
         "--quiet",
@@ -106,7 +180,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(
             None, f"--batch-size {args.batch_size} is over the limit of {MAX_BATCH_SIZE}", "4 to 16 is plenty on a CPU"
         )
-    source = open_frames(args.input)
+    source = _open_source(args)
+    options = OutputOptions(
+        point_cloud=args.point_cloud,
+        point_stride=args.point_stride,
+        max_depth=args.max_depth,
+        world_points=args.world_points,
+        colour_scale=args.colour_scale,
+        video_out=args.video_out,
+        video_fps=args.fps,
+    )
     camera = camera_from_args(args, source.default_calib)
     predictor = load_predictor(args)
     if tasks is None:
@@ -129,6 +212,8 @@ def run(args: argparse.Namespace) -> int:
             camera_height=args.camera_height,
             vis=not args.no_vis,
             exclusive=True,
+            options=options,
+            max_frames=args.max_frames,
         )
     print(
         f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
@@ -144,3 +229,30 @@ def run(args: argparse.Namespace) -> int:
     if missing:  # one line for the frames a truncated video lacks (each is in summary.json)
         print(f"warning: {args.input}: video truncated: {summary['truncated']}", file=sys.stderr)
     return 1 if summary["failed"] else 0
+
+
+def _size(text: str) -> tuple[int, int]:
+    width, _, height = text.lower().partition("x")
+    if not (width.isdigit() and height.isdigit()):
+        raise argparse.ArgumentTypeError(f"expected WxH, e.g. 1280x720, got {text!r}")
+    return int(width), int(height)
+
+
+def _open_source(args: argparse.Namespace) -> FrameSource:
+    """INPUT, '-' with --stdin-frames, or --source."""
+    if args.source is not None:
+        if args.input is not None:
+            raise InputError(args.input, "INPUT and --source both given", "pass one of them")
+        return open_stream(args.source)
+    if args.input is None:
+        raise InputError(
+            None, "no input", "pass INPUT (a video, a folder of frames), '-' with --stdin-frames, or --source"
+        )
+    if str(args.input) == "-":
+        if args.stdin_frames is None:
+            raise InputError("-", "raw frames on stdin need their size", "pass --stdin-frames WxH, e.g. 1280x720")
+        width, height = args.stdin_frames
+        return open_stdin(width, height, fps=args.fps)
+    if args.stdin_frames is not None:
+        raise InputError(args.input, "--stdin-frames is for INPUT '-'", "drop --stdin-frames, or pipe the frames in")
+    return open_frames(args.input)

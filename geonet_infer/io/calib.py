@@ -270,6 +270,15 @@ def read_calib_K(path, key: str = "K") -> np.ndarray:
     return v.reshape(3, -1)[:, :3].copy()
 
 
+def write_kitti_camera(path, K: np.ndarray, width: int, height: int) -> None:
+    """The intrinsics used, in KITTI raw's calibration form, atomically: ``P_rect_02`` (3x4, no
+    baseline) and ``S_rect_02`` (width height). :func:`read_camera` reads it back (``--calib``)."""
+    P = np.hstack([np.asarray(K, np.float64).reshape(3, 3), np.zeros((3, 1))])
+    text = "P_rect_02: " + " ".join(f"{v:.12e}" for v in P.ravel()) + f"\nS_rect_02: {width:.6e} {height:.6e}\n"
+    with atomic_write(path) as tmp:
+        tmp.write_text(text)
+
+
 # --------------------------------------------------------------------------- GeoNet <frame>_cam.txt
 def cam_txt_line(K: np.ndarray) -> str:
     """Official _cam.txt line "fx,0.,cx,0.,fy,cy,0.,0.,1." (full float precision)."""

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -19,7 +21,7 @@ from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import images
 from geonet_infer.io.images import IMAGE_SUFFIXES, list_images, read_image
 
-__all__ = ["VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames"]
+__all__ = ["VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames", "open_stream", "open_stdin"]
 
 log = logging.getLogger(__name__)
 
@@ -62,8 +64,9 @@ class FrameSource:
     Attributes:
         path: the path given to :func:`open_frames`.
         name: sequence name (folder name, KITTI drive folder name or video file stem).
-        kind: ``"folder"``, ``"video"`` or ``"kitti_drive"``.
-        frame_names: frame names in order; None for a video until it was read to the end.
+        kind: ``"folder"``, ``"video"``, ``"kitti_drive"``, ``"camera"``, ``"stream"`` or ``"stdin"``.
+        frame_names: frame names in order; None for a video until it was read to the end, and
+            for live sources (their length is 0: unknown).
         fps: frames per second of a video (None for folders or when the container does not say).
         default_calib: calibration file that belongs to these frames (KITTI raw
             ``calib_cam_to_cam.txt``), or None.
@@ -185,6 +188,99 @@ class _VideoSource(FrameSource):
     def __len__(self) -> int:
         """Frame count: exact once read to the end, before that the container's (may be inexact)."""
         return len(self.frame_names) if self.frame_names is not None else self._count
+
+
+class _CaptureSource(FrameSource):
+    """A camera (index) or a stream URL read with cv2.VideoCapture until it ends; frames 000000, ..."""
+
+    def __init__(self, spec: str):
+        self.spec = spec
+        target: int | str = int(spec) if spec.isdigit() else spec
+        kind = "camera" if isinstance(target, int) else "stream"
+        cap = cv2.VideoCapture(target)
+        try:
+            if not cap.isOpened():
+                raise InputError(
+                    spec,
+                    f"OpenCV cannot open this {kind}",
+                    "check the camera index (0 is the first camera) or that the URL plays (e.g. with ffplay)",
+                )
+            fps = float(cap.get(cv2.CAP_PROP_FPS))
+        finally:
+            cap.release()
+        super().__init__(
+            Path(spec), f"{kind}_{spec}" if kind == "camera" else kind, kind, None, fps if fps > 0 else None
+        )
+
+    def __iter__(self) -> Iterator[Frame]:
+        cap = cv2.VideoCapture(int(self.spec) if self.spec.isdigit() else self.spec)
+        try:
+            index = 0
+            while True:
+                ok, bgr = cap.read()
+                if not ok or bgr is None:
+                    return
+                yield Frame(f"{index:06d}", rgb=cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+                index += 1
+        finally:
+            cap.release()
+
+    def __len__(self) -> int:
+        return 0  # live: unknown
+
+
+class _RawStdinSource(FrameSource):
+    """Raw rgb24 frames of one size on a byte stream (``ffmpeg ... -f rawvideo -pix_fmt rgb24 -``)."""
+
+    def __init__(self, width: int, height: int, stream: BinaryIO | None = None, fps: float | None = None):
+        if width < 8 or height < 8:
+            raise InputError(
+                "-", f"--stdin-frames {width}x{height} is too small", "give the frames' WxH, e.g. 1280x720"
+            )
+        images.check_pixels(Path("-"), width, height)
+        self.width, self.height = width, height
+        self.stream = stream
+        super().__init__(Path("-"), "stdin", "stdin", None, fps)
+
+    def __iter__(self) -> Iterator[Frame]:
+        stream = self.stream if self.stream is not None else sys.stdin.buffer
+        size = self.width * self.height * 3
+        index = 0
+        while True:
+            buffer = bytearray(size)
+            got = _read_into(stream, memoryview(buffer))
+            if got == 0:
+                return
+            if got < size:  # the producer stopped inside a frame: that frame is dropped, named
+                self.truncated = f"the stream ended inside frame {index:06d} ({got} of {size} bytes)"
+                return
+            rgb = np.frombuffer(buffer, np.uint8).reshape(self.height, self.width, 3)
+            yield Frame(f"{index:06d}", rgb=rgb)
+            index += 1
+
+    def __len__(self) -> int:
+        return 0  # live: unknown
+
+
+def _read_into(stream: BinaryIO, view: memoryview) -> int:
+    """Fill ``view`` from ``stream``; fewer bytes only at the end of the stream."""
+    filled = 0
+    while filled < len(view):
+        n = stream.readinto(view[filled:])  # type: ignore[attr-defined]
+        if not n:
+            break
+        filled += n
+    return filled
+
+
+def open_stream(spec: str) -> FrameSource:
+    """A camera index ("0") or a stream URL OpenCV can open (rtsp://, http://, a device path)."""
+    return _CaptureSource(spec)
+
+
+def open_stdin(width: int, height: int, stream: BinaryIO | None = None, fps: float | None = None) -> FrameSource:
+    """Raw rgb24 frames of ``width`` x ``height`` read from ``stream`` (default: standard input)."""
+    return _RawStdinSource(width, height, stream, fps)
 
 
 def find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | None:
