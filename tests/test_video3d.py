@@ -205,7 +205,7 @@ def test_raw_frames_on_stdin_give_the_depth_of_the_file(tmp_path, dashcam, ffmpe
     cli = [sys.executable, "-m", "geonet_infer.cli", "predict"]
     common = ["--calib", str(calib), "--tasks", "depth", "--no-progress", "--quiet"]
     piped = subprocess.run(
-        [*cli, "-", "--stdin-frames", "1280x720", "--out", str(tmp_path / "stdin"), *common],
+        [*cli, "--stdin-frames", "1280x720", "--out", str(tmp_path / "stdin"), *common],
         input=raw,
         capture_output=True,
     )

@@ -323,6 +323,9 @@ def run_batch(
         with _signals_deferred() as caught:
             _stop(bar, stream, active)
             interrupted = interrupted or bool(caught)
+            # A worker can finish a sequence (its .done marker written) after the job stopped listening:
+            # it is done on disk, and --resume skips it, so the summary counts it too.
+            n_done += sum(1 for u in todo if u.index not in results and read_marker(out_dir / u.name) is not None)
             wall = time.perf_counter() - started
             ordered = [results[u.index] for u in units if u.index in results]
             records = [r for res in ordered for r in res["failures"]]

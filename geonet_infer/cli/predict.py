@@ -120,7 +120,7 @@ def add_parser(sub) -> None:
         type=_size,
         default=None,
         metavar="WxH",
-        help="INPUT '-': raw rgb24 frames of this size on stdin (ffmpeg ... -f rawvideo -pix_fmt rgb24 -)",
+        help="raw rgb24 frames of this size on stdin (INPUT '-' or none; ffmpeg ... -f rawvideo -pix_fmt rgb24 -)",
     )
     live.add_argument("--max-frames", type=positive_int, default=None, help="stop after this many good frames")
     live.add_argument(
@@ -244,11 +244,11 @@ def _open_source(args: argparse.Namespace) -> FrameSource:
         if args.input is not None:
             raise InputError(args.input, "INPUT and --source both given", "pass one of them")
         return open_stream(args.source)
-    if args.input is None:
+    if args.input is None and args.stdin_frames is None:
         raise InputError(
             None, "no input", "pass INPUT (a video, a folder of frames), '-' with --stdin-frames, or --source"
         )
-    if str(args.input) == "-":
+    if args.input is None or str(args.input) == "-":  # --stdin-frames alone also reads stdin
         if args.stdin_frames is None:
             raise InputError("-", "raw frames on stdin need their size", "pass --stdin-frames WxH, e.g. 1280x720")
         width, height = args.stdin_frames
