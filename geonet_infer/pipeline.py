@@ -455,7 +455,6 @@ def _predict(
     if options.point_cloud or options.video_out is not None:  # the pictures are needed after prediction
         keep = functools.partial(_as_predicted, camera)
     frames = _Frames(source, bar, check_camera, max_frames, keep)
-    writer = _FrameWriter(out_dir, tasks, vis, options, camera_height)
     colours = SteadyScale(options.colour_scale)
     waiting: list[FrameResult] = []  # predicted, waiting for the colour scale ("first:N")
     world = _WorldCloud(options) if options.point_cloud == "world" else None
@@ -474,19 +473,20 @@ def _predict(
         done += 1
         bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
 
+    writer = _FrameWriter(out_dir, tasks, vis, record, options, camera_height)
+
     def emit(ready: list[FrameResult]) -> None:
         scale = colours.scales()
-        for result in ready:
+        while ready:
+            result = ready.pop(0)  # before it is handed on: an interrupt here never submits it twice
             rgb = frames.kept.pop(result.index, None)
             if owned is not None:
                 owned.add(_frame_files(result.name, tasks, vis, options))
-            for written, write_ms in writer.submit(result, scale, rgb):
-                record(written, write_ms)
+            writer.submit(result, scale, rgb)
             if video is not None and rgb is not None:
                 video.write(rgb, result, scale)
             if world is not None and rgb is not None:
                 world.add(result, rgb)
-        ready.clear()
 
     try:
         results = predictor.iter_sequence(
@@ -509,15 +509,13 @@ def _predict(
                 emit(waiting)
         colours.finish()
         emit(waiting)
-        for result, write_ms in writer.drain():
-            record(result, write_ms)
+        writer.drain()
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: a summary of what was written, then stop
         interrupted = True
         with contextlib.suppress(KeyboardInterrupt):  # frames already predicted are finished
             colours.finish()
             emit(waiting)
-            for result, write_ms in writer.drain():
-                record(result, write_ms)
+            writer.drain()
     except GeoNetError as exc:
         if done == 0 and frames.size is None:
             raise InputError(
@@ -639,10 +637,12 @@ class _FrameWriter:
         out_dir: Path,
         tasks: tuple[str, ...],
         vis: bool,
+        on_written: Callable[[FrameResult, float], None],
         options: OutputOptions = OutputOptions(),
         camera_height: float | None = None,
         workers: int = WRITE_THREADS,
     ):
+        self.on_written = on_written  # (result, write ms), in frame order
         self.out_dir, self.tasks, self.vis = out_dir, tasks, vis
         self.options, self.camera_height = options, camera_height
         self.in_flight = 2 * workers
@@ -667,23 +667,23 @@ class _FrameWriter:
         result: FrameResult,
         scale: tuple[float | None, float | None] = (None, None),
         rgb: np.ndarray | None = None,
-    ) -> list[tuple[FrameResult, float]]:
+    ) -> None:
         """Queue ``result``'s files (pictures at ``scale``: inverse-depth max, flow max; None = the frame's
-        own); returns the frames finished meanwhile (waits while too many are queued)."""
+        own); frames finished meanwhile go to ``on_written`` (waits while too many are queued)."""
         self.pending.append((result, self.pool.submit(self._write, result, scale, rgb)))
-        return self._settle(self.in_flight)
+        self._settle(self.in_flight)
 
-    def drain(self) -> list[tuple[FrameResult, float]]:
-        return self._settle(0)
+    def drain(self) -> None:
+        self._settle(0)
 
-    def _settle(self, keep: int) -> list[tuple[FrameResult, float]]:
-        finished = []
+    def _settle(self, keep: int) -> None:
+        # Each written frame goes to on_written right as it leaves the queue: an interrupt (Ctrl-C,
+        # SIGTERM) between two frames can neither drop a written frame nor count one twice.
         while self.pending and (len(self.pending) > keep or self.pending[0][1].done()):
             result, future = self.pending[0]
             write_ms = future.result()
             self.pending.popleft()
-            finished.append((result, write_ms))
-        return finished
+            self.on_written(result, write_ms)
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
