@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import re
+import shutil
 from pathlib import Path
 
 import cv2
@@ -15,6 +17,7 @@ from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.cli import main as cli_main
 from geonet_infer.datasets import depth_dataset, flow_dataset, pose_dataset
 from geonet_infer.errors import GeoNetError
+from geonet_infer.io import read_image
 
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"
 ODOMETRY = "kitti_odometry_00"
@@ -131,6 +134,193 @@ def test_kitti_raw_sparse_png_layout(tmp_path):
     # median 15 -> prediction 15 everywhere: AbsRel = (5/10 + 5/20) / 2
     assert r["metrics"]["abs_rel"] == pytest.approx(0.375)
     assert r["settings"]["crop"] == "garg"
+
+
+# ----------------------------------------------------------------------------- KITTI object and KITTI 2015 disparity
+# The calibration of each KITTI object frame, typed from kitti_object_3frames/training/calib/NNNNNN.txt
+# (frames 000001 and 000002 share the 2011_09_26 calibration; 000000 is from another day).
+OBJECT_CALIB_26 = {
+    "P2": [721.5377, 0, 609.5593, 44.85728, 0, 721.5377, 172.854, 0.2163791, 0, 0, 1, 0.002745884],
+    "R0_rect": [0.9999239, 0.00983776, -0.007445048, -0.009869795, 0.9999421, -0.004278459, 0.007402527,
+                0.004351614, 0.9999631],
+    "Tr_velo_to_cam": [0.007533745, -0.9999714, -0.000616602, -0.004069766, 0.01480249, 0.0007280733,
+                       -0.9998902, -0.07631618, 0.9998621, 0.00752379, 0.01480755, -0.2717806],
+}  # fmt: skip
+OBJECT_CALIB = {
+    "000000": {
+        "P2": [707.0493, 0, 604.0814, 45.75831, 0, 707.0493, 180.5066, -0.3454157, 0, 0, 1, 0.004981016],
+        "R0_rect": [0.9999128, 0.01009263, -0.008511932, -0.01012729, 0.9999406, -0.004037671, 0.008470675,
+                    0.004123522, 0.9999556],
+        "Tr_velo_to_cam": [0.006927964, -0.9999722, -0.002757829, -0.02457729, -0.001162982, 0.002749836,
+                           -0.9999955, -0.06127237, 0.9999753, 0.006931141, -0.001143899, -0.3321029],
+    },
+    "000001": OBJECT_CALIB_26,
+    "000002": OBJECT_CALIB_26,
+}  # fmt: skip
+GARG = (0.40810811, 0.99189189, 0.03594771, 0.96405229)  # Garg et al.'s crop: rows, then columns, as fractions
+KITTI_FX_2011_09_26, KITTI_BASELINE = 721.5377, 0.54  # what the 000046 commands pass (--fx, --baseline)
+
+
+def padded(m: list[float], rows: int, cols: int) -> np.ndarray:
+    out = np.eye(4)
+    out[:rows, :cols] = np.reshape(m, (rows, cols))
+    return out
+
+
+def object_depth_by_hand(scan: Path, calib: dict, h: int, w: int) -> np.ndarray:
+    """The KITTI devkit's projection, written out again: x >= 0, P2·R0·Tr, round − 1, nearest point per pixel
+    (here by sorting, not the code's minimum-reduction), value = Velodyne forward distance x."""
+    pts = np.fromfile(scan, dtype="<f4").reshape(-1, 4).astype(np.float64)
+    pts = pts[pts[:, 0] >= 0]
+    M = np.reshape(calib["P2"], (3, 4)) @ padded(calib["R0_rect"], 3, 3) @ padded(calib["Tr_velo_to_cam"], 3, 4)
+    hom = np.c_[pts[:, :3], np.ones(len(pts))] @ M.T
+    col = np.round(hom[:, 0] / hom[:, 2]) - 1
+    row = np.round(hom[:, 1] / hom[:, 2]) - 1
+    keep = (col >= 0) & (row >= 0) & (col < w) & (row < h)
+    pixel = row[keep].astype(int) * w + col[keep].astype(int)
+    x = pts[keep, 0]
+    order = np.lexsort((x, pixel))  # by pixel, nearest first
+    first = np.r_[True, pixel[order][1:] != pixel[order][:-1]]
+    depth = np.zeros(h * w)
+    depth[pixel[order][first]] = x[order][first]
+    return depth.reshape(h, w)
+
+
+def scored_by_hand(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
+    """The values inside the Eigen mask: 0.001 < d < max_depth, Garg crop."""
+    h, w = depth.shape
+    crop = np.zeros((h, w), bool)
+    crop[int(GARG[0] * h) : int(GARG[1] * h), int(GARG[2] * w) : int(GARG[3] * w)] = True
+    return depth[crop & (depth > 1e-3) & (depth < max_depth)]
+
+
+def printed_ground_truth(out: str) -> tuple[int, int, float, float]:
+    """(frames, pixels, min m, max m) of the `ground truth: ...` line `eval depth` prints."""
+    (line,) = [line for line in out.splitlines() if line.startswith("ground truth:")]
+    m = re.match(r"ground truth: (\d+) frames?, ([\d,]+) pixels \(garg crop, .*\), depth ([\d.]+)–([\d.]+) m$", line)
+    assert m, line
+    return int(m[1]), int(m[2].replace(",", "")), float(m[3]), float(m[4])
+
+
+def test_eval_depth_kitti_object_agrees_with_a_projection_by_hand(kitti_object, tmp_path, capsys):
+    out = tmp_path / "object.json"
+    assert (
+        cli_main(["eval", "depth", "--data", str(kitti_object), "--method", "model,constant", "--json", str(out)]) == 0
+    )
+    printed = capsys.readouterr().out
+    assert "KITTI object kitti_object_3frames" in printed
+    frames, pixels, lo, hi = printed_ground_truth(printed)
+    expected = {}
+    for name, calib in OBJECT_CALIB.items():
+        h, w = cv2.imread(str(kitti_object / "training" / "image_2" / f"{name}.png")).shape[:2]  # 1224x370, 1242x375
+        full = object_depth_by_hand(kitti_object / "training" / "velodyne" / f"{name}.bin", calib, h, w)
+        assert 18_000 <= (full > 0).sum() <= 20_500  # README: 19-20 k points land in each image (a few share a pixel)
+        expected[name] = scored_by_hand(full)
+    values = np.concatenate(list(expected.values()))
+    assert frames == 3 and pixels == values.size
+    assert lo == pytest.approx(values.min(), abs=0.005) and hi == pytest.approx(values.max(), abs=0.005)
+    results = json.loads(out.read_text())["results"]
+    for result in results:  # per frame, for the model and the baseline alike
+        assert {r["name"]: r["gt_pixels"] for r in result["items"]} == {n: v.size for n, v in expected.items()}
+        assert result["ground_truth"]["pixels"] == values.size and result["metrics"]["count"] == 3
+    assert all(math.isfinite(r["metrics"]["abs_rel"]) for r in results)
+
+
+def disparity_by_hand(png: Path, fx_baseline: float) -> np.ndarray:
+    raw = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16
+    disparity = raw.astype(np.float64) / 256.0
+    return np.where(raw > 0, fx_baseline / np.where(raw > 0, disparity, 1.0), 0.0)
+
+
+def test_eval_depth_kitti2015_disparity_agrees_with_fx_baseline_by_hand(kitti2015_stereo, tmp_path, capsys):
+    args = ["eval", "depth", "--data", str(kitti2015_stereo), "--method", "model,constant"]
+    out = tmp_path / "disp.json"
+    assert cli_main([*args, "--fx", "721.5377", "--baseline", "0.54", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    frames, pixels, lo, hi = printed_ground_truth(printed)
+    depth = disparity_by_hand(kitti2015_stereo / "training" / "disp_occ_0" / "000046_10.png", 721.5377 * 0.54)
+    assert 0.11 < (depth > 0).mean() < 0.125  # README: 11.8 % of the pixels hold a disparity
+    values = scored_by_hand(depth)
+    assert frames == 1 and pixels == values.size
+    assert lo == pytest.approx(values.min(), abs=0.005) and hi == pytest.approx(values.max(), abs=0.005)
+    # the output says which fx and baseline turned disparity into depth, and where they came from
+    assert "fx 721.5377 px, baseline 0.54 m (fx from --fx, baseline from --baseline)" in printed
+    details = json.loads(out.read_text())["results"][0]["data"]["details"]["disparity_to_depth"]
+    assert details == [
+        {"frame": "000046_10", "fx": 721.5377, "baseline_m": 0.54, "source": {"fx": "--fx", "baseline": "--baseline"}}
+    ]
+    # without a calibration file or the options, nothing is assumed: one line naming the file it looked for
+    assert cli_main(args) == 2
+    err = capsys.readouterr().err
+    assert "calib_cam_to_cam/000046.txt" in err and "--fx and --baseline" in err and len(err.strip().splitlines()) == 1
+
+
+def test_kitti2015_disparity_takes_fx_and_baseline_from_the_scene_calibration(kitti2015_stereo, tmp_path, capsys):
+    """A copy of the scene with a calib_cam_to_cam/000046.txt (the 2011_09_26 rectified matrices, typed):
+    fx = P_rect_02[0, 0], baseline = (P_rect_02[0, 3] − P_rect_03[0, 3]) / fx."""
+    root = tmp_path / "kitti2015"
+    shutil.copytree(kitti2015_stereo, root)
+    (root / "training" / "calib_cam_to_cam").mkdir()
+    (root / "training" / "calib_cam_to_cam" / "000046.txt").write_text(
+        "calib_time: 09-Jan-2012 13:57:47\n"
+        "P_rect_02: 7.215377e+02 0.000000e+00 6.095593e+02 4.485728e+01 0.000000e+00 7.215377e+02 1.728540e+02 "
+        "2.163791e-01 0.000000e+00 0.000000e+00 1.000000e+00 2.745884e-03\n"
+        "P_rect_03: 7.215377e+02 0.000000e+00 6.095593e+02 -3.395242e+02 0.000000e+00 7.215377e+02 1.728540e+02 "
+        "2.199936e+00 0.000000e+00 0.000000e+00 1.000000e+00 2.729905e-03\n"
+    )
+    baseline = (44.85728 + 339.5242) / 721.5377  # 0.5327 m
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant"]) == 0
+    printed = capsys.readouterr().out
+    assert "from calib_cam_to_cam/000046.txt" in printed and f"baseline {baseline:.4g} m" in printed
+    values = scored_by_hand(disparity_by_hand(root / "training" / "disp_occ_0" / "000046_10.png", 721.5377 * baseline))
+    frames, pixels, lo, hi = printed_ground_truth(printed)
+    assert pixels == values.size and hi == pytest.approx(values.max(), abs=0.005)
+    # --baseline overrides the file, fx still from it
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant", "--baseline", "0.54"]) == 0
+    assert "fx from calib_cam_to_cam/000046.txt (P_rect_02), baseline from --baseline" in capsys.readouterr().out
+
+
+def test_layout_options_and_broken_object_frames_are_named(kitti_object, kitti2015_stereo, tmp_path, capsys):
+    assert cli_main(["eval", "depth", "--data", str(kitti_object), "--method", "constant", "--fx", "700"]) == 2
+    err = capsys.readouterr().err
+    assert "--fx does not apply to the kitti-object layout" in err and "kitti-disparity" in err
+    assert cli_main(["eval", "depth", "--data", str(kitti2015_stereo), "--method", "constant", "--fx", "-1"]) == 2
+    assert "--fx -1 must be a positive number" in capsys.readouterr().err
+    root = tmp_path / "object"
+    shutil.copytree(kitti_object, root)
+    (root / "training" / "calib" / "000001.txt").unlink()
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant"]) == 2
+    err = capsys.readouterr().err
+    assert "calib/000001.txt" in err and "calibration of this frame not found" in err
+    calib = root / "training" / "calib" / "000002.txt"
+    calib.write_text("\n".join(line for line in calib.read_text().splitlines() if not line.startswith("R0_rect")))
+    (root / "training" / "calib" / "000001.txt").write_text((root / "training" / "calib" / "000000.txt").read_text())
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant"]) == 2
+    err = capsys.readouterr().err
+    assert "calib/000002.txt" in err and "'R0_rect' is missing" in err
+    # a frame without a scan is left out and named, as for KITTI raw
+    (root / "training" / "calib" / "000002.txt").write_text((root / "training" / "calib" / "000001.txt").read_text())
+    (root / "training" / "velodyne" / "000002.bin").unlink()
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant"]) == 1
+    assert "1 of 3 frames without a scan in velodyne/ (000002)" in capsys.readouterr().err
+
+
+def test_grey_odometry_frames_are_scored_as_three_equal_channels(kitti_odometry_06, capsys):
+    seq = kitti_odometry_06 / "sequences" / "06"
+    data = pose_dataset(seq)
+    # image_2/ holds frames 12, 13, 14, 17 (no 5 consecutive), image_0/ frames 0-50: grey is scored
+    assert data.description.startswith("KITTI odometry seq 06 (image_0") and len(data.items) == 47
+    assert any("image_2/ gives 0 snippets, image_0/ 47" in n for n in data.notes)
+    assert any("grey" in n and "three equal channels" in n for n in data.notes)
+    np.testing.assert_allclose(data.items[0].intrinsics()[0, 0], 707.0912)  # P0 of calib.txt
+    grey = cv2.imread(str(seq / "image_0" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    assert grey.ndim == 2
+    rgb = read_image(seq / "image_0" / "000000.png")
+    assert rgb.shape == grey.shape + (3,) and all((rgb[..., c] == grey).all() for c in range(3))
+    assert cli_main(["eval", "pose", "--data", str(seq), "--method", "model,identity", "--limit", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "note: image_0/ frames are grey" in printed and "| 2 |" in printed
 
 
 # ----------------------------------------------------------------------------- DIS acceptance

@@ -23,7 +23,8 @@ protocols, and print a table in the paper's column order (JSON with every item v
          synthetic frames (--crop to change). --camera-height M scales each frame instead so
          the ground plane fitted to the prediction lies M metres below the camera (no ground
          truth used; 1.65 for KITTI); a frame without a plausible ground plane is not scored,
-         named on stderr and counted in the table (exit code 1).
+         named on stderr and counted in the table (exit code 1). The line under the table
+         gives the ground truth scored: frames, pixels inside the mask, depth range.
   flow   average end-point error on non-occluded (Noc) and all (All) GT pixels, and Fl
          (outliers: EPE > 3 px and > 5 %); predictions resized to the GT size (nearest,
          vectors scaled).
@@ -53,6 +54,8 @@ examples:
   geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt --max-depth 50 \\
       --precision int8
   geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt --camera-height 1.65
+  geonet-infer eval depth --data ../shared/realdata/kitti_object_3frames --method model,constant
+  geonet-infer eval depth --data ../shared/realdata/kitti2015_000046_stereo --fx 721.5377 --baseline 0.54
   geonet-infer eval flow --data ../shared/realdata/middlebury_flow --method dis,zero
   geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 --method model,orb-vo,identity
   geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --json flow.json
@@ -62,12 +65,13 @@ examples:
 def layouts_help() -> str:
     """The layouts block of ``--help``, from the registry (a new layout describes itself)."""
     out = ["Layouts (--layout, default auto):"]
+    width = max(len(name) for name in REGISTRY) + 1  # the descriptions start in one column
     for task in TASKS:
         for n, name in enumerate(LAYOUTS[task]):
             first, *more = REGISTRY[name].help[task]
             label = f"{task:<6}" if n == 0 else " " * 6
-            out.append(f"  {label} {name:<11}{' ' if len(name) < 11 else '  '}{first}")
-            out += [" " * 21 + line for line in more]
+            out.append(f"  {label} {name:<{width}}{first}")
+            out += [" " * (9 + width) + line for line in more]
     return "\n".join(out) + "\n"
 
 
@@ -142,6 +146,21 @@ def add_parser(sub) -> None:
         help="K at the frames' size for data without calibration: flow with a model (Middlebury), "
         "depth with --camera-height",
     )
+    group.add_argument(
+        "--fx",
+        type=float,
+        default=None,
+        metavar="PX",
+        help="kitti-disparity: focal length for depth = fx·baseline/disparity where the folder has no "
+        "calib_cam_to_cam/ (overrides it where it has; KITTI: 707.09-721.54 by recording day)",
+    )
+    group.add_argument(
+        "--baseline",
+        type=float,
+        default=None,
+        metavar="M",
+        help="kitti-disparity: stereo baseline in metres, as --fx (KITTI documents 0.54 m)",
+    )
     parser.add_argument("--json", type=Path, default=None, help="also write every result and item here")
     parser.set_defaults(run=run)
 
@@ -186,7 +205,8 @@ def run(args: argparse.Namespace) -> int:
     options = {"sequences": sequences, "stride": args.stride, "limit": args.limit}
     if args.task == "flow":
         options["multiview"] = args.multiview
-    dataset = load_dataset(args.task, args.data, args.layout, **options)
+    layout_options = {"fx": args.fx, "baseline": args.baseline}
+    dataset = load_dataset(args.task, args.data, args.layout, options=layout_options, **options)
     K = parse_intrinsics(args.intrinsics)
     results = []
     for label, fn in methods_for(args.task, args.method, args):
@@ -207,6 +227,8 @@ def run(args: argparse.Namespace) -> int:
             result = evaluation.evaluate_pose(fn, dataset, method=label)
         results.append((label, result))
     print(evaluation.format_table(results))
+    if args.task == "depth":  # the same mask for every method: print it once
+        print(evaluation.ground_truth_line(results[0][1]["ground_truth"]))
     for note in dataset.notes:
         print(f"note: {note}")
     for label, result in results:
