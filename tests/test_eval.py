@@ -376,6 +376,45 @@ def test_dis_on_kitti2012_layout_agrees_with_independent_epe(require_real, tmp_p
     assert all("no _09" in item["snippet"] for item in results["DIS medium"]["items"])
 
 
+def read_kitti_flow_by_hand(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """KITTI 2015 flow PNG read with cv2 (devkit encoding): file channels B, G, R = valid, v, u;
+    u = (R − 2^15) / 64, v = (G − 2^15) / 64."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16 and raw.shape[2] == 3
+    flow = (np.stack([raw[..., 2], raw[..., 1]], axis=2).astype(np.float64) - 2**15) / 64.0
+    return flow, raw[..., 0] > 0
+
+
+def test_dis_on_real_kitti2015_pair_agrees_with_independent_epe(kitti2015_flow, tmp_path, capsys):
+    """The real KITTI 2015 pair 000010 (issue 10's point that had no data): `eval flow --method dis` on the
+    benchmark folder as unpacked (training/ inside) against OpenCV DIS + numpy EPE written here."""
+    out = tmp_path / "dis.json"
+    assert cli_main(["eval", "flow", "--data", str(kitti2015_flow), "--method", "dis", "--json", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "KITTI 2015 layout kitti2015_flow_000010" in table and "DIS medium" in table
+    results = {r["method"]: r for r in json.loads(out.read_text())["results"]}
+    base = kitti2015_flow / "training"
+    grey = [cv2.cvtColor(cv2.imread(str(base / "image_2" / f"000010_{t}.png")), cv2.COLOR_BGR2GRAY) for t in (10, 11)]
+    gt_all, valid_all = read_kitti_flow_by_hand(base / "flow_occ" / "000010_10.png")
+    gt_noc, valid_noc = read_kitti_flow_by_hand(base / "flow_noc" / "000010_10.png")
+    assert valid_all.mean() == pytest.approx(0.240, abs=0.001) and valid_noc.mean() == pytest.approx(0.234, abs=0.001)
+    zero_epe = np.sqrt((gt_all**2).sum(axis=2))[valid_all].mean()
+    assert zero_epe == pytest.approx(9.03, abs=0.005)  # README: zero flow has EPE 9.03 px on flow_occ
+    for label, preset in (
+        ("DIS medium", cv2.DISOPTICAL_FLOW_PRESET_MEDIUM),
+        ("DIS ultrafast", cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST),
+    ):
+        pred = cv2.DISOpticalFlow_create(preset).calc(grey[0], grey[1], None).astype(np.float64)
+        got = results[label]["metrics"]
+        for key, gt, valid in (("epe_noc", gt_noc, valid_noc), ("epe_all", gt_all, valid_all)):
+            epe = np.sqrt(((pred - gt) ** 2).sum(axis=2))[valid].mean()
+            assert got[key] == pytest.approx(epe, abs=0.01), (label, key)
+        assert got["count"] == 1
+    item = results["DIS medium"]["items"][0]
+    assert item["n_valid_all"] == valid_all.sum() and item["n_valid_noc"] == valid_noc.sum()
+    assert "no _09" in item["snippet"]  # the pair has no _09 frame: documented fallback for the model
+
+
 def test_kitti_layout_uses_09_and_calibration_for_the_model(require_real, tmp_path):
     root = require_real(MIDDLEBURY)
     data_dir = tmp_path / "kitti2012"
