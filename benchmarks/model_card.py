@@ -829,6 +829,7 @@ def render_card(result: dict) -> str:
         _model_section,
         _before_after,
         _real_section,
+        _experiment_section,
         _files_section,
         _measured_section,
         _depth_section,
@@ -856,6 +857,53 @@ def _real_section(result: dict) -> list[str]:
         *body[2:],  # its first line (model, command, date) is said above
         "",
     ]
+
+
+EXPERIMENT_ROWS = (  # (label, key of benchmarks.real_pose_experiment.figures, judged by the rule)
+    ("real pose ATE (paper ÷N), snippets not trained on", "pose_ate_held_out", True),
+    ("real validation depth AbsRel", "validation_abs_rel", True),
+    ("real pose ATE (paper ÷N), all snippets", "pose_ate_all", False),
+)
+
+
+def _experiment_section(result: dict) -> list[str]:
+    """Section "Real-pose fine-tuning": the rule written before scoring and, once scored, before/after."""
+    e = result.get("experiment")
+    if not e:
+        return []
+    trained = "; ".join(
+        f"{name}: frames {span[0]}–{span[1]}" if span else f"{name}: none" for name, span in e["train_frames"].items()
+    )
+    L = [
+        "## Real-pose fine-tuning experiment (issue 32)",
+        "",
+        f"**Shipping rule.** {e['rule']}",
+        "",
+        f"Real odometry frames trained on: {trained} (`benchmarks/real_pose_experiment.py`). " + e.get("notes", ""),
+        "",
+    ]
+    if "verdict" not in e:
+        return L + ["Not scored yet.", ""]
+    b, a = e["before"], e["after"]
+    rows = []
+    keys = [(label, key, judged) for label, key, judged in EXPERIMENT_ROWS]
+    keys += [(k, k, False) for k in b["fp32"] if k not in {key for _, key, _ in EXPERIMENT_ROWS} and ":" in k]
+    keys.append(("test drive depth AbsRel (not for choosing)", "test drive AbsRel", False))
+    for label, key, judged in keys:
+        cells = [sig3(side.get(p, {}).get(key)) for side in (b, a) for p in ("fp32", "int8")]
+        rows.append([label + (" (rule)" if judged else "")] + cells)
+    v = e["verdict"]
+    decision = "**shipped**" if v["ship"] else "**not shipped**"
+    L += _table(["", "bundled FP32", "bundled INT8", "candidate FP32", "candidate INT8"], rows)
+    L += [
+        "",
+        f"Verdict: real pose improves: {'yes' if v['pose_improves'] else 'no'}; real validation depth not worse: "
+        f"{'yes' if v['validation_not_worse'] else 'no'}: the candidate is {decision}. Candidate: {e['candidate']}; "
+        f"bundled: `{e['before_command']}`, candidate: `{e['after_command']}` (snippet counts: "
+        f"{a['fp32']['pose_snippets_held_out']} not trained on, {a['fp32']['pose_snippets_all']} in all).",
+        "",
+    ]
+    return L
 
 
 def _header_section(result: dict) -> list[str]:
@@ -1278,6 +1326,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="the JSON of `geonet-infer eval all --json` for this model: rendered as the card's real-data section "
         "(every real set of ../shared with ground truth); refused if measured on other graph files",
     )
+    p.add_argument(
+        "--experiment",
+        metavar="JSON",
+        help="the JSON of `python -m benchmarks.real_pose_experiment`: its shipping rule and, once scored, its "
+        "before/after numbers and verdict",
+    )
     p.add_argument("--stride", type=int, default=1, help="synthetic: every n-th frame / pair / snippet")
     p.add_argument("--kitti-frames", type=int, default=10, help="KITTI frames with Velodyne scans to use (first N)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all usable)")
@@ -1335,6 +1389,8 @@ def main(argv=None) -> int:
                 if getattr(args, flag) is None:
                     raise InputError(None, f"--{flag.replace('_', '-')} is required", "or pass --from-json")
             result = run(args, command, progress)
+        if args.experiment:
+            result["experiment"] = recorded_experiment(args.experiment)
         if args.real:
             result["real"] = recorded_real(args.real, args.model)
             result["real_render_command"] = command
@@ -1374,6 +1430,16 @@ def recorded_result(path: str | Path, model: str | Path) -> dict:
             path, f"its numbers were measured on other graph files than those of {model}", "measure this model"
         )
     return result
+
+
+def recorded_experiment(path: str | Path) -> dict:
+    """The JSON of ``benchmarks.real_pose_experiment`` (the rule, and the scores once measured)."""
+    try:
+        experiment = json.loads(Path(path).read_text())
+        experiment["rule"], experiment["train_frames"]  # noqa: B018  (what the section renders)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputError(path, f"not a real_pose_experiment JSON ({exc})", "pass the file it wrote") from None
+    return experiment
 
 
 def recorded_real(path: str | Path, model: str | Path) -> dict:
