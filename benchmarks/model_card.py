@@ -22,6 +22,11 @@ from :mod:`geonet_infer.baselines`); this module only picks the data and renders
   camera height (1.65 m, ground plane fitted to the prediction, no ground truth),
   counting and naming the frames where no ground plane is found.
 
+``--real JSON`` (what ``geonet-infer eval all --json`` wrote for this model: every real set in
+``../shared`` with ground truth, the model at FP32 and INT8 beside the classical baselines, and the
+real validation figure) adds the card's "Real data" section, rendered from that file and refused
+unless its graph files are the model's; with ``--from-json`` it needs no other measurement.
+
 ``--before DIR`` (the previously shipped model directory) runs the same measurements
 on that model in the same run and adds a "Before / after" table of the headline
 numbers, each with its baseline and target.
@@ -54,7 +59,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from geonet_infer import evaluation, metrics
+from geonet_infer import eval_all, evaluation, metrics
 from geonet_infer.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
@@ -823,6 +828,8 @@ def render_card(result: dict) -> str:
         _header_section,
         _model_section,
         _before_after,
+        _real_section,
+        _experiment_section,
         _files_section,
         _measured_section,
         _depth_section,
@@ -831,6 +838,72 @@ def render_card(result: dict) -> str:
         _limitations_section,
     )
     return "\n".join(line for section in sections for line in section(result)) + "\n"
+
+
+def _real_section(result: dict) -> list[str]:
+    """Section "Real data": every real set with ground truth, from ``geonet-infer eval all`` (``--real``)."""
+    real = result.get("real")
+    if not real:
+        return []
+    body = eval_all.markdown(real).rstrip("\n").splitlines()
+    return [
+        "## Real data: every set in ../shared with ground truth",
+        "",
+        f"Measured by `{real['command']} --json {result.get('real_json', 'REAL.json')}` (from the repository "
+        f"root; {real['generated_utc']}) and rendered here from that JSON by "
+        f"`{result.get('real_render_command', 'python -m benchmarks.model_card --real REAL.json ...')}`; every "
+        "number below comes from that run, scored by the code of `geonet-infer eval` (`geonet_infer.eval_all`).",
+        "",
+        *body[2:],  # its first line (model, command, date) is said above
+        "",
+    ]
+
+
+EXPERIMENT_ROWS = (  # (label, key of benchmarks.real_pose_experiment.figures, judged by the rule)
+    ("real pose ATE (paper ÷N), snippets not trained on", "pose_ate_held_out", True),
+    ("real validation depth AbsRel", "validation_abs_rel", True),
+    ("real pose ATE (paper ÷N), all snippets", "pose_ate_all", False),
+)
+
+
+def _experiment_section(result: dict) -> list[str]:
+    """Section "Real-pose fine-tuning": the rule written before scoring and, once scored, before/after."""
+    e = result.get("experiment")
+    if not e:
+        return []
+    trained = "; ".join(
+        f"{name}: frames {span[0]}–{span[1]}" if span else f"{name}: none" for name, span in e["train_frames"].items()
+    )
+    L = [
+        "## Real-pose fine-tuning experiment (issue 32)",
+        "",
+        f"**Shipping rule.** {e['rule']}",
+        "",
+        f"Real odometry frames trained on: {trained} (`benchmarks/real_pose_experiment.py`). " + e.get("notes", ""),
+        "",
+    ]
+    if "verdict" not in e:
+        return L + ["Not scored yet.", ""]
+    b, a = e["before"], e["after"]
+    rows = []
+    keys = [(label, key, judged) for label, key, judged in EXPERIMENT_ROWS]
+    keys += [(k, k, False) for k in b["fp32"] if k not in {key for _, key, _ in EXPERIMENT_ROWS} and ":" in k]
+    keys.append(("test drive depth AbsRel (not for choosing)", "test drive AbsRel", False))
+    for label, key, judged in keys:
+        cells = [sig3(side.get(p, {}).get(key)) for side in (b, a) for p in ("fp32", "int8")]
+        rows.append([label + (" (rule)" if judged else "")] + cells)
+    v = e["verdict"]
+    decision = "**shipped**" if v["ship"] else "**not shipped**"
+    L += _table(["", "bundled FP32", "bundled INT8", "candidate FP32", "candidate INT8"], rows)
+    L += [
+        "",
+        f"Verdict: real pose improves: {'yes' if v['pose_improves'] else 'no'}; real validation depth not worse: "
+        f"{'yes' if v['validation_not_worse'] else 'no'}: the candidate is {decision}. Candidate: {e['candidate']}; "
+        f"bundled: `{e['before_command']}`, candidate: `{e['after_command']}` (snippet counts: "
+        f"{a['fp32']['pose_snippets_held_out']} not trained on, {a['fp32']['pose_snippets_all']} in all).",
+        "",
+    ]
+    return L
 
 
 def _header_section(result: dict) -> list[str]:
@@ -851,6 +924,12 @@ def _header_section(result: dict) -> list[str]:
         "(`geonet_infer.predictor.Predictor` on onnxruntime), exactly as users run them.",
         "",
     ]
+    if result.get("real"):
+        L += [
+            f"The section *Real data* comes from `geonet-infer eval all` (its own command is given there) and was "
+            f"added with `--real {result.get('real_json', 'REAL.json')}`.",
+            "",
+        ]
     if m["random_init"]:
         L += [
             "> **⚠️ WARNING: RANDOM-INIT MODEL. This card was generated with `--allow-random-init` for a "
@@ -1129,7 +1208,7 @@ def _limitations_section(result: dict) -> list[str]:
     """Section "Limitations", with the FP32 numbers each one rests on."""
     m = result["model"]
     prov = m["provenance"]
-    s, kd, sd = result["synthetic"], result["kitti"]["depth"], result["synthetic"]["depth"]
+    s, kd = result["synthetic"], result["kitti"]["depth"]
     best = "fp32"
     L = ["## Limitations", ""]
     if m["random_init"]:
@@ -1140,26 +1219,86 @@ def _limitations_section(result: dict) -> list[str]:
         f"sequences{trained_on} (`training.synth`: boxes on a flat road, Lambertian shading, no sensor noise; see "
         "`docs/synthetic_data.md`). The held-out synthetic numbers come from the same generator and "
         "overstate what to expect on real video.",
-        f"* **Real-data depth is measured on {kd['frames']} KITTI frames only** (one drive, consecutive "
-        "frames, so they are far from independent). On them the FP32 model's AbsRel "
-        f"({sig3(kd[best]['abs_rel'])}) is {_compare(kd[best]['abs_rel'], kd['constant_baseline']['abs_rel'])} "
-        f"the constant-depth baseline ({sig3(kd['constant_baseline']['abs_rel'])}); on the synthetic held-out "
-        f"set it is {sig3(sd[best]['abs_rel'])} vs {sig3(sd['constant_baseline']['abs_rel'])} "
-        f"({_compare(sd[best]['abs_rel'], sd['constant_baseline']['abs_rel'])} the baseline). This is no "
-        "substitute for the 697-image Eigen split.",
+        _real_depth_limitation(result),
         "* **Relative scale.** Depth and camera translation are known only up to an unknown scale. Every "
         "depth number except the camera-height rows uses per-image median scaling with the ground truth and "
         "every ATE a per-snippet scale fit, so those do not measure metric scale. " + _camera_height_limitation(kd),
         "* **Pose ATE on 5-frame snippets** hides drift and most rotation error, and the paper's value "
-        "divides by N (it is the true RMSE ÷ √5). There is no real-data pose or flow evaluation here "
-        "(the KITTI frames have no poses and no flow ground truth).",
+        "divides by N (it is the true RMSE ÷ √5). " + _real_pose_limitation(result),
         "* **Flow** is compared with zero flow and OpenCV DIS (medium preset), not with a learned flow method "
         f"(FP32 EPE noc {sig3(s['flow'][best]['noc']['epe'])} px vs "
         f"{sig3(s['flow']['zero_flow_baseline']['noc']['epe'])} px for zero flow and "
-        f"{sig3(s['flow']['dis_medium_baseline']['noc']['epe'])} px for DIS medium), on synthetic data only.",
+        f"{sig3(s['flow']['dis_medium_baseline']['noc']['epe'])} px for DIS medium" + _real_flow_limitation(result),
         "",
     ]
     return L
+
+
+def _real_sets(result: dict, task: str) -> list[dict]:
+    return [x for x in (result.get("real") or {}).get("sets", []) if x["task"] == task]
+
+
+def _real_depth_limitation(result: dict) -> str:
+    """The real-depth bullet: the test drive, and with ``--real`` the real validation frames."""
+    kd, sd = result["kitti"]["depth"], result["synthetic"]["depth"]
+    model, const = kd["fp32"]["abs_rel"], kd["constant_baseline"]["abs_rel"]
+    synth_model, synth_const = sd["fp32"]["abs_rel"], sd["constant_baseline"]["abs_rel"]
+    synth = (
+        f"on the synthetic held-out set it is {sig3(synth_model)} vs {sig3(synth_const)} "
+        f"({_compare(synth_model, synth_const)} the baseline)"
+    )
+    v = (result.get("real") or {}).get("validation") or {}
+    if not v.get("metrics", {}).get("fp32"):
+        return (
+            f"* **Real-data depth is measured on {kd['frames']} KITTI frames only** (one drive, consecutive "
+            f"frames, so they are far from independent). On them the FP32 model's AbsRel ({sig3(model)}) is "
+            f"{_compare(model, const)} the constant-depth baseline ({sig3(const)}); {synth}. This is no "
+            "substitute for the 697-image Eigen split."
+        )
+    vm, vc = v["metrics"]["fp32"]["abs_rel"], v["metrics"]["constant"]["abs_rel"]
+    return (
+        f"* **Real-data depth is measured on few frames.** On the test drive ({kd['frames']} consecutive frames "
+        f"of one drive) the FP32 model's AbsRel ({sig3(model)}) is {_compare(model, const)} the constant-depth "
+        f"baseline ({sig3(const)}); on the real validation frames ({v['frames']} frames of other drives and "
+        f"scenes, see Real data) it is {sig3(vm)} vs {sig3(vc)} ({_compare(vm, vc)} the baseline); {synth}. "
+        "This is no substitute for the 697-image Eigen split."
+    )
+
+
+def _real_pose_limitation(result: dict) -> str:
+    sets = _real_sets(result, "pose")
+    if not sets:
+        return (
+            "There is no real-data pose or flow evaluation here (the KITTI frames have no poses and no flow "
+            "ground truth)."
+        )
+    per_set = "; ".join(
+        f"{x['name']}: {sig3(x['results']['fp32']['metrics']['ate_snippet'])} vs ORB-VO "
+        f"{sig3(x['results']['orb_vo']['metrics']['ate_snippet'])} and identity "
+        f"{sig3(x['results']['identity']['metrics']['ate_snippet'])}"
+        for x in sets
+        if "fp32" in x["results"]
+    )
+    snippets = sum(x["items"] for x in sets)
+    return f"On real KITTI odometry ({snippets} snippets, grey frames) the FP32 ATE (paper) is {per_set}."
+
+
+def _real_flow_limitation(result: dict) -> str:
+    """The end of the flow bullet: synthetic only, or also the real pairs of ``--real``."""
+    sets = [x for x in _real_sets(result, "flow") if "fp32" in x["results"]]
+    if not sets:
+        return "), on synthetic data only."
+    real = "; ".join(
+        f"{x['name']} ({_count(x['items'], 'pairs')}): {sig3(x['results']['fp32']['metrics']['epe_noc'])} px vs "
+        f"{sig3(x['results']['zero_flow']['metrics']['epe_noc'])} px and "
+        f"{sig3(x['results']['dis_medium']['metrics']['epe_noc'])} px"
+        for x in sets
+    )
+    return f" on synthetic data; on real KITTI flow, {real})."
+
+
+def _count(n: int, label: str) -> str:
+    return f"{n} {label if n != 1 else label.removesuffix('s')}"
 
 
 # ----------------------------------------------------------------------------- CLI
@@ -1180,6 +1319,18 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="the previously shipped model directory: measured the same way in this run, and the card gets a "
         "before/after table",
+    )
+    p.add_argument(
+        "--real",
+        metavar="JSON",
+        help="the JSON of `geonet-infer eval all --json` for this model: rendered as the card's real-data section "
+        "(every real set of ../shared with ground truth); refused if measured on other graph files",
+    )
+    p.add_argument(
+        "--experiment",
+        metavar="JSON",
+        help="the JSON of `python -m benchmarks.real_pose_experiment`: its shipping rule and, once scored, its "
+        "before/after numbers and verdict",
     )
     p.add_argument("--stride", type=int, default=1, help="synthetic: every n-th frame / pair / snippet")
     p.add_argument("--kitti-frames", type=int, default=10, help="KITTI frames with Velodyne scans to use (first N)")
@@ -1238,6 +1389,12 @@ def main(argv=None) -> int:
                 if getattr(args, flag) is None:
                     raise InputError(None, f"--{flag.replace('_', '-')} is required", "or pass --from-json")
             result = run(args, command, progress)
+        if args.experiment:
+            result["experiment"] = recorded_experiment(args.experiment)
+        if args.real:
+            result["real"] = recorded_real(args.real, args.model)
+            result["real_render_command"] = command
+            result["real_json"] = args.real
         # the manifests' own numbers (model blocks) are reported, not measured
         _check_finite({k: v for k, v in result.items() if k not in ("model", "before")})
         if result["before"]:
@@ -1273,6 +1430,36 @@ def recorded_result(path: str | Path, model: str | Path) -> dict:
             path, f"its numbers were measured on other graph files than those of {model}", "measure this model"
         )
     return result
+
+
+def recorded_experiment(path: str | Path) -> dict:
+    """The JSON of ``benchmarks.real_pose_experiment`` (the rule, and the scores once measured)."""
+    try:
+        experiment = json.loads(Path(path).read_text())
+        experiment["rule"], experiment["train_frames"]  # noqa: B018  (what the section renders)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputError(path, f"not a real_pose_experiment JSON ({exc})", "pass the file it wrote") from None
+    return experiment
+
+
+def recorded_real(path: str | Path, model: str | Path) -> dict:
+    """The JSON of ``geonet-infer eval all --json``, refused unless measured on ``model``'s graph files."""
+    try:
+        real = json.loads(Path(path).read_text())
+        recorded = real["model"]["graphs"]
+        real["sets"], real["validation"]  # noqa: B018  (the keys the section renders)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputError(path, f"not a `geonet-infer eval all --json` file ({exc})", "pass the file it wrote") from None
+    manifest = load_manifest(model)
+    current = {p: {n: manifest.graph(n, p).sha256 for n in manifest.graph_names(p)} for p in manifest.precisions}
+    if recorded != current:
+        raise InputError(
+            path, f"its numbers were measured on other graph files than those of {model}", "run eval all on this model"
+        )
+    for real_set in real["sets"]:  # the per-item rows stay in the eval-all JSON; the card needs the means
+        for method in real_set["results"].values():
+            method.pop("items", None)
+    return real
 
 
 def _json_default(obj):

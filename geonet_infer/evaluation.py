@@ -184,7 +184,9 @@ def evaluate_depth(
                 "the depth method must return one 2-D map per image",
             )
         bad = _nonfinite(pred)
-        row = {"name": item.name}
+        # what the frame's ground truth offers, whatever the method does: checkable against the data itself
+        row = {"name": item.name, "gt_pixels": int(mask.sum()), "gt_min": float(gt[mask].min())}
+        row["gt_max"] = float(gt[mask].max())
         if bad:
             errors.append({"item": item.name, "problem": f"prediction has {bad} NaN/inf values"})
             rows.append(row | _nan_row(keys) | info)
@@ -226,9 +228,30 @@ def evaluate_depth(
     if scaling == "camera_height":
         settings["camera_height"] = camera_height
     result = _result("depth", method, dataset, settings, rows, errors)
+    result["ground_truth"] = ground_truth_summary(rows, crop, min_depth, max_depth)
     if scaling == "camera_height":
         result["ground_fit_failed"] = fit_failed
     return result
+
+
+def ground_truth_summary(rows: list[dict], crop: str | None, min_depth: float, max_depth: float) -> dict:
+    """The depth ground truth the rows were scored on: frames, pixels inside the mask, depth range."""
+    return {
+        "frames": len(rows),
+        "pixels": sum(r["gt_pixels"] for r in rows),
+        "min_m": min(r["gt_min"] for r in rows),
+        "max_m": max(r["gt_max"] for r in rows),
+        "crop": crop,
+        "mask": f"{min_depth:g} < GT < {max_depth:g} m",
+    }
+
+
+def ground_truth_line(summary: dict) -> str:
+    """One line for people: ``ground truth: 3 frames, 45,310 pixels (garg crop, 0.001 < GT < 80 m), 4.3–79.9 m``."""
+    return (
+        f"ground truth: {summary['frames']} frame{'s' if summary['frames'] != 1 else ''}, {summary['pixels']:,} pixels "
+        f"({summary['crop'] or 'no'} crop, {summary['mask']}), depth {summary['min_m']:.2f}–{summary['max_m']:.2f} m"
+    )
 
 
 # ----------------------------------------------------------------------------- flow

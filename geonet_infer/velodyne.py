@@ -1,10 +1,13 @@
-"""KITTI raw Velodyne scans -> sparse ground-truth depth maps (official Eigen protocol).
+"""KITTI Velodyne scans -> sparse ground-truth depth maps (official Eigen protocol).
 
 Numpy only. Reproduces ``generate_depth_map`` of GeoNet's
 kitti_eval/depth_evaluation_utils.py (itself from monodepth), which the
 published Eigen-split numbers were computed with:
 
 * P_velo2im = P_rect_0c @ R_rect_00 (padded to 4x4) @ [R | T] (velo -> cam 0);
+  the KITTI object benchmark stores the same three matrices per frame as
+  ``P2``, ``R0_rect`` and ``Tr_velo_to_cam`` (:func:`object_velodyne_to_image_matrix`),
+  and both go through the one projection :func:`points_to_depth_map`;
 * points with velodyne x < 0 (behind the sensor; x points forward) dropped;
 * u, v = projection / z, then ``round(.) - 1`` to match the KITTI MATLAB code;
 * pixels outside the image dropped; several points on one pixel keep the minimum;
@@ -39,14 +42,14 @@ def load_velodyne_points(bin_path):
     return np.fromfile(bin_path, dtype=np.float32).reshape(-1, 4)
 
 
-def _calib_matrix(calib, key, shape, path):
+RAW_CALIB_HINT = "use the official KITTI raw calib_cam_to_cam.txt / calib_velo_to_cam.txt of the drive's date"
+OBJECT_CALIB_HINT = "use the frame's KITTI object calib/NNNNNN.txt (P0-P3, R0_rect, Tr_velo_to_cam, Tr_imu_to_velo)"
+
+
+def _calib_matrix(calib, key, shape, path, hint=RAW_CALIB_HINT):
     """calib[key] as a float64 array of ``shape``; GeoNetError naming ``path`` if absent or malformed."""
     if key not in calib:
-        raise InputError(
-            path,
-            f"calibration key {key!r} is missing",
-            "use the official KITTI raw calib_cam_to_cam.txt / calib_velo_to_cam.txt of the drive's date",
-        )
+        raise InputError(path, f"calibration key {key!r} is missing", hint)
     try:
         values = np.asarray(calib[key], dtype=np.float64).ravel()
     except (TypeError, ValueError):
@@ -55,7 +58,7 @@ def _calib_matrix(calib, key, shape, path):
         raise InputError(
             path,
             f"calibration key {key!r} has {values.size} numbers, expected {int(np.prod(shape))}",
-            "the calibration file is truncated or not a KITTI raw calibration",
+            f"the calibration file is truncated or not this kind of KITTI calibration; {hint}",
         )
     return values.reshape(shape)
 
@@ -83,6 +86,24 @@ def velodyne_to_image_matrix(calib_dir, cam=2):
     return P_rect @ rect @ velo_to_cam
 
 
+def object_velodyne_to_image_matrix(calib_path):
+    """The (3, 4) matrix ``P2 @ R0_rect @ Tr_velo_to_cam`` of one KITTI object-benchmark frame.
+
+    calib_path: the frame's ``calib/NNNNNN.txt``. It holds the KITTI raw matrices under other
+    names: ``P2`` = P_rect_02, ``R0_rect`` = R_rect_00, ``Tr_velo_to_cam`` = [R | T] of
+    calib_velo_to_cam.txt (3x4), so the result is what :func:`velodyne_to_image_matrix` gives
+    for the drive the frame came from.
+    """
+    calib_path = Path(calib_path)
+    calib = read_calib_file(calib_path)
+    velo_to_cam = np.eye(4)
+    velo_to_cam[:3, :] = _calib_matrix(calib, "Tr_velo_to_cam", (3, 4), calib_path, OBJECT_CALIB_HINT)
+    rect = np.eye(4)
+    rect[:3, :3] = _calib_matrix(calib, "R0_rect", (3, 3), calib_path, OBJECT_CALIB_HINT)
+    P2 = _calib_matrix(calib, "P2", (3, 4), calib_path, OBJECT_CALIB_HINT)
+    return P2 @ rect @ velo_to_cam
+
+
 def project_velodyne(points, P_velo2im):
     """Continuous projection of velodyne points (no rounding, no filtering).
 
@@ -98,17 +119,29 @@ def project_velodyne(points, P_velo2im):
 
 
 def velodyne_to_depth_map(calib_dir, velo_path, image_shape, cam=2, vel_depth=True):
-    """Sparse GT depth map of one frame, exactly as the official evaluation.
+    """Sparse GT depth map of one KITTI raw frame, exactly as the official evaluation.
 
     calib_dir: KITTI raw date folder with the two calibration files.
     velo_path: the frame's velodyne_points/data/<frame>.bin.
     image_shape: (H, W) of the camera image (375 x 1242 for 2011_09_26).
     Returns (H, W) float32 depth in metres, 0 where no point landed.
     """
-    height, width = int(image_shape[0]), int(image_shape[1])
     P_velo2im = velodyne_to_image_matrix(calib_dir, cam)
+    return points_to_depth_map(load_velodyne_points(velo_path), P_velo2im, image_shape, vel_depth)
 
-    velo = load_velodyne_points(velo_path)
+
+def object_velodyne_to_depth_map(calib_path, velo_path, image_shape, vel_depth=True):
+    """Sparse GT depth map of one KITTI object-benchmark frame (``velodyne/NNNNNN.bin`` with the
+    frame's ``calib/NNNNNN.txt``), by the same protocol as :func:`velodyne_to_depth_map`."""
+    P_velo2im = object_velodyne_to_image_matrix(calib_path)
+    return points_to_depth_map(load_velodyne_points(velo_path), P_velo2im, image_shape, vel_depth)
+
+
+def points_to_depth_map(velo, P_velo2im, image_shape, vel_depth=True):
+    """The official projection of Velodyne points (N, 3+) with the (3, 4) ``P_velo2im`` to an
+    (H, W) float32 depth map in metres, 0 where no point landed (see the module docstring)."""
+    height, width = int(image_shape[0]), int(image_shape[1])
+    velo = np.asarray(velo)
     # Official "remove all behind image plane (approximation)": velodyne x >= 0.
     velo = velo[velo[:, 0] >= 0]
 

@@ -16,6 +16,10 @@ import pytest
 REALDATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"  # one KITTI raw drive: image_02, Velodyne scans, calibration
 KITTI_ODOMETRY = "kitti_odometry_00"  # KITTI odometry sequence 00, grey frames and calib.txt
+KITTI_ODOMETRY_06 = "kitti_odometry_06"  # sequence 06: grey frames 0-50 (and a few colour ones), poses
+KITTI_OBJECT = "kitti_object_3frames"  # KITTI object benchmark: 3 frames, Velodyne scans, per-frame calib
+KITTI2015_STEREO = "kitti2015_000046_stereo"  # KITTI 2015 stereo scene 000046 with disp_occ_0
+KITTI2015_FLOW = "kitti2015_flow_000010"  # KITTI 2015 flow pair 000010 with flow_occ / flow_noc
 
 
 def on_ci() -> bool:
@@ -56,6 +60,30 @@ def kitti_raw() -> Path:
 def kitti_odometry() -> Path:
     """Path of ``../shared/realdata/kitti_odometry_00`` (fails on CI / skips elsewhere when missing)."""
     return require_realdata(KITTI_ODOMETRY)
+
+
+@pytest.fixture(scope="session")
+def kitti_odometry_06() -> Path:
+    """Path of ``../shared/realdata/kitti_odometry_06`` (fails on CI / skips elsewhere when missing)."""
+    return require_realdata(KITTI_ODOMETRY_06)
+
+
+@pytest.fixture(scope="session")
+def kitti_object() -> Path:
+    """Path of ``../shared/realdata/kitti_object_3frames`` (fails on CI / skips elsewhere when missing)."""
+    return require_realdata(KITTI_OBJECT)
+
+
+@pytest.fixture(scope="session")
+def kitti2015_stereo() -> Path:
+    """Path of ``../shared/realdata/kitti2015_000046_stereo`` (fails on CI / skips elsewhere when missing)."""
+    return require_realdata(KITTI2015_STEREO)
+
+
+@pytest.fixture(scope="session")
+def kitti2015_flow() -> Path:
+    """Path of ``../shared/realdata/kitti2015_flow_000010`` (fails on CI / skips elsewhere when missing)."""
+    return require_realdata(KITTI2015_FLOW)
 
 
 @pytest.fixture(scope="session")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import re
+import shutil
 from pathlib import Path
 
 import cv2
@@ -15,6 +17,7 @@ from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.cli import main as cli_main
 from geonet_infer.datasets import depth_dataset, flow_dataset, pose_dataset
 from geonet_infer.errors import GeoNetError
+from geonet_infer.io import read_image
 
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"
 ODOMETRY = "kitti_odometry_00"
@@ -133,6 +136,292 @@ def test_kitti_raw_sparse_png_layout(tmp_path):
     assert r["settings"]["crop"] == "garg"
 
 
+# ----------------------------------------------------------------------------- KITTI object and KITTI 2015 disparity
+# The calibration of each KITTI object frame, typed from kitti_object_3frames/training/calib/NNNNNN.txt
+# (frames 000001 and 000002 share the 2011_09_26 calibration; 000000 is from another day).
+OBJECT_CALIB_26 = {
+    "P2": [721.5377, 0, 609.5593, 44.85728, 0, 721.5377, 172.854, 0.2163791, 0, 0, 1, 0.002745884],
+    "R0_rect": [0.9999239, 0.00983776, -0.007445048, -0.009869795, 0.9999421, -0.004278459, 0.007402527,
+                0.004351614, 0.9999631],
+    "Tr_velo_to_cam": [0.007533745, -0.9999714, -0.000616602, -0.004069766, 0.01480249, 0.0007280733,
+                       -0.9998902, -0.07631618, 0.9998621, 0.00752379, 0.01480755, -0.2717806],
+}  # fmt: skip
+OBJECT_CALIB = {
+    "000000": {
+        "P2": [707.0493, 0, 604.0814, 45.75831, 0, 707.0493, 180.5066, -0.3454157, 0, 0, 1, 0.004981016],
+        "R0_rect": [0.9999128, 0.01009263, -0.008511932, -0.01012729, 0.9999406, -0.004037671, 0.008470675,
+                    0.004123522, 0.9999556],
+        "Tr_velo_to_cam": [0.006927964, -0.9999722, -0.002757829, -0.02457729, -0.001162982, 0.002749836,
+                           -0.9999955, -0.06127237, 0.9999753, 0.006931141, -0.001143899, -0.3321029],
+    },
+    "000001": OBJECT_CALIB_26,
+    "000002": OBJECT_CALIB_26,
+}  # fmt: skip
+GARG = (0.40810811, 0.99189189, 0.03594771, 0.96405229)  # Garg et al.'s crop: rows, then columns, as fractions
+KITTI_FX_2011_09_26, KITTI_BASELINE = 721.5377, 0.54  # what the 000046 commands pass (--fx, --baseline)
+
+
+def padded(m: list[float], rows: int, cols: int) -> np.ndarray:
+    out = np.eye(4)
+    out[:rows, :cols] = np.reshape(m, (rows, cols))
+    return out
+
+
+def object_depth_by_hand(scan: Path, calib: dict, h: int, w: int) -> np.ndarray:
+    """The KITTI devkit's projection, written out again: x >= 0, P2·R0·Tr, round − 1, nearest point per pixel
+    (here by sorting, not the code's minimum-reduction), value = Velodyne forward distance x."""
+    pts = np.fromfile(scan, dtype="<f4").reshape(-1, 4).astype(np.float64)
+    pts = pts[pts[:, 0] >= 0]
+    M = np.reshape(calib["P2"], (3, 4)) @ padded(calib["R0_rect"], 3, 3) @ padded(calib["Tr_velo_to_cam"], 3, 4)
+    hom = np.c_[pts[:, :3], np.ones(len(pts))] @ M.T
+    col = np.round(hom[:, 0] / hom[:, 2]) - 1
+    row = np.round(hom[:, 1] / hom[:, 2]) - 1
+    keep = (col >= 0) & (row >= 0) & (col < w) & (row < h)
+    pixel = row[keep].astype(int) * w + col[keep].astype(int)
+    x = pts[keep, 0]
+    order = np.lexsort((x, pixel))  # by pixel, nearest first
+    first = np.r_[True, pixel[order][1:] != pixel[order][:-1]]
+    depth = np.zeros(h * w)
+    depth[pixel[order][first]] = x[order][first]
+    return depth.reshape(h, w)
+
+
+def scored_by_hand(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
+    """The values inside the Eigen mask: 0.001 < d < max_depth, Garg crop."""
+    h, w = depth.shape
+    crop = np.zeros((h, w), bool)
+    crop[int(GARG[0] * h) : int(GARG[1] * h), int(GARG[2] * w) : int(GARG[3] * w)] = True
+    return depth[crop & (depth > 1e-3) & (depth < max_depth)]
+
+
+def printed_ground_truth(out: str) -> tuple[int, int, float, float]:
+    """(frames, pixels, min m, max m) of the `ground truth: ...` line `eval depth` prints."""
+    (line,) = [line for line in out.splitlines() if line.startswith("ground truth:")]
+    m = re.match(r"ground truth: (\d+) frames?, ([\d,]+) pixels \(garg crop, .*\), depth ([\d.]+)–([\d.]+) m$", line)
+    assert m, line
+    return int(m[1]), int(m[2].replace(",", "")), float(m[3]), float(m[4])
+
+
+def test_eval_depth_kitti_object_agrees_with_a_projection_by_hand(kitti_object, tmp_path, capsys):
+    out = tmp_path / "object.json"
+    assert (
+        cli_main(["eval", "depth", "--data", str(kitti_object), "--method", "model,constant", "--json", str(out)]) == 0
+    )
+    printed = capsys.readouterr().out
+    assert "KITTI object kitti_object_3frames" in printed
+    frames, pixels, lo, hi = printed_ground_truth(printed)
+    expected = {}
+    for name, calib in OBJECT_CALIB.items():
+        h, w = cv2.imread(str(kitti_object / "training" / "image_2" / f"{name}.png")).shape[:2]  # 1224x370, 1242x375
+        full = object_depth_by_hand(kitti_object / "training" / "velodyne" / f"{name}.bin", calib, h, w)
+        assert 18_000 <= (full > 0).sum() <= 20_500  # README: 19-20 k points land in each image (a few share a pixel)
+        expected[name] = scored_by_hand(full)
+    values = np.concatenate(list(expected.values()))
+    assert frames == 3 and pixels == values.size
+    assert lo == pytest.approx(values.min(), abs=0.005) and hi == pytest.approx(values.max(), abs=0.005)
+    results = json.loads(out.read_text())["results"]
+    for result in results:  # per frame, for the model and the baseline alike
+        assert {r["name"]: r["gt_pixels"] for r in result["items"]} == {n: v.size for n, v in expected.items()}
+        assert result["ground_truth"]["pixels"] == values.size and result["metrics"]["count"] == 3
+    assert all(math.isfinite(r["metrics"]["abs_rel"]) for r in results)
+
+
+def disparity_by_hand(png: Path, fx_baseline: float) -> np.ndarray:
+    raw = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16
+    disparity = raw.astype(np.float64) / 256.0
+    return np.where(raw > 0, fx_baseline / np.where(raw > 0, disparity, 1.0), 0.0)
+
+
+def test_eval_depth_kitti2015_disparity_agrees_with_fx_baseline_by_hand(kitti2015_stereo, tmp_path, capsys):
+    args = ["eval", "depth", "--data", str(kitti2015_stereo), "--method", "model,constant"]
+    out = tmp_path / "disp.json"
+    assert cli_main([*args, "--fx", "721.5377", "--baseline", "0.54", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    frames, pixels, lo, hi = printed_ground_truth(printed)
+    depth = disparity_by_hand(kitti2015_stereo / "training" / "disp_occ_0" / "000046_10.png", 721.5377 * 0.54)
+    assert 0.11 < (depth > 0).mean() < 0.125  # README: 11.8 % of the pixels hold a disparity
+    values = scored_by_hand(depth)
+    assert frames == 1 and pixels == values.size
+    assert lo == pytest.approx(values.min(), abs=0.005) and hi == pytest.approx(values.max(), abs=0.005)
+    # the output says which fx and baseline turned disparity into depth, and where they came from
+    assert "fx 721.5377 px, baseline 0.54 m (fx from --fx, baseline from --baseline)" in printed
+    details = json.loads(out.read_text())["results"][0]["data"]["details"]["disparity_to_depth"]
+    assert details == [
+        {"frame": "000046_10", "fx": 721.5377, "baseline_m": 0.54, "source": {"fx": "--fx", "baseline": "--baseline"}}
+    ]
+    # without a calibration file or the options, nothing is assumed: one line naming the file it looked for
+    assert cli_main(args) == 2
+    err = capsys.readouterr().err
+    assert "calib_cam_to_cam/000046.txt" in err and "--fx and --baseline" in err and len(err.strip().splitlines()) == 1
+
+
+def test_kitti2015_disparity_takes_fx_and_baseline_from_the_scene_calibration(kitti2015_stereo, tmp_path, capsys):
+    """A copy of the scene with a calib_cam_to_cam/000046.txt (the 2011_09_26 rectified matrices, typed):
+    fx = P_rect_02[0, 0], baseline = (P_rect_02[0, 3] − P_rect_03[0, 3]) / fx."""
+    root = tmp_path / "kitti2015"
+    shutil.copytree(kitti2015_stereo, root)
+    (root / "training" / "calib_cam_to_cam").mkdir()
+    (root / "training" / "calib_cam_to_cam" / "000046.txt").write_text(
+        "calib_time: 09-Jan-2012 13:57:47\n"
+        "P_rect_02: 7.215377e+02 0.000000e+00 6.095593e+02 4.485728e+01 0.000000e+00 7.215377e+02 1.728540e+02 "
+        "2.163791e-01 0.000000e+00 0.000000e+00 1.000000e+00 2.745884e-03\n"
+        "P_rect_03: 7.215377e+02 0.000000e+00 6.095593e+02 -3.395242e+02 0.000000e+00 7.215377e+02 1.728540e+02 "
+        "2.199936e+00 0.000000e+00 0.000000e+00 1.000000e+00 2.729905e-03\n"
+    )
+    baseline = (44.85728 + 339.5242) / 721.5377  # 0.5327 m
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant"]) == 0
+    printed = capsys.readouterr().out
+    assert "from calib_cam_to_cam/000046.txt" in printed and f"baseline {baseline:.4g} m" in printed
+    values = scored_by_hand(disparity_by_hand(root / "training" / "disp_occ_0" / "000046_10.png", 721.5377 * baseline))
+    frames, pixels, lo, hi = printed_ground_truth(printed)
+    assert pixels == values.size and hi == pytest.approx(values.max(), abs=0.005)
+    # --baseline overrides the file, fx still from it
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant", "--baseline", "0.54"]) == 0
+    assert "fx from calib_cam_to_cam/000046.txt (P_rect_02), baseline from --baseline" in capsys.readouterr().out
+
+
+def test_layout_options_and_broken_object_frames_are_named(kitti_object, kitti2015_stereo, tmp_path, capsys):
+    assert cli_main(["eval", "depth", "--data", str(kitti_object), "--method", "constant", "--fx", "700"]) == 2
+    err = capsys.readouterr().err
+    assert "--fx does not apply to the kitti-object layout" in err and "kitti-disparity" in err
+    assert cli_main(["eval", "depth", "--data", str(kitti2015_stereo), "--method", "constant", "--fx", "-1"]) == 2
+    assert "--fx -1 must be a positive number" in capsys.readouterr().err
+    root = tmp_path / "object"
+    shutil.copytree(kitti_object, root)
+    (root / "training" / "calib" / "000001.txt").unlink()
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant"]) == 2
+    err = capsys.readouterr().err
+    assert "calib/000001.txt" in err and "calibration of this frame not found" in err
+    calib = root / "training" / "calib" / "000002.txt"
+    calib.write_text("\n".join(line for line in calib.read_text().splitlines() if not line.startswith("R0_rect")))
+    (root / "training" / "calib" / "000001.txt").write_text((root / "training" / "calib" / "000000.txt").read_text())
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant"]) == 2
+    err = capsys.readouterr().err
+    assert "calib/000002.txt" in err and "'R0_rect' is missing" in err
+    # a frame without a scan is left out and named, as for KITTI raw
+    (root / "training" / "calib" / "000002.txt").write_text((root / "training" / "calib" / "000001.txt").read_text())
+    (root / "training" / "velodyne" / "000002.bin").unlink()
+    assert cli_main(["eval", "depth", "--data", str(root), "--method", "constant"]) == 1
+    assert "1 of 3 frames without a scan in velodyne/ (000002)" in capsys.readouterr().err
+
+
+def test_grey_odometry_frames_are_scored_as_three_equal_channels(kitti_odometry_06, capsys):
+    seq = kitti_odometry_06 / "sequences" / "06"
+    data = pose_dataset(seq)
+    # image_2/ holds frames 12, 13, 14, 17 (no 5 consecutive), image_0/ frames 0-50: grey is scored
+    assert data.description.startswith("KITTI odometry seq 06 (image_0") and len(data.items) == 47
+    assert any("image_2/ gives 0 snippets, image_0/ 47" in n for n in data.notes)
+    assert any("grey" in n and "three equal channels" in n for n in data.notes)
+    np.testing.assert_allclose(data.items[0].intrinsics()[0, 0], 707.0912)  # P0 of calib.txt
+    grey = cv2.imread(str(seq / "image_0" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    assert grey.ndim == 2
+    rgb = read_image(seq / "image_0" / "000000.png")
+    assert rgb.shape == grey.shape + (3,) and all((rgb[..., c] == grey).all() for c in range(3))
+    assert cli_main(["eval", "pose", "--data", str(seq), "--method", "model,identity", "--limit", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "note: image_0/ frames are grey" in printed and "| 2 |" in printed
+
+
+# ----------------------------------------------------------------------------- eval all
+def small_real_root(realdata: Path, root: Path) -> Path:
+    """A real-data folder with the small sets (links to ../shared files): KITTI object, KITTI 2015 stereo and
+    flow, odometry 00, and odometry 06 cut to what the SGBM frame and 3 pose snippets need; no test drive,
+    no odometry 01 (missing sets must be named), an unscored folder and an unknown one."""
+    root.mkdir()
+    for name in ("kitti_object_3frames", "kitti2015_000046_stereo", "kitti2015_flow_000010", "kitti_odometry_00"):
+        (root / name).symlink_to((realdata / name).resolve())
+    src, dst = realdata / "kitti_odometry_06", root / "kitti_odometry_06"
+    keep = ["poses/06.txt", "sequences/06/calib.txt", "sequences/06/image_2/000012.png"]
+    keep += ["sequences/06/image_3/000012.png"] + [f"sequences/06/image_0/{i:06d}.png" for i in range(7)]
+    for rel in keep:
+        (dst / rel).parent.mkdir(parents=True, exist_ok=True)
+        (dst / rel).symlink_to((src / rel).resolve())
+    (root / "udacity_dashcam").mkdir()
+    (root / "mystery").mkdir()
+    return root
+
+
+def test_eval_all_scores_every_set_and_the_validation_mean_of_its_frames(realdata, tmp_path, capsys):
+    from geonet_infer import stereo
+
+    root = small_real_root(realdata, tmp_path / "realdata")
+    out, md = tmp_path / "all.json", tmp_path / "all.md"
+    assert cli_main(["eval", "all", "--data", str(root), "--json", str(out), "--markdown", str(md)]) == 1
+    printed = capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert md.read_text() == printed
+    names = [s["name"] for s in result["sets"]]
+    assert names == [
+        "KITTI object 000000–000002",
+        "KITTI 2015 stereo 000046",
+        "stereo SGBM, odometry 00 + 06",
+        "KITTI 2015 flow 000010",
+        "KITTI odometry 00",
+        "KITTI odometry 06",
+    ]
+    # missing sets are named (exit 1), folders without a set are listed with the reason
+    assert [m["set"] for m in result["missing"]] == ["KITTI raw 2011_09_26 (test drive)", "KITTI odometry 01"]
+    assert "**not scored, folder missing**: KITTI odometry 01 (kitti_odometry_01/sequences/01)" in printed
+    assert {n["folder"]: n["why"] for n in result["not_scored"]} == {
+        "mystery": "no entry in geonet_infer.eval_all.REAL_SETS",
+        "udacity_dashcam": "no ground truth",
+    }
+    # one row per (set, metric), the model at both precisions beside the task's baselines
+    assert "| set | metric | frames | model FP32 | model INT8 | constant depth |" in printed
+    assert "| set | metric | pairs | model FP32 | model INT8 | DIS medium | zero flow |" in printed
+    assert "| set | metric | snippets | model FP32 | model INT8 | ORB-VO | identity pose |" in printed
+
+    def metric_rows(name: str) -> list[str]:  # the set's rows in the task tables (not in the table of sets)
+        return [row.split(" | ")[1] for row in printed.splitlines() if row.startswith(f"| {name} | ")][1:]
+
+    assert metric_rows("KITTI object 000000–000002") == [
+        "AbsRel",
+        "SqRel",
+        "RMSE",
+        "RMSElog",
+        "δ<1.25",
+        "δ<1.25²",
+        "δ<1.25³",
+    ]
+    assert metric_rows("KITTI odometry 06") == ["ATE (paper, ÷N)", "ATE RMSE"]
+    counts = {s["name"]: (s["items"], s["frames"]) for s in result["sets"]}
+    assert counts["KITTI object 000000–000002"] == (3, 3) and counts["KITTI odometry 06"] == (3, 7)
+    # each set scores as the one-task command does: the same per-frame rows
+    sgbm = tmp_path / "sgbm"
+    stereo.build(root, sgbm)
+    singles = {
+        "KITTI object 000000–000002": ["--data", str(root / "kitti_object_3frames")],
+        "KITTI 2015 stereo 000046": ["--data", str(root / "kitti2015_000046_stereo"), "--fx", "721.5377"],
+        "stereo SGBM, odometry 00 + 06": ["--data", str(sgbm)],
+    }
+    frames = []
+    for name, args in singles.items():
+        if "--fx" in args:
+            args += ["--baseline", "0.54"]
+        one = tmp_path / "one.json"
+        assert cli_main(["eval", "depth", *args, "--method", "model,constant", "--json", str(one)]) == 0
+        capsys.readouterr()
+        fp32, constant = json.loads(one.read_text())["results"]
+        mine = next(s for s in result["sets"] if s["name"] == name)["results"]
+        assert [r["abs_rel"] for r in fp32["items"]] == pytest.approx([r["abs_rel"] for r in mine["fp32"]["items"]])
+        assert [r["a1"] for r in constant["items"]] == pytest.approx([r["a1"] for r in mine["constant"]["items"]])
+        frames += [(f, c) for f, c in zip(fp32["items"], constant["items"])]
+    # the real validation figure: every frame outside the test drive, each weighing the same
+    v = result["validation"]
+    assert v["frames"] == len(frames) == 6 and v["excludes"] == "kitti_raw_2011_09_26_sfnd"
+    assert v["metrics"]["fp32"]["abs_rel"] == pytest.approx(np.mean([f["abs_rel"] for f, _ in frames]))
+    assert v["metrics"]["constant"]["rmse"] == pytest.approx(np.mean([c["rmse"] for _, c in frames]))
+    assert "**real validation** (depth frames outside the test drive) | AbsRel | 6 |" in printed
+
+
+def test_eval_all_refuses_options_of_one_task(tmp_path, capsys):
+    for extra in (["--method", "dis"], ["--precision", "int8"], ["--fx", "700"], ["--layout", "kitti"]):
+        assert cli_main(["eval", "all", "--data", str(tmp_path), *extra]) == 2
+        err = capsys.readouterr().err
+        assert f"{extra[0]} does not apply to `eval all`" in err and len(err.strip().splitlines()) == 1
+
+
 # ----------------------------------------------------------------------------- DIS acceptance
 def _kitti2012_from_middlebury(root: Path, out: Path) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """A KITTI 2012 layout (colored_0/NNNNNN_10.png, _11.png, flow_noc/, flow_occ/) made from the Grove3 pair:
@@ -184,6 +473,45 @@ def test_dis_on_kitti2012_layout_agrees_with_independent_epe(require_real, tmp_p
     assert results["DIS medium"]["metrics"]["epe_all"] < results["DIS ultrafast"]["metrics"]["epe_all"]
     # no _09 frames here: every pair records the documented fallback
     assert all("no _09" in item["snippet"] for item in results["DIS medium"]["items"])
+
+
+def read_kitti_flow_by_hand(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """KITTI 2015 flow PNG read with cv2 (devkit encoding): file channels B, G, R = valid, v, u;
+    u = (R − 2^15) / 64, v = (G − 2^15) / 64."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16 and raw.shape[2] == 3
+    flow = (np.stack([raw[..., 2], raw[..., 1]], axis=2).astype(np.float64) - 2**15) / 64.0
+    return flow, raw[..., 0] > 0
+
+
+def test_dis_on_real_kitti2015_pair_agrees_with_independent_epe(kitti2015_flow, tmp_path, capsys):
+    """The real KITTI 2015 pair 000010 (issue 10's point that had no data): `eval flow --method dis` on the
+    benchmark folder as unpacked (training/ inside) against OpenCV DIS + numpy EPE written here."""
+    out = tmp_path / "dis.json"
+    assert cli_main(["eval", "flow", "--data", str(kitti2015_flow), "--method", "dis", "--json", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "KITTI 2015 layout kitti2015_flow_000010" in table and "DIS medium" in table
+    results = {r["method"]: r for r in json.loads(out.read_text())["results"]}
+    base = kitti2015_flow / "training"
+    grey = [cv2.cvtColor(cv2.imread(str(base / "image_2" / f"000010_{t}.png")), cv2.COLOR_BGR2GRAY) for t in (10, 11)]
+    gt_all, valid_all = read_kitti_flow_by_hand(base / "flow_occ" / "000010_10.png")
+    gt_noc, valid_noc = read_kitti_flow_by_hand(base / "flow_noc" / "000010_10.png")
+    assert valid_all.mean() == pytest.approx(0.240, abs=0.001) and valid_noc.mean() == pytest.approx(0.234, abs=0.001)
+    zero_epe = np.sqrt((gt_all**2).sum(axis=2))[valid_all].mean()
+    assert zero_epe == pytest.approx(9.03, abs=0.005)  # README: zero flow has EPE 9.03 px on flow_occ
+    for label, preset in (
+        ("DIS medium", cv2.DISOPTICAL_FLOW_PRESET_MEDIUM),
+        ("DIS ultrafast", cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST),
+    ):
+        pred = cv2.DISOpticalFlow_create(preset).calc(grey[0], grey[1], None).astype(np.float64)
+        got = results[label]["metrics"]
+        for key, gt, valid in (("epe_noc", gt_noc, valid_noc), ("epe_all", gt_all, valid_all)):
+            epe = np.sqrt(((pred - gt) ** 2).sum(axis=2))[valid].mean()
+            assert got[key] == pytest.approx(epe, abs=0.01), (label, key)
+        assert got["count"] == 1
+    item = results["DIS medium"]["items"][0]
+    assert item["n_valid_all"] == valid_all.sum() and item["n_valid_noc"] == valid_noc.sum()
+    assert "no _09" in item["snippet"]  # the pair has no _09 frame: documented fallback for the model
 
 
 def test_kitti_layout_uses_09_and_calibration_for_the_model(require_real, tmp_path):

@@ -652,3 +652,80 @@ def test_training_stage_row_says_where_the_run_started(card3, flags, origin):
     prov["training_command"] = f"python -m training.train --stage flow --out-dir runs/H {flags} --max-steps 9"
     row = next(line for line in render_card(result).splitlines() if line.startswith("| training stage |"))
     assert origin in row
+
+
+def test_real_section_is_rendered_from_the_eval_all_json(card3, tmp_path, kitti_object):
+    """`--real` renders the JSON of `geonet-infer eval all` (here on the KITTI object frames) as the card's real
+    section and its limitation; an eval-all JSON of other graph files is refused."""
+    from benchmarks.model_card import recorded_real
+    from geonet_infer import eval_all, evaluation
+    from geonet_infer.errors import GeoNetError
+
+    _, result = card3
+    model_dir = Path(result["model"]["dir"])
+    root = tmp_path / "realdata"
+    root.mkdir()
+    (root / "kitti_object_3frames").symlink_to(kitti_object.resolve())
+    predictors = {p: Predictor(model_dir, precision=p, threads=1) for p in ("fp32", "int8")}
+    real = eval_all.run(root, predictors, command="geonet-infer eval all --data realdata", allow_random_init=True)
+    evaluation.write_json(tmp_path / "real.json", real)
+    (tmp_path / "card.json").write_text(json.dumps(result))
+    args = ["--model", str(model_dir), "--from-json", str(tmp_path / "card.json"), "--out", str(tmp_path / "m.md")]
+    assert main([*args, "--real", str(tmp_path / "real.json"), "--no-manifest", "--quiet"]) == 0
+    md = (tmp_path / "m.md").read_text()
+    assert "## Real data: every set in ../shared with ground truth" in md
+    assert "Measured by `geonet-infer eval all --data realdata --json " in md
+    (obj,) = real["sets"]
+    fp32, int8, const = (obj["results"][k]["metrics"]["abs_rel"] for k in ("fp32", "int8", "constant"))
+    assert f"| KITTI object 000000–000002 | AbsRel | 3 | {fp32:.3f} | {int8:.3f} | {const:.3f} |" in md
+    v = real["validation"]
+    assert v["frames"] == 3 and v["metrics"]["fp32"]["abs_rel"] == pytest.approx(fp32)
+    assert (
+        f"on the real validation frames (3 frames of other drives and scenes, see Real data) it is {sig3(fp32)}" in md
+    )
+    assert "**not scored, folder missing**: KITTI raw 2011_09_26 (test drive)" in md  # every absent set is named
+    other = make_model_dir(tmp_path / "other", shift=0.05)
+    with pytest.raises(GeoNetError, match="other graph files"):
+        recorded_real(tmp_path / "real.json", other)
+
+
+def test_real_pose_experiment_judges_only_snippets_not_trained_on(tmp_path):
+    """The rule's pose figure averages the snippets with no trained frame (06 from 31, 01 up to 30 trained),
+    worked out by hand on two made-up eval-all results; the card renders the rule and the verdict."""
+    from benchmarks.model_card import _experiment_section
+    from benchmarks.real_pose_experiment import held_out
+    from benchmarks.real_pose_experiment import main as experiment_main
+
+    assert held_out("KITTI odometry 06", "000026") and not held_out("KITTI odometry 06", "000027")
+    assert held_out("KITTI odometry 01", "000031") and not held_out("KITTI odometry 01", "000030")
+    assert held_out("KITTI odometry 00", "000000")
+
+    def eval_all(ate06: dict, abs_rel: float) -> dict:
+        items = [{"name": n, "ate_snippet": v} for n, v in ate06.items()]
+        return {
+            "command": "geonet-infer eval all --data realdata",
+            "model": {"precisions": ["fp32"]},
+            "validation": {"frames": 6, "metrics": {"fp32": {"abs_rel": abs_rel}}},
+            "sets": [
+                {"task": "pose", "name": "KITTI odometry 06", "role": "", "results": {"fp32": {"items": items}}},
+            ],
+        }
+
+    # 000000 is held out, 000040 trained on: only the first counts for the rule
+    before = eval_all({"000000": 0.04, "000040": 0.04}, 0.30)
+    after = eval_all({"000000": 0.03, "000040": 0.01}, 0.30)
+    for name, data in (("before", before), ("after", after)):
+        (tmp_path / f"{name}.json").write_text(json.dumps(data))
+    out = tmp_path / "experiment.json"
+    args = ["--before", str(tmp_path / "before.json"), "--after", str(tmp_path / "after.json"), "--out", str(out)]
+    assert experiment_main(args) == 0
+    e = json.loads(out.read_text())
+    assert e["after"]["fp32"]["pose_ate_held_out"] == pytest.approx(0.03)
+    assert e["after"]["fp32"]["pose_ate_all"] == pytest.approx(0.02)
+    assert e["verdict"] == {"pose_improves": True, "validation_not_worse": True, "ship": True}
+    md = "\n".join(_experiment_section({"experiment": e}))
+    assert "**Shipping rule.** Written before any candidate was scored" in md and "**shipped**" in md
+    # worse validation depth: not shipped, however much the pose improves
+    (tmp_path / "after.json").write_text(json.dumps(eval_all({"000000": 0.001, "000040": 0.001}, 0.31)))
+    assert experiment_main(args) == 0
+    assert json.loads(out.read_text())["verdict"]["ship"] is False

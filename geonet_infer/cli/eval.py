@@ -3,27 +3,32 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from geonet_infer import evaluation
+from geonet_infer import eval_all, evaluation
 from geonet_infer.cli.common import add_model_args, load_predictor, positive_int
 from geonet_infer.datasets import LAYOUTS, REGISTRY, TASKS, load_dataset, read_heldout
+from geonet_infer.engines import BACKENDS
 from geonet_infer.errors import InputError
+from geonet_infer.io.atomic import atomic_write
 
 HELP_TEMPLATE = """\
 Score depth, optical flow or camera pose against ground truth, with the GeoNet paper's
 protocols, and print a table in the paper's column order (JSON with every item via --json).
+`eval all` scores a model on every real set with ground truth at once (see below).
 
   depth  Eigen metrics AbsRel SqRel RMSE RMSElog δ<1.25 δ<1.25² δ<1.25³; per-image median
          scaling, then clamp to [0.001, --max-depth]; Garg crop on KITTI, every GT pixel on
          synthetic frames (--crop to change). --camera-height M scales each frame instead so
          the ground plane fitted to the prediction lies M metres below the camera (no ground
          truth used; 1.65 for KITTI); a frame without a plausible ground plane is not scored,
-         named on stderr and counted in the table (exit code 1).
+         named on stderr and counted in the table (exit code 1). The line under the table
+         gives the ground truth scored: frames, pixels inside the mask, depth range.
   flow   average end-point error on non-occluded (Noc) and all (All) GT pixels, and Fl
          (outliers: EPE > 3 px and > 5 %); predictions resized to the GT size (nearest,
          vectors scaled).
@@ -37,6 +42,15 @@ protocols, and print a table in the paper's column order (JSON with every item v
 Comma-separate several to get one table (--method model,dis,zero).
 
 {layouts}
+all: `geonet-infer eval all --data ../shared/realdata [--model M]` scores the model at every
+precision it has (FP32 and INT8) and the baselines (constant depth; DIS medium, zero flow;
+ORB-VO, identity pose) on each real set with ground truth: KITTI raw 2011_09_26 (the test
+drive), KITTI object 000000-000002, KITTI 2015 stereo 000046 and the stereo-SGBM frames of
+odometry 00/06 (depth), KITTI 2015 flow 000010 (flow), KITTI odometry 00, 06, 01 (pose).
+One row per (set, metric), frames counted, what each set is (drive, camera, scene), and the
+real validation figure: the mean over the real depth frames outside the test drive, on
+which models are chosen. --markdown FILE and --json FILE keep it. Exit 1 if a set's
+folder is missing or a prediction held NaN/inf.
 
 Ground truth: a frame of a KITTI raw drive without its ground-truth file (sparse depth PNG or
 Velodyne scan) is not scored; a warning on stderr says how many and which, the JSON lists them
@@ -53,21 +67,25 @@ examples:
   geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt --max-depth 50 \\
       --precision int8
   geonet-infer eval depth --data ../shared/realdata/kitti_raw_2011_09_26_sfnd --allow-missing-gt --camera-height 1.65
+  geonet-infer eval depth --data ../shared/realdata/kitti_object_3frames --method model,constant
+  geonet-infer eval depth --data ../shared/realdata/kitti2015_000046_stereo --fx 721.5377 --baseline 0.54
   geonet-infer eval flow --data ../shared/realdata/middlebury_flow --method dis,zero
   geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 --method model,orb-vo,identity
   geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --json flow.json
+  geonet-infer eval all --data ../shared/realdata --json real.json --markdown real.md
 """
 
 
 def layouts_help() -> str:
     """The layouts block of ``--help``, from the registry (a new layout describes itself)."""
     out = ["Layouts (--layout, default auto):"]
+    width = max(len(name) for name in REGISTRY) + 1  # the descriptions start in one column
     for task in TASKS:
         for n, name in enumerate(LAYOUTS[task]):
             first, *more = REGISTRY[name].help[task]
             label = f"{task:<6}" if n == 0 else " " * 6
-            out.append(f"  {label} {name:<11}{' ' if len(name) < 11 else '  '}{first}")
-            out += [" " * 21 + line for line in more]
+            out.append(f"  {label} {name:<{width}}{first}")
+            out += [" " * (9 + width) + line for line in more]
     return "\n".join(out) + "\n"
 
 
@@ -81,8 +99,10 @@ def add_parser(sub) -> None:
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("task", choices=TASKS, help="what to score")
-    parser.add_argument("--data", type=Path, required=True, help="dataset folder (see layouts above)")
+    parser.add_argument("task", choices=[*TASKS, "all"], help="what to score (all: every real set, see above)")
+    parser.add_argument(
+        "--data", type=Path, required=True, help="dataset folder (see layouts above); all: the real-data folder"
+    )
     parser.add_argument(
         "--layout",
         default="auto",
@@ -142,7 +162,23 @@ def add_parser(sub) -> None:
         help="K at the frames' size for data without calibration: flow with a model (Middlebury), "
         "depth with --camera-height",
     )
+    group.add_argument(
+        "--fx",
+        type=float,
+        default=None,
+        metavar="PX",
+        help="kitti-disparity: focal length for depth = fx·baseline/disparity where the folder has no "
+        "calib_cam_to_cam/ (overrides it where it has; KITTI: 707.09-721.54 by recording day)",
+    )
+    group.add_argument(
+        "--baseline",
+        type=float,
+        default=None,
+        metavar="M",
+        help="kitti-disparity: stereo baseline in metres, as --fx (KITTI documents 0.54 m)",
+    )
     parser.add_argument("--json", type=Path, default=None, help="also write every result and item here")
+    parser.add_argument("--markdown", type=Path, default=None, help="also write the printed tables here")
     parser.set_defaults(run=run)
 
 
@@ -173,7 +209,62 @@ def methods_for(task: str, text: str, args) -> list[tuple[str, Callable]]:
     return out
 
 
+# Options of one task's evaluation that `eval all` does not take (each set has its own), with their defaults.
+NOT_FOR_ALL = {
+    "layout": "auto",
+    "method": "model",
+    "heldout": None,
+    "stride": 1,
+    "limit": None,
+    "allow_missing_gt": False,
+    "max_depth": evaluation.MAX_DEPTH,
+    "crop": "auto",
+    "no_median_scaling": False,
+    "camera_height": None,
+    "multiview": None,
+    "intrinsics": None,
+    "fx": None,
+    "baseline": None,
+    "precision": "fp32",
+}
+
+
+def run_all(args: argparse.Namespace) -> int:
+    """`eval all`: the model at each precision and the baselines on every real set (geonet_infer.eval_all)."""
+    for name, default in NOT_FOR_ALL.items():
+        if getattr(args, name) != default:
+            flag = "--" + name.replace("_", "-")
+            why = "it runs every precision of the model" if name == "precision" else "each set has its own"
+            raise InputError(None, f"{flag} does not apply to `eval all` ({why})", f"leave out {flag}")
+    predictor = load_predictor(args)
+    predictors = {"fp32": predictor}
+    for precision in predictor.manifest.precisions:
+        if precision != "fp32":
+            predictors[precision] = load_predictor(argparse.Namespace(**{**vars(args), "precision": precision}))
+    # the command that reproduces the numbers (output files left out: they do not change them)
+    words = ["geonet-infer", "eval", "all", "--data", str(args.data)]
+    for flag, value in (("--model", args.model), ("--backend", args.backend), ("--threads", args.threads)):
+        if value is not None and not (flag == "--backend" and value == BACKENDS[0]):
+            words += [flag, str(value)]
+    result = eval_all.run(args.data, predictors, command=shlex.join(words), progress=_progress)
+    text = eval_all.markdown(result)
+    print(text, end="")
+    if args.markdown:
+        with atomic_write(args.markdown) as tmp:
+            tmp.write_text(text)
+    if args.json:
+        evaluation.write_json(args.json, result)
+    errors = [e for s in result["sets"] for r in s["results"].values() for e in r["errors"]]
+    return 1 if errors or result["missing"] else 0
+
+
+def _progress(message: str) -> None:
+    print(f"geonet-infer eval all: {message}", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.task == "all":
+        return run_all(args)
     if args.max_depth <= evaluation.MIN_DEPTH:
         raise InputError(None, f"--max-depth {args.max_depth:g} must be above {evaluation.MIN_DEPTH:g} m")
     if args.camera_height is not None and args.task != "depth":
@@ -186,7 +277,8 @@ def run(args: argparse.Namespace) -> int:
     options = {"sequences": sequences, "stride": args.stride, "limit": args.limit}
     if args.task == "flow":
         options["multiview"] = args.multiview
-    dataset = load_dataset(args.task, args.data, args.layout, **options)
+    layout_options = {"fx": args.fx, "baseline": args.baseline}
+    dataset = load_dataset(args.task, args.data, args.layout, options=layout_options, **options)
     K = parse_intrinsics(args.intrinsics)
     results = []
     for label, fn in methods_for(args.task, args.method, args):
@@ -207,6 +299,8 @@ def run(args: argparse.Namespace) -> int:
             result = evaluation.evaluate_pose(fn, dataset, method=label)
         results.append((label, result))
     print(evaluation.format_table(results))
+    if args.task == "depth":  # the same mask for every method: print it once
+        print(evaluation.ground_truth_line(results[0][1]["ground_truth"]))
     for note in dataset.notes:
         print(f"note: {note}")
     for label, result in results:
@@ -219,6 +313,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         evaluation.write_json(args.json, {"task": args.task, "results": [r for _, r in results]})
         print(f"details: {args.json}")
+    if args.markdown:
+        with atomic_write(args.markdown) as tmp:
+            tmp.write_text(evaluation.format_table(results) + "\n")
     failed = [(label, e) for label, r in results for e in r["errors"]]
     for label, error in failed:
         print(f"geonet-infer eval: {label}: {error['item']}: {error['problem']}", file=sys.stderr)

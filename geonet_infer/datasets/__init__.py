@@ -40,12 +40,19 @@ depth
                   benchmark layout) or as Velodyne scans ``velodyne_points/data/*.bin``
                   projected on the fly with ``calib_cam_to_cam.txt`` + ``calib_velo_to_cam.txt``
                   (in the drive folder or up to two levels above, as KITTI's date folder).
+  ``kitti-object``  the KITTI object benchmark: ``[training/]image_2/``, ``velodyne/*.bin`` and
+                  ``calib/*.txt`` (P2, R0_rect, Tr_velo_to_cam per frame); each scan projected with
+                  its own frame's calibration by the KITTI raw code.
+  ``kitti-disparity``  KITTI 2015 stereo: ``[training/]image_2/NNNNNN_10.png`` + ``disp_occ_0/``
+                  (or ``disp_noc_0/``) 16-bit disparity PNGs (value / 256 px, 0 = none); depth =
+                  fx·baseline/disparity with fx and baseline from ``calib_cam_to_cam/NNNNNN.txt``
+                  or the options ``fx``, ``baseline`` (``--fx``, ``--baseline``); the notes say which.
 flow
   ``synth``       ``seq_NNNN/image``, ``flow_noc``, ``flow_occ`` (KITTI flow PNG), ``calib.txt``;
                   item t = triplet [t-1, t, t+1], GT t -> t+1 (name of frame t).
   ``kitti``       KITTI 2015 (``image_2/``, ``calib_cam_to_cam/``) or 2012 (``colored_0/``,
-                  ``calib/``): ``NNNNNN_10.png`` -> ``NNNNNN_11.png``, GT ``flow_noc/NNNNNN_10.png``
-                  and ``flow_occ/NNNNNN_10.png``. The cascade's 3-frame snippet takes
+                  ``calib/``), here or in ``training/``: ``NNNNNN_10.png`` -> ``NNNNNN_11.png``,
+                  GT ``flow_noc/NNNNNN_10.png`` and ``flow_occ/NNNNNN_10.png``. The cascade's 3-frame snippet takes
                   ``NNNNNN_09.png`` from the multi-view extension (same folder, or ``multiview``
                   DIR/<image folder>/) as GeoNet's official test does. **Fallback** where ``_09``
                   is missing: the pair [_10, _11], which the runtime pads to [_10, _10, _11]
@@ -56,10 +63,12 @@ flow
                   No intrinsics: the cascade needs ``intrinsics`` passed in.
 pose
   ``synth``       ``seq_NNNN/image`` + ``poses.txt`` (one camera-to-world pose per frame) + ``calib.txt``.
-  ``kitti-odometry``  a sequence folder ``sequences/XX`` with ``image_2/`` (or grey ``image_0/``)
-                  and ``calib.txt``; poses from ``poses.txt`` in that folder or ``poses/XX.txt``
-                  two levels up (the odometry dev kit layout). Frames are matched to pose lines
-                  by the number in their file name, so a subset of frames is fine.
+  ``kitti-odometry``  a sequence folder ``sequences/XX`` with ``image_2/`` (or grey ``image_0/``:
+                  whichever gives more 5-frame snippets, colour on a tie; grey frames are read
+                  as three equal channels and the notes say so) and ``calib.txt``; poses from
+                  ``poses.txt`` in that folder or ``poses/XX.txt`` two levels up (the odometry
+                  dev kit layout). Frames are matched to pose lines by the number in their file
+                  name, so a subset of frames is fine.
   Items are 5-frame snippets of consecutive frames (the paper's protocol).
 """
 
@@ -82,7 +91,9 @@ from geonet_infer.datasets.base import (
     read_heldout,
     synth_sequences,
 )
+from geonet_infer.datasets.kitti_disparity import KittiDisparity
 from geonet_infer.datasets.kitti_flow import KittiFlow
+from geonet_infer.datasets.kitti_object import KittiObject
 from geonet_infer.datasets.kitti_odometry import KittiOdometry
 from geonet_infer.datasets.kitti_raw import KittiRaw
 from geonet_infer.datasets.middlebury import Middlebury
@@ -113,7 +124,9 @@ __all__ = [
 ]
 
 # name -> layout, in the order --help lists them; detection tries them in this order, fallbacks last
-REGISTRY: dict[str, type[Layout]] = {cls.name: cls for cls in (Synth, KittiRaw, KittiFlow, Middlebury, KittiOdometry)}
+REGISTRY: dict[str, type[Layout]] = {
+    cls.name: cls for cls in (Synth, KittiRaw, KittiObject, KittiDisparity, KittiFlow, Middlebury, KittiOdometry)
+}
 LAYOUTS = {task: tuple(name for name, cls in REGISTRY.items() if task in cls.tasks) for task in TASKS}
 
 
@@ -151,14 +164,30 @@ def load_dataset(
     stride: int = 1,
     limit: int | None = None,
     multiview: Path | None = None,
+    options: dict | None = None,
 ) -> Dataset:
-    """The items of ``task`` under ``root`` in ``layout`` ("auto": :func:`detect_layout`)."""
+    """The items of ``task`` under ``root`` in ``layout`` ("auto": :func:`detect_layout`).
+
+    ``options``: layout options (``--fx``, ``--baseline`` of ``kitti-disparity``); those set (not
+    None) go to a layout that lists them in :attr:`Layout.options`, any other layout refuses them.
+    """
     if task not in TASKS:
         raise InputError(None, f"unknown task {task!r}", f"choose one of {', '.join(TASKS)}")
     root = Path(root)
     name = detect_layout(task, root) if layout == "auto" else layout
     cls = layout_class(name, task)
-    found = cls.items(task, root, sequences=sequences, stride=stride, multiview=multiview if task == "flow" else None)
+    given = {key: value for key, value in (options or {}).items() if value is not None}
+    unused = sorted(set(given) - set(cls.options))
+    if unused:
+        takers = [n for n, c in REGISTRY.items() if set(unused) <= set(c.options)]
+        raise InputError(
+            root,
+            f"--{unused[0].replace('_', '-')} does not apply to the {name} layout",
+            f"it is for the {', '.join(takers)} layout" if takers else "leave it out",
+        )
+    found = cls.items(
+        task, root, sequences=sequences, stride=stride, multiview=multiview if task == "flow" else None, **given
+    )
     return Dataset(
         task,
         name,
@@ -168,6 +197,7 @@ def load_dataset(
         found.notes,
         without_gt=found.without_gt,
         warnings=found.warnings,
+        details=found.details,
     )
 
 

@@ -22,7 +22,7 @@ from geonet_infer.io import (
     read_flow_kitti,
     read_kitti_poses,
 )
-from geonet_infer.velodyne import velodyne_to_depth_map
+from geonet_infer.velodyne import object_velodyne_to_depth_map, velodyne_to_depth_map
 
 TASKS = ("depth", "flow", "pose")
 SNIPPET = 5  # frames per pose snippet (the paper's ATE protocol)
@@ -100,26 +100,41 @@ def _matched_files(images: list[Path], folder: Path, what: str, suffix: str = ".
 # ----------------------------------------------------------------------------- depth
 @dataclass
 class DepthItem:
-    """One frame: image path, GT file and how to decode it ("png" or "velodyne")."""
+    """One frame: image path, GT file and how to decode it.
+
+    ``gt_kind``: "png" (KITTI depth PNG, metres), "velodyne" (KITTI raw scan, projected with the
+    drive's ``calib_dir``), "velodyne-object" (KITTI object scan, projected with the frame's own
+    ``calib`` file) or "disparity" (KITTI disparity PNG, px; depth = ``fx_baseline`` / disparity,
+    ``fx_baseline`` = fx in px times the stereo baseline in m).
+    """
 
     name: str
     image: Path
     gt: Path
     gt_kind: str
     calib_dir: Path | None = None
+    calib: Path | None = None
+    fx_baseline: float | None = None
 
     def load_gt(self, shape: tuple[int, int]) -> np.ndarray:
         """(H, W) float32 metres, 0 = no ground truth; ``shape`` = the image's (H, W)."""
         if self.gt_kind == "velodyne":
             return velodyne_to_depth_map(self.calib_dir, self.gt, shape, cam=2, vel_depth=True)
+        if self.gt_kind == "velodyne-object":
+            return object_velodyne_to_depth_map(self.calib, self.gt, shape, vel_depth=True)
+        # the disparity PNG has the depth PNG's encoding (uint16 / 256, 0 = none), in px instead of m
         gt = read_depth_kitti(self.gt)
         if gt.shape != tuple(shape):
             raise InputError(
                 self.gt,
-                f"depth ground truth is {gt.shape[1]}x{gt.shape[0]}, its image "
-                f"{self.image.name} is {shape[1]}x{shape[0]}",
+                f"{'disparity' if self.gt_kind == 'disparity' else 'depth'} ground truth is "
+                f"{gt.shape[1]}x{gt.shape[0]}, its image {self.image.name} is {shape[1]}x{shape[0]}",
                 "ground truth and image must have the same size",
             )
+        if self.gt_kind == "disparity":
+            if self.fx_baseline is None or not self.fx_baseline > 0:
+                raise InputError(self.gt, "no fx x baseline to turn disparity into depth", "pass --fx and --baseline")
+            return np.where(gt > 0, self.fx_baseline / np.maximum(gt, 1e-6), 0.0).astype(np.float32)
         return gt
 
 
@@ -137,9 +152,11 @@ class Dataset:
     # and the warning that says so.
     without_gt: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    # facts a layout wants in the JSON beside its notes (e.g. the fx and baseline a disparity used)
+    details: dict = field(default_factory=dict)
 
     def describe(self) -> dict:
-        return {
+        out = {
             "task": self.task,
             "layout": self.layout,
             "root": str(self.root),
@@ -148,6 +165,7 @@ class Dataset:
             "notes": list(self.notes),
             "frames_without_gt": list(self.without_gt),
         }
+        return out | ({"details": dict(self.details)} if self.details else {})
 
 
 # ----------------------------------------------------------------------------- flow
@@ -242,6 +260,18 @@ def _snippets(
 
 
 # ----------------------------------------------------------------------------- helpers
+def benchmark_root(root: Path, *folders: str) -> Path | None:
+    """``root`` if it holds every one of ``folders``, else its ``training/`` if that does, else None.
+
+    The KITTI benchmarks unpack as ``<name>/training/<folders>`` (and ``testing/``, which has no
+    ground truth): either level may be passed as ``--data``.
+    """
+    for base in (root, root / "training"):
+        if all((base / f).is_dir() for f in folders):
+            return base
+    return None
+
+
 def _limit(items: list, limit: int | None, root: Path) -> list:
     if not items:
         raise InputError(root, "no item to evaluate here", "check --data and --layout")
@@ -257,6 +287,7 @@ class Found:
     notes: list[str] = field(default_factory=list)
     without_gt: list[str] = field(default_factory=list)  # frames with no ground truth file: not scored
     warnings: list[str] = field(default_factory=list)
+    details: dict = field(default_factory=dict)  # see Dataset.details
 
 
 class Layout:
@@ -272,6 +303,9 @@ class Layout:
     help: dict[str, tuple[str, ...]] = {}  # task -> lines describing the layout in `eval --help`
     fallback = False  # detected only when no other layout claims the folder
     depth_crop: str | None = None  # default depth crop ("garg", "eigen" or None: every GT pixel)
+    # extra keyword options :meth:`items` takes (e.g. ``("fx", "baseline")``), passed by
+    # :func:`~geonet_infer.datasets.load_dataset` only to a layout that names them
+    options: tuple[str, ...] = ()
 
     @staticmethod
     def detect(task: str, root: Path) -> bool:
