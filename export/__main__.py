@@ -52,7 +52,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     src = p.add_argument_group("model")
-    src.add_argument("--checkpoint", type=Path, help="a last.pt / best.pt written by training.train")
+    src.add_argument(
+        "--checkpoint",
+        type=Path,
+        help="a last.pt / best.pt written by training.train, or a weights file of python -m training.checkpoint",
+    )
     src.add_argument(
         "--from-tf",
         action="append",

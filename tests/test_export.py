@@ -489,6 +489,27 @@ def test_cli_wrong_stage_checkpoint(tmp_path, capsys):
         manifest.graph("resflownet")
 
 
+def test_cli_exports_a_weights_file_of_training_checkpoint(tmp_path, flow_ckpt, torch_model, kitti_raw):
+    """``python -m training.checkpoint --combine`` writes a weights file; export takes it as --checkpoint.
+
+    The weights file stores conv kernels as float16, so its graphs agree with the full checkpoint's
+    torch model to float16 rounding, not to the 1e-4 of the parity test.
+    """
+    from training.checkpoint import combine_weights
+
+    weights = tmp_path / "combined.pt"
+    combine_weights(flow_ckpt, flow_ckpt, weights)
+    out = tmp_path / "m"
+    assert export_main(["--checkpoint", str(weights), "--out", str(out), "--quiet"]) == 0
+    manifest = load_manifest(out)
+    assert manifest.provenance.checkpoint_stage == "flow" and manifest.graph_names() == GRAPH_NAMES
+    spec = InputSpec.from_conventions(H, W, 3)
+    images = np.concatenate([spec.to_network(f)[None] for f in kitti_frames(kitti_raw, 2)])
+    d = compare_graph(build_wrapper("depthnet", torch_model), out / "depthnet.onnx", [images])
+    assert d["depth"]["relative"] <= 1e-2
+    assert d["depth"]["relative"] > DEPTH_REL_TOL  # float16 kernels: the graphs came from the weights file
+
+
 def test_cli_input_errors(tmp_path, capsys, flow_ckpt):
     out = tmp_path / "m"
     assert export_main(["--arch", "resnet18", "--random-init", "--out", str(out)]) == 2

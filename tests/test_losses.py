@@ -99,3 +99,37 @@ def test_flow_endpoint_error_closed_form():
     gt_left_invalid[1, 2] = 0.0
     off[0] += 1.0  # image 0: EPE sqrt(2) on its valid pixels; image 1 has none
     torch.testing.assert_close(flow_endpoint_error(off, gt_left_invalid), torch.tensor(2.0**0.5))
+
+
+def _motion(angle_z: float, t) -> torch.Tensor:
+    """4x4 rotation about z by ``angle_z`` radians, then translation ``t``."""
+    c, s = torch.cos(torch.tensor(angle_z)), torch.sin(torch.tensor(angle_z))
+    T = torch.eye(4)
+    T[:2, :2] = torch.tensor([[c, -s], [s, c]])
+    T[:3, 3] = torch.tensor(t, dtype=torch.float32)
+    return T
+
+
+def test_scale_aligned_pose_error_closed_form():
+    from training.losses import scale_aligned_pose_error
+
+    truth = torch.stack([_motion(0.0, [0, 0, -1.0]), _motion(0.0, [0, 0, 1.0])])[None]  # (1, 2, 4, 4)
+    # the same motion at a third of the scale: a monocular net's scale is free, so no error
+    third = truth.clone()
+    third[..., :3, 3] /= 3
+    assert scale_aligned_pose_error(third, truth).item() < 1e-6
+    # a rotation of theta about z on both sources: chordal ||R - I||_F = 2 sqrt(2) sin(theta / 2)
+    theta = 0.1
+    rotated = torch.stack([_motion(theta, [0, 0, -1.0]), _motion(theta, [0, 0, 1.0])])[None]
+    expected = 2 * 2**0.5 * torch.sin(torch.tensor(theta / 2))
+    torch.testing.assert_close(scale_aligned_pose_error(rotated, truth), expected)
+    # translations at right angles to the truth: the aligned scale is 0, error = path / path = 1
+    sideways = truth.clone()
+    sideways[..., :3, 3] = torch.tensor([[1.0, 0, 0], [-1.0, 0, 0]])
+    torch.testing.assert_close(scale_aligned_pose_error(sideways, truth), torch.tensor(1.0))
+    # a snippet without true poses (zeros) adds nothing and does not count
+    both = torch.cat([sideways, torch.zeros_like(truth)])
+    torch.testing.assert_close(
+        scale_aligned_pose_error(both, torch.cat([truth, torch.zeros_like(truth)])), torch.tensor(1.0)
+    )
+    assert scale_aligned_pose_error(sideways, torch.zeros_like(truth)).item() == 0.0

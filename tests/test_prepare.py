@@ -211,6 +211,37 @@ def test_kitti_odom_grey_fallback(kitti_odometry, tmp_path, caplog):
         P.prepare(P.PrepareConfig("kitti_odom", tmp_path / "odom_root", tmp_path / "o2"))
 
 
+def test_kitti_odom_train_pose_writes_the_true_motion_target_to_sources(kitti_odometry, tmp_path):
+    """--train-pose: <frame>_pose.txt holds inv(C_source) @ C_target for each source, from the dev
+    kit's poses/00.txt parsed here with numpy (camera-to-world, 12 numbers per line)."""
+    out = tmp_path / "odom"
+    res = P.prepare(P.PrepareConfig("kitti_odom", kitti_odometry, out, train_pose=True))
+    assert not res.skipped
+    rows = np.loadtxt(kitti_odometry / "poses" / "00.txt", max_rows=6).reshape(-1, 3, 4)
+    C = np.tile(np.eye(4), (len(rows), 1, 1))
+    C[:, :3] = rows
+    for t in (2, 3):
+        written = np.loadtxt(out / "00" / f"{t:06d}_pose.txt").reshape(-1, 3, 4)
+        sources = [t - 2, t - 1, t + 1, t + 2]  # seq 5, temporal order
+        R, p = C[sources, :3, :3], C[sources, :3, 3]
+        inverse = np.tile(np.eye(4), (4, 1, 1))
+        inverse[:, :3, :3] = R.transpose(0, 2, 1)
+        inverse[:, :3, 3] = -np.einsum("nji,nj->ni", R, p)  # [R | p]^-1 = [R^T | -R^T p]
+        np.testing.assert_allclose(written, (inverse @ C[t])[:, :3], atol=1e-6)
+        # the car drives forward (+z): a point ahead of the target camera is farther from the
+        # cameras of earlier frames and nearer to those of later ones
+        assert written[0, 2, 3] > written[1, 2, 3] > 0.5 and written[3, 2, 3] < written[2, 2, 3] < -0.5
+    # without the dev kit's poses/ the samples are written without _pose.txt, and the skip says why
+    bare = tmp_path / "bare" / "sequences"
+    bare.mkdir(parents=True)
+    (bare / "00").symlink_to((kitti_odometry / "sequences" / "00").resolve())
+    res = P.prepare(P.PrepareConfig("kitti_odom", tmp_path / "bare", tmp_path / "o2", train_pose=True))
+    assert [s.reason for s in res.skipped] == ["pose file not found"]
+    assert sorted(res.train + res.val) == ["00 000002", "00 000003"] and not list((tmp_path / "o2").rglob("*_pose.txt"))
+    with pytest.raises(GeoNetError, match="--train-pose only applies"):
+        P.prepare(P.PrepareConfig("frames", kitti_odometry, tmp_path / "o3", train_pose=True))
+
+
 # --------------------------------------------------------------------------- synthetic
 def test_synth_heldout(tmp_path):
     src = tmp_path / "synth"

@@ -414,6 +414,32 @@ def assert_falls(rows, key):
     assert last < 0.8 * first, (first, last)
 
 
+def test_pose_supervision_learns_synthetic_motion(synth_prepared, tmp_path):
+    """--pose-supervision on data prepared with --train-pose: the scale-aligned pose error is
+    logged and falls; samples of a folder without true poses add no term; off by default."""
+    supervised = prepare_with_truth(synth_prepared, tmp_path / "prepared", train_pose=True)
+    assert list(supervised.rglob("*_pose.txt"))
+    cfg = config_from_args(["--data-dir", str(supervised), "--pose-supervision", "3"])
+    assert cfg.weights.pose_supervision == 3.0 and config_from_args([]).weights.pose_supervision == 0.0
+    result = train(
+        config(
+            supervised,
+            tmp_path / "run",
+            max_steps=30,
+            lr=1e-3,
+            bn_momentum=0.1,
+            weights=cfg.weights,
+            extra_data_dirs=[str(synth_prepared)],
+        ),
+        progress=False,
+    )
+    rows = read_log(result["log"])
+    assert_falls(rows, "pose_supervised")
+    assert "val_pose_supervised" in rows[-1]
+    plain = train(config(synth_prepared, tmp_path / "plain", max_steps=1), progress=False)
+    assert "pose_supervised" not in read_log(plain["log"])[-1]
+
+
 def test_depth_supervision_learns_synthetic_depth(synth_prepared, tmp_path):
     """--depth-supervision on data prepared with --train-depth: the scale-invariant depth error
     is logged and falls; the flag is off by default (the official loss)."""

@@ -180,6 +180,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--train-flow; others keep only the self-supervised loss). Not in GeoNet",
     )
     p.add_argument(
+        "--pose-supervision",
+        type=float,
+        default=d.weights.pose_supervision,
+        metavar="W",
+        help="stage rigid: add W x the scale-aligned pose error (translation relative to the path "
+        "length + chordal rotation) against the true motion of samples that have it (KITTI odometry "
+        "or synthetic data prepared with --train-pose; others keep only the self-supervised loss). Not in GeoNet",
+    )
+    p.add_argument(
         "--device",
         default=d.device,
         help="auto (CUDA if present, else CPU), cpu, cuda or cuda:N; under torchrun each rank "
@@ -207,6 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
 def config_from_args(argv=None) -> TrainConfig:
     args = vars(build_parser().parse_args(argv))
     weights = LossWeights(
-        depth_supervision=args.pop("depth_supervision"), flow_supervision=args.pop("flow_supervision")
+        depth_supervision=args.pop("depth_supervision"),
+        flow_supervision=args.pop("flow_supervision"),
+        pose_supervision=args.pop("pose_supervision"),
     )
     return TrainConfig(**args, weights=weights)

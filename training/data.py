@@ -18,7 +18,7 @@ from torch.utils.data import DataLoader, Dataset
 from geonet_infer.cascade import snippet_indices
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.io import read_cam_txt, read_depth_kitti, read_flow_kitti, read_image
+from geonet_infer.io import read_cam_txt, read_depth_kitti, read_flow_kitti, read_image, read_kitti_poses
 from geonet_infer.metrics import resize_flow_gt
 
 SPLITS = ("train", "val", "heldout")
@@ -155,6 +155,9 @@ class SequenceDataset(Dataset):
                         (all zeros for a sample without that file, e.g. real footage).
         ``flow_gt``     float32 (3, H, W): flow target -> next frame (u, v px) and valid 0/1,
                         with ``load_flow`` (all zeros without ``<frame>_flow.png``).
+        ``pose_gt``     float32 (N_src, 4, 4): true motion target -> each source (POSE
+                        convention, metres), with ``load_pose`` (all zeros without
+                        ``<frame>_pose.txt``). Augmentation (scale, crop, colour) leaves it as is.
 
     Augmentation (``augment=True`` and split "train" only) draws once per sample from an RNG
     seeded by (seed, epoch, index), so an item is reproducible whatever worker loads it; call
@@ -174,6 +177,7 @@ class SequenceDataset(Dataset):
         seed: int = 0,
         load_depth: bool = False,
         load_flow: bool = False,
+        load_pose: bool = False,
     ):
         if split not in SPLITS:
             raise InputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
@@ -188,6 +192,7 @@ class SequenceDataset(Dataset):
         self.seed = seed
         self.load_depth = load_depth or split == "heldout"
         self.load_flow = load_flow
+        self.load_pose = load_pose
         self.epoch = 0
 
         if not self.root.is_dir():
@@ -265,6 +270,17 @@ class SequenceDataset(Dataset):
         ``<frame>_flow.png``."""
         return self._read_truth(name, "flow", lambda path: np.dstack(read_flow_kitti(path)))
 
+    def load_pose_gt(self, name: str) -> np.ndarray | None:
+        """-> (N_src, 4, 4) float32 true motion target -> sources, or None without ``<frame>_pose.txt``."""
+        folder, frame = name.split(" ")
+        path = self.root / folder / f"{frame}_pose.txt"
+        if not path.is_file():
+            return None
+        poses = read_kitti_poses(path)
+        if len(poses) != self.seq_length - 1:
+            raise InputError(path, f"{len(poses)} poses, expected one per source ({self.seq_length - 1})", PREPARE_CMD)
+        return poses.astype(np.float32)
+
     def __getitem__(self, index: int) -> dict:
         name = self.names[index]
         frames, K = self.load_frames(name)
@@ -289,6 +305,11 @@ class SequenceDataset(Dataset):
             if flow is None:
                 flow = np.zeros((self.height, self.width, 3), np.float32)
             item["flow_gt"] = torch.from_numpy(np.ascontiguousarray(flow.transpose(2, 0, 1)))
+        if self.load_pose:
+            poses = self.load_pose_gt(name)
+            item["pose_gt"] = torch.from_numpy(
+                poses if poses is not None else np.zeros((self.seq_length - 1, 4, 4), np.float32)
+            )
         return item
 
 

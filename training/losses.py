@@ -33,6 +33,9 @@ class LossWeights:
     # Not in GeoNet (0 = official): weight of the end-point error of the full flow against the
     # synthetic generator's ground truth (flow target -> next frame), for supervised pre-training.
     flow_supervision: float = 0.0
+    # Not in GeoNet (0 = official): weight of the scale-aligned pose error against true poses
+    # (KITTI odometry's, the synthetic generator's), for samples prepared with --train-pose.
+    pose_supervision: float = 0.0
 
 
 def _mean_3x3(x: torch.Tensor) -> torch.Tensor:
@@ -156,3 +159,27 @@ def scale_invariant_log_error(depth: torch.Tensor, depth_gt: torch.Tensor) -> to
     has_gt = (count > 0).to(depth.dtype)
     # eps inside the sqrt: its gradient is infinite at a perfect (zero-spread) prediction
     return (torch.sqrt(variance + 1e-8) * has_gt).sum() / has_gt.sum().clamp(min=1.0)
+
+
+def scale_aligned_pose_error(T: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor:
+    """Error of predicted snippet motions against true ones, blind to the monocular scale.
+
+    Per snippet, the predicted translations are scaled by the least-squares factor onto the true
+    ones (the alignment of the official snippet ATE); the error is the aligned translation error
+    relative to the true path length, plus the chordal rotation error ``||R - R_gt||_F``. The
+    scale factor is not differentiated through: it only says which translation the net's own
+    scale should have.
+
+    Args:
+        T: (B, N, 4, 4) predicted motion target -> each source.
+        T_gt: (B, N, 4, 4) true motion, all zeros for a snippet without.
+    Returns:
+        scalar mean over the snippets that have true poses; 0 when none has.
+    """
+    has_gt = (T_gt[:, :, 3, 3] != 0).all(dim=1).to(T.dtype)  # (B,)
+    t, t_gt = T[..., :3, 3], T_gt[..., :3, 3]  # (B, N, 3)
+    scale = ((t * t_gt).sum(dim=(1, 2)) / t.square().sum(dim=(1, 2)).clamp(min=1e-12)).detach()
+    path = t_gt.norm(dim=-1).sum(dim=1).clamp(min=1e-3)
+    translation = (scale.view(-1, 1, 1) * t - t_gt).norm(dim=-1).sum(dim=1) / path
+    rotation = (T[..., :3, :3] - T_gt[..., :3, :3]).flatten(2).norm(dim=-1).mean(dim=1)
+    return ((translation + rotation) * has_gt).sum() / has_gt.sum().clamp(min=1.0)

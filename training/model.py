@@ -32,6 +32,7 @@ from training.losses import (
     flow_endpoint_error,
     masked_mean,
     photometric_error,
+    scale_aligned_pose_error,
     scale_invariant_log_error,
 )
 from training.networks import DepthNet, PoseNet, ResFlowNet
@@ -198,12 +199,21 @@ class GeoNet(nn.Module):
             out.bwd_flow.append(flow), out.bwd_warp.append(warp), out.bwd_error.append(err)
         return out, target_pyr, source_pyr
 
-    def rigid_loss(self, target, sources, K, depth_gt: torch.Tensor | None = None) -> StageLoss:
+    def rigid_loss(
+        self,
+        target,
+        sources,
+        K,
+        depth_gt: torch.Tensor | None = None,
+        pose_gt: torch.Tensor | None = None,
+    ) -> StageLoss:
         """Stage 1: rigid warping + disparity smoothness, summed over scales.
 
         With ``weights.depth_supervision`` > 0 and ``depth_gt`` (B, 1, H, W) metres (0 = none;
         synthetic scenes), the target's depth at every scale, upsampled to H x W, also pays the
         scale-invariant log error against it (a deviation from GeoNet, for pre-training).
+        With ``weights.pose_supervision`` > 0 and ``pose_gt`` (B, N, 4, 4) true motion target ->
+        sources (zeros = none), PoseNet also pays the scale-aligned pose error against it.
         """
         w = self.weights
         out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
@@ -231,6 +241,10 @@ class GeoNet(nn.Module):
             )
             terms["depth_supervised"] = w.depth_supervision * depth_loss
             total = total + terms["depth_supervised"]
+        if w.pose_supervision > 0 and pose_gt is not None:
+            T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
+            terms["pose_supervised"] = w.pose_supervision * scale_aligned_pose_error(T, pose_gt)
+            total = total + terms["pose_supervised"]
         return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(

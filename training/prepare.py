@@ -11,6 +11,9 @@ Output under ``--out DIR`` (read back by :class:`training.data.SequenceDataset`)
     DIR/<folder>/<frame>_flow.png    synth train/val samples with --train-flow: the non-occluded
                                      flow target -> next frame (KITTI flow PNG), resized to H x W
                                      with nearest neighbour and scaled by the resize ratios
+    DIR/<folder>/<frame>_pose.txt    --train-pose (odometry, synth): the true motion target -> each
+                                     source, one row-major 3x4 matrix per source (KITTI poses format,
+                                     sources in temporal order; the POSE convention, metres)
     DIR/train.txt, DIR/val.txt       "<folder> <frame>" per line
     DIR/heldout.txt                  synth only: held-out samples (never in train.txt / val.txt)
 
@@ -34,7 +37,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
+from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, rigid_inverse, scale_intrinsics
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import (
     IMAGE_SUFFIXES,
@@ -48,11 +51,13 @@ from geonet_infer.io import (
     read_depth_kitti,
     read_flow_kitti,
     read_image,
+    read_kitti_poses,
     require_key,
     write_cam_txt,
     write_depth_kitti,
     write_flow_kitti,
     write_image,
+    write_kitti_poses,
 )
 from geonet_infer.metrics import resize_flow_gt
 
@@ -96,6 +101,7 @@ class PrepareConfig:
     heldout: int = 2  # synth: the last N sequences go to heldout.txt
     train_depth: bool = False  # synth: also write the target depth of train/val samples (depth supervision)
     train_flow: bool = False  # synth: also write the target's flow to t+1 of train/val samples (flow supervision)
+    train_pose: bool = False  # kitti_odom/synth: also write the true motion target -> sources (pose supervision)
     max_frames: int | None = None  # only the first N frames of each sequence (quick runs)
     strict: bool = False  # the first bad input is an error instead of a skip
     calib: Path | None = None  # video/frames: the camera (any format of geonet_infer.io.read_camera)
@@ -118,6 +124,7 @@ class Sequence:
     depth_dir: Path | None = None  # synth: depth/ folder (held-out GT; every sample with --train-depth)
     flow_dir: Path | None = None  # synth with --train-flow: flow_noc/ folder (<t>.png = flow t -> t+1)
     static_removed: set = field(default_factory=set)  # frame numbers dropped by --remove-static
+    poses: np.ndarray | None = None  # --train-pose: (M, 4, 4) camera-to-world, row = frame number
 
 
 @dataclass
@@ -131,6 +138,7 @@ class Snippet:
     heldout: bool = False
     depth_path: Path | None = None
     flow_path: Path | None = None  # flow target -> next frame (KITTI flow PNG)
+    poses: np.ndarray | None = None  # (N_src, 4, 4) true motion target -> source, sources in temporal order
 
     @property
     def name(self) -> str:
@@ -328,8 +336,13 @@ def remove_static_frames(seqs: list[Sequence]) -> None:
         s.frames = kept
 
 
-def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
-    """One Sequence per odometry sequence; image_2 + P2, else grey image_0 + P0."""
+def collect_kitti_odom(src: Path, split: str, skips: Skips, train_pose: bool = False) -> list[Sequence]:
+    """One Sequence per odometry sequence; image_2 + P2, else grey image_0 + P0.
+
+    With ``train_pose`` a sequence carries the dev kit's ``poses/XX.txt`` (beside ``sequences/``),
+    the motion of the left grey camera; the colour camera is rigidly mounted beside it, so the two
+    share rotations and, on a straight drive, translations (a few cm apart in turns).
+    """
     if (src / "calib.txt").is_file() or _has_any(src, ("image_2", "image_0")):
         seq_dirs = [src]
     else:
@@ -366,12 +379,29 @@ def collect_kitti_odom(src: Path, split: str, skips: Skips) -> list[Sequence]:
         except GeoNetError as err:
             skips.add(err.path or calib_path, err.problem, f"sequence {d.name} needs {key}")
             continue
-        seqs.append(Sequence(folder=d.name, image_dir=image_dir, frames=list_frames(image_dir, skips), K=K))
+        poses = _sequence_poses(d.parent.parent / "poses" / f"{d.name}.txt", skips) if train_pose else None
+        seqs.append(
+            Sequence(folder=d.name, image_dir=image_dir, frames=list_frames(image_dir, skips), K=K, poses=poses)
+        )
     return seqs
 
 
+def _sequence_poses(path: Path, skips: Skips) -> np.ndarray | None:
+    """Camera-to-world poses of a sequence, or None and a skip: its samples then train without."""
+    try:
+        return read_kitti_poses(path)
+    except GeoNetError as err:
+        skips.add(err.path or path, err.problem, "its samples get no _pose.txt (--train-pose)")
+        return None
+
+
 def collect_synth(
-    src: Path, heldout: int, skips: Skips, train_depth: bool = False, train_flow: bool = False
+    src: Path,
+    heldout: int,
+    skips: Skips,
+    train_depth: bool = False,
+    train_flow: bool = False,
+    train_pose: bool = False,
 ) -> list[Sequence]:
     """One Sequence per generator folder (image/, depth/, calib.txt); the last ``heldout`` are held out.
 
@@ -415,6 +445,7 @@ def collect_synth(
                 heldout=d.name in held,
                 depth_dir=d / "depth" if train_depth or d.name in held else None,
                 flow_dir=d / "flow_noc" if train_flow and d.name not in held else None,
+                poses=_sequence_poses(d / "poses.txt", skips) if train_pose and d.name not in held else None,
             )
         )
     return seqs
@@ -558,7 +589,8 @@ def make_snippets(seq: Sequence, seq_length: int, skips: Skips) -> list[Snippet]
             tgt = window[half]
             depth = seq.depth_dir / f"{tgt.stem}.png" if seq.depth_dir is not None else None
             flow = seq.flow_dir / f"{tgt.stem}.png" if seq.flow_dir is not None else None
-            out.append(Snippet(seq.folder, tgt.stem, window, seq.K, seq.heldout, depth, flow))
+            poses = snippet_motion(seq.poses, window, half) if seq.poses is not None else None
+            out.append(Snippet(seq.folder, tgt.stem, window, seq.K, seq.heldout, depth, flow, poses))
     if not out:
         longest = max((len(r) for r in runs), default=0)
         skips.add(
@@ -567,6 +599,18 @@ def make_snippets(seq: Sequence, seq_length: int, skips: Skips) -> list[Snippet]
             "add frames or use a shorter --seq-length",
         )
     return out
+
+
+def snippet_motion(camera_to_world: np.ndarray, window: tuple[Path, ...], half: int) -> np.ndarray | None:
+    """(N_src, 4, 4) true motion target -> each source, ``inv(C_source) @ C_target`` (it maps a point
+    in the target camera's frame into the source camera's: the POSE convention's direction), or
+    None when a frame has no numbered pose."""
+    numbers = [frame_number(p) for p in window]
+    if any(n is None or n >= len(camera_to_world) for n in numbers):
+        return None
+    target = camera_to_world[numbers[half]]
+    sources = [camera_to_world[n] for k, n in enumerate(numbers) if k != half]
+    return np.stack([rigid_inverse(c) @ target for c in sources])
 
 
 def _static_gap(seq: Sequence, prev: int, n: int) -> bool:
@@ -582,6 +626,8 @@ def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
         paths["depth"] = base / f"{snip.frame}_depth.png"
     if snip.flow_path is not None:
         paths["flow"] = base / f"{snip.frame}_flow.png"
+    if snip.poses is not None:
+        paths["pose"] = base / f"{snip.frame}_pose.txt"
     return paths
 
 
@@ -645,6 +691,8 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
         write_depth_kitti(paths["depth"], depth)
     if flow is not None:
         write_flow_kitti(paths["flow"], flow, valid)
+    if snip.poses is not None:
+        write_kitti_poses(paths["pose"], snip.poses)
     return "written", None, None
 
 
@@ -710,6 +758,8 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
         raise InputError(None, "--train-depth only applies to --kind synth", "real footage has no dense depth")
     if cfg.train_flow and cfg.kind != "synth":
         raise InputError(None, "--train-flow only applies to --kind synth", "real footage has no dense flow")
+    if cfg.train_pose and cfg.kind not in ("kitti_odom", "synth"):
+        raise InputError(None, "--train-pose only applies to --kind kitti_odom|synth", "the others have no true poses")
     if cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
         raise InputError(
             None,
@@ -725,11 +775,11 @@ def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Ski
     if cfg.kind == "kitti_raw":
         seqs = collect_kitti_raw(src, split, skips)
     elif cfg.kind == "kitti_odom":
-        seqs = collect_kitti_odom(src, split, skips)
+        seqs = collect_kitti_odom(src, split, skips, cfg.train_pose)
     elif cfg.kind in ("video", "frames"):
         seqs = collect_video(cfg, skips)  # --max-frames applied while decoding
     else:
-        seqs = collect_synth(src, cfg.heldout, skips, cfg.train_depth, cfg.train_flow)
+        seqs = collect_synth(src, cfg.heldout, skips, cfg.train_depth, cfg.train_flow, cfg.train_pose)
     if cfg.max_frames is not None:
         for seq in seqs:
             seq.frames = seq.frames[: cfg.max_frames]
@@ -835,6 +885,8 @@ kinds:
               pre-training (python -m training.train --depth-supervision W); --train-flow writes
               the non-occluded flow to the next frame as <frame>_flow.png, for flow-supervised
               pre-training (python -m training.train --stage flow --flow-supervision W).
+              --train-pose (synth, kitti_odom) writes the true motion target -> sources as
+              <frame>_pose.txt, for python -m training.train --pose-supervision W.
       python -m training.prepare --kind synth --src data/synth --out data/prepared_synth --heldout 2
 
 Skipped inputs (unreadable frames, missing calibration keys, too-short or mixed-resolution
@@ -897,6 +949,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="synth: also write the ground-truth flow to the next frame of train/val samples "
         "(for training.train --stage flow --flow-supervision)",
+    )
+    p.add_argument(
+        "--train-pose",
+        action="store_true",
+        help="kitti_odom (the dev kit's poses/XX.txt) and synth (poses.txt): also write the true motion "
+        "target -> sources of train/val samples (for training.train --pose-supervision)",
     )
     p.add_argument(
         "--max-frames", type=int, default=D.max_frames, help="use only the first N frames of each sequence (quick runs)"

@@ -56,12 +56,12 @@ def set_modes(model: GeoNet, stage: str, training: bool) -> None:
         module.train(training)
 
 
-def stage_loss(model: GeoNet, stage: str, target, sources, K, truth=None) -> StageLoss:
-    """``truth``: the batch's ground truth for supervision (depth_gt in stage rigid, flow_gt in
-    stage flow) or None."""
+def stage_loss(model: GeoNet, stage: str, target, sources, K, truth: dict | None = None) -> StageLoss:
+    """``truth``: the batch's ground truth for supervision by name (depth_gt and pose_gt in stage
+    rigid, flow_gt in stage flow) or None."""
     if stage == "rigid":
-        return model.rigid_loss(target, sources, K, truth)
-    return model.flow_loss(target, sources, K, truth)
+        return model.rigid_loss(target, sources, K, **(truth or {}))
+    return model.flow_loss(target, sources, K, **(truth or {}))
 
 
 class StageLossModule(torch.nn.Module):
@@ -73,7 +73,7 @@ class StageLossModule(torch.nn.Module):
         self.model = model
         self.stage = stage
 
-    def forward(self, target, sources, K, truth=None) -> StageLoss:
+    def forward(self, target, sources, K, truth: dict | None = None) -> StageLoss:
         return stage_loss(self.model, self.stage, target, sources, K, truth)
 
 
@@ -129,12 +129,12 @@ def epoch_loader(dataset: TrainSet, sampler: DistributedSampler, cfg: TrainConfi
 
 
 def to_device(batch: dict, device: torch.device) -> tuple:
-    """-> (target, sources, K, truth or None): the stage loss's arguments; truth is the
-    batch's depth_gt or flow_gt (a run loads at most one of them)."""
-    truth = batch.get("depth_gt", batch.get("flow_gt"))
+    """-> (target, sources, K, truth or None): the stage loss's arguments; truth holds the
+    batch's ground truth by name (depth_gt, pose_gt, flow_gt: those the run loads)."""
+    truth = {k: batch[k].to(device, non_blocking=True) for k in ("depth_gt", "pose_gt", "flow_gt") if k in batch}
     return (
         *(batch[k].to(device, non_blocking=True) for k in ("target", "sources", "intrinsics")),
-        None if truth is None else truth.to(device, non_blocking=True),
+        truth or None,
     )
 
 
@@ -207,6 +207,7 @@ class Trainer:
         # the samples carry their ground truth when the stage's loss is supervised by it
         self.load_depth = cfg.stage == "rigid" and cfg.weights.depth_supervision > 0
         self.load_flow = cfg.stage == "flow" and cfg.weights.flow_supervision > 0
+        self.load_pose = cfg.stage == "rigid" and cfg.weights.pose_supervision > 0
         seed_everything(cfg.seed)
         self.train_set, self.sampler = self._train_data()
         self.val_set = self._val_data() if rt.is_main else None
@@ -236,6 +237,7 @@ class Trainer:
                     seed=cfg.seed + k,  # another augmentation stream per folder
                     load_depth=self.load_depth,
                     load_flow=self.load_flow,
+                    load_pose=self.load_pose,
                 )
                 for k, root in enumerate([cfg.data_dir, *cfg.extra_data_dirs])
             ]
@@ -269,6 +271,7 @@ class Trainer:
             seed=cfg.seed,
             load_depth=self.load_depth,
             load_flow=self.load_flow,
+            load_pose=self.load_pose,
         )
 
     def _build_model(self) -> tuple[GeoNet, torch.optim.Optimizer, torch.amp.GradScaler]:
