@@ -867,16 +867,23 @@ EXPERIMENT_ROWS = (  # (label, key of benchmarks.real_pose_experiment.figures, j
 
 
 def _experiment_section(result: dict) -> list[str]:
-    """Section "Real-pose fine-tuning": the rule written before scoring and, once scored, before/after."""
-    e = result.get("experiment")
-    if not e:
+    """Section "Real-pose fine-tuning": per round, the rule written before scoring and, once scored,
+    before/after."""
+    rounds = result.get("experiments") or ([result["experiment"]] if result.get("experiment") else [])
+    if not rounds:
         return []
+    L = ["## Real-pose fine-tuning experiment (issue 32)", ""]
+    for e in rounds:
+        L += _experiment_round(e, titled=len(rounds) > 1)
+    return L
+
+
+def _experiment_round(e: dict, titled: bool) -> list[str]:
     trained = "; ".join(
         f"{name}: frames {span[0]}–{span[1]}" if span else f"{name}: none" for name, span in e["train_frames"].items()
     )
-    L = [
-        "## Real-pose fine-tuning experiment (issue 32)",
-        "",
+    L = [f"### Round {e.get('round', 1)}", ""] if titled else []
+    L += [
         f"**Shipping rule.** {e['rule']}",
         "",
         f"Real odometry frames trained on: {trained} (`benchmarks/real_pose_experiment.py`). " + e.get("notes", ""),
@@ -1329,8 +1336,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--experiment",
         metavar="JSON",
+        action="append",
         help="the JSON of `python -m benchmarks.real_pose_experiment`: its shipping rule and, once scored, its "
-        "before/after numbers and verdict",
+        "before/after numbers and verdict (repeat for each round, in order)",
     )
     p.add_argument("--stride", type=int, default=1, help="synthetic: every n-th frame / pair / snippet")
     p.add_argument("--kitti-frames", type=int, default=10, help="KITTI frames with Velodyne scans to use (first N)")
@@ -1390,7 +1398,8 @@ def main(argv=None) -> int:
                     raise InputError(None, f"--{flag.replace('_', '-')} is required", "or pass --from-json")
             result = run(args, command, progress)
         if args.experiment:
-            result["experiment"] = recorded_experiment(args.experiment)
+            result.pop("experiment", None)  # a card of one round, before rounds were a list
+            result["experiments"] = [recorded_experiment(path) for path in args.experiment]
         if args.real:
             result["real"] = recorded_real(args.real, args.model)
             result["real_render_command"] = command

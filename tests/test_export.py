@@ -503,6 +503,7 @@ def test_cli_exports_a_weights_file_of_training_checkpoint(tmp_path, flow_ckpt, 
     assert export_main(["--checkpoint", str(weights), "--out", str(out), "--quiet"]) == 0
     manifest = load_manifest(out)
     assert manifest.provenance.checkpoint_stage == "flow" and manifest.graph_names() == GRAPH_NAMES
+    assert manifest.provenance.checkpoint_step == 42  # the training that made DepthNet/PoseNet (the fixture's)
     spec = InputSpec.from_conventions(H, W, 3)
     images = np.concatenate([spec.to_network(f)[None] for f in kitti_frames(kitti_raw, 2)])
     d = compare_graph(build_wrapper("depthnet", torch_model), out / "depthnet.onnx", [images])
