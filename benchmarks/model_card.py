@@ -780,6 +780,8 @@ def manifest_card(result: dict, card_path: str) -> dict:
         trained_on, synthetic_only = "nothing: random-init weights (timing only)", False
     elif prov.get("sources"):
         trained_on, synthetic_only = f"the released GeoNet TensorFlow checkpoints ({prov['checkpoint']})", False
+    elif result.get("real_training"):
+        trained_on, synthetic_only = f"synthetic scenes made by training.synth, then {result['real_training']}", False
     else:
         data = f" ({prov['data_dir']})" if prov.get("data_dir") else ""
         trained_on, synthetic_only = f"synthetic scenes only{data}, made by training.synth", True
@@ -937,6 +939,8 @@ def _header_section(result: dict) -> list[str]:
             f"added with `--real {result.get('real_json', 'REAL.json')}`.",
             "",
         ]
+    if result.get("real_training"):
+        L += [f'What the model was trained on says `--real-training "{result["real_training"]}"` too.', ""]
     if m["random_init"]:
         L += [
             "> **⚠️ WARNING: RANDOM-INIT MODEL. This card was generated with `--allow-random-init` for a "
@@ -1221,11 +1225,21 @@ def _limitations_section(result: dict) -> list[str]:
     if m["random_init"]:
         L += ["* **The weights are random (development card).** Nothing below describes a trained model."]
     trained_on = f" (`{prov['data_dir']}`)" if prov.get("data_dir") else ""
+    if result.get("real_training"):
+        data = (
+            f"* **Mostly synthetic training data.** The model learned on procedurally generated driving sequences "
+            "(`training.synth`: boxes on a flat road, Lambertian shading, no sensor noise; see "
+            f"`docs/synthetic_data.md`), then {result['real_training']}; its last stage trained on{trained_on}."
+        )
+    else:
+        data = (
+            "* **Synthetic training data.** The model is trained only on procedurally generated driving "
+            f"sequences{trained_on} (`training.synth`: boxes on a flat road, Lambertian shading, no sensor noise; "
+            "see `docs/synthetic_data.md`)."
+        )
     L += [
-        f"* **Synthetic training data.** The model is trained only on procedurally generated driving "
-        f"sequences{trained_on} (`training.synth`: boxes on a flat road, Lambertian shading, no sensor noise; see "
-        "`docs/synthetic_data.md`). The held-out synthetic numbers come from the same generator and "
-        "overstate what to expect on real video.",
+        data + " The held-out synthetic numbers come from the same generator and overstate what to expect on "
+        "real video.",
         _real_depth_limitation(result),
         "* **Relative scale.** Depth and camera translation are known only up to an unknown scale. Every "
         "depth number except the camera-height rows uses per-image median scaling with the ground truth and "
@@ -1340,6 +1354,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="the JSON of `python -m benchmarks.real_pose_experiment`: its shipping rule and, once scored, its "
         "before/after numbers and verdict (repeat for each round, in order)",
     )
+    p.add_argument(
+        "--real-training",
+        metavar="TEXT",
+        help="the real footage the model was also trained on, as a phrase (e.g. '45 minutes on 51 grey KITTI "
+        "odometry frames'): the manifest then no longer calls it synthetic-only",
+    )
     p.add_argument("--stride", type=int, default=1, help="synthetic: every n-th frame / pair / snippet")
     p.add_argument("--kitti-frames", type=int, default=10, help="KITTI frames with Velodyne scans to use (first N)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all usable)")
@@ -1400,6 +1420,8 @@ def main(argv=None) -> int:
         if args.experiment:
             result.pop("experiment", None)  # a card of one round, before rounds were a list
             result["experiments"] = [recorded_experiment(path) for path in args.experiment]
+        if args.real_training:
+            result["real_training"] = args.real_training
         if args.real:
             result["real"] = recorded_real(args.real, args.model)
             result["real_render_command"] = command

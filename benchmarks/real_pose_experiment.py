@@ -55,7 +55,7 @@ NOTES = {
     "cores, lr 5e-5, out-of-view and auto masks; the real odometry snippets (listed twice), the Udacity "
     "snippets and the synthetic scenes mixed in every epoch). Self-supervised only: no pose loss.",
     2: "Round 2, its rule written before it was scored: the candidate is round 1's recipe from the same starting "
-    "weights (the bundled model before round 1) with the pose loss against true poses switched on "
+    "weights (the bundled model before round 1) "
     "and the same number of steps, 1290 (`STEPS=1290 POSE_SUPERVISION=10 INIT=<those weights> "
     "OUT=runs/real_pose_sup bash scripts/real_pose_finetune.sh`), with the pose loss against true poses "
     "(`training.train --pose-supervision 10`: the official KITTI poses of the trained odometry frames and the "

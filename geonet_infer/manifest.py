@@ -203,19 +203,21 @@ class ModelCard:
     synthetic: tuple[Score, ...] = ()
 
     def notice(self) -> str | None:
-        """One line for users of a synthetic-only model: its real-data score and where a model for
-        real video comes from; None for any other model."""
-        if not self.synthetic_only:
+        """One line for users of a model that may fail them on real video (trained on synthetic
+        scenes only, or no better than its baseline on real data): its real-data score and where a
+        model for real video comes from; None for any other model."""
+        s = self.real[0] if self.real else None
+        if not self.synthetic_only and (s is None or s.verdict == "better"):
             return None
-        if self.real:
-            s = self.real[0]
+        if s is not None:
             real = (
                 f"on real video it is {s.verdict} than the {s.baseline} baseline: {s.task} {s.metric} "
                 f"{s.value:.3g} vs {s.baseline_value:.3g} on {s.data}, see {self.measured_in}"
             )
         else:
             real = "its real-data scores are not measured"
-        return f"trained on synthetic scenes only: {real}; {REAL_VIDEO_HINT}"
+        trained = "trained on synthetic scenes only: " if self.synthetic_only else ""
+        return f"{trained}{real}; {REAL_VIDEO_HINT}"
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelCard:

@@ -725,7 +725,8 @@ def test_real_pose_experiment_judges_only_snippets_not_trained_on(tmp_path):
     assert e["verdict"] == {"pose_improves": True, "validation_not_worse": True, "ship": True}
     md = "\n".join(_experiment_section({"experiment": e}))
     assert "**Shipping rule.** Written before any candidate was scored" in md and "**shipped**" in md
-    two = "\n".join(_experiment_section({"experiments": [e, {"rule": e["rule"], "train_frames": e["train_frames"], "round": 2}]}))
+    unscored = {"rule": e["rule"], "train_frames": e["train_frames"], "round": 2}
+    two = "\n".join(_experiment_section({"experiments": [e, unscored]}))
     assert two.count("**Shipping rule.**") == 2 and "### Round 1" in two and "### Round 2" in two
     assert two.endswith("Not scored yet.\n")  # a round whose rule is written, its candidate not yet scored
     # worse validation depth: not shipped, however much the pose improves
