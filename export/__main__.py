@@ -110,6 +110,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     q.add_argument("--calib-method", default=D.calib_method, choices=CALIBRATION_METHODS)
     q.add_argument(
+        "--int8-ops",
+        type=lambda text: tuple(t.strip() for t in text.split(",") if t.strip()),
+        default=D.int8_ops,
+        metavar="OP,OP",
+        help="operator types to quantise, e.g. Conv (the glue between convolutions stays fp32); default: "
+        "every type onnxruntime quantises",
+    )
+    q.add_argument(
         "--reduce-range", action="store_true", help="7-bit weights for CPUs without VNNI (AVX2 / plain AVX-512)"
     )
     q.add_argument(

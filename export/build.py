@@ -63,6 +63,7 @@ class ExportConfig:
     calib_method: str = qz.QuantSettings.calibrate_method
     reduce_range: bool = qz.QuantSettings.reduce_range
     per_channel: bool = qz.QuantSettings.per_channel
+    int8_ops: tuple[str, ...] = qz.QuantSettings.op_types
     eval_synth_dir: Path | None = None  # held-out synthetic set for the int8 accuracy delta
     eval_prepared_dir: Path | None = None  # training.prepare folder holding heldout.txt
     eval_stride: int = 1
@@ -74,6 +75,7 @@ class ExportConfig:
             reduce_range=self.reduce_range,
             calibrate_method=self.calib_method,
             max_frames=self.calib_frames,
+            op_types=self.int8_ops,
         )
 
 
@@ -150,6 +152,8 @@ def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
             )
         _check_calib_data(Path(cfg.calib_data))
         _choose([cfg.calib_method], qz.CALIBRATION_METHODS, "--calib-method")
+        if cfg.int8_ops:
+            _choose(list(cfg.int8_ops), qz.quantisable_op_types(), "--int8-ops")
     elif cfg.calib_data or cfg.eval_synth_dir:
         raise InputError(None, "--calib-data / --eval-* only apply to --precision fp32,int8")
     if cfg.eval_synth_dir:

@@ -69,6 +69,9 @@ class QuantSettings:
     reduce_range: bool = False
     calibrate_method: str = "minmax"  # one of CALIBRATION_METHODS
     max_frames: int = 24  # calibration frames read from the folder
+    # Operator types quantised; () = every type onnxruntime quantises (Conv, Add, Concat, Resize,
+    # MaxPool, ...). ("Conv",) leaves the glue between convolutions in fp32.
+    op_types: tuple[str, ...] = ()
 
     def describe(self) -> dict:
         return {
@@ -78,7 +81,15 @@ class QuantSettings:
             "per_channel": self.per_channel,
             "reduce_range": self.reduce_range,
             "calibrate_method": self.calibrate_method,
+            **({"op_types": list(self.op_types)} if self.op_types else {}),
         }
+
+
+def quantisable_op_types() -> tuple[str, ...]:
+    """The operator types onnxruntime's quantize_static can quantise (QDQ and QLinear registries)."""
+    from onnxruntime.quantization.registry import QDQRegistry, QLinearOpsRegistry
+
+    return tuple(sorted(set(QDQRegistry) | set(QLinearOpsRegistry)))
 
 
 # ----------------------------------------------------------------------------- frames
@@ -375,6 +386,7 @@ def quantize_graph(
             weight_type=QuantType.QInt8,
             calibrate_method=methods[settings.calibrate_method],
             nodes_to_exclude=exclude,
+            op_types_to_quantize=list(settings.op_types) or None,
             extra_options={"CalibTensorRangeSymmetric": False},
         )
         model = onnx.load(str(work / "q.onnx"))

@@ -358,16 +358,20 @@ def test_manifest_round_trip_and_conventions(model_dir, tmp_path):
 
 @pytest.mark.parametrize("alpha", [None, 1.5, -0.1, "0.85", True])
 def test_photometric_alpha_is_optional_and_in_0_1(tmp_path, alpha):
-    """A manifest written before export recorded the alpha (the bundled one) reads None; a recorded
-    alpha outside [0, 1] or not a number is refused, naming the manifest."""
+    """A manifest written before export recorded the alpha reads None; a recorded alpha outside
+    [0, 1] or not a number is refused, naming the manifest."""
     model = tmp_path / "small_synth"
     shutil.copytree(REPO / "geonet_infer" / "models" / "small_synth", model)
+    assert load_manifest(model).photometric_alpha == 0.85  # the bundled export records it
+    raw = json.loads((model / MANIFEST_NAME).read_text())
+    if alpha is None:
+        del raw["conventions"]["photometric_alpha"]
+    else:
+        raw["conventions"]["photometric_alpha"] = alpha
+    (model / MANIFEST_NAME).write_text(json.dumps(raw))
     if alpha is None:
         assert load_manifest(model).photometric_alpha is None
         return
-    raw = json.loads((model / MANIFEST_NAME).read_text())
-    raw["conventions"]["photometric_alpha"] = alpha
-    (model / MANIFEST_NAME).write_text(json.dumps(raw))
     with pytest.raises(GeoNetError, match="photometric_alpha") as err:
         load_manifest(model)
     assert str(model / MANIFEST_NAME) in str(err.value)

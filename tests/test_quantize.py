@@ -118,3 +118,20 @@ def test_float_after_an_unknown_tensor_is_an_error(tmp_path):
         qz.quantize_graph(
             tmp_path / "level.onnx", tmp_path / "q.onnx", feeds(2, seed=1), plan=qz.GraphPlan(float_after=("missing",))
         )
+
+
+def test_op_types_leave_every_other_operator_in_fp32(tmp_path):
+    """QuantSettings(op_types=("Conv",)): the two Relus stay fp32 nodes, while the default quantises
+    them (folded into their convolution's uint8 output); the kernels are int8 either way."""
+    decoder_level(tmp_path / "level.onnx")
+    calib = feeds(8, seed=1)
+    qz.quantize_graph(tmp_path / "level.onnx", tmp_path / "all.onnx", calib, qz.QuantSettings())
+    conv_only = qz.QuantSettings(op_types=("Conv",))
+    qz.quantize_graph(tmp_path / "level.onnx", tmp_path / "conv.onnx", calib, conv_only)
+    assert conv_only.describe()["op_types"] == ["Conv"] and "op_types" not in qz.QuantSettings().describe()
+    for path, relus in ((tmp_path / "all.onnx", 0), (tmp_path / "conv.onnx", 2)):
+        model = onnx.load(str(path))
+        assert [n.op_type for n in model.graph.node].count("Relu") == relus
+        kernels = {i.name: i.data_type for i in model.graph.initializer if i.name.endswith("_quantized")}
+        assert len(kernels) == 4 and set(kernels.values()) == {TensorProto.INT8}
+    assert "Resize" in qz.quantisable_op_types() and "Conv" in qz.quantisable_op_types()

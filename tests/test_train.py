@@ -390,7 +390,7 @@ def test_scale_normalize_divides_each_disparity_map_by_its_mean():
 
 def prepare_with_truth(synth_prepared, out, **truth):
     """The fixture's synthetic sequences prepared again with ground truth for the train samples
-    (train_depth=True or train_flow=True)."""
+    (train_depth, train_flow or train_pose)."""
     prepare.prepare(
         prepare.PrepareConfig(
             kind="synth",
@@ -414,13 +414,17 @@ def assert_falls(rows, key):
     assert last < 0.8 * first, (first, last)
 
 
-def test_pose_supervision_learns_synthetic_motion(synth_prepared, tmp_path):
-    """--pose-supervision on data prepared with --train-pose: the scale-aligned pose error is
-    logged and falls; samples of a folder without true poses add no term; off by default."""
-    supervised = prepare_with_truth(synth_prepared, tmp_path / "prepared", train_pose=True)
-    assert list(supervised.rglob("*_pose.txt"))
-    cfg = config_from_args(["--data-dir", str(supervised), "--pose-supervision", "3"])
-    assert cfg.weights.pose_supervision == 3.0 and config_from_args([]).weights.pose_supervision == 0.0
+@pytest.mark.parametrize("truth", ["depth", "pose"])
+def test_rigid_supervision_learns_synthetic_truth(synth_prepared, tmp_path, truth):
+    """--depth-supervision / --pose-supervision on data prepared with --train-depth / --train-pose:
+    the scale-invariant depth error / the scale-aligned pose error is logged and falls; the flag is
+    off by default (the official loss)."""
+    supervised = prepare_with_truth(synth_prepared, tmp_path / "prepared", **{f"train_{truth}": True})
+    assert list(supervised.rglob(f"*_{truth}.*"))
+    cfg = config_from_args(["--data-dir", str(supervised), f"--{truth}-supervision", "2.5"])
+    weight = f"{truth}_supervision"
+    assert getattr(cfg.weights, weight) == 2.5 and getattr(config_from_args([]).weights, weight) == 0.0
+    # mixed with a folder without ground truth (as real footage is): those samples add no term
     result = train(
         config(
             supervised,
@@ -434,36 +438,10 @@ def test_pose_supervision_learns_synthetic_motion(synth_prepared, tmp_path):
         progress=False,
     )
     rows = read_log(result["log"])
-    assert_falls(rows, "pose_supervised")
-    assert "val_pose_supervised" in rows[-1]
+    assert_falls(rows, f"{truth}_supervised")
+    assert f"val_{truth}_supervised" in rows[-1]
     plain = train(config(synth_prepared, tmp_path / "plain", max_steps=1), progress=False)
-    assert "pose_supervised" not in read_log(plain["log"])[-1]
-
-
-def test_depth_supervision_learns_synthetic_depth(synth_prepared, tmp_path):
-    """--depth-supervision on data prepared with --train-depth: the scale-invariant depth error
-    is logged and falls; the flag is off by default (the official loss)."""
-    supervised = prepare_with_truth(synth_prepared, tmp_path / "prepared", train_depth=True)
-    cfg = config_from_args(["--data-dir", str(supervised), "--depth-supervision", "2.5"])
-    assert cfg.weights.depth_supervision == 2.5 and config_from_args([]).weights.depth_supervision == 0.0
-    # mixed with a folder without ground truth (as real footage is): those samples add no depth term
-    result = train(
-        config(
-            supervised,
-            tmp_path / "run",
-            max_steps=30,
-            lr=1e-3,
-            bn_momentum=0.1,
-            weights=cfg.weights,
-            extra_data_dirs=[str(synth_prepared)],
-        ),
-        progress=False,
-    )
-    rows = read_log(result["log"])
-    assert_falls(rows, "depth_supervised")
-    assert "val_depth_supervised" in rows[-1]
-    plain = train(config(synth_prepared, tmp_path / "plain", max_steps=1), progress=False)
-    assert "depth_supervised" not in read_log(plain["log"])[-1]
+    assert f"{truth}_supervised" not in read_log(plain["log"])[-1]
 
 
 def test_flow_supervision_learns_synthetic_flow(synth_prepared, tmp_path):
