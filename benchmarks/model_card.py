@@ -1001,7 +1001,8 @@ def _model_section(result: dict) -> list[str]:
             f"per-channel {q.get('per_channel')}, reduce-range {q.get('reduce_range')}, calibration "
             f"`{q.get('calibrate_method')}` on `{q.get('calibration_data')}` "
             f"({', '.join(f'{g}: {n}' for g, n in (q.get('calibration_samples') or {}).items())} inputs); "
-            f"graphs kept in FP32: {', '.join(q.get('fp32_graphs') or []) or 'none'}.",
+            f"graphs kept in FP32: {', '.join(q.get('fp32_graphs') or []) or 'none'}; operator types quantised: "
+            f"{', '.join(q.get('op_types') or []) or 'every type onnxruntime quantises'}.",
             "",
         ]
         for graph, notes in (q.get("graph_notes") or {}).items():
