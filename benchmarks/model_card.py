@@ -339,7 +339,6 @@ def model_info(manifest: Manifest, model_dir: Path) -> dict:
                     "opset": entry.opset,
                 }
             )
-    quant = manifest.quantization
     return {
         "dir": str(model_dir),
         "arch": manifest.arch,
@@ -354,8 +353,13 @@ def model_info(manifest: Manifest, model_dir: Path) -> dict:
         "files": files,
         # every file of the directory (manifest included), as unpacked from the wheel
         "dir_bytes": _dir_bytes(model_dir),
-        "quantization": None if quant is None else json.loads(json.dumps(dataclasses.asdict(quant), default=list)),
+        "quantization": _quantization(manifest),
     }
+
+
+def _quantization(manifest: Manifest) -> dict | None:
+    quant = manifest.quantization
+    return None if quant is None else json.loads(json.dumps(dataclasses.asdict(quant), default=list))
 
 
 def load_model_dir(path: str | Path, allow_random_init: bool) -> tuple[Path, Manifest]:
@@ -857,6 +861,25 @@ def _real_section(result: dict) -> list[str]:
         "number below comes from that run, scored by the code of `geonet-infer eval` (`geonet_infer.eval_all`).",
         "",
         *body[2:],  # its first line (model, command, date) is said above
+        "",
+        *_trained_real_frames_note(result),
+    ]
+
+
+def _trained_real_frames_note(result: dict) -> list[str]:
+    """The real frames a shipped round of the real-pose experiment trained on: the pose rows of those
+    sequences are not held out."""
+    rounds = result.get("experiments") or ([result["experiment"]] if result.get("experiment") else [])
+    shipped = [e for e in rounds if (e.get("verdict") or {}).get("ship")]
+    if not shipped:
+        return []
+    spans = "; ".join(
+        f"{name} frames {a}–{b}" for name, (a, b) in ((n, s) for n, s in shipped[-1]["train_frames"].items() if s)
+    )
+    return [
+        f"**Not held out:** the model was fine-tuned on {spans} (the shipped round of the real-pose experiment), so "
+        "the pose rows of those sequences include snippets it trained on; the experiment below scores the "
+        "snippets it did not.",
         "",
     ]
 
@@ -1461,6 +1484,9 @@ def recorded_result(path: str | Path, model: str | Path) -> dict:
         raise InputError(
             path, f"its numbers were measured on other graph files than those of {model}", "measure this model"
         )
+    # the same graph files: how they were quantised is what their manifest says now (a re-export may
+    # record more of it than the manifest measured)
+    result["model"]["quantization"] = _quantization(manifest)
     return result
 
 

@@ -443,9 +443,10 @@ def write_doc(path: Path, paper, results, synth_how, ckpt_note, seconds, worst, 
         "Per-item numbers: `runs/results_report/results.json`. Protocols: [evaluation.md](evaluation.md).",
         "",
         "**Read this first.** The bundled model `small_synth` is a small network trained for about eight hours "
-        "of 2-core CPU on *synthetic* driving scenes, then 45 minutes on a little real footage (51 grey KITTI "
-        "odometry frames of sequences 06 and 01 and four dashcam clips; [models.md](models.md), the real-pose "
-        "experiment); the paper's GeoNet is a ResNet-50 trained for days on KITTI. "
+        "of 2-core CPU on *synthetic* driving scenes, then 1290 steps (about 45 minutes) on a little real footage "
+        "with the synthetic scenes mixed in (51 grey KITTI odometry frames of sequences 06 and 01, whose official "
+        "poses its pose loss used, and four dashcam clips; [models.md](models.md), the real-pose experiment); "
+        "the paper's GeoNet is a ResNet-50 trained for days on KITTI. "
         "Its KITTI rows measure transfer to real data, not a reproduction of the paper. "
         "KITTI itself cannot be downloaded here: the real-data rows use the small public extracts in "
         "`../shared/realdata` (10 depth frames, 2 pose snippets, 1 flow pair), so they are indications, "

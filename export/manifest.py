@@ -216,4 +216,5 @@ def quantization_record(
         graph_notes={g: list(lines) for g, lines in graph_notes.items()},
         accuracy_delta=json_safe(accuracy_delta),
         accuracy_delta_reason=reason,
+        op_types=tuple(settings_description.get("op_types", ())),
     )

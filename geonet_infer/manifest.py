@@ -154,11 +154,13 @@ class Quantization:
     accuracy_delta: dict | None  # {"depth_abs_rel": {"fp32", "int8", "delta"}, "flow_epe_noc": ...}
     accuracy_delta_reason: str | None = None  # why accuracy_delta is null (or a note)
     graph_notes: dict = field(default_factory=dict)  # graph -> what stayed fp32 / was rescaled in it
+    op_types: tuple[str, ...] = ()  # operator types quantised (export --int8-ops); () = every type ORT quantises
 
     @classmethod
     def from_dict(cls, d: dict) -> Quantization:
         d = dict(d)
         d["fp32_graphs"] = tuple(d.get("fp32_graphs", ()))
+        d["op_types"] = tuple(d.get("op_types", ()))
         return _from_known_fields(cls, d)
 
 

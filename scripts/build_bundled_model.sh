@@ -20,6 +20,9 @@
 #   3e. 3c's ResFlowNet put on those rigid nets and re-fitted with 3c's settings, FLOWSUP4_STEPS steps (the
 #      bundled model: a 35-minute run to step 2578, continued with --resume to step 5138, then to 8271;
 #      runs M, N and N2);
+#   3f. (since issue 32, not run by this script) DepthNet/PoseNet fine-tuned 1290 steps on real footage
+#      with the pose loss: round 2 of `scripts/real_pose_finetune.sh` from 3e's weights, INT8 with
+#      --int8-ops Conv,Relu,Add,MaxPool (docs/training.md, "Real footage and true poses");
 #   4. ONNX export fp32 + INT8 (calibrated on training sequence seq_0000, never a held-out one),
 #      with the INT8 accuracy delta on the held-out sequences written into the manifest;
 #   5. copy into the package, publish the checkpoint's weights (weights/small_synth.pt, to fine-tune

@@ -19,7 +19,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MINUTES=${MINUTES:-45} STEPS=${STEPS:-100000} OUT=${OUT:-runs/real_pose}
-INIT=${INIT:-weights/small_synth.pt} POSE_SUPERVISION=${POSE_SUPERVISION:-0}
+INIT=${INIT:-weights/small_synth.pt} POSE_SUPERVISION=${POSE_SUPERVISION:-0} INT8_OPS=${INT8_OPS:-Conv,Relu,Add,MaxPool}
 REALDATA=../shared/realdata CLIPS=../shared/realdata/udacity_dashcam
 run() { echo "+ $*"; "$@"; }
 mkdir -p "$OUT" data
@@ -67,7 +67,7 @@ run $PY -m training.train --stage rigid --arch small --bn-momentum 0.01 --num-wo
     --max-steps "$STEPS" --max-minutes "$MINUTES" --val-every 1000000 --save-every 200 --log-every 20
 run $PY -m training.checkpoint --combine "$OUT/rigid/last.pt" weights/small_synth.pt "$OUT/combined.pt"
 run $PY -m export --checkpoint "$OUT/combined.pt" --out "$OUT/model" --force --precision fp32,int8 \
-    --calib-data data/synth40/seq_0000/image --calib-method percentile --calib-frames 40  # as the bundled model
+    --calib-data data/synth40/seq_0000/image --calib-method percentile --calib-frames 40 --int8-ops "$INT8_OPS"  # as the bundled model
 run $PY -m geonet_infer.cli eval all --data $REALDATA --model "$OUT/model" --json "$OUT/real_eval.json" \
     --markdown "$OUT/real_eval.md" || true  # exit 1 = a set missing or NaN: the JSON says which
 run $PY -m benchmarks.real_pose_experiment --before docs/real_eval.json --after "$OUT/real_eval.json" \

@@ -424,7 +424,7 @@ def test_int8_graphs_load_run_and_report_delta(model_dir):
         assert {"QuantizeLinear", "DequantizeLinear"} <= op_types(model_dir / entry.file)
         assert (model_dir / entry.file).stat().st_size < 0.5 * (model_dir / f"{name}.onnx").stat().st_size
     quant = manifest.quantization
-    assert quant.per_channel and quant.fp32_graphs == ("rigidflow",)
+    assert quant.per_channel and quant.fp32_graphs == ("rigidflow",) and quant.op_types == ()  # every type
     # ResFlowNet's output layer (flow in pixels) stays fp32: its kernels are plain initializers
     flow8 = onnx.load(str(model_dir / "int8" / "resflownet.onnx"))
     float_kernels = {i.name for i in flow8.graph.initializer if i.data_type == onnx.TensorProto.FLOAT}
@@ -535,6 +535,11 @@ def test_cli_input_errors(tmp_path, capsys, flow_ckpt):
     assert "cannot create the output directory" in capsys.readouterr().err
     assert export_main(["--checkpoint", str(tmp_path / "nope.pt"), "--out", str(out)]) == 2
     assert "nope.pt" in capsys.readouterr().err
+    frames = REPO / "geonet_infer" / "samples" / "synth_seq" / "image"
+    int8 = ["--checkpoint", str(flow_ckpt), "--out", str(out), "--precision", "fp32,int8", "--calib-data", str(frames)]
+    assert export_main([*int8, "--int8-ops", "Conv,Bogus"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown --int8-ops ['Bogus']" in err and "Resize" in err  # the choices are listed
     assert no_leftovers(out)
 
 
