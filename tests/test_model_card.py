@@ -312,7 +312,8 @@ def test_card_has_every_table_and_finite_numbers(card3):
     assert md.startswith("# Model card")
     assert "```bash\n.venv/bin/python -m benchmarks.model_card --model " in md
     assert "WARNING: RANDOM-INIT MODEL" in md
-    assert "graphs kept in FP32: rigidflow.\n\n- resflownet: fp32 nodes: head_conv\n" in md
+    kept = "graphs kept in FP32: rigidflow; operator types quantised: every type onnxruntime quantises.\n\n"
+    assert kept + "- resflownet: fp32 nodes: head_conv\n" in md
     for heading in (
         "## The model",
         "## Before / after",
