@@ -98,7 +98,7 @@ def checkpoint_methods(path: Path) -> tuple[dict | None, str]:
     if not path.is_file():
         return None, f"`{rel(path)}` is not on this machine (runs/ is not in git): checkpoint rows are missing"
     try:
-        from training.checkpoint import load_weights, model_from_checkpoint
+        from training.checkpoint import load_weights, model_from_checkpoint, trained_by
         from training.evaluate import checkpoint_methods as methods
     except ImportError as err:
         return None, f"training code not importable ({err}): checkpoint rows are missing"
@@ -107,8 +107,7 @@ def checkpoint_methods(path: Path) -> tuple[dict | None, str]:
     except GeoNetError as err:
         return None, f"`{rel(path)}` was not loaded: {err.problem}. Checkpoint rows are missing"
     fns = methods(model_from_checkpoint(ckpt), ckpt["config"], ["depth", "flow", "pose"], "checkpoint")
-    step = ckpt.get("step", ckpt.get("source", {}).get("step"))  # a weights file keeps it under "source"
-    return {t: fn for t, (_, fn) in fns.items()}, f"`{rel(path)}` (step {step})"
+    return {t: fn for t, (_, fn) in fns.items()}, f"`{rel(path)}` (step {trained_by(ckpt)['step']})"
 
 
 # ----------------------------------------------------------------------------- figures

@@ -30,7 +30,7 @@ from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
 from geonet_infer.manifest import PRECISIONS, SIZE_MULTIPLE, load_manifest, write_manifest
-from training.checkpoint import load_weights, model_from_checkpoint
+from training.checkpoint import load_weights, model_from_checkpoint, trained_by
 from training.config import ARCHS
 
 DEFAULT_SEQ_LENGTH = 3
@@ -195,7 +195,7 @@ def _checkpoint_source(cfg: ExportConfig, graphs: list[str]) -> Source:
     path = Path(cfg.checkpoint)
     ckpt = load_weights(path)  # a training checkpoint, or a weights file of training.checkpoint (--combine, ...)
     if "source" in ckpt:  # a weights file keeps the step and command it came from under "source"
-        ckpt = {"step": ckpt["source"].get("step"), "command": ckpt["source"].get("command"), **ckpt}
+        ckpt = {**trained_by(ckpt), **ckpt}
     train_cfg = ckpt["config"]
     if "resflownet" in graphs and ckpt["stage"] != "flow":
         raise InputError(

@@ -199,11 +199,11 @@ def combine_weights(depth_pose: str | Path, flow: str | Path, out: str | Path) -
     model = {k: v for k, v in dp["model"].items() if not k.startswith("flow_net.")} | flow_state
     config = {**dp["config"], "stage": "flow"}
     # the step and command are depth_pose's: the training a model combined this way adds
-    source = {"depth_pose": str(depth_pose), "flow": str(flow), **_trained_by(dp)}
+    source = {"depth_pose": str(depth_pose), "flow": str(flow), **trained_by(dp)}
     save_weights({**dp, "stage": "flow", "config": config, "model": model}, out, source)
 
 
-def _trained_by(state: dict) -> dict:
+def trained_by(state: dict) -> dict:
     """The step and training command of a checkpoint, or those a weights file kept from one."""
     source = state.get("source", {})
     return {
