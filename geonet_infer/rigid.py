@@ -1,4 +1,4 @@
-"""The rigid-flow op of ``rigidflow.onnx`` in numpy + OpenCV, about 5x faster than the graph.
+"""The rigid-flow op of ``rigidflow.onnx`` in numpy + OpenCV, about twice as fast as the graph.
 
 The op has no weights: rigid flow from depth, pose and K, the source warped onto the target,
 and the photometric error that is ResFlowNet's 12th input channel. Written as small pure
@@ -7,7 +7,7 @@ with the graph's inputs and outputs, so the cascade calls it exactly like the gr
 Conventions: :mod:`geonet_infer.conventions` (pose ``R = Rx @ Ry @ Rz`` target -> source, pixel
 grid at pixel centres, corner-aligned bilinear sampling with zero padding). Agreement with the
 graph is tested to 1e-4 px (tests/test_rigid_op.py); the graph stays the reference
-(``rigid_op="onnx"``).
+(``rigid_op="graph"``, the default).
 """
 
 from __future__ import annotations
