@@ -462,9 +462,13 @@ def _predict(
     if options.video_out is not None:
         video = _VideoOut(Path(options.video_out), options.video_fps or getattr(source, "fps", None) or FOLDER_FPS)
 
-    def record(result: FrameResult, write_ms: float) -> None:
+    def record(result: FrameResult, rgb: np.ndarray | None, written: _Written) -> None:
         nonlocal done
-        totals["write"] += write_ms
+        totals["write"] += written.ms
+        if video is not None and rgb is not None:
+            video.write(rgb, written.pictures)
+        if world is not None and rgb is not None and written.points is not None:
+            world.add(result, *written.points)
         poses.append(result.camera_to_world)
         if result.metric_scale is not None:
             scales.append(result.metric_scale)
@@ -473,7 +477,7 @@ def _predict(
         done += 1
         bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
 
-    writer = _FrameWriter(out_dir, tasks, vis, record, options, camera_height)
+    writer = _FrameWriter(out_dir, tasks, vis, record, options, camera_height, pictures=vis or video is not None)
 
     def emit(ready: list[FrameResult]) -> None:
         scale = colours.scales()
@@ -483,10 +487,6 @@ def _predict(
             if owned is not None:
                 owned.add(_frame_files(result.name, tasks, vis, options))
             writer.submit(result, scale, rgb)
-            if video is not None and rgb is not None:
-                video.write(rgb, result, scale)
-            if world is not None and rgb is not None:
-                world.add(result, rgb)
 
     try:
         results = predictor.iter_sequence(
@@ -622,14 +622,24 @@ def _outputs(
     return out
 
 
+@dataclass(frozen=True)
+class _Written:
+    """What writing one frame made, for the result video and the world cloud: each is computed once."""
+
+    ms: float  # the write's wall time
+    pictures: tuple[np.ndarray | None, np.ndarray | None]  # depth colour map, flow colour wheel (RGB) or None
+    points: tuple[np.ndarray, np.ndarray | None] | None  # the frame's points and colours (point clouds)
+
+
 class _FrameWriter:
     """Writes each frame's files on worker threads while the next frames are predicted.
 
     PNG/zlib encoding, the colour maps and file writes release the GIL, so on a 2-core machine
     the writing overlaps the networks instead of following them. Results come back in frame
-    order with their write time; at most ``in_flight`` frames wait (bounded memory). A failed
-    write raises from :meth:`submit` or :meth:`drain`; :meth:`close` finishes the writes already
-    started (every file is atomic) and drops the ones not started.
+    order with what the write made (:class:`_Written`); at most ``in_flight`` frames wait (bounded
+    memory). A failed write raises from :meth:`submit` or :meth:`drain`; :meth:`close` finishes
+    the writes already started (every file is atomic) and drops the ones not started.
+    ``pictures``: make the colour pictures (for the PNGs with ``vis``, or a result video).
     """
 
     def __init__(
@@ -637,30 +647,32 @@ class _FrameWriter:
         out_dir: Path,
         tasks: tuple[str, ...],
         vis: bool,
-        on_written: Callable[[FrameResult, float], None],
+        on_written: Callable[[FrameResult, np.ndarray | None, _Written], None],
         options: OutputOptions = OutputOptions(),
         camera_height: float | None = None,
         workers: int = WRITE_THREADS,
+        pictures: bool = True,
     ):
-        self.on_written = on_written  # (result, write ms), in frame order
-        self.out_dir, self.tasks, self.vis = out_dir, tasks, vis
+        self.on_written = on_written  # (result, its input frame or None, what was made), in frame order
+        self.out_dir, self.tasks, self.vis, self.pictures = out_dir, tasks, vis, pictures
         self.options, self.camera_height = options, camera_height
         self.in_flight = 2 * workers
         self.pool = ThreadPoolExecutor(workers, thread_name_prefix="geonet-write")
-        self.pending: deque[tuple[FrameResult, Future[float]]] = deque()
+        self.pending: deque[tuple[FrameResult, np.ndarray | None, Future[_Written]]] = deque()
 
-    def _write(self, result: FrameResult, scale: tuple[float | None, float | None], rgb: np.ndarray | None) -> float:
+    def _write(self, result: FrameResult, scale: tuple[float | None, float | None], rgb: np.ndarray | None) -> _Written:
         t0 = time.perf_counter()
-        _write_frame(self.out_dir, result, self.tasks, self.vis, scale)
+        pictures = _pictures(result, self.tasks, scale) if self.pictures else (None, None)
+        _write_frame(self.out_dir, result, self.tasks, pictures if self.vis else (None, None))
+        points = None
         if self.options.point_cloud and result.depth is not None and result.intrinsics is not None:
-            xyz, rgb_points = result.points(rgb, self.options.point_stride, self.options.max_depth)
+            points = result.points(rgb, self.options.point_stride, self.options.max_depth)
             write_ply(
                 output_path(self.out_dir, "points", result.name, ".ply"),
-                xyz,
-                rgb_points,
+                *points,
                 _ply_comments(f"frame {result.name}, in its camera's frame", self.camera_height),
             )
-        return (time.perf_counter() - t0) * 1e3
+        return _Written((time.perf_counter() - t0) * 1e3, pictures, points)
 
     def submit(
         self,
@@ -670,7 +682,7 @@ class _FrameWriter:
     ) -> None:
         """Queue ``result``'s files (pictures at ``scale``: inverse-depth max, flow max; None = the frame's
         own); frames finished meanwhile go to ``on_written`` (waits while too many are queued)."""
-        self.pending.append((result, self.pool.submit(self._write, result, scale, rgb)))
+        self.pending.append((result, rgb, self.pool.submit(self._write, result, scale, rgb)))
         self._settle(self.in_flight)
 
     def drain(self) -> None:
@@ -679,38 +691,50 @@ class _FrameWriter:
     def _settle(self, keep: int) -> None:
         # Each written frame goes to on_written right as it leaves the queue: an interrupt (Ctrl-C,
         # SIGTERM) between two frames can neither drop a written frame nor count one twice.
-        while self.pending and (len(self.pending) > keep or self.pending[0][1].done()):
-            result, future = self.pending[0]
-            write_ms = future.result()
+        while self.pending and (len(self.pending) > keep or self.pending[0][2].done()):
+            result, rgb, future = self.pending[0]
+            written = future.result()
             self.pending.popleft()
-            self.on_written(result, write_ms)
+            self.on_written(result, rgb, written)
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _pictures(
+    result: FrameResult, tasks: tuple[str, ...], scale: tuple[float | None, float | None]
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The frame's depth colour map and flow colour wheel (RGB; None for a task left out) at ``scale``:
+    (inverse-depth max, flow max), None = the frame's own range."""
+    depth, flow = result.depth, result.flow
+    return (
+        depth_to_color(depth, vmax=scale[0]) if "depth" in tasks and depth is not None else None,
+        flow_to_color(flow, max_flow=scale[1]) if "flow" in tasks and flow is not None else None,
+    )
 
 
 def _write_frame(
     out_dir: Path,
     result: FrameResult,
     tasks: tuple[str, ...],
-    vis: bool = True,
-    scale: tuple[float | None, float | None] = (None, None),
+    pictures: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
 ) -> None:
     """All files of one frame, or none: an interrupt or a failed write removes the ones already written.
 
-    ``scale``: the pictures' (inverse-depth max, flow max); None = the frame's own range."""
+    ``pictures``: the depth and flow colour pictures to write beside the data (:func:`_pictures`), or None."""
     writes: list[tuple[Path, Callable[[Path], object]]] = []
     depth, flow = result.depth, result.flow
+    depth_rgb, flow_rgb = pictures
     if "depth" in tasks and depth is not None:
         writes.append((output_path(out_dir, "depth", result.name, ".npy"), lambda p: save_npy_atomic(p, depth)))
-        if vis:
+        if depth_rgb is not None:
             path = output_path(out_dir, "depth", result.name, ".png")
-            writes.append((path, lambda p: write_image(p, depth_to_color(depth, vmax=scale[0]))))
+            writes.append((path, lambda p: write_image(p, depth_rgb)))
     if "flow" in tasks and flow is not None:
         writes.append((output_path(out_dir, "flow", result.name, ".png"), lambda p: write_flow_kitti(p, flow)))
-        if vis:
+        if flow_rgb is not None:
             path = output_path(out_dir, "flow_vis", result.name, ".png")
-            writes.append((path, lambda p: write_image(p, flow_to_color(flow, max_flow=scale[1]))))
+            writes.append((path, lambda p: write_image(p, flow_rgb)))
     written: list[Path] = []
     try:
         for path, write in writes:
@@ -747,10 +771,8 @@ class _WorldCloud:
         self.colours: list[np.ndarray] = []
         self.held = 0
 
-    def add(self, result: FrameResult, rgb: np.ndarray) -> None:
-        if result.depth is None or result.intrinsics is None:
-            return
-        xyz, colours = result.points(rgb, self.options.point_stride, self.options.max_depth)
+    def add(self, result: FrameResult, xyz: np.ndarray, colours: np.ndarray | None) -> None:
+        """``result``'s points in its camera's frame (:meth:`FrameResult.points`), placed by its pose."""
         R, t = result.camera_to_world[:3, :3], result.camera_to_world[:3, 3]
         self.points.append((xyz @ R.T + t).astype(np.float32))
         self.colours.append(colours if colours is not None else np.full((len(xyz), 3), 255, np.uint8))
@@ -783,9 +805,9 @@ class _VideoOut:
         self.tmp: Path | None = None
         self.frames = 0
 
-    def write(self, rgb: np.ndarray, result: FrameResult, scale: tuple[float | None, float | None]) -> None:
-        depth = np.zeros_like(rgb) if result.depth is None else depth_to_color(result.depth, vmax=scale[0])
-        flow = np.zeros_like(rgb) if result.flow is None else flow_to_color(result.flow, max_flow=scale[1])
+    def write(self, rgb: np.ndarray, pictures: tuple[np.ndarray | None, np.ndarray | None]) -> None:
+        """One frame: its input picture beside its depth and flow pictures (:func:`_pictures`; None = black)."""
+        depth, flow = (np.zeros_like(rgb) if p is None else p for p in pictures)
         panel = side_by_side([rgb, depth, flow], ["frame", "depth", "flow"], height=min(VIDEO_HEIGHT, rgb.shape[0]))
         panel = panel[: panel.shape[0] // 2 * 2, : panel.shape[1] // 2 * 2]  # even sizes: what codecs expect
         if self.writer is None:
