@@ -10,8 +10,9 @@ excluded). Two output settings: all default outputs, and ``--no-vis`` (no colour
     python benchmarks/predict_fps.py --against 3f60b25 --after-args "--rigid-op numpy"
 
 ``--after-args`` go to this checkout's runs only (options the old revision may not have).
-Prints a markdown table (median over rounds, and the ratio after / before); ``--json`` keeps
-every run.
+Prints a markdown table (median over rounds, and the ratio after / before) with the CPU time
+each run's process used per frame (user + system, model load included: what bounds frames/s on
+a busy machine); ``--json`` keeps every run.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shlex
 import statistics
 import sys
@@ -32,11 +34,24 @@ OUTPUTS = {"all outputs": [], "--no-vis": ["--no-vis"]}
 
 
 def one_run(tree: Path, args: list[str], out: Path) -> dict:
+    """frames/s as predict reports it, and the whole process's wall and CPU time (user + system, load included)."""
+    cpu_before = _children_cpu_s()
     started = time.perf_counter()
     run_predict(tree, args, out)
     process_s = time.perf_counter() - started
+    cpu_s = _children_cpu_s() - cpu_before
     summary = json.loads((out / "summary.json").read_text())
-    return {"frames_per_s": summary["frames_per_s"], "frames": summary["frames"], "process_s": process_s}
+    return {
+        "frames_per_s": summary["frames_per_s"],
+        "frames": summary["frames"],
+        "process_s": process_s,
+        "cpu_ms_per_frame": 1e3 * cpu_s / summary["frames"],
+    }
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)  # the finished, waited-for children
+    return usage.ru_utime + usage.ru_stime
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,14 +82,20 @@ def main(argv: list[str] | None = None) -> int:
         f"{os.cpu_count()} CPUs; before = {args.against}, after = this checkout {' '.join(extra)}".rstrip()
     )
     print()
-    print("| outputs | before frames/s | after frames/s | after / before |")
-    print("|---|---|---|---|")
+    print("| outputs | before frames/s | after frames/s | after / before | CPU ms per frame, before / after |")
+    print("|---|---|---|---|---|")
     for outputs in OUTPUTS:
-        fps = {
-            label: statistics.median(r["frames_per_s"] for r in runs if r["tree"] == label and r["outputs"] == outputs)
-            for label in ("before", "after")
-        }
-        print(f"| {outputs} | {fps['before']:.1f} | {fps['after']:.1f} | {fps['after'] / fps['before']:.2f}x |")
+        fps, cpu = (
+            {
+                label: statistics.median(r[key] for r in runs if r["tree"] == label and r["outputs"] == outputs)
+                for label in ("before", "after")
+            }
+            for key in ("frames_per_s", "cpu_ms_per_frame")
+        )
+        print(
+            f"| {outputs} | {fps['before']:.1f} | {fps['after']:.1f} | {fps['after'] / fps['before']:.2f}x "
+            f"| {cpu['before']:.0f} / {cpu['after']:.0f} |"
+        )
     if args.json:
         args.json.write_text(json.dumps({"against": args.against, "after_args": extra, "runs": runs}, indent=2) + "\n")
     return 0

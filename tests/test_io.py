@@ -66,6 +66,74 @@ def test_flow_png_rejects_an_8bit_image(tmp_path):
         gio.read_flow_kitti(tmp_path / "x.png")
 
 
+def _decode_with_pypng(data: bytes) -> np.ndarray:
+    """A second decoder (pure Python, no code shared with ours or OpenCV's; it checks every chunk's CRC)."""
+    png = pytest.importorskip("png")
+    width, height, rows, info = png.Reader(bytes=data).read()
+    channels = info["planes"]
+    dtype = np.uint16 if info["bitdepth"] == 16 else np.uint8
+    return np.array([np.asarray(row, dtype) for row in rows]).reshape(height, width, channels)
+
+
+@pytest.mark.parametrize(
+    "shape, dtype",
+    [
+        ((37, 53), np.uint8),
+        ((37, 53, 3), np.uint8),
+        ((19, 7), np.uint16),
+        ((19, 7, 3), np.uint16),
+        ((1, 1, 3), np.uint16),
+    ],
+)
+def test_png_encoder_round_trips_through_opencv_and_pypng(shape, dtype):
+    from geonet_infer.io.png import encode_png
+
+    rng = np.random.default_rng(len(shape) * 10 + np.dtype(dtype).itemsize)
+    image = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
+    image.flat[0], image.flat[-1] = 0, np.iinfo(dtype).max  # both ends of the range
+    data = encode_png(image)
+    by_opencv = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image.ndim == 3:
+        by_opencv = by_opencv[..., ::-1]  # OpenCV decodes to BGR
+    assert by_opencv.dtype == dtype
+    np.testing.assert_array_equal(by_opencv, image)
+    np.testing.assert_array_equal(_decode_with_pypng(data).reshape(image.shape), image)
+
+
+def test_png_outputs_decode_to_the_pixels_opencv_would_have_written(tmp_path):
+    """A KITTI flow PNG, a depth PNG and a colour picture from our writers: the same pixels as OpenCV's
+    own encoder stores (decoded by OpenCV; the files' bytes differ: another deflate)."""
+    rng = np.random.default_rng(3)
+    flow = rng.normal(0, 40, (45, 61, 2)).astype(np.float32)
+    gio.write_flow_kitti(tmp_path / "flow.png", flow)
+    codes = (np.rint(flow.astype(np.float64) * 64) + 2**15).astype(np.uint16)  # the KITTI definition
+    bgr = np.dstack([np.ones_like(codes[..., 0]), codes[..., 1], codes[..., 0]])
+    assert cv2.imwrite(str(tmp_path / "flow_cv.png"), bgr)
+    picture = rng.integers(0, 256, (45, 61, 3), dtype=np.uint8)
+    gio.write_image(tmp_path / "picture.png", picture)
+    assert cv2.imwrite(str(tmp_path / "picture_cv.png"), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+    for ours, theirs in (("flow.png", "flow_cv.png"), ("picture.png", "picture_cv.png")):
+        read = [cv2.imread(str(tmp_path / name), cv2.IMREAD_UNCHANGED) for name in (ours, theirs)]
+        assert read[0].dtype == read[1].dtype
+        np.testing.assert_array_equal(read[0], read[1])
+
+
+@pytest.mark.parametrize(
+    "image, problem",
+    [
+        (np.zeros((4, 4, 3), np.float32), "float32"),
+        (np.zeros((4, 4, 4), np.uint8), r"\(4, 4, 4\)"),
+        (np.zeros((0, 4), np.uint8), r"\(0, 4\)"),
+    ],
+)
+def test_png_writer_refuses_what_png_cannot_hold_naming_the_file(tmp_path, image, problem):
+    from geonet_infer.io.images import _imwrite
+
+    with pytest.raises(GeoNetError, match=rf"out\.png.*{problem}"):
+        _imwrite(tmp_path / "out.png", image)
+    assert not (tmp_path / "out.png").exists()
+
+
 # ---------------------------------------------------------------------------- KITTI depth PNG
 def test_depth_png_roundtrip_is_bit_exact_on_the_1_256_grid(tmp_path):
     rng = np.random.default_rng(1)

@@ -1,14 +1,14 @@
 """File formats shared by training, evaluation, the runtime and the synthetic data.
 
-numpy + OpenCV only. Every writer goes through :func:`atomic_write`, so a crash
-never leaves a half-written file where a reader would trust it. Every reader
-raises :class:`~geonet_infer.errors.GeoNetError` naming the file.
+numpy + OpenCV (+ isal's deflate for the PNGs we write). Every writer goes through
+:func:`atomic_write`, so a crash never leaves a half-written file where a reader would trust it.
+Every reader raises :class:`~geonet_infer.errors.GeoNetError` naming the file.
 
 Modules: ``atomic`` (atomic writes, ``.npy``), ``images`` (RGB images, masks, image
-folders), ``flow`` (KITTI flow PNG, ``.flo``), ``depth`` (KITTI depth PNG), ``poses``
-(KITTI / TUM trajectories), ``calib`` (calibration files, :class:`Camera`), ``frames``
-(video / KITTI drive / image-folder frame sources). Colour maps live in
-:mod:`geonet_infer.viz`. Everything public is re-exported here.
+folders), ``png`` (the PNG encoder every writer uses), ``flow`` (KITTI flow PNG, ``.flo``),
+``depth`` (KITTI depth PNG), ``poses`` (KITTI / TUM trajectories), ``calib`` (calibration
+files, :class:`Camera`), ``frames`` (video / KITTI drive / image-folder frame sources). Colour
+maps live in :mod:`geonet_infer.viz`. Everything public is re-exported here.
 
 Encodings (see ``docs/synthetic_data.md``):
 

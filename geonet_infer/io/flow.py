@@ -84,7 +84,7 @@ def write_flow_kitti(path, flow: np.ndarray, valid: np.ndarray | None = None) ->
     """
     red, green, blue = _flow_planes(flow, valid)
     with atomic_write(path) as tmp:
-        _imwrite(tmp, cv2.merge([blue, green, red]))  # cv2 writes BGR
+        _imwrite(tmp, cv2.merge([red, green, blue]))
 
 
 def read_flow_kitti(path) -> tuple[np.ndarray, np.ndarray]:
