@@ -64,7 +64,10 @@ LEVERS = """\
   barely beat its fp32 ones on these nets.
 - *`auto`*: per graph, the faster engine at load. It keeps onnxruntime for the rigid-flow op
   (GridSample is slower in OpenVINO), OpenVINO for the ConvNets.
-- *onnxruntime's CPU memory arena off*: a lower peak for resnet50, a few % slower; kept on.
+- *onnxruntime's CPU memory arena off*: first measured as a few % slower and kept on; issue 30
+  measured it again in one interleaved run per model (fresh processes, 8-frame sequences at
+  1242×375): speed within run-to-run noise, peak memory after a 4-frame sequence 178 → 110 MiB
+  (small INT8), 220 → 130 (small FP32), 326 → 232 (resnet50 INT8). Off since then.
   *Weight prepacking off*: about 3× slower; kept on.
 - *A gather-based bilinear warp instead of GridSample in the rigid op*: not faster in
   onnxruntime; not adopted. The rigid op is the largest single cost of the small cascade and

@@ -31,10 +31,11 @@ INT8 calibration call it directly.
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -541,15 +542,14 @@ def run_cascade(
 
 def flows_to_input(
     parts: dict[str, np.ndarray], b: int, size: tuple[int, int]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Snippet ``b``'s flows of :func:`run_cascade` at the input size: (flow, rigid flow, residual
-    flow), each (H, W, 2); residual None without ResFlowNet (then flow = rigid flow)."""
-    rigid = flow_to_input(parts["rigid_flow"][b], size)
+) -> tuple[np.ndarray, Callable[[], np.ndarray] | None]:
+    """Snippet ``b``'s flow of :func:`run_cascade` at the input size, (H, W, 2), and what makes its
+    rigid part at that size when asked (:attr:`FrameResult.rigid_flow`); None without ResFlowNet
+    (then the flow is the rigid flow)."""
     if "flow" not in parts:
-        return rigid, rigid, None
-    flow = flow_to_input(parts["flow"][b], size)
-    # flow = rigid + residual in the graph, and resizing is linear: one resize saved per frame
-    return flow, rigid, flow - rigid
+        return flow_to_input(parts["rigid_flow"][b], size), None
+    rigid_graph = parts["rigid_flow"][b].copy()  # not a view: the batch's array can go
+    return flow_to_input(parts["flow"][b], size), functools.partial(flow_to_input, rigid_graph, size)
 
 
 def calibration_input(
@@ -681,7 +681,7 @@ def iter_frames(
                 with_flow=with_flow,
             )
         results = []
-        no_flow: tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None] = (None, None, None)
+        no_flow: tuple[np.ndarray | None, Callable[[], np.ndarray] | None] = (None, None)
         with timer.stage("postprocess"):
             for j, t in enumerate(batch):
                 depth, disp = (None, None) if disparity is None else disparity_to_input(disparity[j], size)
@@ -702,8 +702,7 @@ def iter_frames(
                 undistorted=bool(cam and cam.has_distortion),
                 timings_ms=dict(share),
                 flow=flows[0],
-                rigid_flow=flows[1],
-                residual_flow=flows[2],
+                rigid_flow_at_input=flows[1],
                 intrinsics=None if cam is None else cam.K,
             )
             if pose_next is not None:

@@ -353,7 +353,9 @@ class Predictor:
         parts = run_cascade(self.graph_set, self.spec, x[None], [len(x) // 2], cam.K, size, timer=timer)
         with timer.stage("postprocess"):
             depth, _ = disparity_to_input(parts["disparity"][0], size)
-            flow, rigid_flow, residual_flow = flows_to_input(parts, 0, size)
+            flow, rigid_at_input = flows_to_input(parts, 0, size)
+            rigid_flow = flow if rigid_at_input is None else rigid_at_input()
+            residual_flow = None if rigid_at_input is None else flow - rigid_flow
         return FlowResult(
             depth=depth,
             pose=parts["pose_matrix"][0].astype(np.float64),

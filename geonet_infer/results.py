@@ -9,7 +9,9 @@ the pose convention of :data:`geonet_infer.conventions.POSE`, ``timings_ms`` per
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -112,8 +114,11 @@ class FrameResult(_Points):
         pose_to_next: (4, 4) float64 transform this frame -> the next (None for the last frame
             or without "pose").
         pose_vector_to_next: (6,) float32 [tx, ty, tz, rx, ry, rz] of ``pose_to_next``.
-        flow, rigid_flow, residual_flow: (H, W, 2) float32 flow to the next frame (None for
-            the last frame or without "flow"; residual None without ResFlowNet).
+        flow: (H, W, 2) float32 flow to the next frame (None for the last frame or without "flow").
+        rigid_flow, residual_flow: (H, W, 2) float32, its static-scene part and ResFlowNet's
+            correction (residual None without ResFlowNet); properties, resized to the input
+            size on first access (a 1242x375 frame's pair costs 7 MB and a resize that
+            ``predict`` never needs).
         undistorted: the frame was undistorted first.
         timings_ms: this frame's share of each stage (batched stages divided evenly).
         metric_scale: with a camera height, the factor that made depth and translations metres.
@@ -129,12 +134,26 @@ class FrameResult(_Points):
     pose_to_next: np.ndarray | None
     pose_vector_to_next: np.ndarray | None
     flow: np.ndarray | None
-    rigid_flow: np.ndarray | None
-    residual_flow: np.ndarray | None
     undistorted: bool
     timings_ms: dict[str, float]
     metric_scale: float | None = None
     intrinsics: np.ndarray | None = None
+    # Makes the rigid flow at the input size; None = the flow is all rigid (no ResFlowNet).
+    rigid_flow_at_input: Callable[[], np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def rigid_flow(self) -> np.ndarray | None:
+        if self.flow is None or self.rigid_flow_at_input is None:
+            return self.flow
+        return self.rigid_flow_at_input()
+
+    @cached_property
+    def residual_flow(self) -> np.ndarray | None:
+        if self.flow is None or self.rigid_flow_at_input is None:
+            return None
+        rigid = self.rigid_flow
+        assert rigid is not None
+        return self.flow - rigid  # resizing is linear: the residual graph output resized, one resize saved
 
 
 @dataclass(frozen=True)

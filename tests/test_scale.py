@@ -123,8 +123,6 @@ def _frame(index: int, depth: np.ndarray, forward_m: float | None):
         pose_to_next=pose,
         pose_vector_to_next=None if pose is None else np.array([0, 0, -forward_m, 0, 0, 0], np.float32),
         flow=None,
-        rigid_flow=None,
-        residual_flow=None,
         undistorted=False,
         timings_ms={},
     )
