@@ -64,10 +64,13 @@ LEVERS = """\
   barely beat its fp32 ones on these nets.
 - *`auto`*: per graph, the faster engine at load. It keeps onnxruntime for the rigid-flow op
   (GridSample is slower in OpenVINO), OpenVINO for the ConvNets.
-- *onnxruntime's CPU memory arena off*: first measured as a few % slower and kept on; issue 30
-  measured it again in one interleaved run per model (fresh processes, 8-frame sequences at
-  1242×375): speed within run-to-run noise, peak memory after a 4-frame sequence 178 → 110 MiB
-  (small INT8), 220 → 130 (small FP32), 326 → 232 (resnet50 INT8). Off since then.
+- *onnxruntime's CPU memory arena*: one arena per session kept each session's largest buffers
+  (a cascade has four). Issue 30 measured, in fresh processes (peak added by a predictor after a
+  4-frame 1242×375 sequence, small INT8 / resnet50 INT8), and `predict` on the KITTI drive
+  interleaved: one arena per session 178 / 326 MiB; no arena 110 / 232 MiB but `predict` 6–10 %
+  slower (every run's buffers are fresh pages: system time 0.9 → 1.4 s); one arena shared by every
+  session of the process (onnxruntime's environment allocator) 112 / 259 MiB at the speed of
+  per-session arenas. Shared since then.
   *Weight prepacking off*: about 3× slower; kept on.
 - *A gather-based bilinear warp instead of GridSample in the rigid op*: not faster in
   onnxruntime; not adopted. The rigid op is the largest single cost of the small cascade and

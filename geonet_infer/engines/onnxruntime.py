@@ -12,14 +12,17 @@ CPU facts behind the defaults (``../shared/reference/onnx_notes.md`` section 2):
   work (numpy pre-processing, other sessions). Off by default here.
 * ``inter_op_num_threads`` only matters for ``ORT_PARALLEL``; we keep sequential
   execution and 1 inter-op thread.
-* The CPU memory arena is off: each session's arena keeps its largest run's buffers for
-  good, and a cascade has four sessions. Measured (issue 30, docs/performance.md): peak memory
-  after a 4-frame sequence 178 -> 110 MiB for the small INT8 model, 326 -> 232 for resnet50
-  INT8, speed within run-to-run noise.
+* Every session of the process allocates from one shared CPU arena (onnxruntime's
+  environment allocator, :func:`_share_one_arena`) instead of one arena each: an arena keeps
+  its largest run's buffers for good, and a cascade has four sessions. Measured in one
+  interleaved run (issue 30, docs/performance.md): peak memory after a 4-frame sequence
+  178 -> 112 MiB for the small INT8 model, predict as fast; with no arena at all 110 MiB, but
+  every run's buffers are then fresh pages (system time 0.9 -> 1.4 s, predict 6-10 % slower).
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -55,7 +58,8 @@ def make_session_options(
     so.graph_optimization_level = OPT_LEVELS[opt_level]
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     so.inter_op_num_threads = 1
-    so.enable_cpu_mem_arena = False  # see the module docstring
+    if _share_one_arena():  # see the module docstring
+        so.add_session_config_entry("session.use_env_allocators", "1")
     if threads is not None:
         so.intra_op_num_threads = threads
     flag = "1" if spinning else "0"
@@ -63,6 +67,25 @@ def make_session_options(
     so.add_session_config_entry("session.inter_op.allow_spinning", flag)
     so.log_severity_level = 3  # errors only; warnings about unused initialisers are noise
     return so
+
+
+_arena_lock = threading.Lock()
+_arena_shared: bool | None = None  # None: not tried yet
+
+
+def _share_one_arena() -> bool:
+    """Register one CPU arena for the whole process, once; False where this onnxruntime cannot
+    (then each session keeps its own arena, onnxruntime's default)."""
+    global _arena_shared
+    with _arena_lock:
+        if _arena_shared is None:
+            try:
+                info = ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT)
+                ort.create_and_register_allocator(info, ort.OrtArenaCfg(0, -1, -1, -1))  # onnxruntime's defaults
+                _arena_shared = True
+            except Exception:  # noqa: BLE001 -- missing in old versions (AttributeError) or onnxruntime's Fail
+                _arena_shared = False
+        return _arena_shared
 
 
 def make_session(
@@ -138,7 +161,7 @@ class OrtEngine:
             "enable_cpu_mem_arena": so.enable_cpu_mem_arena,
             "enable_mem_pattern": so.enable_mem_pattern,
         }
-        for key in ("session.intra_op.allow_spinning", "session.inter_op.allow_spinning"):
+        for key in ("session.intra_op.allow_spinning", "session.inter_op.allow_spinning", "session.use_env_allocators"):
             try:
                 out[key] = so.get_session_config_entry(key)
             except Exception:  # noqa: BLE001 -- unset keys raise in some onnxruntime versions
