@@ -33,6 +33,8 @@ from identical_outputs import REPO, revision_tree
 from memory import CHILD as MEMORY_CHILD
 from predict_fps import OUTPUTS, one_run
 
+from geonet_infer.benchmark import SPEED_TARGETS, speed_target_values, target_distance
+
 SECTION = "## Speed targets"
 
 
@@ -59,13 +61,6 @@ def backends() -> list[str]:
     return [name for name, cls in ENGINES.items() if cls.available()]
 
 
-def p50(bench: dict, task: str, mode: str, precision: str, backend: str) -> float | None:
-    for r in bench["results"]:
-        if (r["task"], r["mode"], r["precision"], r["backend"], r["batch"]) == (task, mode, precision, backend, 1):
-            return r["p50_ms"]
-    return None
-
-
 def int8_flow_delta_pct(tree: Path) -> float | None:
     """The bundled model's INT8 flow EPE-noc delta in % of FP32, as export recorded it in the manifest."""
     manifest = json.loads((tree / "geonet_infer" / "models" / "small_synth" / "manifest.json").read_text())
@@ -76,18 +71,15 @@ def int8_flow_delta_pct(tree: Path) -> float | None:
 def figures(
     bench: dict, rigid_numpy: dict | None, memory: dict, fps: dict[str, float], int8_flow_delta: float | None
 ) -> dict[str, float | None]:
-    """One tree's value for each target (ms, ratio, frames/s or MiB)."""
-    engines = sorted({r["backend"] for r in bench["results"]})
-    seq = {(e, p): p50(bench, "sequence", "e2e", p, e) for e in engines for p in ("fp32", "int8")}
-    graph = {(e, p): p50(bench, "sequence", "graph", p, e) for e in engines for p in ("fp32", "int8")}
-    ort = {p: seq[("onnxruntime", p)] for p in ("fp32", "int8")}
-    rigid = [p50(b, "rigid_flow", "graph", "fp32", "onnxruntime") for b in (bench, rigid_numpy) if b]
+    """One tree's value for each target (ms, ratio, frames/s or MiB); 1-4 as ``geonet-infer bench --json``
+    reports them (:func:`geonet_infer.benchmark.speed_target_values`), the rigid op in its fastest form."""
+    measured = speed_target_values(bench["results"], "small")
+    if rigid_numpy is not None:
+        numpy_op = speed_target_values(rigid_numpy["results"], "small").get("3_rigid_op_ms")
+        forms = [v for v in (measured.get("3_rigid_op_ms"), numpy_op) if v is not None]
+        measured["3_rigid_op_ms"] = min(forms) if forms else None
     return {
-        "1a_best_engine_ms": min(v for v in seq.values() if v is not None),
-        "1b_onnxruntime_ms": min(v for v in ort.values() if v is not None),
-        "2_pre_post_ms": min(seq[k] - graph[k] for k in seq if seq[k] is not None and graph[k] is not None),
-        "3_rigid_op_ms": min(v for v in rigid if v is not None),
-        "4_int8_speedup_onnxruntime": ort["fp32"] / ort["int8"] if ort["fp32"] and ort["int8"] else None,
+        **{key: measured.get(key) for key in BENCH_KEYS},
         "4b_int8_flow_epe_delta_pct": int8_flow_delta,
         "5a_predict_fps": fps["all outputs"],
         "5b_predict_no_vis_fps": fps["--no-vis"],
@@ -95,12 +87,9 @@ def figures(
     }
 
 
-TARGETS = {  # key: (what, target, "max" = at most / "min" = at least)
-    "1a_best_engine_ms": ("small cascade, sequence, per frame, e2e 1242x375, best engine (ms)", 8, "max"),
-    "1b_onnxruntime_ms": ("same, onnxruntime only (ms)", 12, "max"),
-    "2_pre_post_ms": ("pre- and post-processing per frame, e2e - graph (ms)", 1.5, "max"),
-    "3_rigid_op_ms": ("rigid-flow op on onnxruntime's host, fastest form (ms)", 1.0, "max"),
-    "4_int8_speedup_onnxruntime": ("INT8 cascade vs FP32 on onnxruntime (x faster)", 1.5, "min"),
+BENCH_KEYS = ("1a_best_engine_ms", "1b_onnxruntime_ms", "2_pre_post_ms", "3_rigid_op_ms", "4_int8_speedup_onnxruntime")
+TARGETS = {  # key: (what, target, "max" = at most / "min" = at least); 1-4 from geonet_infer.benchmark
+    **{key: SPEED_TARGETS[key] for key in BENCH_KEYS},
     "4b_int8_flow_epe_delta_pct": ("INT8 flow EPE-noc vs FP32, synthetic held-out, from the manifest (+%)", 5, "max"),
     "5a_predict_fps": ("predict, 78-frame KITTI drive, all outputs (frames/s)", 25, "min"),
     "5b_predict_no_vis_fps": ("predict with --no-vis (frames/s)", 40, "min"),
@@ -168,8 +157,8 @@ OUTSIDE_NETWORKS = ("flow_png_ours_ms", "colour_pngs_ours_ms", "colour_maps_ms",
 def distance(key: str, value: float | None) -> str:
     if value is None:
         return "—"
-    _, target, sense = TARGETS[key]
-    ratio = value / target if sense == "max" else target / value
+    _, goal, sense = TARGETS[key]
+    ratio = target_distance(value, goal, sense)
     return f"{ratio:.2f}" + (" (met)" if ratio <= 1 else "")
 
 

@@ -152,6 +152,67 @@ def test_environment_block(bundled_run):
     assert env["peak_rss_mib"] >= mem["peak_rss_mib"]
 
 
+def test_json_records_the_speed_targets_this_run_measured(bundled_run):
+    """The bundled (small) model, fp32 only, at 1242x375: targets 1a, 1b, 2 and 3 read off the rows
+    (by hand here), 4 needs INT8 (not run), 7 is resnet50's."""
+    _, data = bundled_run
+    rows = {(r["task"], r["mode"]): r["p50_ms"] for r in data["results"]}
+    targets = data["speed_targets"]
+    assert set(targets) == {"1a_best_engine_ms", "1b_onnxruntime_ms", "2_pre_post_ms", "3_rigid_op_ms"}
+    assert targets["1a_best_engine_ms"]["value"] == targets["1b_onnxruntime_ms"]["value"] == rows[("sequence", "e2e")]
+    assert targets["2_pre_post_ms"]["value"] == pytest.approx(rows[("sequence", "e2e")] - rows[("sequence", "graph")])
+    assert targets["3_rigid_op_ms"]["value"] == rows[("rigid_flow", "graph")]
+    one = targets["1a_best_engine_ms"]
+    assert (one["goal"], one["sense"]) == (8, "max") and one["distance"] == pytest.approx(one["value"] / 8)
+
+
+def _row(task, mode, precision, backend, p50, per_pair=None):
+    return {
+        "task": task,
+        "mode": mode,
+        "precision": precision,
+        "backend": backend,
+        "batch": 1,
+        "p50_ms": p50,
+        "per_pair_p50_ms": per_pair,
+    }
+
+
+def test_speed_target_values_from_hand_made_rows():
+    from geonet_infer.benchmark import speed_target_values, speed_targets
+
+    rows = [
+        _row("sequence", "e2e", "fp32", "onnxruntime", 30.0),
+        _row("sequence", "graph", "fp32", "onnxruntime", 26.0),
+        _row("sequence", "e2e", "int8", "onnxruntime", 24.0),
+        _row("sequence", "graph", "int8", "onnxruntime", 21.0),
+        _row("sequence", "e2e", "int8", "openvino", 16.0),
+        _row("sequence", "graph", "int8", "openvino", 12.5),
+        _row("rigid_flow", "graph", "fp32", "onnxruntime", 3.0),
+        _row("rigid_flow", "graph", "fp32", "openvino", 2.0),  # not onnxruntime's: not target 3
+        {**_row("sequence", "e2e", "fp32", "onnxruntime", 1.0), "batch": 2},  # batch 2: ignored
+    ]
+    assert speed_target_values(rows, "small") == {
+        "1a_best_engine_ms": 16.0,
+        "1b_onnxruntime_ms": 24.0,
+        "2_pre_post_ms": 3.0,  # min over (30-26, 24-21, 16-12.5)
+        "3_rigid_op_ms": 3.0,
+        "4_int8_speedup_onnxruntime": 1.25,
+    }
+    assert speed_target_values(rows, "small", kitti_size=False) == {"3_rigid_op_ms": 3.0}
+    assert speed_targets(rows, "small")["4_int8_speedup_onnxruntime"]["distance"] == pytest.approx(1.5 / 1.25)
+    r50 = [
+        _row("depth", "graph", "int8", "onnxruntime", 40.0),
+        _row("depth", "graph", "int8", "openvino", 23.0),
+        _row("depth", "graph", "fp32", "openvino", 20.0),  # fp32: not target 7
+        _row("sequence", "e2e", "int8", "openvino", 60.0, per_pair=68.0),
+    ]
+    assert speed_target_values(r50, "resnet50") == {
+        "7a_resnet50_int8_depth_ms": 23.0,
+        "7b_resnet50_int8_flow_pair_ms": 68.0,
+    }
+
+
 def test_table_is_printed(capsys, tmp_path):
     rc, out, err = run_cli(
         capsys, *FAST, "--precision", "fp32", "--tasks", "pose", "--modes", "graph", "--input-size", "graph"

@@ -52,6 +52,7 @@ from geonet_infer.benchmark import (
     model_summary,
     paper_line,
     result_row,
+    speed_targets,
     thread_env,
 )
 from geonet_infer.cli.common import add_model_args, backend_help
@@ -367,7 +368,14 @@ def run(args: argparse.Namespace) -> int:
             f"batch {s.get('batch', '-')}: {s['reason']}"
         )
     if args.json is not None:
+        kitti_size = tuple(env["input_size"]) == DEFAULT_INPUT_SIZE
+        record = {
+            "environment": env,
+            "results": results,
+            "skipped": skipped,
+            "speed_targets": speed_targets(results, model["arch"], kitti_size),
+        }
         with atomic_write(args.json) as tmp:
-            tmp.write_text(json.dumps({"environment": env, "results": results, "skipped": skipped}, indent=2) + "\n")
+            tmp.write_text(json.dumps(record, indent=2) + "\n")
         print(f"JSON -> {args.json}")
     return 0
