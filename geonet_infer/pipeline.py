@@ -65,7 +65,7 @@ VIDEO_HEIGHT = 256  # panel height of the result video: three panels side by sid
 FOLDER_FPS = 10.0  # the result video's rate for frame folders (KITTI raw is 10 Hz)
 CAMERA_NAME = "camera.txt"
 WORLD_CLOUD_NAME = "points_world.ply"
-WRITE_THREADS = 2  # frames written while the next are predicted; PNG encoding is most of a frame's cost
+WRITE_THREADS = 2  # frames written while the next are predicted; colour maps and PNGs are most of the cost
 SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
 OUTPUT_MARKER = ".geonet-predict"  # JSON: the files the run that owns OUT may write
 OUTPUT_LOCK = ".geonet-predict.lock"  # the pid of the run writing into OUT now
@@ -634,7 +634,7 @@ class _Written:
 class _FrameWriter:
     """Writes each frame's files on worker threads while the next frames are predicted.
 
-    PNG/zlib encoding, the colour maps and file writes release the GIL, so on a 2-core machine
+    PNG encoding (ISA-L deflate), the colour maps and file writes release the GIL, so on a 2-core machine
     the writing overlaps the networks instead of following them. Results come back in frame
     order with what the write made (:class:`_Written`); at most ``in_flight`` frames wait (bounded
     memory). A failed write raises from :meth:`submit` or :meth:`drain`; :meth:`close` finishes
