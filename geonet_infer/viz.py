@@ -31,7 +31,7 @@ def _make_color_wheel() -> np.ndarray:
 
 
 _COLOR_WHEEL = _make_color_wheel()
-_WHEEL01 = (_COLOR_WHEEL / 255).astype(np.float32)
+_WHEEL01_PLANES = np.ascontiguousarray((_COLOR_WHEEL / 255).astype(np.float32).T)  # (3, 55): R, G, B
 
 
 def flow_to_color(flow: np.ndarray, max_flow: float | None = None, valid: np.ndarray | None = None) -> np.ndarray:
@@ -87,20 +87,21 @@ def _wheel_colours(u: np.ndarray, v: np.ndarray, rad: np.ndarray, img: np.ndarra
     fk /= np.float32(np.pi)
     fk += 1
     fk *= np.float32((ncols - 1) / 2)
-    k0 = fk.astype(np.int32)  # fk >= 0: truncation is floor
+    k0 = fk.astype(np.intp)  # fk >= 0: truncation is floor; intp: what np.take indexes with
     k1 = k0 + 1
     k1[k1 == ncols] = 0
     f = fk - k0  # float64
     g = 1 - f
+    rad64 = rad.astype(np.float64)  # converted once, not once per channel
     dark = rad > 1  # beyond max_flow the colour darkens; below, saturation grows with magnitude
     col = np.empty_like(f)
     other = np.empty_like(f)
     for c in range(3):
-        np.multiply(g, np.take(_WHEEL01[:, c], k0), out=col)
-        col += np.multiply(f, np.take(_WHEEL01[:, c], k1), out=other)
+        np.multiply(g, np.take(_WHEEL01_PLANES[c], k0), out=col)
+        col += np.multiply(f, np.take(_WHEEL01_PLANES[c], k1), out=other)
         np.multiply(col, np.float32(0.75), out=other)
         np.subtract(1, col, out=col)
-        col *= rad
+        col *= rad64
         np.subtract(1, col, out=col)
         np.copyto(col, other, where=dark)
         col *= 255
