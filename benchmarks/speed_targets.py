@@ -78,13 +78,15 @@ def figures(
     bench: dict,
     rigid_numpy: dict | None,
     memory: dict,
-    fps: dict[str, float],
+    predicts: dict[str, dict],
     int8_flow_delta: float | None,
     resnet50: dict | None = None,
-) -> dict[str, float | None]:
+) -> dict:
     """One tree's value for each target (ms, ratio, frames/s or MiB); 1-4 as ``geonet-infer bench --json``
-    reports them (:func:`geonet_infer.benchmark.speed_target_values`), the rigid op in its fastest form."""
+    reports them (:func:`geonet_infer.benchmark.speed_target_values`), the rigid op in its fastest form;
+    and predict's CPU ms per frame (``predicts``: :func:`predict_fps.one_run` per output setting)."""
     measured = speed_target_values(bench["results"], "small")
+    r50 = speed_target_values(resnet50["results"], "resnet50") if resnet50 else {}
     if rigid_numpy is not None:
         numpy_op = speed_target_values(rigid_numpy["results"], "small").get("3_rigid_op_ms")
         forms = [v for v in (measured.get("3_rigid_op_ms"), numpy_op) if v is not None]
@@ -92,12 +94,11 @@ def figures(
     return {
         **{key: measured.get(key) for key in BENCH_KEYS},
         "4b_int8_flow_epe_delta_pct": int8_flow_delta,
-        "5a_predict_fps": fps["all outputs"],
-        "5b_predict_no_vis_fps": fps["--no-vis"],
+        "5a_predict_fps": predicts["all outputs"]["frames_per_s"],
+        "5b_predict_no_vis_fps": predicts["--no-vis"]["frames_per_s"],
         "6_memory_small_int8_mib": memory["predictor_mib"],
-        **{
-            key: (speed_target_values(resnet50["results"], "resnet50") if resnet50 else {}).get(key) for key in R50_KEYS
-        },
+        **{key: r50.get(key) for key in R50_KEYS},
+        "predict_cpu_ms_per_frame": {outputs: run["cpu_ms_per_frame"] for outputs, run in predicts.items()},
     }
 
 
@@ -249,7 +250,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resnet50", type=Path, help="a resnet50 export: also measure target 7 on it")
     args = parser.parse_args(argv)
     runs: dict[str, list] = {"before": [], "after": []}
-    cpu: dict[str, list[dict[str, float]]] = {"before": [], "after": []}  # predict's CPU ms per frame
     with tempfile.TemporaryDirectory(prefix="geonet_targets_") as tmp, revision_tree(args.against, Path(tmp)) as old:
         trees = [("before", old), ("after", REPO)]
         for r in range(args.rounds):
@@ -265,7 +265,6 @@ def main(argv: list[str] | None = None) -> int:
                     outputs: one_run(tree, flags, Path(tmp) / f"out_{label}_{r}_{i}")
                     for i, (outputs, flags) in enumerate(OUTPUTS.items())
                 }
-                fps = {outputs: run["frames_per_s"] for outputs, run in predicts.items()}
                 r50 = (
                     run_bench(
                         tree,
@@ -275,8 +274,7 @@ def main(argv: list[str] | None = None) -> int:
                     if args.resnet50
                     else None
                 )
-                runs[label].append(figures(bench, numpy_op, run_memory(tree), fps, int8_flow_delta_pct(tree), r50))
-                cpu[label].append({outputs: run["cpu_ms_per_frame"] for outputs, run in predicts.items()})
+                runs[label].append(figures(bench, numpy_op, run_memory(tree), predicts, int8_flow_delta_pct(tree), r50))
         kitti = Path(tmp) / f"out_after_{args.rounds - 1}_0"
         measured_bounds = bounds(
             kitti, sorted((REPO / "../shared/realdata/kitti_raw_2011_09_26_sfnd/image_02/data").glob("*.png"))[0]
@@ -301,11 +299,12 @@ def main(argv: list[str] | None = None) -> int:
         **summary,
         "bounds_ms": measured_bounds,
         **{
-            f"{label}_cpu_ms_per_frame": {k: statistics.median(c[k] for c in values) for k in OUTPUTS}
-            for label, values in cpu.items()
+            f"{label}_cpu_ms_per_frame": {
+                k: statistics.median(v["predict_cpu_ms_per_frame"][k] for v in values) for k in OUTPUTS
+            }
+            for label, values in runs.items()
         },
         "runs": runs,
-        "predict_cpu_ms_per_frame": cpu,
     }
     text = section(result)
     print(text)
