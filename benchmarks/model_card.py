@@ -866,10 +866,15 @@ def _real_section(result: dict) -> list[str]:
     ]
 
 
+def _experiment_rounds(result: dict) -> list[dict]:
+    """The real-pose experiment's rounds in order (a card written before rounds were a list holds one)."""
+    return result.get("experiments") or ([result["experiment"]] if result.get("experiment") else [])
+
+
 def _trained_real_frames_note(result: dict) -> list[str]:
     """The real frames a shipped round of the real-pose experiment trained on: the pose rows of those
     sequences are not held out."""
-    rounds = result.get("experiments") or ([result["experiment"]] if result.get("experiment") else [])
+    rounds = _experiment_rounds(result)
     shipped = [e for e in rounds if (e.get("verdict") or {}).get("ship")]
     if not shipped:
         return []
@@ -894,7 +899,7 @@ EXPERIMENT_ROWS = (  # (label, key of benchmarks.real_pose_experiment.figures, j
 def _experiment_section(result: dict) -> list[str]:
     """Section "Real-pose fine-tuning": per round, the rule written before scoring and, once scored,
     before/after."""
-    rounds = result.get("experiments") or ([result["experiment"]] if result.get("experiment") else [])
+    rounds = _experiment_rounds(result)
     if not rounds:
         return []
     L = ["## Real-pose fine-tuning experiment (issue 32)", ""]
