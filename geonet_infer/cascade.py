@@ -407,7 +407,7 @@ class GraphSet:
     ``backend``: a name of :data:`geonet_infer.engines.ENGINES`, or "auto" (the faster engine per
     graph, timed here). Every graph's inputs and outputs are checked against the manifest.
     ``rigid_op``: "graph" runs ``rigidflow.onnx`` on ``backend`` like the other graphs; "numpy" runs
-    the weightless op with :class:`geonet_infer.rigid.RigidFlowOp` (about twice as fast, within
+    the weightless op with :class:`geonet_infer.rigid.RigidFlowOp` (about 1.5x as fast, within
     2e-4 px of the graph) where the manifest's sampler is the one it implements.
     """
 

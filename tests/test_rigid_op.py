@@ -88,13 +88,14 @@ def _ssim_at(x: np.ndarray, y: np.ndarray, v: int, u: int) -> np.ndarray:
     return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
 
 
-def test_error_map_matches_ssim_and_l1_written_out_per_pixel():
+@pytest.mark.parametrize("height, width", [(6, 8), (1, 5), (4, 1), (2, 2), (1, 1)])
+def test_error_map_matches_ssim_and_l1_written_out_per_pixel(height, width):
     rng = np.random.default_rng(1)
-    warped = rng.uniform(-1, 1, (3, 6, 8)).astype(np.float32)
-    target = rng.uniform(-1, 1, (3, 6, 8)).astype(np.float32)
+    warped = rng.uniform(-1, 1, (3, height, width)).astype(np.float32)
+    target = rng.uniform(-1, 1, (3, height, width)).astype(np.float32)
     alpha = 0.85
     error = photometric_error_map(warped, target, alpha)
-    for v, u in ((0, 0), (0, 4), (3, 3), (5, 7), (2, 7)):
+    for v, u in np.ndindex(height, width):  # corners, edges and inside: windows of 9, 6, 4, 3, 2 and 1 pixels
         dssim = np.clip((1 - _ssim_at(warped.astype(np.float64), target.astype(np.float64), v, u)) / 2, 0, 1)
         per_channel = alpha * dssim + (1 - alpha) * np.abs(warped[:, v, u] - target[:, v, u]) + 1e-10
         assert error[v, u] == pytest.approx(np.sqrt((per_channel**2).sum()), rel=1e-4), (v, u)
