@@ -34,10 +34,13 @@ loaded = current_rss_mib()
 rng = np.random.default_rng(0)
 frames = [rng.integers(0, 255, (375, 1242, 3), dtype=np.uint8) for _ in range(4)]
 K = np.array([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]])
-predictor.predict_sequence(frames, camera=K)
+result = predictor.predict_sequence(frames, camera=K)
 peak = peak_rss_mib()
+arrays = [v for f in result.frames for v in vars(f).values() if isinstance(v, np.ndarray)]
 print(json.dumps({"model": model, "precision": precision, "backend": backend, "graph_files_mib": graph_mib,
                   "rss_before_load_mib": before, "rss_after_load_mib": loaded, "peak_rss_mib": peak,
+                  "inputs_mib": sum(f.nbytes for f in frames) / 2**20,
+                  "results_mib": sum(a.nbytes for a in arrays) / 2**20,
                   "predictor_mib": peak - before, "predictor_over_graph_files": (peak - before) / graph_mib,
                   "peak_over_graph_files": peak / graph_mib}))
 """

@@ -16,7 +16,10 @@ value / target (<= 1 met).
 from each tree's bundled manifest (the INT8 accuracy delta export measured on the held-out synthetic
 sequences). 7 (the paper's resnet50 networks) is measured when ``--resnet50 DIR`` names a resnet50
 export (``python -m export --arch resnet50 ...``): ``geonet-infer bench`` on it, INT8, depth and
-sequence, every engine, for both trees.
+sequence, every engine, for both trees. Then, for this checkout only, what bounds each target left
+unmet (:mod:`target_limits`: the parts of the work each target covers timed alone, the networks'
+convolution MACs against this machine's int8 GEMM peak, onnxruntime's int8 profile, and the flow
+accuracy with each network kept in fp32), as a table under the targets.
 """
 
 from __future__ import annotations
@@ -31,11 +34,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import target_limits
 from identical_outputs import REPO, revision_tree
 from memory import CHILD as MEMORY_CHILD
 from predict_fps import OUTPUTS, one_run
 
 from geonet_infer.benchmark import SPEED_TARGETS, speed_target_values, target_distance
+from geonet_infer.models import resolve_model
 
 SECTION = "## Speed targets"
 
@@ -91,6 +96,10 @@ def figures(
         numpy_op = speed_target_values(rigid_numpy["results"], "small").get("3_rigid_op_ms")
         forms = [v for v in (measured.get("3_rigid_op_ms"), numpy_op) if v is not None]
         measured["3_rigid_op_ms"] = min(forms) if forms else None
+    rows = {
+        (r["task"], r["mode"], r["precision"], r["backend"]): r["p50_ms"] for r in bench["results"] if r["batch"] == 1
+    }
+    networks = {key: ms for key, ms in rows.items() if key[:2] == ("sequence", "graph")}
     return {
         **{key: measured.get(key) for key in BENCH_KEYS},
         "4b_int8_flow_epe_delta_pct": int8_flow_delta,
@@ -99,7 +108,24 @@ def figures(
         "6_memory_small_int8_mib": memory["predictor_mib"],
         **{key: r50.get(key) for key in R50_KEYS},
         "predict_cpu_ms_per_frame": {outputs: run["cpu_ms_per_frame"] for outputs, run in predicts.items()},
+        # what bounds the targets: the sequence's graphs alone, and the memory's parts
+        "networks_best_ms": min(networks.values(), default=None),
+        "networks_onnxruntime_ms": min((v for k, v in networks.items() if k[3] == "onnxruntime"), default=None),
+        "rigid_graph_onnxruntime_ms": rows.get(("rigid_flow", "graph", "fp32", "onnxruntime")),
+        "memory_load_mib": memory["rss_after_load_mib"] - memory["rss_before_load_mib"],
+        "memory_inputs_mib": memory.get("inputs_mib"),
+        "memory_results_mib": memory.get("results_mib"),
     }
+
+
+LIMIT_KEYS = (
+    "networks_best_ms",
+    "networks_onnxruntime_ms",
+    "rigid_graph_onnxruntime_ms",
+    "memory_load_mib",
+    "memory_inputs_mib",
+    "memory_results_mib",
+)
 
 
 BENCH_KEYS = ("1a_best_engine_ms", "1b_onnxruntime_ms", "2_pre_post_ms", "3_rigid_op_ms", "4_int8_speedup_onnxruntime")
@@ -154,6 +180,24 @@ def bounds(predict_out: Path, frame: Path) -> dict[str, float]:
         "input_png_decode_ms": _median_ms(lambda: cv2.imdecode(frame_bytes, cv2.IMREAD_COLOR)),
         "resize_inter_area_ms": _median_ms(lambda: cv2.resize(rgb, (416, 128), interpolation=cv2.INTER_AREA)),
     }
+
+
+def limits(frame: Path, resnet50: Path | None) -> dict:
+    """This checkout's measured limits (:mod:`target_limits`): GEMM peaks, the networks' MACs, the parts of
+    pre/post-processing and of the rigid op, onnxruntime's int8 profile and the int8 flow sensitivity."""
+    small = resolve_model(target_limits.SMALL)
+    out = {
+        "gemm_peaks": target_limits.gemm_peaks(os.cpu_count() or 1),
+        "small_gmacs_per_frame": target_limits.sequence_macs_per_frame(small) / 1e9,
+        "pre_post_ms": target_limits.pre_post_ms(frame),
+        "rigid_op_parts_ms": target_limits.rigid_op_parts_ms(),
+        "onnxruntime_int8": target_limits.onnxruntime_int8_profile(small),
+        "int8_flow_sensitivity": target_limits.int8_flow_sensitivity(REPO),
+    }
+    if resnet50 is not None:
+        out["resnet50_depth_gmacs"] = target_limits.graph_macs(resnet50 / "depthnet.onnx") / 1e9
+        out["resnet50_gmacs_per_frame"] = target_limits.sequence_macs_per_frame(resnet50) / 1e9
+    return out
 
 
 BOUND_LABELS = {
@@ -215,6 +259,17 @@ def section(result: dict) -> str:
         "|---|---|",
     ]
     lines += [f"| {BOUND_LABELS[k]} | {v:.1f} |" for k, v in result["bounds_ms"].items()]
+    peaks = result["limits"]["gemm_peaks"]
+    lines += [
+        "",
+        "What bounds each unmet target, measured in the same run (this checkout; GEMM peaks of this machine: "
+        f"int8 {peaks['int8_gops']:.0f} GOP/s with `torch._int_mm`, fp32 {peaks['fp32_gflops']:.0f} GFLOP/s with "
+        f"`torch.mm`, n = 2048, {result['cpus']} threads; convolution MACs from the fp32 graphs' shapes):",
+        "",
+        "| target | what bounds it |",
+        "|---|---|",
+        *(f"| {target} | {text} |" for target, text in limit_rows(result)),
+    ]
     outside = sum(result["bounds_ms"][k] for k in OUTSIDE_NETWORKS)
     cpu = result["after_cpu_ms_per_frame"]
     lines += [
@@ -229,6 +284,137 @@ def section(result: dict) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def limit_rows(result: dict) -> list[tuple[str, str]]:
+    """(target, what bounds it, measured) for every target the run left unmet."""
+    after, lim = result["after"], result["limits"]
+    peaks = lim["gemm_peaks"]
+    int8_peak, fp32_peak = peaks["int8_gops"], peaks["fp32_gflops"]
+    unmet = {
+        key
+        for key, (_, goal, sense) in TARGETS.items()
+        if after.get(key) is not None and target_distance(after[key], goal, sense) > 1
+    }
+    rows = []
+
+    def at_peak(gmacs: float, ms: float | None, key: str) -> str:
+        floor = 2 * gmacs / int8_peak * 1e3
+        text = f"{2 * gmacs:.2f} GOP of convolutions: {floor:.1f} ms at the int8 GEMM peak"
+        if floor > TARGETS[key][1]:
+            text += f", more than the {TARGETS[key][1]:g} ms goal (out of reach on this machine)"
+        if ms is not None:
+            achieved = 2 * gmacs / ms * 1e3
+            text += f"; measured {ms:.1f} ms = {achieved:.0f} GOP/s, {achieved / int8_peak:.0%} of the peak"
+        return text
+
+    small = lim["small_gmacs_per_frame"]
+    if "1a_best_engine_ms" in unmet:
+        rows.append(
+            (
+                "1a",
+                f"the networks alone, best engine: {after['networks_best_ms']:.1f} ms per frame; "
+                + at_peak(small, after["networks_best_ms"], "1a_best_engine_ms"),
+            )
+        )
+    if "1b_onnxruntime_ms" in unmet:
+        ms = after["networks_onnxruntime_ms"]
+        rows.append(
+            (
+                "1b",
+                f"the networks alone on onnxruntime: {ms:.1f} ms per frame "
+                f"({2 * small / ms * 1e3:.0f} GOP/s; fp32 GEMM peak {fp32_peak:.0f} GFLOP/s)",
+            )
+        )
+    if "2_pre_post_ms" in unmet:
+        parts = lim["pre_post_ms"]
+        rows.append(
+            (
+                "2",
+                f"input to the network (resize 1242x375 -> 416x128, normalise) {parts['to_network_ms']:.1f} ms, "
+                f"depth back to 1242x375 {parts['depth_to_input_ms']:.1f} ms, flow back "
+                f"{parts['flow_to_input_ms']:.1f} ms (one thread each)",
+            )
+        )
+    if "3_rigid_op_ms" in unmet:
+        parts = lim["rigid_op_parts_ms"]
+        rows.append(
+            (
+                "3",
+                f"numpy + OpenCV form at 128x416, one thread: rigid flow {parts['rigid_flow_ms']:.1f} ms, "
+                f"bilinear warp {parts['warp_ms']:.1f}, SSIM + L1 error map {parts['error_map_ms']:.1f}, "
+                f"whole op {parts['whole_op_ms']:.1f}; the graph on onnxruntime "
+                f"{after['rigid_graph_onnxruntime_ms']:.1f} ms",
+            )
+        )
+    if "4_int8_speedup_onnxruntime" in unmet:
+        ort = lim["onnxruntime_int8"]
+        graphs = ", ".join(f"{g} {v['fp32']:.1f} -> {v['int8']:.1f}" for g, v in ort["graphs_ms"].items())
+        total = ort["int8_op_total_ms"]
+        top = ", ".join(f"{op} {ms / total:.0%}" for op, ms in list(ort["int8_op_ms"].items())[:4])
+        rows.append(
+            (
+                "4",
+                f"onnxruntime, one thread, fp32 -> int8 ms per graph: {graphs}; onnxruntime's "
+                f"profile of the int8 graphs: {top} of their kernel time",
+            )
+        )
+    sens = lim.get("int8_flow_sensitivity")
+    if "4b_int8_flow_epe_delta_pct" in unmet and sens:
+        epe = sens["fp32_kept"]
+        fp32 = epe["depthnet+posenet+resflownet"]
+        kept = ", ".join(
+            f"{'nothing' if k == 'none' else k} fp32 {100 * (v - fp32) / fp32:+.1f} %"
+            for k, v in epe.items()
+            if k != "depthnet+posenet+resflownet"
+        )
+        rows.append(
+            (
+                "4b",
+                f"flow EPE-noc vs all-fp32 on the held-out synthetic pairs ({sens['pairs']}), int8 "
+                f"cascade with some networks kept in fp32: {kept}",
+            )
+        )
+    cpu = result["after_cpu_ms_per_frame"]
+    if unmet & {"5a_predict_fps", "5b_predict_no_vis_fps"}:
+        rows.append(
+            (
+                "5",
+                f"CPU per frame of whole `predict` processes: {cpu['all outputs']:.0f} ms all outputs, "
+                f"{cpu['--no-vis']:.0f} with --no-vis, against the {result['cpus'] * 40} and "
+                f"{result['cpus'] * 25} core-ms the targets leave; the networks alone take "
+                f"{after['networks_onnxruntime_ms']:.0f} ms of wall on {result['cpus']} threads",
+            )
+        )
+    if "6_memory_small_int8_mib" in unmet:
+        load, inputs, results = (after[k] for k in ("memory_load_mib", "memory_inputs_mib", "memory_results_mib"))
+        rest = after["6_memory_small_int8_mib"] - load - inputs - results
+        rows.append(
+            (
+                "6",
+                f"loading the sessions {load:.0f} MiB, the 4 input frames {inputs:.0f}, the 4 results "
+                f"(depth and flow at 1242x375) {results:.0f}, the rest of the peak {rest:.0f} (onnxruntime's "
+                "buffers and the pre/post-processing's temporaries while a frame runs)",
+            )
+        )
+    if "7a_resnet50_int8_depth_ms" in unmet and "resnet50_depth_gmacs" in lim:
+        rows.append(
+            (
+                "7a",
+                "resnet50 DepthNet, "
+                + at_peak(lim["resnet50_depth_gmacs"], after["7a_resnet50_int8_depth_ms"], "7a_resnet50_int8_depth_ms"),
+            )
+        )
+    if "7b_resnet50_int8_flow_pair_ms" in unmet and "resnet50_gmacs_per_frame" in lim:
+        rows.append(
+            (
+                "7b",
+                "resnet50 cascade per frame, "
+                + at_peak(lim["resnet50_gmacs_per_frame"], None, "7b_resnet50_int8_flow_pair_ms")
+                + f"; measured {after['7b_resnet50_int8_flow_pair_ms']:.1f} ms e2e",
+            )
+        )
+    return rows
 
 
 def replace_section(page: Path, text: str) -> None:
@@ -276,15 +462,16 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 runs[label].append(figures(bench, numpy_op, run_memory(tree), predicts, int8_flow_delta_pct(tree), r50))
         kitti = Path(tmp) / f"out_after_{args.rounds - 1}_0"
-        measured_bounds = bounds(
-            kitti, sorted((REPO / "../shared/realdata/kitti_raw_2011_09_26_sfnd/image_02/data").glob("*.png"))[0]
-        )
+        frame = sorted((REPO / "../shared/realdata/kitti_raw_2011_09_26_sfnd/image_02/data").glob("*.png"))[0]
+        measured_bounds = bounds(kitti, frame)
+        print("limits: parts, GEMM peaks, onnxruntime int8 profile, int8 sensitivity", file=sys.stderr)
+        measured_limits = limits(frame, args.resnet50)
     summary = {
         label: {
             key: statistics.median(v[key] for v in values if v[key] is not None)
             if any(v[key] is not None for v in values)
             else None
-            for key in TARGETS
+            for key in (*TARGETS, *LIMIT_KEYS)
         }
         for label, values in runs.items()
     }
@@ -298,6 +485,7 @@ def main(argv: list[str] | None = None) -> int:
         "resnet50": args.resnet50.name if args.resnet50 else None,
         **summary,
         "bounds_ms": measured_bounds,
+        "limits": measured_limits,
         **{
             f"{label}_cpu_ms_per_frame": {
                 k: statistics.median(v["predict_cpu_ms_per_frame"][k] for v in values) for k in OUTPUTS
