@@ -18,13 +18,15 @@ H x W with ``cv2.INTER_AREA``:
 
 ``rigidflow`` is never quantised: it is geometry (projection, grid sampling),
 not convolutions, and its output is measured in pixels. ``PLANS`` keeps parts of
-the other graphs fp32 (PoseNet's matrix tail, ResFlowNet's output layer) and
+the other graphs fp32 (PoseNet's matrix tail; ResFlowNet's input and output layers and its
+two finest decoder levels) and
 rescales ResFlowNet's fed-back flow before its Concats; the manifest records it
 (``quantization.graph_notes``).
 """
 
 from __future__ import annotations
 
+import re
 import shutil
 import tempfile
 from collections.abc import Iterable, Sequence
@@ -50,6 +52,8 @@ class GraphPlan:
 
     float_after: tuple[str, ...] = ()  # nodes consuming these tensors stay fp32
     float_output_layer: bool = False  # output_layer_nodes stay fp32
+    float_input_layer: bool = False  # input_layer_nodes stay fp32
+    float_finest_levels: int = 0  # decoder_level_nodes of this many finest levels stay fp32
     equalize_concats: bool = False  # equalize_concat_inputs first
 
 
@@ -58,8 +62,12 @@ PLANS = {
     # they collapsed to ~identity (no motion).
     "posenet": GraphPlan(float_after=("pose",)),
     # ResFlowNet's flow is in pixels and its decoder feeds the coarser flow back beside wide
-    # features; both lost ~1 px of agreement with fp32 flow (docs/export.md, "INT8 and flow").
-    "resflownet": GraphPlan(float_output_layer=True, equalize_concats=True),
+    # features; both lost ~1 px of agreement with fp32 flow. Its 12-channel input puts images
+    # (+-1) beside the rigid flow (+-80 px) under one uint8 scale, and its two finest decoder
+    # levels carry the sub-pixel detail: fp32 too (docs/export.md, "INT8 and flow").
+    "resflownet": GraphPlan(
+        float_output_layer=True, float_input_layer=True, float_finest_levels=2, equalize_concats=True
+    ),
 }
 
 
@@ -317,6 +325,26 @@ def downstream_nodes(model: onnx.ModelProto, tensors: Sequence[str]) -> list[str
     return names
 
 
+def input_layer_nodes(model: onnx.ModelProto) -> list[str]:
+    """Nodes that read a graph input directly (ResFlowNet: the first conv over the 12-channel stack)."""
+    inputs = {i.name for i in model.graph.input}
+    return [node.name for node in model.graph.node if inputs.intersection(node.input)]
+
+
+_DECODER_LEVEL = re.compile(r"decoder\.(?:upconvs|iconvs)\.(\d+)\.")  # training/networks/blocks.py's names
+
+
+def decoder_level_nodes(model: onnx.ModelProto, levels: int) -> list[str]:
+    """The Conv nodes of the ``levels`` finest decoder levels (each level's up-convolution and the
+    convolution after it), found by their kernels' parameter names; level numbers grow finer."""
+    by_level: dict[int, list[str]] = {}
+    for node in model.graph.node:
+        match = _DECODER_LEVEL.search(node.input[1]) if node.op_type == "Conv" and len(node.input) > 1 else None
+        if match:
+            by_level.setdefault(int(match.group(1)), []).append(node.name)
+    return [name for level in sorted(by_level)[-levels:] for name in by_level[level]] if levels else []
+
+
 def quantize_graph(
     fp32_path: str | Path,
     out_path: str | Path,
@@ -373,6 +401,17 @@ def quantize_graph(
             raise InputError(fp32_path, f"no nodes consume {list(plan.float_after)}", "re-export the fp32 graph")
         if plan.float_output_layer:
             exclude += output_layer_nodes(graph)
+        if plan.float_input_layer:
+            exclude += [name for name in input_layer_nodes(graph) if name not in exclude]
+        if plan.float_finest_levels:
+            finest = decoder_level_nodes(graph, plan.float_finest_levels)
+            if not finest:
+                raise InputError(
+                    fp32_path,
+                    "no decoder levels found (kernels named decoder.upconvs.N)",
+                    "the plan is for GeoNet's ResFlowNet",
+                )
+            exclude += [name for name in finest if name not in exclude]
         if exclude:
             notes.append(f"fp32 nodes: {', '.join(exclude)}")
         quantize_static(

@@ -135,3 +135,40 @@ def test_op_types_leave_every_other_operator_in_fp32(tmp_path):
         kernels = {i.name: i.data_type for i in model.graph.initializer if i.name.endswith("_quantized")}
         assert len(kernels) == 4 and set(kernels.values()) == {TensorProto.INT8}
     assert "Resize" in qz.quantisable_op_types() and "Conv" in qz.quantisable_op_types()
+
+
+def test_input_layer_nodes_are_the_nodes_reading_a_graph_input(tmp_path):
+    model = decoder_level(tmp_path / "level.onnx")
+    assert qz.input_layer_nodes(model) == ["feat_conv"]
+    qz.quantize_graph(
+        tmp_path / "level.onnx", tmp_path / "q.onnx", feeds(8, seed=1), plan=qz.GraphPlan(float_input_layer=True)
+    )
+    convs = {n.name: n for n in onnx.load(str(tmp_path / "q.onnx")).graph.node if n.op_type == "Conv"}
+    assert convs["feat_conv"].input[1] == "w_feat"  # fp32 kernel, read directly
+    assert convs["mix_conv"].input[1] != "w_mix"
+
+
+def test_decoder_level_nodes_are_the_finest_levels_up_and_integrating_convs():
+    """Kernels named like training/networks/blocks.py's decoder: level 1 is finer than level 0."""
+    names = ["upconvs.0.conv", "iconvs.0", "heads.0", "upconvs.1.conv", "iconvs.1", "heads.1"]
+    nodes = [
+        helper.make_node("Conv", ["x", f"flow_net.decoder.{n}.weight"], [f"y{i}"], name=n) for i, n in enumerate(names)
+    ]
+    nodes.append(helper.make_node("Conv", ["x", "flow_net.encoder.conv1.conv.weight"], ["e"], name="encoder"))
+    graph = helper.make_graph(nodes, "names", [], [])
+    assert qz.decoder_level_nodes(helper.make_model(graph), 1) == ["upconvs.1.conv", "iconvs.1"]
+    assert qz.decoder_level_nodes(helper.make_model(graph), 2) == [
+        "upconvs.0.conv",
+        "iconvs.0",
+        "upconvs.1.conv",
+        "iconvs.1",
+    ]
+    assert qz.decoder_level_nodes(helper.make_model(graph), 0) == []
+
+
+def test_finest_levels_of_a_graph_without_a_decoder_is_an_error(tmp_path):
+    decoder_level(tmp_path / "level.onnx")
+    with pytest.raises(GeoNetError, match="no decoder levels"):
+        qz.quantize_graph(
+            tmp_path / "level.onnx", tmp_path / "q.onnx", feeds(2, seed=1), plan=qz.GraphPlan(float_finest_levels=2)
+        )
