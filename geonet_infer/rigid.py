@@ -171,11 +171,11 @@ def photometric_error_map(
     cv2.boxFilter(
         stacked.reshape(-1, W), -1, (3, 3), dst=sums.reshape(-1, W), normalize=True, borderType=cv2.BORDER_CONSTANT
     )
-    means = sums[:, :, :H]  # sum / 9: a window reaching past an edge holds fewer pixels
-    for axis, size in ((2, H), (3, W)):  # 3 of 3 rows (columns) inside, 2 at an edge, 1 if size is 1
-        edges = [slice(None)] * 4
-        edges[axis] = [0, size - 1] if size > 1 else [0]
-        means[tuple(edges)] *= np.float32(1.5 if size > 1 else 3.0)
+    # sum / 9, where a window reaching past an edge holds fewer pixels: 2 of its 3 rows (columns) at
+    # an edge, 1 in a one-row (one-column) image
+    means = sums[:, :, :H]
+    means[:, :, [0, H - 1] if H > 1 else [0]] *= np.float32(1.5 if H > 1 else 3.0)
+    means[:, :, :, [0, W - 1] if W > 1 else [0]] *= np.float32(1.5 if W > 1 else 3.0)
     mu_x, mu_y, mean_xx, mean_yy, mean_xy = means
     a, b, c = (ws.get(name, (C, H, W)) for name in ("a", "b", "c"))
     np.multiply(mu_x, mu_y, out=a)  # mu_xy
