@@ -270,6 +270,7 @@ def section(result: dict) -> str:
         "|---|---|",
         *(f"| {target} | {text} |" for target, text in limit_rows(result)),
     ]
+    lines += ["", NOT_ADOPTED]
     outside = sum(result["bounds_ms"][k] for k in OUTSIDE_NETWORKS)
     cpu = result["after_cpu_ms_per_frame"]
     lines += [
@@ -284,6 +285,16 @@ def section(result: dict) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+# Levers tried for these targets and left out, each measured in its own interleaved run (not this one).
+NOT_ADOPTED = """\
+Tried and left out (separate interleaved runs, in issue 30's notes):
+- decoding the input frames on a thread ahead of the networks: `predict` 18.3 -> 17.4 frames/s,
+  107-108 CPU-ms per frame either way (the two cores are already busy);
+- onnxruntime's arena growing by the size asked instead of doubling: target 6 111 -> 122 MiB;
+- one frame per DepthNet batch in `predict_sequence` instead of four: target 6 111 -> 93 MiB, but the
+  FP32 sequence 32.0 -> 37.6 ms per frame."""
 
 
 def limit_rows(result: dict) -> list[tuple[str, str]]:

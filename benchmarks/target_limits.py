@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import statistics
+import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -187,6 +188,9 @@ def int8_flow_sensitivity(repo: Path) -> dict | None:
     if not delta or not (prepared / "heldout.txt").is_file():
         return None
     from geonet_infer.predictor import Predictor
+
+    if str(repo) not in sys.path:  # run as a script, only benchmarks/ is on the path
+        sys.path.insert(0, str(repo))
     from training.evaluate import evaluate_flow, heldout_sequences, onnx_flow_fn
 
     sequences = heldout_sequences(prepared)
