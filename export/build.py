@@ -350,7 +350,7 @@ def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):
             tmp / "int8" / f"{graph}.onnx",
             feeds[graph],
             settings,
-            qz.PLANS.get(graph, qz.GraphPlan()),
+            qz.plan_for(graph, src.arch),
         )
         if notes:
             plan_notes[graph] = notes

@@ -172,3 +172,12 @@ def test_finest_levels_of_a_graph_without_a_decoder_is_an_error(tmp_path):
         qz.quantize_graph(
             tmp_path / "level.onnx", tmp_path / "q.onnx", feeds(2, seed=1), plan=qz.GraphPlan(float_finest_levels=2)
         )
+
+
+def test_resnet50_keeps_resflownets_input_layer_quantised():
+    """The fp32 input layer was measured on the small arch only (export/quantize.py, INPUT_LAYER_ARCHS)."""
+    assert qz.plan_for("resflownet", "small") == qz.PLANS["resflownet"]
+    resnet50 = qz.plan_for("resflownet", "resnet50")
+    assert not resnet50.float_input_layer
+    assert resnet50.float_finest_levels == 2 and resnet50.float_output_layer and resnet50.equalize_concats
+    assert qz.plan_for("depthnet", "resnet50") == qz.GraphPlan()
