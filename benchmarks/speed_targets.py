@@ -298,7 +298,7 @@ Tried and left out (separate interleaved runs, in issue 30's notes):
 
 
 def limit_rows(result: dict) -> list[tuple[str, str]]:
-    """(target, what bounds it, measured) for every target the run left unmet."""
+    """(target, what bounds it: measured) for every target the run left unmet."""
     after, lim = result["after"], result["limits"]
     peaks = lim["gemm_peaks"]
     int8_peak, fp32_peak = peaks["int8_gops"], peaks["fp32_gflops"]
