@@ -31,13 +31,13 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import target_limits
 from identical_outputs import REPO, revision_tree
 from memory import CHILD as MEMORY_CHILD
 from predict_fps import OUTPUTS, one_run
+from target_limits import median_ms
 
 from geonet_infer.benchmark import SPEED_TARGETS, speed_target_values, target_distance
 from geonet_infer.models import resolve_model
@@ -140,16 +140,6 @@ TARGETS = {  # key: (what, target, "max" = at most / "min" = at least); 1-4 from
 }
 
 
-def _median_ms(fn, calls: int = 15) -> float:
-    fn()
-    times = []
-    for _ in range(calls):
-        started = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - started) * 1e3)
-    return statistics.median(times)
-
-
 def bounds(predict_out: Path, frame: Path) -> dict[str, float]:
     """CPU ms of the per-frame work no network change removes, measured on one KITTI frame and its outputs."""
     import cv2
@@ -168,17 +158,17 @@ def bounds(predict_out: Path, frame: Path) -> dict[str, float]:
     frame_bytes = np.frombuffer(frame.read_bytes(), np.uint8)
     rgb = cv2.imdecode(frame_bytes, cv2.IMREAD_COLOR)
     return {
-        "flow_png_opencv_ms": _median_ms(lambda: cv2.imencode(".png", flow_bgr16)),
-        "flow_png_opencv_stored_ms": _median_ms(
+        "flow_png_opencv_ms": median_ms(lambda: cv2.imencode(".png", flow_bgr16)),
+        "flow_png_opencv_stored_ms": median_ms(
             lambda: cv2.imencode(".png", flow_bgr16, [cv2.IMWRITE_PNG_COMPRESSION, 0])
         ),
-        "flow_png_ours_ms": _median_ms(lambda: encode_png(flow_rgb16)),
-        "colour_pngs_opencv_ms": _median_ms(lambda: (cv2.imencode(".png", depth_rgb), cv2.imencode(".png", flow_rgb))),
-        "colour_pngs_ours_ms": _median_ms(lambda: (encode_png(depth_rgb), encode_png(flow_rgb))),
-        "colour_maps_ms": _median_ms(lambda: (depth_to_color(depth), flow_to_color(flow))),
-        "depth_npy_ms": _median_ms(lambda: np.save(predict_out / "bounds_depth.npy", depth)),
-        "input_png_decode_ms": _median_ms(lambda: cv2.imdecode(frame_bytes, cv2.IMREAD_COLOR)),
-        "resize_inter_area_ms": _median_ms(lambda: cv2.resize(rgb, (416, 128), interpolation=cv2.INTER_AREA)),
+        "flow_png_ours_ms": median_ms(lambda: encode_png(flow_rgb16)),
+        "colour_pngs_opencv_ms": median_ms(lambda: (cv2.imencode(".png", depth_rgb), cv2.imencode(".png", flow_rgb))),
+        "colour_pngs_ours_ms": median_ms(lambda: (encode_png(depth_rgb), encode_png(flow_rgb))),
+        "colour_maps_ms": median_ms(lambda: (depth_to_color(depth), flow_to_color(flow))),
+        "depth_npy_ms": median_ms(lambda: np.save(predict_out / "bounds_depth.npy", depth)),
+        "input_png_decode_ms": median_ms(lambda: cv2.imdecode(frame_bytes, cv2.IMREAD_COLOR)),
+        "resize_inter_area_ms": median_ms(lambda: cv2.resize(rgb, (416, 128), interpolation=cv2.INTER_AREA)),
     }
 
 
