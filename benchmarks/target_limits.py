@@ -127,15 +127,15 @@ def rigid_op_parts_ms() -> dict[str, float]:
     rng = np.random.default_rng(0)
     depth = np.linspace(5, 50, height, dtype=np.float32)[:, None].repeat(width, 1)
     K = np.array([[0.58 * width, 0, width / 2], [0, 1.9 * height, height / 2], [0, 0, 1]], np.float32)
-    T = rigid.pose_to_matrix(np.array([0.0, 0.0, 0.3, 0.0, 0.01, 0.0]))
+    pose = np.array([0.0, 0.0, 0.3, 0.0, 0.01, 0.0], np.float32)
+    T = rigid.pose_to_matrix(pose)
     source, target = (rng.uniform(-1, 1, (3, height, width)).astype(np.float32) for _ in range(2))
     ws = rigid.Workspace()
     flow = rigid.rigid_flow(depth, T, K, ws).copy()
     warped = rigid.warp_bilinear(source, flow, ws).copy()
     op = rigid.RigidFlowOp(0.85)
-    feeds = {"depth": depth[None, None], "pose": np.zeros((1, 6), np.float32), "intrinsics": K[None]}
+    feeds = {"depth": depth[None, None], "pose": pose[None], "intrinsics": K[None]}
     feeds.update(target=target[None], source=source[None])
-    feeds["pose"][0, 2] = 0.3
     return {
         "rigid_flow_ms": median_ms(lambda: rigid.rigid_flow(depth, T, K, ws), 50),
         "warp_ms": median_ms(lambda: rigid.warp_bilinear(source, flow, ws), 50),

@@ -18,8 +18,8 @@ H x W with ``cv2.INTER_AREA``:
 
 ``rigidflow`` is never quantised: it is geometry (projection, grid sampling),
 not convolutions, and its output is measured in pixels. ``PLANS`` keeps parts of
-the other graphs fp32 (PoseNet's matrix tail; ResFlowNet's input and output layers and its
-two finest decoder levels) and
+the other graphs fp32 (PoseNet's matrix tail; ResFlowNet's output layer, its two finest decoder
+levels and, for the small arch, its input layer: :func:`plan_for`) and
 rescales ResFlowNet's fed-back flow before its Concats; the manifest records it
 (``quantization.graph_notes``).
 """
@@ -415,7 +415,7 @@ def quantize_graph(
         if plan.float_output_layer:
             exclude += output_layer_nodes(graph)
         if plan.float_input_layer:
-            exclude += [name for name in input_layer_nodes(graph) if name not in exclude]
+            exclude += input_layer_nodes(graph)
         if plan.float_finest_levels:
             finest = decoder_level_nodes(graph, plan.float_finest_levels)
             if not finest:
@@ -424,7 +424,8 @@ def quantize_graph(
                     "no decoder levels found (kernels named decoder.upconvs.N)",
                     "the plan is for GeoNet's ResFlowNet",
                 )
-            exclude += [name for name in finest if name not in exclude]
+            exclude += finest
+        exclude = list(dict.fromkeys(exclude))  # a node two rules keep fp32 is named once
         if exclude:
             notes.append(f"fp32 nodes: {', '.join(exclude)}")
         quantize_static(
