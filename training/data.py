@@ -324,6 +324,9 @@ def _seed_worker(worker_id: int) -> None:
     cv2.setNumThreads(1)
 
 
+LOADER_TIMEOUT_S = 300  # a batch takes well under a second to load: 5 minutes without one is a hang
+
+
 def make_loader(
     dataset: Dataset,
     batch_size: int,
@@ -341,6 +344,13 @@ def make_loader(
     """
     generator = torch.Generator()
     generator.manual_seed(seed)
+    workers = {}
+    if num_workers > 0:
+        # Workers come from a forkserver, not fork(): a new loader is made every epoch, by then the
+        # trainer holds running threads (torch's OpenMP pool, tqdm's monitor) and a fork() of a
+        # threaded process can leave a lock held in the child forever (issue 46: a worker idle for
+        # 8 minutes at an epoch boundary). LOADER_TIMEOUT_S turns any other hang into an error.
+        workers = {"multiprocessing_context": "forkserver", "timeout": LOADER_TIMEOUT_S}
     return DataLoader(
         dataset,
         batch_size=batch_size,
@@ -350,4 +360,5 @@ def make_loader(
         generator=generator,
         worker_init_fn=_seed_worker,
         drop_last=drop_last,
+        **workers,
     )

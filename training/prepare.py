@@ -60,6 +60,7 @@ from geonet_infer.io import (
     write_kitti_poses,
 )
 from geonet_infer.metrics import resize_flow_gt
+from training.teachers import TEACHER_FLOWS, TEACHER_POSES, teacher_flow, teacher_motion
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +80,7 @@ RAW_CAMS = ("02", "03")  # KITTI raw colour cameras: left, right
 ODOM_TEST_SEQS = ("09", "10")  # the pose benchmark sequences (spec §8), never trained on
 JPEG_QUALITY = 95
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+TEST_DRIVE = "kitti_raw_2011_09_26_sfnd"  # ../shared/realdata's test set (DEVELOPERS.md): no labels, no training
 PREPARE_HINT = "see python -m training.prepare --help"
 
 
@@ -102,6 +104,8 @@ class PrepareConfig:
     train_depth: bool = False  # synth: also write the target depth of train/val samples (depth supervision)
     train_flow: bool = False  # synth: also write the target's flow to t+1 of train/val samples (flow supervision)
     train_pose: bool = False  # kitti_odom/synth: also write the true motion target -> sources (pose supervision)
+    teacher_flow: str | None = None  # real footage: label flow target -> next with this classical method (teachers)
+    teacher_pose: str | None = None  # real footage: label motion target -> sources with this classical method
     max_frames: int | None = None  # only the first N frames of each sequence (quick runs)
     strict: bool = False  # the first bad input is an error instead of a skip
     calib: Path | None = None  # video/frames: the camera (any format of geonet_infer.io.read_camera)
@@ -139,6 +143,8 @@ class Snippet:
     depth_path: Path | None = None
     flow_path: Path | None = None  # flow target -> next frame (KITTI flow PNG)
     poses: np.ndarray | None = None  # (N_src, 4, 4) true motion target -> source, sources in temporal order
+    teacher_flow: str | None = None  # label the flow to the next frame with this teacher (training.teachers)
+    teacher_pose: str | None = None  # label the motion to the sources with this teacher
 
     @property
     def name(self) -> str:
@@ -624,9 +630,9 @@ def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
     paths = {"jpg": base / f"{snip.frame}.jpg", "cam": base / f"{snip.frame}_cam.txt"}
     if snip.depth_path is not None:
         paths["depth"] = base / f"{snip.frame}_depth.png"
-    if snip.flow_path is not None:
+    if snip.flow_path is not None or snip.teacher_flow:
         paths["flow"] = base / f"{snip.frame}_flow.png"
-    if snip.poses is not None:
+    if snip.poses is not None or snip.teacher_pose:
         paths["pose"] = base / f"{snip.frame}_pose.txt"
     return paths
 
@@ -667,7 +673,8 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
                 p,
                 (f"frame is {f.shape[1]}x{f.shape[0]} but the target is {w0}x{h0} (mixed resolutions in one snippet)"),
             )
-    strip = np.concatenate([resize(f, height, width) for f in frames], axis=1)  # (H, seq*W, 3)
+    strip_frames = [resize(f, height, width) for f in frames]
+    strip = np.concatenate(strip_frames, axis=1)  # (H, seq*W, 3)
     ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(strip, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     if not ok:
         return "skipped", snip.paths[len(frames) // 2], "JPEG encoding failed"
@@ -684,6 +691,14 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
             flow, valid = resize_flow_gt(flow, valid, (height, width))
     except GeoNetError as err:
         return "skipped", err.path, err.problem
+    half = len(frames) // 2
+    poses = snip.poses
+    if snip.teacher_flow:
+        label = teacher_flow(strip_frames[half], strip_frames[half + 1], snip.teacher_flow)
+        flow, valid = label.flow, label.valid
+    if snip.teacher_pose:
+        # Full resolution: ORB finds few corners at 128 x 416. None (a failed pair): no pose label.
+        poses = teacher_motion(frames, snip.K, half, snip.teacher_pose)
     with atomic_write(paths["jpg"]) as tmp:
         tmp.write_bytes(jpg.tobytes())
     write_cam_txt(paths["cam"], K)
@@ -691,8 +706,8 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
         write_depth_kitti(paths["depth"], depth)
     if flow is not None:
         write_flow_kitti(paths["flow"], flow, valid)
-    if snip.poses is not None:
-        write_kitti_poses(paths["pose"], snip.poses)
+    if poses is not None:
+        write_kitti_poses(paths["pose"], poses)
     return "written", None, None
 
 
@@ -757,9 +772,24 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
     if cfg.train_depth and cfg.kind != "synth":
         raise InputError(None, "--train-depth only applies to --kind synth", "real footage has no dense depth")
     if cfg.train_flow and cfg.kind != "synth":
-        raise InputError(None, "--train-flow only applies to --kind synth", "real footage has no dense flow")
+        raise InputError(
+            None, "--train-flow only applies to --kind synth", "label real footage with --teacher-flow dis"
+        )
     if cfg.train_pose and cfg.kind not in ("kitti_odom", "synth"):
         raise InputError(None, "--train-pose only applies to --kind kitti_odom|synth", "the others have no true poses")
+    teachers = [f"--teacher-{k}" for k, v in (("flow", cfg.teacher_flow), ("pose", cfg.teacher_pose)) if v]
+    if teachers and cfg.kind == "synth":
+        raise InputError(None, f"{teachers[0]} is for real footage", "synthetic scenes have --train-flow/--train-pose")
+    if cfg.teacher_pose and cfg.kind in ("video", "frames"):
+        raise InputError(
+            None,
+            "--teacher-pose needs full-resolution frames (kitti_odom, kitti_raw)",
+            f"video frames are cached at {cfg.height}x{cfg.width}, where two-view ORB odometry is unreliable",
+        )
+    if cfg.teacher_pose and cfg.train_pose:
+        raise InputError(None, "--teacher-pose and --train-pose both write <frame>_pose.txt", "choose one")
+    if teachers and TEST_DRIVE in Path(cfg.src).resolve().parts:
+        raise InputError(cfg.src, "is the real-data test drive: never train on it", "label other footage")
     if cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
         raise InputError(
             None,
@@ -785,7 +815,10 @@ def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Ski
             seq.frames = seq.frames[: cfg.max_frames]
     if cfg.remove_static:
         remove_static_frames(seqs)
-    return [snip for seq in seqs if check_frames(seq, skips) for snip in make_snippets(seq, seq_length, skips)]
+    snippets = [snip for seq in seqs if check_frames(seq, skips) for snip in make_snippets(seq, seq_length, skips)]
+    for snip in snippets:
+        snip.teacher_flow, snip.teacher_pose = cfg.teacher_flow, cfg.teacher_pose
+    return snippets
 
 
 def write_snippets(jobs: list[tuple], workers: int, desc: str):
@@ -955,6 +988,20 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="kitti_odom (the dev kit's poses/XX.txt) and synth (poses.txt): also write the true motion "
         "target -> sources of train/val samples (for training.train --pose-supervision)",
+    )
+    p.add_argument(
+        "--teacher-flow",
+        choices=TEACHER_FLOWS,
+        default=D.teacher_flow,
+        help="real footage: label the flow target -> next frame with OpenCV DIS (medium, forward-backward "
+        "checked) as <frame>_flow.png (for training.train --stage flow --flow-supervision)",
+    )
+    p.add_argument(
+        "--teacher-pose",
+        choices=TEACHER_POSES,
+        default=D.teacher_pose,
+        help="real footage: label the motion target -> sources with two-view ORB odometry (unit steps) as "
+        "<frame>_pose.txt (for training.train --pose-supervision, which aligns the scale)",
     )
     p.add_argument(
         "--max-frames", type=int, default=D.max_frames, help="use only the first N frames of each sequence (quick runs)"

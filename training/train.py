@@ -36,6 +36,7 @@ from training.data import SequenceDataset, make_loader
 from training.model import GeoNet, StageLoss
 
 AMP_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
+MAX_LOADER_STALLS = 3  # data-worker restarts after a loader timeout before the run gives up
 
 
 # ----------------------------------------------------------------------- setup
@@ -339,6 +340,7 @@ class Trainer:
             dynamic_ncols=True,
         )
         self.started = time.perf_counter()
+        stalls = 0
         log = open(self.log_path, "a") if rt.is_main else None
         try:
             while self.step < cfg.max_steps:
@@ -347,6 +349,15 @@ class Trainer:
                 except StopIteration:
                     self.epoch += 1
                     batches = epoch_loader(self.train_set, self.sampler, cfg, self.epoch)
+                    continue
+                except RuntimeError as exc:  # the loader's timeout: new workers, same position
+                    if "timed out" not in str(exc) or stalls >= MAX_LOADER_STALLS:
+                        raise
+                    stalls += 1
+                    print(f"step {self.step}: {exc}; restarting the data workers ({stalls}/{MAX_LOADER_STALLS})")
+                    batches = epoch_loader(
+                        self.train_set, self.sampler, cfg, self.epoch, skip_batches=self.step % steps_per_epoch
+                    )
                     continue
                 loss = self.train_step(batch)
                 bar.update(1)
