@@ -702,7 +702,7 @@ def iter_frames(
                 vector = parts["pose"][j] if t in paired else None
                 results.append((t, depth, disp, pose_next, vector, flows))
         checks = {}
-        if check and with_flow:
+        if check and with_flow and paired:
             with timer.stage("check"):
                 units = (size[1] / spec.width, size[0] / spec.height)  # input pixels per graph pixel
                 rigid = parts["rigid_flow"].transpose(0, 2, 3, 1)

@@ -212,12 +212,13 @@ def check_pair(
         a, b = (cv2.resize(x, (w, h), interpolation=cv2.INTER_AREA) for x in (a, b))
         flows = [cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR) * np.array([sx, sy], np.float32) for f in flows]
         units = (units[0] / sx, units[1] / sy)
-    grid = _pixel_grid(*a.shape)
-    # NaN outside: a pixel whose flow leaves the image (or is not finite) comes back NaN and is left out
-    warped = [cv2.remap(b, grid + f, None, cv2.INTER_LINEAR, None, cv2.BORDER_CONSTANT, math.nan) for f in flows]
-    keep = np.isfinite(warped[0])
-    for other in warped[1:]:  # the same pixels for every answer: errors comparable
-        keep &= np.isfinite(other)
+    H, W = a.shape
+    maps = [_pixel_grid(H, W) + f for f in flows]
+    keep = np.ones((H, W), bool)
+    for m in maps:  # in view: the sampled position lies in the image (NaN compares False); one set for all
+        with np.errstate(invalid="ignore"):
+            keep &= (m[..., 0] >= 0) & (m[..., 0] <= W - 1) & (m[..., 1] >= 0) & (m[..., 1] <= H - 1)
+    warped = [cv2.remap(b, m, None, cv2.INTER_LINEAR, None, cv2.BORDER_REPLICATE) for m in maps]
     still, flow_error, *rigid_error = (_mean_abs(x, a, keep) for x in (b, *warped))
     if rigid_flow is None:
         return FrameCheck(still_error=still, flow_error=flow_error, in_view=float(keep.mean()))
