@@ -1,12 +1,13 @@
 """A check of every flow output, made from the frames themselves: no ground truth needed.
 
 For a pair t -> t+1 the next frame is warped back onto frame t by a flow (``cv2.remap``,
-bilinear; its positions rounded to 1/32 px, far below what a grey-level check resolves). The error of a flow
-is the mean absolute grey-level difference (0-255, grey as ``cv2.COLOR_RGB2GRAY``) between the
-warped next frame and frame t, over the pixels every flow checked keeps in view (a pixel whose
-flow leaves the image, or is not finite, is left out). The trivial answer, no motion, is the
-next frame as it is, scored over the same pixels. A flow *explains* the pair when its error is
-below the no-motion error; a tie (zero flow) does not. Three questions per pair:
+bilinear; its positions rounded to 1/32 px, far below what a grey-level check resolves). The
+error of a flow is the mean absolute grey-level difference (0-255, grey as
+``cv2.COLOR_RGB2GRAY``) between the warped next frame and frame t, over the pixels every flow
+checked keeps in view (a pixel whose flow leaves the image, or is not finite, is left out).
+The trivial answer, no motion, is the next frame as it is, scored over the same pixels. A flow
+*explains* the pair when its error is below the no-motion error; a tie (zero flow) does not.
+Three questions per pair:
 
 * the full flow against no motion (does the flow move the right things?);
 * the rigid flow (the static scene from depth and pose) against no motion: depth and pose
@@ -16,7 +17,8 @@ below the no-motion error; a tie (zero flow) does not. Three questions per pair:
 
 The check is a function of the frames and the flows only (:func:`check_pair`), so it judges
 any flow source. The runtime runs it at the networks' size on the frames as the networks saw
-them (undistorted, resized), where it costs about 1 ms a pair (docs/runtime.md).
+them (undistorted, resized), where it costs about 2 ms a pair (docs/runtime.md, "The output
+check").
 """
 
 from __future__ import annotations
@@ -74,7 +76,7 @@ class FrameCheck:
 
     def as_dict(self) -> dict:
         """JSON-ready: values rounded to 3 decimals, NaN (nothing in view) as None."""
-        out: dict = {
+        return {
             "still_error": _round(self.still_error),
             "flow_error": _round(self.flow_error),
             "flow_explains": self.flow_explains,
@@ -85,7 +87,6 @@ class FrameCheck:
             "flow_rigid_p95_px": _round(self.flow_rigid_p95_px),
             "flow_rigid_within": _round(self.flow_rigid_within),
         }
-        return out
 
 
 @dataclass(frozen=True)
@@ -216,8 +217,7 @@ def check_pair(
     maps = [_pixel_grid(H, W) + f for f in flows]
     keep = np.ones((H, W), bool)
     for m in maps:  # in view: the sampled position lies in the image (NaN compares False); one set for all
-        with np.errstate(invalid="ignore"):
-            keep &= (m[..., 0] >= 0) & (m[..., 0] <= W - 1) & (m[..., 1] >= 0) & (m[..., 1] <= H - 1)
+        keep &= (m[..., 0] >= 0) & (m[..., 0] <= W - 1) & (m[..., 1] >= 0) & (m[..., 1] <= H - 1)
     warped = [cv2.remap(b, m, None, cv2.INTER_LINEAR, None, cv2.BORDER_REPLICATE) for m in maps]
     still, flow_error, *rigid_error = (_mean_abs(x, a, keep) for x in (b, *warped))
     if rigid_flow is None:
