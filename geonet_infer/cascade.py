@@ -45,6 +45,7 @@ import cv2
 import numpy as np
 
 from geonet_infer import conventions
+from geonet_infer.check import GREY_WEIGHTS, check_pair
 from geonet_infer.conventions import rigid_inverse
 from geonet_infer.engines import AUTO, Engine, make_engine, pick_fastest
 from geonet_infer.errors import GeoNetError, InputError, ModelError
@@ -185,6 +186,15 @@ class InputSpec:
         x += np.float32(self.norm_offset)
         return x
 
+    def to_grey(self, x: np.ndarray) -> np.ndarray:
+        """:meth:`to_network` undone as grey levels: (3, height, width) -> (height, width) float32, 0-255
+        (the channels weighted as ``cv2.COLOR_RGB2GRAY`` does; the weights sum to 1)."""
+        weights = np.array(GREY_WEIGHTS[::-1] if self.channel_order == "BGR" else GREY_WEIGHTS, np.float32)
+        grey = np.tensordot(weights, x, 1)
+        grey -= np.float32(self.norm_offset)
+        grey *= np.float32(255.0 / self.norm_scale)
+        return grey
+
 
 def check_image(image, name: str | Path | None = None) -> np.ndarray:
     """Validate one frame: a uint8 array (H, W, 3). Returns it as a C-contiguous array."""
@@ -271,8 +281,8 @@ def next_source_position(seq_length: int) -> int:
 # ----------------------------------------------------------------------------- frames and cameras
 ImageLike = np.ndarray | str | Path
 Intrinsics = np.ndarray | Sequence[Sequence[float]] | Camera
-# "read" .. "postprocess" are timed here; "write" by pipeline.predict_to_dir (saving outputs).
-STAGES = ("read", "preprocess", "depthnet", "posenet", "rigidflow", "resflownet", "postprocess", "write")
+# "read" .. "check" are timed here; "write" by pipeline.predict_to_dir (saving outputs).
+STAGES = ("read", "preprocess", "depthnet", "posenet", "rigidflow", "resflownet", "postprocess", "check", "write")
 
 
 class StageTimer:
@@ -596,6 +606,7 @@ def iter_frames(
     names: Sequence[str] | None,
     tasks: tuple[str, ...],
     need_depth: bool = False,
+    check: bool = False,
 ) -> Iterator[FrameResult]:
     """A sequence in the model's own (relative) scale, one :class:`FrameResult` per frame, in order.
 
@@ -605,6 +616,7 @@ def iter_frames(
     replicated, :func:`snippet_indices`) towards t + 1. Frames are read lazily, at most
     ``batch_size + seq_length // 2`` ahead. With pose or flow a sequence needs 2 frames; depth
     alone runs on any number. ``need_depth``: depth is needed though not asked for (metric scale).
+    ``check``: each flow is checked against the frames (:mod:`geonet_infer.check`, at the graph size).
     """
     if batch_size < 1:
         raise InputError(None, f"batch_size must be >= 1, got {batch_size}")
@@ -689,6 +701,19 @@ def iter_frames(
                 pose_next = parts["pose_matrix"][j].astype(np.float64) if t in paired else None
                 vector = parts["pose"][j] if t in paired else None
                 results.append((t, depth, disp, pose_next, vector, flows))
+        checks = {}
+        if check and with_flow and paired:
+            with timer.stage("check"):
+                units = (size[1] / spec.width, size[0] / spec.height)  # input pixels per graph pixel
+                rigid = parts["rigid_flow"].transpose(0, 2, 3, 1)
+                full = parts["flow"].transpose(0, 2, 3, 1) if "flow" in parts else None
+                for j, t in enumerate(paired):
+                    frame, after = spec.to_grey(prepared[t]), spec.to_grey(prepared[t + 1])
+                    checks[t] = (
+                        check_pair(frame, after, rigid[j], units=units)  # no ResFlowNet: the flow is rigid
+                        if full is None
+                        else check_pair(frame, after, full[j], rigid[j], units=units)
+                    )
         share = timer.result(1.0 / len(batch))
         for t, depth, disp, pose_next, vector, flows in results:
             yield FrameResult(
@@ -704,6 +729,7 @@ def iter_frames(
                 flow=flows[0],
                 rigid_flow_at_input=flows[1],
                 intrinsics=None if cam is None else cam.K,
+                check=checks.get(t),
             )
             if pose_next is not None:
                 pose_world = pose_world @ rigid_inverse(pose_next)

@@ -9,7 +9,8 @@ so every sequence gets the same layout::
     OUT/flow_vis/<frame>.png     flow colour wheel (Middlebury style)
     OUT/poses_kitti.txt          one line per frame: 3x4 camera-to-world, first frame = identity
     OUT/poses_tum.txt            one line per frame: time tx ty tz qx qy qz qw
-    OUT/summary.json             counts, failures with reasons, per-stage timings, model, camera
+    OUT/summary.json             counts, failures with reasons, per-stage timings, model, camera,
+                                 the output check (does the flow explain the next frame? geonet_infer.check)
 
 Every file is written under a temporary name and renamed, so a reader never sees a
 half-written file. A frame that cannot be read, has another size than most of the first
@@ -42,6 +43,7 @@ import numpy as np
 
 from geonet_infer import __version__
 from geonet_infer.cascade import camera_at
+from geonet_infer.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import _umask, atomic_write, leftover_temps, save_npy_atomic
 from geonet_infer.io.calib import Camera, write_kitti_camera
@@ -343,6 +345,7 @@ def predict_to_dir(
     extra_outputs: tuple[str, ...] = (),
     options: OutputOptions = OutputOptions(),
     max_frames: int | None = None,
+    check: bool = True,
 ) -> dict:
     """Predict every frame of ``source`` into ``out_dir`` (layout in the module docstring).
 
@@ -362,6 +365,7 @@ def predict_to_dir(
             this run's (``exclusive`` only).
         options: point clouds, the colour scale of the pictures, a result video (:class:`OutputOptions`).
         max_frames: stop after this many good frames (live sources).
+        check: check each flow against the frames (``summary["check"]``, :mod:`geonet_infer.check`).
     Returns:
         The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad
         frames (unreadable, odd size, NaN/inf output, or missing from a truncated video).
@@ -401,7 +405,7 @@ def predict_to_dir(
     run = functools.partial(
         _predict,
         predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis,
-        skipped_tasks=skipped_tasks, options=options, max_frames=max_frames,
+        skipped_tasks=skipped_tasks, options=options, max_frames=max_frames, check=check,
     )  # fmt: skip
     if not exclusive:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -436,6 +440,7 @@ def _predict(
     skipped_tasks: dict[str, tuple[str, ...]],
     options: OutputOptions,
     max_frames: int | None,
+    check: bool,
 ) -> dict:
     from tqdm import tqdm
 
@@ -444,6 +449,7 @@ def _predict(
     poses: list[np.ndarray] = []
     done = 0
     scales: list[float] = []
+    checks: list[tuple[str, FrameCheck]] = []
     interrupted = False
 
     def check_camera(width: int, height: int) -> None:
@@ -496,6 +502,7 @@ def _predict(
             names=frames.names,
             tasks=tasks,
             camera_height=camera_height,
+            check=check,
         )
         for result in results:
             bad = _non_finite(result, tasks)
@@ -503,6 +510,8 @@ def _predict(
                 frames.failures.append({"frame": result.name, "reason": f"model produced NaN/inf {bad}"})
                 frames.kept.pop(result.index, None)
                 continue
+            if result.check is not None:
+                checks.append((result.name, result.check))
             colours.observe(result.depth if "depth" in tasks else None, result.flow if "flow" in tasks else None)
             waiting.append(result)
             if colours.ready:
@@ -595,6 +604,7 @@ def _predict(
             "per_frame_min": min(scales, default=None),
             "per_frame_max": max(scales, default=None),
         },
+        "check": _check_summary(checks, predictor) if check and "flow" in tasks else None,
         "timings_ms_per_frame": {k: v / max(done, 1) for k, v in totals.items()},
         "wall_s": elapsed,
         "frames_per_s": done / elapsed if elapsed > 0 else None,
@@ -605,6 +615,17 @@ def _predict(
     if interrupted:
         raise KeyboardInterrupt
     return summary
+
+
+def _check_summary(checks: list[tuple[str, FrameCheck]], predictor: Predictor) -> dict:
+    """summary.json's "check": the pairs summed up (:class:`SequenceCheck`), then each pair."""
+    return {
+        "method": METHOD,
+        "size": [predictor.spec.height, predictor.spec.width],
+        "agree_px": AGREE_PX,
+        **SequenceCheck.from_checks(c for _, c in checks).as_dict(),
+        "per_pair": [{"frame": name, **c.as_dict()} for name, c in checks],
+    }
 
 
 def _outputs(

@@ -377,6 +377,7 @@ class Predictor:
         with_flow: bool = True,
         camera_height: float | None = None,
         tasks: Iterable[str] = TASKS,
+        check: bool = True,
         **deprecated: Any,
     ) -> Iterator[FrameResult]:
         """Stream a whole sequence: yields one :class:`FrameResult` per frame, in order.
@@ -398,6 +399,8 @@ class Predictor:
         ``camera_height`` (metres, needs the camera and depthnet) makes each frame's depth and its
         pose translation metric (:func:`geonet_infer.scale.metric_frames`: a frame whose road is
         hidden takes the previous frame's scale, frames before the first fit the first fit's).
+        ``check`` (with flow): each frame's ``check`` says whether its flow and rigid flow explain
+        the next frame better than no motion (:mod:`geonet_infer.check`; about 1 ms a frame).
         A missing graph or a bad request raises here, before any frame is read.
         """
         camera = _camera_keyword(camera, deprecated, "iter_sequence")
@@ -418,6 +421,7 @@ class Predictor:
             names=names,
             tasks=tasks,
             need_depth=camera_height is not None,
+            check=check,
         )
         if camera_height is not None:
             metric_camera = camera
@@ -432,11 +436,15 @@ class Predictor:
         *,
         batch_size: int = 4,
         camera_height: float | None = None,
+        check: bool = True,
         **deprecated: Any,
     ) -> SequenceResult:
-        """All of :meth:`iter_sequence` in memory (mind the size of flow for long videos)."""
+        """All of :meth:`iter_sequence` in memory (mind the size of flow for long videos);
+        ``SequenceResult.check`` sums up the frames' flow checks."""
         camera = _camera_keyword(camera, deprecated, "predict_sequence")
-        results = list(self.iter_sequence(frames, camera, batch_size=batch_size, camera_height=camera_height))
+        results = list(
+            self.iter_sequence(frames, camera, batch_size=batch_size, camera_height=camera_height, check=check)
+        )
         totals: dict[str, float] = defaultdict(float)
         for r in results:
             for stage, ms in r.timings_ms.items():

@@ -15,6 +15,7 @@ from functools import cached_property
 
 import numpy as np
 
+from geonet_infer.check import FrameCheck, SequenceCheck
 from geonet_infer.points import backproject
 
 
@@ -124,6 +125,8 @@ class FrameResult(_Points):
         metric_scale: with a camera height, the factor that made depth and translations metres.
         intrinsics: (3, 3) float64 K at the input resolution that was used, or None without a
             camera; :meth:`points` back-projects with it.
+        check: the flow checked against the frames (:class:`~geonet_infer.check.FrameCheck`: does
+            it explain the next frame better than no motion?); None without flow or with the check off.
     """
 
     index: int
@@ -138,6 +141,7 @@ class FrameResult(_Points):
     timings_ms: dict[str, float]
     metric_scale: float | None = None
     intrinsics: np.ndarray | None = None
+    check: FrameCheck | None = None
     # Makes the rigid flow at the input size; None = the flow is all rigid (no ResFlowNet).
     rigid_flow_at_input: Callable[[], np.ndarray] | None = field(default=None, repr=False, compare=False)
 
@@ -167,6 +171,12 @@ class SequenceResult:
 
     frames: list[FrameResult]
     timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def check(self) -> SequenceCheck | None:
+        """The frames' flow checks summed up (None when no frame was checked)."""
+        checks = [f.check for f in self.frames if f.check is not None]
+        return SequenceCheck.from_checks(checks) if checks else None
 
     @property
     def depth(self) -> np.ndarray:

@@ -145,6 +145,10 @@ def test_local_engine_matches_predict(three, tmp_path, capfd):
         1,
     )
     assert summary["exit_code"] == 0 and "3 sequences done" in stdout
+    for row, seq in zip(summary["per_sequence"], seqs):  # each sequence's output check, summed up as predict's
+        check = json.loads((root / "predict" / seq.name / "summary.json").read_text())["check"]
+        assert row["check"] == {k: v for k, v in check.items() if k not in ("method", "per_pair")}, seq.name
+        assert row["check"]["pairs"] == 3
 
 
 def require_ray() -> None:

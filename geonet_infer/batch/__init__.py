@@ -9,7 +9,8 @@ of ``geonet-infer predict``; next to the sequences::
     OUT/<sequence>/.done         completion record, written (atomically) after all the sequence's files:
                                  each output's size and sha256, and the inputs' names, sizes and mtimes
     OUT/failures.jsonl           one JSON object a line: {"sequence", "input", "frame" (or null), "reason"}
-    OUT/summary.json             sequences done/failed/skipped, frames, frames/s, runner, workers, threads
+    OUT/summary.json             sequences done/failed/skipped, frames, frames/s, runner, workers, threads;
+                                 per sequence its output check (summed up; per pair in its own summary.json)
     OUT/.lock                    held while a job runs (a second job on the same OUT stops with exit 2)
 
 Nothing is lost: batch only writes into a folder it made (or an empty one), refuses an OUT

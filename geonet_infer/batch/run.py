@@ -183,6 +183,7 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
                 "status": "skipped",
                 "frames": marker.get("frames", 0),
                 "failures": marker.get("failures", []),
+                "check": marker.get("check"),
                 "wall_s": 0.0,
             }
         )
@@ -386,6 +387,7 @@ def _sequence_row(result: dict) -> dict:
         "status": result["status"],
         "frames": result["frames"],
         "failures": len(result["failures"]),
+        "check": result.get("check"),  # does the flow explain the next frame? (geonet_infer.check)
         "wall_s": round(result["wall_s"], 3),
     }
 

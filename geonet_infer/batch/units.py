@@ -344,9 +344,11 @@ def run_sequence(
 
     Returns a result dict: sequence, input, index, status ("done" | "failed"), frames,
     failures (records for failures.jsonl; bad frames of a done sequence, or one record with
-    frame None for a failed one), wall_s, and os_error (errno, strerror, filename) when the
-    operating system refused a write into OUT (the job stops on it). A failed sequence leaves
-    no folder behind. A folder batch did not make is never touched (the sequence fails).
+    frame None for a failed one), check (the output check summed up, as in the sequence's
+    summary.json without its per-pair list; None without flow), wall_s, and os_error (errno,
+    strerror, filename) when the operating system refused a write into OUT (the job stops on
+    it). A failed sequence leaves no folder behind. A folder batch did not make is never
+    touched (the sequence fails).
     """
     out = Path(config.out_dir) / unit.name
     started = time.perf_counter()
@@ -387,18 +389,20 @@ def run_sequence(
             {"sequence": unit.name, "input": unit.path, "frame": f["frame"], "reason": f["reason"]}
             for f in summary["failures"]
         ]
+        check = summary["check"] and {k: v for k, v in summary["check"].items() if k not in ("method", "per_pair")}
         marker = {
             "sequence": unit.name,
             "input": unit.path,
             "frames": summary["frames"],
             "failures": failures,
+            "check": check,
             "options": options if options is not None else config.options(),
             "inputs": inputs,
             "outputs": _record_outputs(out),
         }
         with atomic_write(out / MARKER_NAME) as tmp:
             tmp.write_text(json.dumps(marker) + "\n")
-        result.update(status="done", frames=summary["frames"], failures=failures)
+        result.update(status="done", frames=summary["frames"], failures=failures, check=check)
     except Exception as exc:  # noqa: BLE001 - any failure is recorded and the job goes on
         if writing and isinstance(exc, OSError):  # disk full, read-only, ...: every sequence would fail alike
             result["os_error"] = [exc.errno, exc.strerror or str(exc), exc.filename or str(out)]

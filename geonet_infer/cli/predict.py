@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from geonet_infer.check import SequenceCheck
 from geonet_infer.cli.common import (
     add_camera_args,
     add_model_args,
@@ -51,7 +52,9 @@ another predict is writing into. Ctrl-C or SIGTERM stops with summary.json marke
   flow_vis/<frame>.png   flow colour wheel
   poses_kitti.txt        3x4 camera-to-world per frame (first frame = identity)
   poses_tum.txt          time tx ty tz qx qy qz qw per frame
-  summary.json           counts, failures, per-stage timings, model, camera
+  summary.json           counts, failures, per-stage timings, model, camera, and the output
+                         check: per pair of frames, does the flow (and the rigid flow from depth
+                         and pose) explain the next frame better than no motion at all?
 
 examples:
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti
@@ -164,6 +167,12 @@ def add_parser(sub) -> None:
         help=f"also write a side-by-side video, frame | depth | flow ({' '.join(VIDEO_CODECS)}), streamed, "
         "at the input's frame rate",
     )
+    parser.add_argument(
+        "--no-check",
+        action="store_true",
+        help="skip the output check (each flow and rigid flow against no motion, from the frames; about "
+        "2 ms a frame, see docs/runtime.md)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
         "--quiet",
@@ -214,14 +223,20 @@ def run(args: argparse.Namespace) -> int:
             exclusive=True,
             options=options,
             max_frames=args.max_frames,
+            check=not args.no_check,
         )
     print(
         f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
         f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}"
     )
     print(stage_table(summary["timings_ms_per_frame"], summary["frames"]))
+    check = None if summary["check"] is None else SequenceCheck.from_dict(summary["check"])
+    if check is not None:
+        print(f"check: {check.line()}")
     if summary["model_notice"] and not args.quiet:
         print(f"geonet-infer predict: note: {predictor.model_dir.name}: {summary['model_notice']}", file=sys.stderr)
+    if check is not None and check.warning():
+        print(f"warning: {predictor.model_dir.name}: {check.warning()}", file=sys.stderr)
     missing = set(source.missing) if summary["truncated"] else set()
     for failure in summary["failures"]:
         if failure["frame"] not in missing:
