@@ -242,6 +242,45 @@ def test_kitti_odom_train_pose_writes_the_true_motion_target_to_sources(kitti_od
         P.prepare(P.PrepareConfig("frames", kitti_odometry, tmp_path / "o3", train_pose=True))
 
 
+def test_kitti_odom_teachers_label_flow_with_dis_and_motion_along_the_official_poses(kitti_odometry, tmp_path):
+    """--teacher-flow dis / --teacher-pose orbvo on real frames: the flow PNG holds OpenCV DIS (medium) of
+    the resized target -> next frame where the forward-backward check holds; the motion's direction
+    agrees with the dev kit's official poses (an independent yardstick: GPS/INS)."""
+    out = tmp_path / "odom"
+    cfg = P.PrepareConfig("kitti_odom", kitti_odometry, out, seq_length=3, teacher_flow="dis", teacher_pose="orbvo")
+    res = P.prepare(cfg)
+    assert not res.skipped and sorted(res.train + res.val) == [f"00 {t:06d}" for t in (1, 2, 3, 4)]
+    rows = np.loadtxt(kitti_odometry / "poses" / "00.txt", max_rows=6).reshape(-1, 3, 4)
+    image_dir = kitti_odometry / "sequences" / "00" / "image_0"
+    for t in (1, 2, 3, 4):
+        small = [
+            cv2.resize(cv2.imread(str(image_dir / f"{k:06d}.png"), cv2.IMREAD_GRAYSCALE), (416, 128),
+                       interpolation=cv2.INTER_AREA)
+            for k in (t, t + 1)
+        ]  # fmt: skip
+        dis = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(small[0], small[1], None)
+        flow, valid = read_flow_kitti(out / "00" / f"{t:06d}_flow.png")
+        assert 0.5 < valid.mean() < 1.0  # the check keeps most pixels and drops some (borders, occlusions)
+        np.testing.assert_allclose(flow[valid], dis[valid], atol=1 / 64)  # KITTI PNG steps of 1/64 px
+        written = np.loadtxt(out / "00" / f"{t:06d}_pose.txt").reshape(-1, 3, 4)  # target -> t-1, t+1
+        for motion, source in zip(written, (t - 1, t + 1)):
+            # official motion target -> source: R_s^T (R_t x + p_t - p_s)
+            R_s, p_s, p_t = rows[source][:, :3], rows[source][:, 3], rows[t][:, 3]
+            true_t = R_s.T @ (p_t - p_s)
+            cosine = motion[:, 3] @ true_t / np.linalg.norm(motion[:, 3]) / np.linalg.norm(true_t)
+            assert cosine > 0.97 and abs(np.linalg.norm(motion[:, 3]) - 1) < 1e-6  # unit steps
+    with pytest.raises(GeoNetError, match="synthetic scenes have"):
+        P.prepare(P.PrepareConfig("synth", tmp_path, tmp_path / "o2", teacher_flow="dis"))
+    with pytest.raises(GeoNetError, match="needs full-resolution frames"):
+        P.prepare(P.PrepareConfig("frames", image_dir, tmp_path / "o3", teacher_pose="orbvo"))
+
+
+def test_teachers_never_label_the_test_drive(kitti_raw, tmp_path):
+    with pytest.raises(GeoNetError, match="test drive: never train on it"):
+        P.prepare(P.PrepareConfig("kitti_raw", kitti_raw, tmp_path / "o", teacher_flow="dis"))
+    assert not (tmp_path / "o").exists()
+
+
 # --------------------------------------------------------------------------- synthetic
 def test_synth_heldout(tmp_path):
     src = tmp_path / "synth"

@@ -525,3 +525,35 @@ def test_extra_data_dirs_are_shuffled_into_one_training_set(synth_prepared, tmp_
         (other / folder / f"{frame}.jpg").write_bytes(b"not a jpeg")
     with pytest.raises(GeoNetError, match="other"):
         train(config(synth_prepared, tmp_path / "run", max_steps=4, extra_data_dirs=[str(other)]), progress=False)
+
+
+class _StallingDataset(torch.utils.data.Dataset):
+    """Item 0 loads at once; item 1 never comes back in time (a hung worker)."""
+
+    def __len__(self) -> int:
+        return 2
+
+    def __getitem__(self, index: int):
+        if index == 1:
+            import time
+
+            time.sleep(600)
+        return torch.zeros(1)
+
+
+@pytest.mark.slow  # ~35 s: a worker start, a 15 s timeout and the hung worker's shutdown
+def test_loader_workers_come_from_a_forkserver_and_a_hang_is_an_error(monkeypatch):
+    """Issue 46: a worker idle for 8 minutes at an epoch boundary stalled a run. Workers are not
+    fork()ed from the threaded trainer, and a batch that does not come within the timeout raises
+    (the trainer then restarts the workers) instead of hanging."""
+    from training import data
+
+    monkeypatch.setattr(data, "LOADER_TIMEOUT_S", 15)  # the first batch waits for the worker to start
+    loader = data.make_loader(_StallingDataset(), batch_size=1, shuffle=False, num_workers=1)
+    assert loader.multiprocessing_context.get_start_method() == "forkserver"
+    batches = iter(loader)
+    assert next(batches).shape == (1, 1)
+    with pytest.raises(RuntimeError, match="timed out"):
+        next(batches)
+    del batches
+    assert data.make_loader(_StallingDataset(), batch_size=1, shuffle=False).timeout == 0  # in-process: no timer
