@@ -244,6 +244,21 @@ def test_prepare_teacher_depth_writes_the_label(odom_tree, tmp_path):
     assert abs(np.median(depth[depth > 0]) - DEPTH_LABEL_MEDIAN) < 1.0  # nearest resize keeps the median near
 
 
+def test_prepare_teacher_depth_no_label_without_motion(kitti_odometry_06, tmp_path):
+    """A standing camera (one frame three times): no parallax, so the sample is written without a
+    depth file (an all-zero label would only say 'no depth' at a cost)."""
+    seq = tmp_path / "src" / "sequences" / "06"
+    (seq / "image_0").mkdir(parents=True)
+    shutil.copy(kitti_odometry_06 / "sequences" / "06" / "calib.txt", seq / "calib.txt")
+    for n in (20, 21, 22):
+        shutil.copy(kitti_odometry_06 / "sequences" / "06" / "image_0" / "000020.png", seq / "image_0" / f"{n:06d}.png")
+    out = tmp_path / "out"
+    cfg = P.PrepareConfig(kind="kitti_odom", src=tmp_path / "src", out=out, seq_length=3, teacher_depth="triangulate")
+    result = P.prepare(cfg)
+    assert result.train + result.val == ["06 000021"] and not result.skipped
+    assert (out / "06" / "000021.jpg").is_file() and not (out / "06" / "000021_depth.png").exists()
+
+
 @pytest.mark.parametrize("kind", ["video", "frames", "synth"])
 def test_prepare_teacher_depth_refused_without_full_resolution_kitti(kind, tmp_path):
     src = tmp_path / "src"
