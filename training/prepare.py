@@ -795,13 +795,15 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
     chosen = (("flow", cfg.teacher_flow), ("pose", cfg.teacher_pose), ("depth", cfg.teacher_depth))
     teachers = [f"--teacher-{k}" for k, v in chosen if v]
     if teachers and cfg.kind == "synth":
-        raise InputError(None, f"{teachers[0]} is for real footage", "synthetic scenes have --train-flow/--train-pose")
+        raise InputError(
+            None, f"{teachers[0]} is for real footage", "synthetic scenes have --train-flow/--train-pose/--train-depth"
+        )
     full_res = [t for t in teachers if t != "--teacher-flow"]
     if full_res and cfg.kind in ("video", "frames"):
         raise InputError(
             None,
             f"{full_res[0]} needs full-resolution frames (kitti_odom, kitti_raw)",
-            f"video frames are cached at {cfg.height}x{cfg.width}, where two-view ORB odometry is unreliable",
+            f"video frames are cached at {cfg.height}x{cfg.width}, too small for two-view geometry",
         )
     if cfg.teacher_pose and cfg.train_pose:
         raise InputError(None, "--teacher-pose and --train-pose both write <frame>_pose.txt", "choose one")
