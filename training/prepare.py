@@ -7,7 +7,8 @@ Output under ``--out DIR`` (read back by :class:`training.data.SequenceDataset`)
     DIR/<folder>/<frame>_cam.txt     one line "fx,0.,cx,0.,fy,cy,0.,0.,1.": the target's K at H x W
     DIR/<folder>/<frame>_depth.png   synth held-out samples (and, with --train-depth, every synth
                                      sample): target depth (KITTI 16-bit, m*256) resized to H x W
-                                     with nearest neighbour
+                                     with nearest neighbour; with --teacher-depth (real footage)
+                                     the triangulated depth, no metric scale (median 10)
     DIR/<folder>/<frame>_flow.png    synth train/val samples with --train-flow: the non-occluded
                                      flow target -> next frame (KITTI flow PNG), resized to H x W
                                      with nearest neighbour and scaled by the resize ratios
@@ -60,7 +61,14 @@ from geonet_infer.io import (
     write_kitti_poses,
 )
 from geonet_infer.metrics import resize_flow_gt
-from training.teachers import TEACHER_FLOWS, TEACHER_POSES, teacher_flow, teacher_motion
+from training.teachers import (
+    TEACHER_DEPTHS,
+    TEACHER_FLOWS,
+    TEACHER_POSES,
+    teacher_depth,
+    teacher_flow,
+    teacher_motion,
+)
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +114,7 @@ class PrepareConfig:
     train_pose: bool = False  # kitti_odom/synth: also write the true motion target -> sources (pose supervision)
     teacher_flow: str | None = None  # real footage: label flow target -> next with this classical method (teachers)
     teacher_pose: str | None = None  # real footage: label motion target -> sources with this classical method
+    teacher_depth: str | None = None  # real footage: label the target depth with this classical method
     max_frames: int | None = None  # only the first N frames of each sequence (quick runs)
     strict: bool = False  # the first bad input is an error instead of a skip
     calib: Path | None = None  # video/frames: the camera (any format of geonet_infer.io.read_camera)
@@ -145,6 +154,7 @@ class Snippet:
     poses: np.ndarray | None = None  # (N_src, 4, 4) true motion target -> source, sources in temporal order
     teacher_flow: str | None = None  # label the flow to the next frame with this teacher (training.teachers)
     teacher_pose: str | None = None  # label the motion to the sources with this teacher
+    teacher_depth: str | None = None  # label the target's depth with this teacher
 
     @property
     def name(self) -> str:
@@ -628,7 +638,7 @@ def _static_gap(seq: Sequence, prev: int, n: int) -> bool:
 def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
     base = out / snip.folder
     paths = {"jpg": base / f"{snip.frame}.jpg", "cam": base / f"{snip.frame}_cam.txt"}
-    if snip.depth_path is not None:
+    if snip.depth_path is not None or snip.teacher_depth:
         paths["depth"] = base / f"{snip.frame}_depth.png"
     if snip.flow_path is not None or snip.teacher_flow:
         paths["flow"] = base / f"{snip.frame}_flow.png"
@@ -699,6 +709,11 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
     if snip.teacher_pose:
         # Full resolution: ORB finds few corners at 128 x 416. None (a failed pair): no pose label.
         poses = teacher_motion(frames, snip.K, half, snip.teacher_pose)
+    if snip.teacher_depth:
+        # Full resolution, like the pose teacher; None (failed motion, too few pixels): no depth label.
+        label = teacher_depth(frames[half], frames[half + 1], snip.K, snip.teacher_depth)
+        if label is not None:
+            depth = cv2.resize(label.depth, (width, height), interpolation=cv2.INTER_NEAREST)
     with atomic_write(paths["jpg"]) as tmp:
         tmp.write_bytes(jpg.tobytes())
     write_cam_txt(paths["cam"], K)
@@ -777,14 +792,18 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
         )
     if cfg.train_pose and cfg.kind not in ("kitti_odom", "synth"):
         raise InputError(None, "--train-pose only applies to --kind kitti_odom|synth", "the others have no true poses")
-    teachers = [f"--teacher-{k}" for k, v in (("flow", cfg.teacher_flow), ("pose", cfg.teacher_pose)) if v]
+    chosen = (("flow", cfg.teacher_flow), ("pose", cfg.teacher_pose), ("depth", cfg.teacher_depth))
+    teachers = [f"--teacher-{k}" for k, v in chosen if v]
     if teachers and cfg.kind == "synth":
-        raise InputError(None, f"{teachers[0]} is for real footage", "synthetic scenes have --train-flow/--train-pose")
-    if cfg.teacher_pose and cfg.kind in ("video", "frames"):
+        raise InputError(
+            None, f"{teachers[0]} is for real footage", "synthetic scenes have --train-flow/--train-pose/--train-depth"
+        )
+    full_res = [t for t in teachers if t != "--teacher-flow"]
+    if full_res and cfg.kind in ("video", "frames"):
         raise InputError(
             None,
-            "--teacher-pose needs full-resolution frames (kitti_odom, kitti_raw)",
-            f"video frames are cached at {cfg.height}x{cfg.width}, where two-view ORB odometry is unreliable",
+            f"{full_res[0]} needs full-resolution frames (kitti_odom, kitti_raw)",
+            f"video frames are cached at {cfg.height}x{cfg.width}, too small for two-view geometry",
         )
     if cfg.teacher_pose and cfg.train_pose:
         raise InputError(None, "--teacher-pose and --train-pose both write <frame>_pose.txt", "choose one")
@@ -817,7 +836,7 @@ def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Ski
         remove_static_frames(seqs)
     snippets = [snip for seq in seqs if check_frames(seq, skips) for snip in make_snippets(seq, seq_length, skips)]
     for snip in snippets:
-        snip.teacher_flow, snip.teacher_pose = cfg.teacher_flow, cfg.teacher_pose
+        snip.teacher_flow, snip.teacher_pose, snip.teacher_depth = cfg.teacher_flow, cfg.teacher_pose, cfg.teacher_depth
     return snippets
 
 
@@ -922,6 +941,21 @@ kinds:
               <frame>_pose.txt, for python -m training.train --pose-supervision W.
       python -m training.prepare --kind synth --src data/synth --out data/prepared_synth --heldout 2
 
+classical teachers (real footage, never the test drive kitti_raw_2011_09_26_sfnd; docs/training.md):
+  --teacher-flow dis         DIS flow (medium) target -> next at HxW, forward-backward checked,
+                             as <frame>_flow.png (any real kind)
+  --teacher-pose orbvo       two-view ORB odometry target -> sources, unit steps, as
+                             <frame>_pose.txt (kitti_odom, kitti_raw: full-resolution frames)
+  --teacher-depth triangulate  the target's depth triangulated from DIS flow to the next frame and
+                             the motion it implies, at full resolution, kept where the parallax is
+                             >= 5 px and the flow is within 1 px of its epipolar line; resized to
+                             HxW with nearest neighbour as <frame>_depth.png (kitti_odom, kitti_raw).
+                             No metric scale (monocular): each label is scaled to a median of 10,
+                             which training.train --depth-supervision (scale invariant) ignores. A
+                             sample with under 5 % of its pixels labelled gets no depth file.
+      python -m training.prepare --kind kitti_odom --src data/real_odom_src --out data/t_odom_depth \\
+          --seq-length 3 --val-fraction 0 --teacher-flow dis --teacher-depth triangulate
+
 Skipped inputs (unreadable frames, missing calibration keys, too-short or mixed-resolution
 sequences) are listed at the end; --strict makes the first one an error. Re-running resumes.
 """
@@ -1002,6 +1036,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=D.teacher_pose,
         help="real footage: label the motion target -> sources with two-view ORB odometry (unit steps) as "
         "<frame>_pose.txt (for training.train --pose-supervision, which aligns the scale)",
+    )
+    p.add_argument(
+        "--teacher-depth",
+        choices=TEACHER_DEPTHS,
+        default=D.teacher_depth,
+        help="kitti_odom, kitti_raw: label the target depth triangulated from DIS flow and ORB motion to the "
+        "next frame as <frame>_depth.png, without metric scale (see below; for training.train --depth-supervision)",
     )
     p.add_argument(
         "--max-frames", type=int, default=D.max_frames, help="use only the first N frames of each sequence (quick runs)"
