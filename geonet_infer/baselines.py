@@ -34,7 +34,7 @@ def identity_pose(frames: list, K=None) -> tuple[np.ndarray, dict]:
     return np.tile(np.eye(4), (len(frames), 1, 1)), {}
 
 
-def _grey(rgb: np.ndarray) -> np.ndarray:
+def grey(rgb: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
 
 
@@ -44,34 +44,43 @@ def dis_flow(preset: str):
 
     def predict(frames: list, K=None) -> np.ndarray:
         dis = cv2.DISOpticalFlow.create(code)  # per call: the object keeps no useful state between pairs
-        return dis.calc(_grey(frames[-2]), _grey(frames[-1]), None)
+        return dis.calc(grey(frames[-2]), grey(frames[-1]), None)
 
     return predict
 
 
-def _relative_pose(orb, matcher, a: np.ndarray, b: np.ndarray, K: np.ndarray) -> tuple[np.ndarray | None, int]:
-    """T (4, 4) mapping camera-a points to camera-b with |t| = 1, and the inlier count (None if it failed)."""
+def orb_matcher() -> tuple[cv2.ORB, cv2.BFMatcher]:
+    """The ORB detector and cross-checked Hamming matcher of :func:`orb_vo` (and of ``--pose-method orbvo``)."""
+    return cv2.ORB.create(nfeatures=ORB_FEATURES), cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+
+
+def relative_pose(
+    orb, matcher, a: np.ndarray, b: np.ndarray, K: np.ndarray
+) -> tuple[np.ndarray | None, int, tuple[np.ndarray, np.ndarray] | None]:
+    """T (4, 4) mapping camera-a points to camera-b with |t| = 1, the inlier count, and the inliers'
+    pixels in a and b ((N, 2) each); T and the pixels are None if it failed. ``a``, ``b``: grey frames."""
     kp_a, des_a = orb.detectAndCompute(a, None)
     kp_b, des_b = orb.detectAndCompute(b, None)
     if des_a is None or des_b is None:
-        return None, 0
+        return None, 0, None
     matches = matcher.match(des_a, des_b)
     if len(matches) < ORB_MIN_INLIERS:
-        return None, len(matches)
+        return None, len(matches), None
     p_a = np.array([kp_a[m.queryIdx].pt for m in matches], dtype=np.float64)
     p_b = np.array([kp_b[m.trainIdx].pt for m in matches], dtype=np.float64)
     try:
         E, mask = cv2.findEssentialMat(p_a, p_b, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
     except cv2.error:  # OpenCV 5 asserts (solvePoly) where 4.x returned no solution: no motion to solve
-        return None, 0
+        return None, 0, None
     if E is None or E.shape != (3, 3):  # several solutions stacked, or none: degenerate motion
-        return None, 0 if mask is None else int(mask.sum())
-    inliers, R, t, _ = cv2.recoverPose(E, p_a, p_b, K, mask=mask)
+        return None, 0 if mask is None else int(mask.sum()), None
+    inliers, R, t, mask = cv2.recoverPose(E, p_a, p_b, K, mask=mask)
     if inliers < ORB_MIN_INLIERS:
-        return None, int(inliers)
+        return None, int(inliers), None
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t.ravel()
-    return T, int(inliers)
+    keep = mask.ravel() > 0  # the RANSAC inliers that recoverPose found in front of both cameras
+    return T, int(inliers), (p_a[keep], p_b[keep])
 
 
 def orb_vo(frames: list, K: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -85,13 +94,12 @@ def orb_vo(frames: list, K: np.ndarray) -> tuple[np.ndarray, dict]:
     step: no motion) and is counted in ``info["failed_pairs"]``.
     """
     cv2.setRNGSeed(0)  # RANSAC draws from OpenCV's global RNG: fixed for reproducible tables
-    orb = cv2.ORB.create(nfeatures=ORB_FEATURES)
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-    grey = [_grey(f) for f in frames]
+    orb, matcher = orb_matcher()
+    greys = [grey(f) for f in frames]
     K = np.asarray(K, dtype=np.float64)
     poses, step, failed, inliers = [np.eye(4)], np.eye(4), 0, []
-    for a, b in zip(grey[:-1], grey[1:]):
-        T, n = _relative_pose(orb, matcher, a, b, K)
+    for a, b in zip(greys[:-1], greys[1:]):
+        T, n, _ = relative_pose(orb, matcher, a, b, K)
         inliers.append(n)
         if T is None:
             failed += 1

@@ -65,6 +65,8 @@ class BatchConfig:
     batch_size: int = 4
     camera: Camera | None = None
     vis: bool = True  # depth colour maps and flow colour wheels
+    flow_method: str = "network"  # or "dis" (geonet_infer.classical)
+    pose_method: str = "network"  # or "orbvo"
 
     def options(self) -> dict:
         """What decides the outputs (stored in each ``.done``; a resume with other options is refused)."""
@@ -87,6 +89,8 @@ class BatchConfig:
             "batch_size": self.batch_size,
             "camera": cam,
             "vis": self.vis,
+            "flow_method": self.flow_method,
+            "pose_method": self.pose_method,
         }
 
 
@@ -382,6 +386,8 @@ def run_sequence(
             batch_size=config.batch_size,
             progress=False,
             vis=config.vis,
+            flow_method=config.flow_method,
+            pose_method=config.pose_method,
         )
         failures = [
             {"sequence": unit.name, "input": unit.path, "frame": f["frame"], "reason": f["reason"]}
