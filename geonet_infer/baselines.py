@@ -9,6 +9,8 @@ Same call signatures as the model adapters in :mod:`geonet_infer.evaluation`:
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import cv2
 import numpy as np
 
@@ -54,33 +56,40 @@ def orb_matcher() -> tuple[cv2.ORB, cv2.BFMatcher]:
     return cv2.ORB.create(nfeatures=ORB_FEATURES), cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
 
 
-def relative_pose(
-    orb, matcher, a: np.ndarray, b: np.ndarray, K: np.ndarray
-) -> tuple[np.ndarray | None, int, tuple[np.ndarray, np.ndarray] | None]:
-    """T (4, 4) mapping camera-a points to camera-b with |t| = 1, the inlier count, and the inliers'
-    pixels in a and b ((N, 2) each); T and the pixels are None if it failed. ``a``, ``b``: grey frames."""
+class PairPose(NamedTuple):
+    """One ORB-VO step (:func:`relative_pose`)."""
+
+    T: np.ndarray | None  # (4, 4) camera-a points -> camera-b, |t| = 1; None: the pair failed
+    inliers: int
+    pixels: tuple[np.ndarray, np.ndarray] | None  # the inliers' pixels in a and b, (N, 2) each, with T
+    shift: float | None  # median pixel displacement of all cross-checked matches (None: no match)
+
+
+def relative_pose(orb, matcher, a: np.ndarray, b: np.ndarray, K: np.ndarray) -> PairPose:
+    """The ORB-VO step from grey frame ``a`` to grey frame ``b`` (see :func:`orb_vo`)."""
     kp_a, des_a = orb.detectAndCompute(a, None)
     kp_b, des_b = orb.detectAndCompute(b, None)
     if des_a is None or des_b is None:
-        return None, 0, None
+        return PairPose(None, 0, None, None)
     matches = matcher.match(des_a, des_b)
+    p_a = np.array([kp_a[m.queryIdx].pt for m in matches], dtype=np.float64).reshape(-1, 2)
+    p_b = np.array([kp_b[m.trainIdx].pt for m in matches], dtype=np.float64).reshape(-1, 2)
+    shift = float(np.median(np.linalg.norm(p_b - p_a, axis=1))) if len(matches) else None
     if len(matches) < ORB_MIN_INLIERS:
-        return None, len(matches), None
-    p_a = np.array([kp_a[m.queryIdx].pt for m in matches], dtype=np.float64)
-    p_b = np.array([kp_b[m.trainIdx].pt for m in matches], dtype=np.float64)
+        return PairPose(None, len(matches), None, shift)
     try:
         E, mask = cv2.findEssentialMat(p_a, p_b, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
     except cv2.error:  # OpenCV 5 asserts (solvePoly) where 4.x returned no solution: no motion to solve
-        return None, 0, None
+        return PairPose(None, 0, None, shift)
     if E is None or E.shape != (3, 3):  # several solutions stacked, or none: degenerate motion
-        return None, 0 if mask is None else int(mask.sum()), None
+        return PairPose(None, 0 if mask is None else int(mask.sum()), None, shift)
     inliers, R, t, mask = cv2.recoverPose(E, p_a, p_b, K, mask=mask)
     if inliers < ORB_MIN_INLIERS:
-        return None, int(inliers), None
+        return PairPose(None, int(inliers), None, shift)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t.ravel()
     keep = mask.ravel() > 0  # the RANSAC inliers that recoverPose found in front of both cameras
-    return T, int(inliers), (p_a[keep], p_b[keep])
+    return PairPose(T, int(inliers), (p_a[keep], p_b[keep]), shift)
 
 
 def orb_vo(frames: list, K: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -99,7 +108,7 @@ def orb_vo(frames: list, K: np.ndarray) -> tuple[np.ndarray, dict]:
     K = np.asarray(K, dtype=np.float64)
     poses, step, failed, inliers = [np.eye(4)], np.eye(4), 0, []
     for a, b in zip(greys[:-1], greys[1:]):
-        T, n, _ = relative_pose(orb, matcher, a, b, K)
+        T, n, _, _ = relative_pose(orb, matcher, a, b, K)
         inliers.append(n)
         if T is None:
             failed += 1

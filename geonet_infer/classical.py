@@ -13,8 +13,10 @@ so ``predict``, ``batch`` and :meth:`Predictor.iter_sequence` write them in the 
   are triangulated with a unit step and the length is the median of (predicted depth /
   triangulated depth) over them. Translations are so in the depth's units, like the network's
   poses: metres with a camera height (the smoothed metric depth), else the model's relative
-  scale. A pair that fails (too few matches, inliers or triangulated points) repeats the
-  previous step (the first one: no motion), as the eval's ORB-VO does. Needs DepthNet and K.
+  scale. A pair whose matches moved less than :data:`STILL_SHIFT_PX` (median) is a camera
+  standing still: no motion. Any other pair that fails (too few matches, inliers or triangulated
+  points) repeats the previous step (the first one: no motion), as the eval's ORB-VO does.
+  Needs DepthNet and K.
 """
 
 from __future__ import annotations
@@ -36,6 +38,10 @@ FLOW_METHODS = ("network", "dis")
 POSE_METHODS = ("network", "orbvo")
 DIS_PRESET = "medium"  # the eval's DIS row (docs/real_eval.md)
 MIN_TRIANGULATED = 8  # inliers in front of both cameras needed to set a step's length
+# Matches whose median displacement is under this: the camera stood still. On the KITTI test drive the
+# stopped frames' ORB matches move 0.0 px (median), the moving ones 1.0-2.1 px; the eval's ORB-VO
+# (no such rule) fails there and repeats the last step, a car driving on through a stop.
+STILL_SHIFT_PX = 0.5
 CLASSICAL_STAGES = ("dis", "orbvo")  # timings_ms keys of the classical methods
 CLASSICAL_GRAPHS = {"flow": (), "pose": ("depthnet",)}  # ORB-VO takes its steps' length from the depth
 
@@ -69,7 +75,8 @@ def describe(tasks: Iterable[str], flow_method: str, pose_method: str) -> dict:
         out["pose"] = (
             {
                 "method": "orbvo",
-                "detail": "two-view ORB-VO per consecutive pair (ORB, 5-point RANSAC, recoverPose)",
+                "detail": "two-view ORB-VO per consecutive pair (ORB, 5-point RANSAC, recoverPose); matches "
+                f"moving under {STILL_SHIFT_PX:g} px (median): no motion; another failed pair repeats the last step",
                 "scale": "step length = median(predicted depth / triangulated depth) over the step's inliers: "
                 "in the depth's units (metres with a camera height)",
             }
@@ -179,9 +186,12 @@ def _orb_step(orb, a: np.ndarray, b: np.ndarray, result: FrameResult, previous: 
     cv2.setRNGSeed(0)  # RANSAC draws from OpenCV's global RNG: a frame's pose does not depend on the ones before
     K = result.intrinsics
     detector, matcher = orb
-    T, _, pixels = baselines.relative_pose(detector, matcher, baselines.grey(a), baselines.grey(b), K)
+    pair = baselines.relative_pose(detector, matcher, baselines.grey(a), baselines.grey(b), K)
+    T, pixels = pair.T, pair.pixels
     length = None if T is None or pixels is None else step_length(T, pixels, result.depth, K)
-    if T is not None and length is not None:
+    if pair.shift is not None and pair.shift < STILL_SHIFT_PX:
+        previous = np.eye(4)  # the matches did not move: the camera stood still (E is degenerate here)
+    elif T is not None and length is not None:
         T = T.copy()
         T[:3, 3] *= length
         previous = T

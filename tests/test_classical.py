@@ -121,6 +121,21 @@ def test_api_methods_replace_flow_and_poses_with_the_evals_code():
     np.testing.assert_allclose(mixed.frames[1].pose_to_next, seq.frames[1].pose_to_next)
 
 
+def test_orbvo_a_camera_standing_still_does_not_move():
+    """Frames 1 and 2 are the same picture: the step 1 -> 2 is the identity (the eval's orb_vo, whose
+    essential matrix fails there, repeats the step 0 -> 1: a car driving on through a stop)."""
+    predictor = geonet_infer.load()
+    camera = read_camera(SAMPLE_CALIB)
+    frames = list_images(SAMPLE_FRAMES)
+    seq = predictor.predict_sequence([frames[0], frames[1], frames[1]], camera, pose_method="orbvo")
+    assert np.linalg.norm(seq.frames[0].pose_to_next[:3, 3]) > 0
+    np.testing.assert_array_equal(seq.frames[1].pose_to_next, np.eye(4))
+    np.testing.assert_array_equal(seq.frames[2].camera_to_world, seq.frames[1].camera_to_world)
+    rgbs = [read_image(f) for f in (frames[0], frames[1], frames[1])]
+    eval_poses, info = baselines.orb_vo(rgbs, camera.scaled_to(rgbs[0].shape[1], rgbs[0].shape[0]).K)
+    assert info["failed_pairs"] == 1 and not np.allclose(eval_poses[2], eval_poses[1])
+
+
 def test_orbvo_needs_intrinsics_and_unknown_methods_are_refused(tmp_path, capsys):
     base = ["predict", str(SAMPLE_FRAMES), "--no-progress"]
     assert main([*base, "--out", str(tmp_path / "a"), "--pose-method", "orbvo", "--tasks", "pose"]) == 2
