@@ -167,3 +167,19 @@ def test_predict_and_batch_write_the_classical_outputs_in_the_usual_layout(tmp_p
         assert len((out / "poses_tum.txt").read_text().splitlines()) == 4
     for name in ("flow/000000.png", "poses_kitti.txt"):
         assert (tmp_path / "p" / name).read_bytes() == (tmp_path / "b" / "seq_a" / name).read_bytes()
+    # the methods are options of the job: resuming it with the networks is refused
+    rerun = [
+        "batch",
+        str(seq),
+        "--out",
+        str(tmp_path / "b"),
+        "--workers",
+        "1",
+        "--resume",
+        "--calib",
+        str(SAMPLE_CALIB),
+    ]
+    assert main([*rerun, "--no-progress"]) == 2
+    assert "flow or pose method" in capsys.readouterr().err
+    assert main([*rerun, *methods]) == 0  # the same options: complete already, skipped
+    capsys.readouterr()

@@ -81,7 +81,7 @@ class BatchConfig:
                 "size": None if self.camera.size is None else list(self.camera.size),
             }
         )
-        return {
+        options = {
             "model": str(resolve_model(self.model).resolve()),
             "precision": self.precision,
             "backend": self.backend,
@@ -89,9 +89,10 @@ class BatchConfig:
             "batch_size": self.batch_size,
             "camera": cam,
             "vis": self.vis,
-            "flow_method": self.flow_method,
-            "pose_method": self.pose_method,
         }
+        # only when not the networks: a .done written before these options existed stays resumable
+        methods = {"flow_method": self.flow_method, "pose_method": self.pose_method}
+        return options | {k: v for k, v in methods.items() if v != "network"}
 
 
 def read_input_list(path: Path) -> list[Path]:
