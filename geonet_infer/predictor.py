@@ -47,7 +47,13 @@ from geonet_infer.errors import GeoNetError, InputError, ModelError
 from geonet_infer.manifest import PRECISIONS, Manifest, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
-from geonet_infer.scale import SCALE_HALF_WINDOW, check_metric_request, fit_ground_plane, metric_frames
+from geonet_infer.scale import (
+    SCALE_HALF_WINDOW,
+    ScaleSmoother,
+    check_metric_request,
+    fit_ground_plane,
+    metric_frames,
+)
 
 __all__ = [
     "STAGES",
@@ -438,6 +444,7 @@ class Predictor:
         if camera_height is not None:
             require_graphs(METRIC_TASK, TASK_GRAPHS["depth"], self.graphs, self.model_dir)
             check_metric_request(camera_height, camera)
+            ScaleSmoother(scale_smoothing)  # refuses a bad window now, not at the first frame
         kept = KeptFrames(frames) if classical else None
         results = iter_frames(
             self.graph_set,

@@ -259,6 +259,8 @@ def test_sequence_with_camera_height_scales_depth_and_translations_per_frame(sam
 
 def test_camera_height_needs_a_camera_and_a_positive_height(sample):
     predictor, frames, camera = sample
+    with pytest.raises(GeoNetError, match="smoothing window"):
+        predictor.iter_sequence(frames, camera, camera_height=1.65, scale_smoothing=-1)  # before any frame
     with pytest.raises(GeoNetError, match="needs the camera intrinsics"):
         predictor.depth(frames[0], camera_height=1.65)
     with pytest.raises(GeoNetError, match="positive number of metres"):
@@ -321,3 +323,5 @@ def test_predict_cli_camera_height(tmp_path, capsys):
         assert per_frame["raw"][i] == pytest.approx(own, rel=1e-5)
     assert per_frame["raw"] != pytest.approx(per_frame["smoothed"])  # the frames' fits differ: smoothing acted
     assert scales["smoothing"]["half_window_frames"] == 7
+    rc = main(["predict", str(SAMPLE_FRAMES), "--out", str(tmp_path / "x"), "--scale-smoothing", "3"])
+    assert rc == 2 and "pass --camera-height" in capsys.readouterr().err

@@ -112,7 +112,7 @@ def add_parser(sub) -> None:
     parser.add_argument(
         "--scale-smoothing",
         type=_frames,
-        default=SCALE_HALF_WINDOW,
+        default=None,
         metavar="FRAMES",
         help="with --camera-height: each frame's scale is the robust mean (outliers dropped) of the ground "
         "fits of this many frames before and after it, so metric depth does not flicker; frames are "
@@ -196,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(
             None, f"--batch-size {args.batch_size} is over the limit of {MAX_BATCH_SIZE}", "4 to 16 is plenty on a CPU"
         )
+    if args.scale_smoothing is not None and args.camera_height is None:
+        raise InputError(None, "--scale-smoothing smooths the metric scale", "pass --camera-height METRES with it")
     source = _open_source(args)
     options = OutputOptions(
         point_cloud=args.point_cloud,
@@ -232,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
             max_frames=args.max_frames,
             flow_method=args.flow_method,
             pose_method=args.pose_method,
-            scale_smoothing=args.scale_smoothing,
+            scale_smoothing=SCALE_HALF_WINDOW if args.scale_smoothing is None else args.scale_smoothing,
         )
     print(
         f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
