@@ -44,6 +44,8 @@ import numpy as np
 from geonet_infer import __version__
 from geonet_infer.cascade import camera_at
 from geonet_infer.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
+from geonet_infer.classical import check_methods, classical_tasks
+from geonet_infer.classical import describe as describe_methods
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import _umask, atomic_write, leftover_temps, save_npy_atomic
 from geonet_infer.io.calib import Camera, write_kitti_camera
@@ -55,7 +57,7 @@ from geonet_infer.manifest import model_notice
 from geonet_infer.points import write_ply
 from geonet_infer.predictor import TASKS, Predictor
 from geonet_infer.results import FrameResult
-from geonet_infer.scale import check_metric_request
+from geonet_infer.scale import SCALE_HALF_WINDOW, check_metric_request, metric_scale_summary
 from geonet_infer.viz import SteadyScale, depth_to_color, flow_to_color, side_by_side
 
 SUMMARY_NAME = "summary.json"
@@ -346,6 +348,9 @@ def predict_to_dir(
     options: OutputOptions = OutputOptions(),
     max_frames: int | None = None,
     check: bool = True,
+    flow_method: str = "network",
+    pose_method: str = "network",
+    scale_smoothing: int = SCALE_HALF_WINDOW,
 ) -> dict:
     """Predict every frame of ``source`` into ``out_dir`` (layout in the module docstring).
 
@@ -366,6 +371,8 @@ def predict_to_dir(
         options: point clouds, the colour scale of the pictures, a result video (:class:`OutputOptions`).
         max_frames: stop after this many good frames (live sources).
         check: check each flow against the frames (``summary["check"]``, :mod:`geonet_infer.check`).
+        flow_method, pose_method: "network", or "dis" / "orbvo" (:mod:`geonet_infer.classical`).
+        scale_smoothing: frames each side over which the camera-height scale is smoothed (0: none).
     Returns:
         The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad
         frames (unreadable, odd size, NaN/inf output, or missing from a truncated video).
@@ -376,12 +383,19 @@ def predict_to_dir(
         with ``"interrupted": true`` for the frames written so far; no temp file is left.
     """
     out_dir = Path(out_dir)
-    tasks, skipped_tasks = predictor.resolve_tasks(tasks, metric=camera_height is not None)  # None: all it can
-    if "flow" in tasks and camera is None:
+    check_methods(flow_method, pose_method)
+    tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
+        tasks, metric=camera_height is not None, classical=classical_tasks(tasks or TASKS, flow_method, pose_method)
+    )
+    if "flow" in tasks and flow_method == "network" and camera is None:
         raise InputError(
             source.path,
             "flow needs camera intrinsics and none were found",
             "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
+        )
+    if "pose" in tasks and pose_method == "orbvo" and camera is None:
+        raise InputError(
+            source.path, "ORB-VO poses need camera intrinsics and none were found", "pass --calib FILE or --intrinsics"
         )
     if camera_height is not None:
         check_metric_request(camera_height, camera, source.path)
@@ -406,6 +420,7 @@ def predict_to_dir(
         _predict,
         predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis,
         skipped_tasks=skipped_tasks, options=options, max_frames=max_frames, check=check,
+        methods=(flow_method, pose_method, scale_smoothing),
     )  # fmt: skip
     if not exclusive:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -441,6 +456,7 @@ def _predict(
     options: OutputOptions,
     max_frames: int | None,
     check: bool,
+    methods: tuple[str, str, int],
 ) -> dict:
     from tqdm import tqdm
 
@@ -448,7 +464,7 @@ def _predict(
     totals: dict[str, float] = defaultdict(float)
     poses: list[np.ndarray] = []
     done = 0
-    scales: list[float] = []
+    scales: dict[str, list] = {"frames": [], "raw": [], "smoothed": []}
     checks: list[tuple[str, FrameCheck]] = []
     interrupted = False
 
@@ -477,7 +493,9 @@ def _predict(
             world.add(result, *written.points)
         poses.append(result.camera_to_world)
         if result.metric_scale is not None:
-            scales.append(result.metric_scale)
+            scales["frames"].append(result.name)
+            scales["raw"].append(result.metric_scale_raw)
+            scales["smoothed"].append(result.metric_scale)
         for stage, ms in result.timings_ms.items():
             totals[stage] += ms
         done += 1
@@ -503,6 +521,9 @@ def _predict(
             tasks=tasks,
             camera_height=camera_height,
             check=check,
+            flow_method=methods[0],
+            pose_method=methods[1],
+            scale_smoothing=methods[2],
         )
         for result in results:
             bad = _non_finite(result, tasks)
@@ -596,14 +617,8 @@ def _predict(
             "undistorted": camera.has_distortion,
         },
         "image_size": None if frames.size is None else [frames.size[1], frames.size[0]],
-        "metric_scale": None
-        if camera_height is None
-        else {
-            "camera_height_m": camera_height,
-            "per_frame_median": float(np.median(scales)) if scales else None,
-            "per_frame_min": min(scales, default=None),
-            "per_frame_max": max(scales, default=None),
-        },
+        "methods": describe_methods(tasks, methods[0], methods[1]),
+        "metric_scale": None if camera_height is None else metric_scale_summary(camera_height, methods[2], scales),
         "check": _check_summary(checks, predictor) if check and "flow" in tasks else None,
         "timings_ms_per_frame": {k: v / max(done, 1) for k, v in totals.items()},
         "wall_s": elapsed,

@@ -35,12 +35,25 @@ from geonet_infer.cascade import (
     run_cascade,
     to_network,
 )
+from geonet_infer.classical import (
+    CLASSICAL_GRAPHS,
+    KeptFrames,
+    check_methods,
+    classical_frames,
+    classical_tasks,
+)
 from geonet_infer.engines import BACKENDS, usable_cpus
 from geonet_infer.errors import GeoNetError, InputError, ModelError
 from geonet_infer.manifest import PRECISIONS, Manifest, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
-from geonet_infer.scale import check_metric_request, fit_ground_plane, metric_frames
+from geonet_infer.scale import (
+    SCALE_HALF_WINDOW,
+    ScaleSmoother,
+    check_metric_request,
+    fit_ground_plane,
+    metric_frames,
+)
 
 __all__ = [
     "STAGES",
@@ -71,10 +84,12 @@ RIGID_FLOW_GRAPHS = ("depthnet", "posenet", "rigidflow")
 METRIC_TASK = "metric scale (camera height)"  # fits the ground to depth: needs DepthNet
 
 
-def missing_graphs(task: str, graphs: Iterable[str]) -> tuple[str, ...]:
-    """The graphs ``task`` needs that are not among ``graphs`` (empty: the task can run)."""
+def missing_graphs(task: str, graphs: Iterable[str], classical: Iterable[str] = ()) -> tuple[str, ...]:
+    """The graphs ``task`` needs that are not among ``graphs`` (empty: the task can run); a task in
+    ``classical`` is made by a classical method (:data:`geonet_infer.classical.CLASSICAL_GRAPHS`)."""
     present = set(graphs)
-    return tuple(g for g in TASK_GRAPHS[task] if g not in present)
+    needed = CLASSICAL_GRAPHS[task] if task in tuple(classical) else TASK_GRAPHS[task]
+    return tuple(g for g in needed if g not in present)
 
 
 def require_graphs(task: str, needed: Iterable[str], graphs: Iterable[str], model_dir) -> None:
@@ -97,14 +112,21 @@ def require_graphs(task: str, needed: Iterable[str], graphs: Iterable[str], mode
 
 
 def resolve_tasks(
-    graphs: Iterable[str], tasks: Iterable[str] | None, model_dir, *, metric: bool = False
+    graphs: Iterable[str],
+    tasks: Iterable[str] | None,
+    model_dir,
+    *,
+    metric: bool = False,
+    classical: Iterable[str] = (),
 ) -> tuple[tuple[str, ...], dict[str, tuple[str, ...]]]:
     """(tasks to run in canonical order, {task skipped: the graphs it lacks}) for a model holding ``graphs``.
 
     ``tasks=None``: every task the model can do, the others skipped; given tasks are all
     required (GeoNetError naming a missing graph) and none is skipped. ``metric``: a camera
-    height will be given (it needs DepthNet whatever the tasks).
+    height will be given (it needs DepthNet whatever the tasks). ``classical``: tasks made by a
+    classical method (DIS flow, ORB-VO poses: :mod:`geonet_infer.classical`), needing fewer graphs.
     """
+    classical = tuple(classical)
     graphs = tuple(graphs)
     if metric:
         require_graphs(METRIC_TASK, TASK_GRAPHS["depth"], graphs, model_dir)
@@ -114,9 +136,9 @@ def resolve_tasks(
         if unknown:
             raise InputError(None, f"unknown task(s) {unknown}", f"choose from {','.join(TASKS)}")
         for task in tasks:
-            require_graphs(task, TASK_GRAPHS[task], graphs, model_dir)
+            require_graphs(task, CLASSICAL_GRAPHS[task] if task in classical else TASK_GRAPHS[task], graphs, model_dir)
         return tuple(t for t in TASKS if t in tasks), {}
-    skipped = {t: missing_graphs(t, graphs) for t in TASKS if missing_graphs(t, graphs)}
+    skipped = {t: missing_graphs(t, graphs, classical) for t in TASKS if missing_graphs(t, graphs, classical)}
     if len(skipped) == len(TASKS):
         raise ModelError(
             model_dir,
@@ -242,10 +264,10 @@ class Predictor:
         resolve_tasks(self.graphs, tasks, self.model_dir)
 
     def resolve_tasks(
-        self, tasks: Iterable[str] | None = None, *, metric: bool = False
+        self, tasks: Iterable[str] | None = None, *, metric: bool = False, classical: Iterable[str] = ()
     ) -> tuple[tuple[str, ...], dict[str, tuple[str, ...]]]:
         """(tasks to run in canonical order, {task skipped: the graphs it lacks}); see :func:`resolve_tasks`."""
-        return resolve_tasks(self.graphs, tasks, self.model_dir, metric=metric)
+        return resolve_tasks(self.graphs, tasks, self.model_dir, metric=metric, classical=classical)
 
     @property
     def seq_length(self) -> int:
@@ -378,6 +400,9 @@ class Predictor:
         camera_height: float | None = None,
         tasks: Iterable[str] = TASKS,
         check: bool = True,
+        flow_method: str = "network",
+        pose_method: str = "network",
+        scale_smoothing: int = SCALE_HALF_WINDOW,
         **deprecated: Any,
     ) -> Iterator[FrameResult]:
         """Stream a whole sequence: yields one :class:`FrameResult` per frame, in order.
@@ -397,36 +422,53 @@ class Predictor:
         ``with_flow=False`` drops "flow" (depth and poses only; camera may then be None, or a
         Camera used only to undistort).
         ``camera_height`` (metres, needs the camera and depthnet) makes each frame's depth and its
-        pose translation metric (:func:`geonet_infer.scale.metric_frames`: a frame whose road is
-        hidden takes the previous frame's scale, frames before the first fit the first fit's).
+        pose translation metric (:func:`geonet_infer.scale.metric_frames`: each frame's ground-fit
+        factor, ``metric_scale_raw``, smoothed over ``scale_smoothing`` frames each side into
+        ``metric_scale``; frames come that many frames late; 0 = each frame's own fit).
+        ``flow_method="dis"`` / ``pose_method="orbvo"``: flow from OpenCV DIS, poses from ORB-VO
+        instead of the networks (:mod:`geonet_infer.classical`; with DIS, ``rigid_flow`` is the
+        DIS flow and ``residual_flow`` None).
         ``check`` (with flow): each frame's ``check`` says whether its flow and rigid flow explain
         the next frame better than no motion (:mod:`geonet_infer.check`; about 1 ms a frame).
         A missing graph or a bad request raises here, before any frame is read.
         """
         camera = _camera_keyword(camera, deprecated, "iter_sequence")
-        tasks = tuple(tasks)
-        self.require_tasks(t for t in tasks if t != "flow")
-        tasks = tuple(t for t in TASKS if t in tasks and (with_flow or t != "flow"))
-        if "flow" in tasks:
+        check_methods(flow_method, pose_method)
+        asked = tuple(tasks)
+        classical = classical_tasks(asked, flow_method, pose_method)
+        self.require_tasks(t for t in asked if t != "flow" and t not in classical)  # unknown tasks too
+        tasks = tuple(t for t in TASKS if t in asked and (with_flow or t != "flow"))
+        if "flow" in tasks and "flow" not in classical:
             require_graphs("flow", RIGID_FLOW_GRAPHS, self.graphs, self.model_dir)
+        if "pose" in classical:
+            require_graphs("pose", CLASSICAL_GRAPHS["pose"], self.graphs, self.model_dir)
+            if camera is None:
+                raise InputError(None, "ORB-VO poses need the camera intrinsics", "pass K (3x3) or a Camera")
         if camera_height is not None:
             require_graphs(METRIC_TASK, TASK_GRAPHS["depth"], self.graphs, self.model_dir)
             check_metric_request(camera_height, camera)
+            ScaleSmoother(scale_smoothing)  # refuses a bad window now, not at the first frame
+        kept = KeptFrames(frames) if classical else None
         results = iter_frames(
             self.graph_set,
             self.spec,
-            frames,
+            frames if kept is None else kept,
             camera,
             batch_size=batch_size,
             names=names,
-            tasks=tasks,
-            need_depth=camera_height is not None,
+            tasks=tuple(t for t in tasks if t not in classical),
+            need_depth=camera_height is not None or "pose" in classical,
             check=check,
         )
         if camera_height is not None:
             metric_camera = camera
             assert metric_camera is not None  # check_metric_request refused a missing camera
-            results = metric_frames(results, camera_height, lambda size: camera_at(metric_camera, size).K)
+            results = metric_frames(
+                results, camera_height, lambda size: camera_at(metric_camera, size).K, scale_smoothing
+            )
+        if kept is not None:
+            check_size = (self.spec.height, self.spec.width) if check and flow_method == "dis" else None
+            results = classical_frames(results, kept, camera, flow_method, pose_method, check_size)
         return results
 
     def predict_sequence(
@@ -437,13 +479,25 @@ class Predictor:
         batch_size: int = 4,
         camera_height: float | None = None,
         check: bool = True,
+        flow_method: str = "network",
+        pose_method: str = "network",
+        scale_smoothing: int = SCALE_HALF_WINDOW,
         **deprecated: Any,
     ) -> SequenceResult:
         """All of :meth:`iter_sequence` in memory (mind the size of flow for long videos);
         ``SequenceResult.check`` sums up the frames' flow checks."""
         camera = _camera_keyword(camera, deprecated, "predict_sequence")
         results = list(
-            self.iter_sequence(frames, camera, batch_size=batch_size, camera_height=camera_height, check=check)
+            self.iter_sequence(
+                frames,
+                camera,
+                batch_size=batch_size,
+                camera_height=camera_height,
+                flow_method=flow_method,
+                pose_method=pose_method,
+                scale_smoothing=scale_smoothing,
+                check=check,
+            )
         )
         totals: dict[str, float] = defaultdict(float)
         for r in results:

@@ -122,7 +122,9 @@ class FrameResult(_Points):
             ``predict`` never needs).
         undistorted: the frame was undistorted first.
         timings_ms: this frame's share of each stage (batched stages divided evenly).
-        metric_scale: with a camera height, the factor that made depth and translations metres.
+        metric_scale: with a camera height, the factor that made depth and translations metres
+            (smoothed over the sequence, :class:`geonet_infer.scale.ScaleSmoother`).
+        metric_scale_raw: this frame's own ground-fit factor before smoothing (None: no road found).
         intrinsics: (3, 3) float64 K at the input resolution that was used, or None without a
             camera; :meth:`points` back-projects with it.
         check: the flow checked against the frames (:class:`~geonet_infer.check.FrameCheck`: does
@@ -140,6 +142,7 @@ class FrameResult(_Points):
     undistorted: bool
     timings_ms: dict[str, float]
     metric_scale: float | None = None
+    metric_scale_raw: float | None = None
     intrinsics: np.ndarray | None = None
     check: FrameCheck | None = None
     # Makes the rigid flow at the input size; None = the flow is all rigid (no ResFlowNet).

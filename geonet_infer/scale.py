@@ -14,7 +14,8 @@ surface above it, such as a car transporter's deck or a truck bed: it is skipped
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -179,41 +180,148 @@ def check_camera_height(camera_height_m) -> None:
 
 
 MAX_FRAMES_BEFORE_GROUND = 60  # frames held back waiting for a first ground plane (2.4 s at 25 fps)
+# The per-frame fit follows the model's depth, which wobbles from frame to frame (on the KITTI test drive
+# consecutive factors jump 3.8 -> 2.8 -> 6.9), so a sequence's factor is smoothed over a centred window.
+SCALE_HALF_WINDOW = 7  # frames each side: a 15-frame window; a stream is held back 7 frames (0.7 s at 10 Hz)
+SCALE_OUTLIER_K = 2.5  # a fit further than this many robust sigmas from the window's median is dropped
+SCALE_MIN_SPREAD = 0.05  # floor of that sigma in log units, so a steady run does not reject a 5 % wobble
+
+
+def robust_scale(values: Sequence[float]) -> float:
+    """One factor for a window of per-frame factors (> 0): the geometric mean of the inliers.
+
+    In log units: values further than ``SCALE_OUTLIER_K`` robust sigmas (1.4826 x the median
+    absolute deviation, at least ``SCALE_MIN_SPREAD``) from the median are outliers; the mean of
+    the rest is smoother than their median (one frame entering the window moves it by 1/n of its
+    distance), and rejecting first keeps it robust.
+    """
+    logs = np.log(np.asarray(values, dtype=np.float64))
+    median = np.median(logs)
+    sigma = max(1.4826 * float(np.median(np.abs(logs - median))), SCALE_MIN_SPREAD)
+    inliers = logs[np.abs(logs - median) <= SCALE_OUTLIER_K * sigma]
+    return float(np.exp(inliers.mean()))
+
+
+class ScaleSmoother:
+    """Per-frame factors (None = no ground fit) in, smoothed factors out, in order, streaming.
+
+    Frame t gets :func:`robust_scale` of the fits among frames t-h .. t+h (``h = half_window``;
+    clipped at the sequence's ends), so it is decided once frame t+h is in: a look-ahead of h
+    frames. Centred rather than causal: a causal window lags every real change of scale (the
+    model's depth drifting as the scene changes) by half its length, a centred one does not.
+    A frame with no fit in its window takes the previous frame's factor; frames before any
+    such frame wait for the first factor decided. ``h = 0``: each frame's own fit.
+    """
+
+    def __init__(self, half_window: int = SCALE_HALF_WINDOW):
+        if not (isinstance(half_window, int) and half_window >= 0):
+            raise InputError(None, f"scale smoothing window must be a whole number >= 0, got {half_window!r}")
+        self.half_window = half_window
+        self._raw: deque[float | None] = deque()  # the fits of frames _base .. pushed-1
+        self._base = 0
+        self._pushed = 0
+        self._next = 0  # the next frame to decide
+        self.waiting = 0  # frames decided to have no factor yet: they take the next one
+        self._last: float | None = None
+
+    def push(self, raw: float | None) -> list[float]:
+        """One more frame's fit; returns the factors of the frames decided now, in order."""
+        self._raw.append(raw)
+        self._pushed += 1
+        return self._decide(self._pushed - 1 - self.half_window)
+
+    def finish(self) -> list[float]:
+        """The factors of the frames still undecided (``waiting`` > 0 after it: no fit at all)."""
+        return self._decide(self._pushed - 1)
+
+    def _decide(self, last: int) -> list[float]:
+        out: list[float] = []
+        h = self.half_window
+        while self._next <= last:
+            t = self._next
+            fits = [v for i, v in enumerate(self._raw) if v is not None and abs(self._base + i - t) <= h]
+            if fits:
+                self._last = robust_scale(fits)
+                out += [self._last] * (self.waiting + 1)
+                self.waiting = 0
+            elif self._last is not None:
+                out.append(self._last)
+            else:
+                self.waiting += 1
+            self._next += 1
+            while self._base < self._next - h:  # frames no later window reaches
+                self._raw.popleft()
+                self._base += 1
+        return out
+
+
+def smooth_scales(raw: Sequence[float | None], half_window: int = SCALE_HALF_WINDOW) -> list[float | None]:
+    """:class:`ScaleSmoother` over a whole series (None throughout when no frame has a fit)."""
+    smoother = ScaleSmoother(half_window)
+    out: list[float | None] = [s for r in raw for s in smoother.push(r)]
+    out += smoother.finish()
+    return out + [None] * (len(raw) - len(out))
+
+
+def scale_flicker(scales: Sequence[float | None], percentile: float = 95.0) -> float | None:
+    """The ``percentile`` of max(r, 1/r) over consecutive frames' factors r = s[t+1] / s[t]
+    (pairs with a None left out; None without a pair): 1 = a steady scale, 2 = depth doubling or halving."""
+    pairs = [(a, b) for a, b in zip(scales[:-1], scales[1:]) if a is not None and b is not None]
+    if not pairs:
+        return None
+    ratios = np.array([b / a for a, b in pairs])
+    return float(np.percentile(np.maximum(ratios, 1.0 / ratios), percentile))
+
+
+def metric_scale_summary(camera_height: float, half_window: int, per_frame: dict[str, list]) -> dict:
+    """summary.json's ``metric_scale``: the settings, each frame's raw and smoothed factor
+    (``per_frame``: lists "frames", "raw" (None: no road found), "smoothed", in frame order), and
+    the flicker (:func:`scale_flicker`) of both."""
+    raw, smoothed = per_frame["raw"], per_frame["smoothed"]
+    return {
+        "camera_height_m": camera_height,
+        "smoothing": {
+            "method": "centred window: median-MAD outlier rejection in log scale, then the inliers' geometric mean",
+            "half_window_frames": half_window,
+            "outlier_sigmas": SCALE_OUTLIER_K,
+            "min_spread_log": SCALE_MIN_SPREAD,
+        },
+        "frames_without_fit": sum(r is None for r in raw),
+        "flicker_p95": {"raw": scale_flicker(raw), "smoothed": scale_flicker(smoothed)},
+        "per_frame_median": float(np.median(smoothed)) if smoothed else None,
+        "per_frame_min": min(smoothed, default=None),
+        "per_frame_max": max(smoothed, default=None),
+        "per_frame": per_frame,
+    }
 
 
 def metric_frames(
-    results: Iterable[FrameResult], camera_height: float, K_at: Callable[[tuple[int, int]], np.ndarray]
+    results: Iterable[FrameResult],
+    camera_height: float,
+    K_at: Callable[[tuple[int, int]], np.ndarray],
+    half_window: int = SCALE_HALF_WINDOW,
 ) -> Iterator[FrameResult]:
     """The frames of a sequence in metres, in order.
 
-    Each frame's depth and pose translation are multiplied by the factor that puts the ground
-    plane fitted to its depth (:func:`geonet_infer.scale.fit_ground_plane`) ``camera_height``
-    metres below the camera. A frame whose road is hidden (a truck ahead) takes the previous
-    frame's factor; frames before the first fit are held back (at most
-    ``MAX_FRAMES_BEFORE_GROUND``) and take the first fit's. ``camera_to_world`` is chained
-    again from the scaled poses. ``K_at((H, W))``: the intrinsics at a depth map's size.
+    Each frame's factor is fitted to its depth (:func:`geonet_infer.scale.fit_ground_plane`:
+    the factor that puts the ground plane ``camera_height`` metres below the camera; None where
+    the road is hidden) and smoothed over the sequence (:class:`ScaleSmoother` with
+    ``half_window``: frames are yielded ``half_window`` frames late); depth and pose translation
+    are multiplied by the smoothed factor (``metric_scale``; the frame's own fit is
+    ``metric_scale_raw``). With no fit in the first ``MAX_FRAMES_BEFORE_GROUND`` frames the
+    sequence stops. ``camera_to_world`` is chained again from the scaled poses.
+    ``K_at((H, W))``: the intrinsics at a depth map's size.
     """
     check_camera_height(camera_height)
-    pending: list[FrameResult] = []
-    scale: float | None = None
+    smoother = ScaleSmoother(half_window)
+    held: deque[tuple[FrameResult, float | None]] = deque()
     pose_world = np.eye(4)
-    for result in results:
-        depth = _depth_of(result)
-        try:
-            scale = fit_ground_plane(depth, K_at(depth.shape)).scale_for(camera_height)
-        except GeoNetError as err:
-            if scale is None:
-                pending.append(result)
-                if len(pending) > MAX_FRAMES_BEFORE_GROUND:
-                    raise InputError(
-                        pending[0].name,
-                        f"no ground plane in the first {len(pending)} frames ({err.problem})",
-                        "metric scale needs the road in view early in the video: start it where the road "
-                        "shows, or drop --camera-height for relative depth",
-                    ) from None
-                continue
-        assert scale is not None  # fitted on this frame or an earlier one
-        for frame in [*pending, result]:
+    fitted = False
+
+    def scaled(scales: list[float]) -> Iterator[FrameResult]:
+        nonlocal pose_world
+        for scale in scales:
+            frame, raw = held.popleft()
             pose_next, vector = frame.pose_to_next, frame.pose_vector_to_next
             if pose_next is not None and vector is not None:
                 pose_next, vector = pose_next.copy(), vector.copy()
@@ -227,14 +335,33 @@ def metric_frames(
                 pose_to_next=pose_next,
                 pose_vector_to_next=vector,
                 metric_scale=scale,
+                metric_scale_raw=raw,
             )
             if pose_next is not None:
                 pose_world = pose_world @ rigid_inverse(pose_next)
-        pending = []
-    if pending:
+
+    for result in results:
+        depth = _depth_of(result)
+        raw: float | None = None
+        try:
+            raw = fit_ground_plane(depth, K_at(depth.shape)).scale_for(camera_height)
+            fitted = True
+        except GeoNetError as err:
+            if not fitted and len(held) + 1 > MAX_FRAMES_BEFORE_GROUND:
+                first = held[0][0].name if held else result.name
+                raise InputError(
+                    first,
+                    f"no ground plane in the first {len(held) + 1} frames ({err.problem})",
+                    "metric scale needs the road in view early in the video: start it where the road "
+                    "shows, or drop --camera-height for relative depth",
+                ) from None
+        held.append((result, raw))
+        yield from scaled(smoother.push(raw))
+    yield from scaled(smoother.finish())
+    if held:
         raise InputError(
-            pending[0].name,
-            f"no ground plane in any of the {len(pending)} frames",
+            held[0][0].name,
+            f"no ground plane in any of the {len(held)} frames",
             "metric scale from camera height needs a visible, roughly flat road; drop --camera-height "
             "for relative depth",
         )

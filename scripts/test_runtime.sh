@@ -18,4 +18,4 @@ rm -rf build
 exec env GEONET_RUNTIME_ONLY=1 "$VENV/bin/pytest" -q -o pythonpath= -p no:cacheprovider \
     tests/test_runtime_install.py tests/test_predictor.py tests/test_cli.py tests/test_bench.py \
     tests/test_io.py tests/test_viz.py tests/test_backends.py tests/test_scale.py tests/test_eval.py \
-    tests/test_metrics.py tests/test_kitti_depth.py tests/test_import_contract.py tests/test_check.py "$@"
+    tests/test_metrics.py tests/test_kitti_depth.py tests/test_import_contract.py tests/test_check.py tests/test_classical.py "$@"

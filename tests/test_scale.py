@@ -137,12 +137,79 @@ def test_frames_before_the_first_road_take_its_scale_and_later_ones_the_previous
     wall, road = np.full((H, W), 5.0), road_scene(1.65, 0.0)
     units = [(wall, None), (wall, None), (road, 0.25), (wall, None), (road, 0.5)]
     frames = [_frame(i, d * (c or 1.0), 1.0 if i < 4 else None) for i, (d, c) in enumerate(units)]
-    out = list(metric_frames(iter(frames), 1.65, lambda size: K))
+    out = list(metric_frames(iter(frames), 1.65, lambda size: K, half_window=0))  # each frame's own fit
     assert [f.metric_scale for f in out] == pytest.approx([4.0, 4.0, 4.0, 4.0, 2.0], rel=1e-3)
+    _assert_scales([f.metric_scale_raw for f in out], [None, None, 4.0, None, 2.0])
     np.testing.assert_allclose(out[2].depth, road, rtol=1e-3)
     np.testing.assert_allclose(out[0].depth, wall * 4.0, rtol=1e-3)
     assert [f.camera_to_world[2, 3] for f in out] == pytest.approx([0.0, 4.0, 8.0, 12.0, 16.0], rel=1e-3)
     assert out[1].pose_vector_to_next[2] == pytest.approx(-4.0, rel=1e-3)
+
+
+def _assert_scales(got: list, expected: list, rel: float = 1e-3) -> None:
+    """Equal lists of factors, None (no fit) at the same places."""
+    assert [g is None for g in got] == [e is None for e in expected]
+    assert [g for g in got if g is not None] == pytest.approx([e for e in expected if e is not None], rel=rel)
+
+
+def test_a_smoothed_sequence_takes_one_factor_for_every_frame_of_the_window():
+    """The same five frames, smoothed over 7 frames each side (the default): every window holds
+    both fits, 4 and 2; they lie within 2.5 robust sigmas of their median (MAD = log(2) / 2), so
+    each frame gets their geometric mean sqrt(8), by hand; the raw fits stay beside it."""
+    from geonet_infer.scale import metric_frames
+
+    wall, road = np.full((H, W), 5.0), road_scene(1.65, 0.0)
+    units = [(wall, None), (wall, None), (road, 0.25), (wall, None), (road, 0.5)]
+    frames = [_frame(i, d * (c or 1.0), 1.0 if i < 4 else None) for i, (d, c) in enumerate(units)]
+    out = list(metric_frames(iter(frames), 1.65, lambda size: K))
+    assert [f.metric_scale for f in out] == pytest.approx([8**0.5] * 5, rel=1e-3)
+    _assert_scales([f.metric_scale_raw for f in out], [None, None, 4.0, None, 2.0])
+    assert [f.camera_to_world[2, 3] for f in out] == pytest.approx([i * 8**0.5 for i in range(5)], rel=1e-3)
+
+
+# Golden values of the smoother, worked by hand in log units: sigma = max(1.4826 MAD, 0.05), inliers
+# within 2.5 sigma of the window's median, the result exp(mean of the inliers).
+@pytest.mark.parametrize(
+    "raw, half_window, expected",
+    [
+        # one wild frame (x4) in a steady run: MAD 0, so it is 27 floors out and dropped
+        ([2, 2, 2, 2, 8, 2, 2, 2, 2], 2, [2.0] * 9),
+        # a real step (x2) stays a step: each window's minority side is beyond 2.5 floors
+        ([2] * 6 + [4] * 6, 2, [2.0] * 6 + [4.0] * 6),
+        # a 10 % wobble is kept and averaged: sqrt(1.1) at the ends, 1.1 ** (1/3) in the middle
+        ([1.0, 1.1, 1.0], 1, [1.1**0.5, 1.1 ** (1 / 3), 1.1**0.5]),
+        # frames without a fit: the first two wait for frame 1's window (3), frame 3 averages 3 and 5
+        ([None, None, 3.0, None, 5.0], 1, [3.0, 3.0, 3.0, 15**0.5, 5.0]),
+        # no fit anywhere: nothing to give
+        ([None, None], 3, [None, None]),
+        # window 0: each frame its own fit, a gap keeps the previous one
+        ([2.0, None, 8.0], 0, [2.0, 2.0, 8.0]),
+    ],
+)
+def test_smoother_golden_values(raw, half_window, expected):
+    from geonet_infer.scale import smooth_scales
+
+    _assert_scales(smooth_scales(raw, half_window), expected, rel=1e-9)
+
+
+def test_smoother_decides_each_frame_half_a_window_late():
+    from geonet_infer.scale import ScaleSmoother
+
+    smoother = ScaleSmoother(2)
+    decided = [len(smoother.push(v)) for v in [2.0, 2.0, 2.0, 2.0, 2.0]]
+    assert decided == [0, 0, 1, 1, 1]  # frame t is decided when frame t + 2 is in
+    assert len(smoother.finish()) == 2
+    with pytest.raises(GeoNetError, match="whole number"):
+        ScaleSmoother(-1)
+
+
+def test_flicker_is_the_p95_of_frame_to_frame_ratios():
+    from geonet_infer.scale import scale_flicker
+
+    # ratios 2, 1/2, 1 -> max(r, 1/r) = 2, 2, 1; numpy's linear p95 of [1, 2, 2] is 2
+    assert scale_flicker([1.0, 2.0, 1.0, 1.0]) == pytest.approx(2.0)
+    assert scale_flicker([1.0, 1.0, 1.0]) == pytest.approx(1.0)
+    assert scale_flicker([1.0, None, 2.0]) is None  # no consecutive pair with both fits
 
 
 def test_a_video_without_a_road_names_its_first_frame(monkeypatch):
@@ -192,6 +259,8 @@ def test_sequence_with_camera_height_scales_depth_and_translations_per_frame(sam
 
 def test_camera_height_needs_a_camera_and_a_positive_height(sample):
     predictor, frames, camera = sample
+    with pytest.raises(GeoNetError, match="smoothing window"):
+        predictor.iter_sequence(frames, camera, camera_height=1.65, scale_smoothing=-1)  # before any frame
     with pytest.raises(GeoNetError, match="needs the camera intrinsics"):
         predictor.depth(frames[0], camera_height=1.65)
     with pytest.raises(GeoNetError, match="positive number of metres"):
@@ -240,4 +309,19 @@ def test_predict_cli_camera_height(tmp_path, capsys):
     met = np.load(tmp_path / "met" / "depth" / "000000.npy")
     ratio = met / rel
     assert ratio.std() / ratio.mean() < 1e-5  # one factor per frame
-    assert summary["metric_scale"]["per_frame_min"] <= ratio.mean() <= summary["metric_scale"]["per_frame_max"]
+    scales = summary["metric_scale"]
+    assert scales["per_frame_min"] <= ratio.mean() <= scales["per_frame_max"]
+    # summary.json keeps each frame's own ground fit beside the smoothed factor that was applied
+    per_frame = scales["per_frame"]
+    names = sorted(p.stem for p in (tmp_path / "met" / "depth").glob("*.npy"))
+    assert per_frame["frames"] == names and len(per_frame["raw"]) == len(per_frame["smoothed"]) == len(names)
+    camera = read_camera(SAMPLE_CALIB)
+    for i, name in enumerate(names):
+        rel_i, met_i = (np.load(tmp_path / d / "depth" / f"{name}.npy") for d in ("rel", "met"))
+        assert float(np.median(met_i / rel_i)) == pytest.approx(per_frame["smoothed"][i], rel=1e-5)
+        own = fit_ground_plane(rel_i, camera.scaled_to(rel_i.shape[1], rel_i.shape[0]).K).scale_for(1.65)
+        assert per_frame["raw"][i] == pytest.approx(own, rel=1e-5)
+    assert per_frame["raw"] != pytest.approx(per_frame["smoothed"])  # the frames' fits differ: smoothing acted
+    assert scales["smoothing"]["half_window_frames"] == 7
+    rc = main(["predict", str(SAMPLE_FRAMES), "--out", str(tmp_path / "x"), "--scale-smoothing", "3"])
+    assert rc == 2 and "pass --camera-height" in capsys.readouterr().err

@@ -35,12 +35,13 @@ from geonet_infer.batch.units import (
     sequence_root,
     stale,
 )
+from geonet_infer.classical import check_methods, classical_tasks
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
 from geonet_infer.pipeline import SUMMARY_NAME
-from geonet_infer.predictor import describe_skipped, resolve_tasks
+from geonet_infer.predictor import TASKS, describe_skipped, resolve_tasks
 
 # ----------------------------------------------------------------------------- the job
 # name -> runner class. A runner has ``start(config, options, n_units, workers, threads, *, manifest,
@@ -162,7 +163,7 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
             what = (
                 "input"
                 if marker.get("input") != unit.path
-                else "set of options (model, precision, tasks, batch size or camera)"
+                else "set of options (model, precision, tasks, batch size, camera, flow or pose method)"
             )
             raise InputError(
                 folder,
@@ -190,11 +191,11 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
     return todo, skipped, redone
 
 
-def model_tasks(model_dir, graphs, tasks: Iterable[str] | None, log) -> tuple[str, ...]:
+def model_tasks(model_dir, graphs, tasks: Iterable[str] | None, log, classical: Iterable[str] = ()) -> tuple[str, ...]:
     """The tasks to run, resolved as ``predict`` does (:func:`geonet_infer.predictor.resolve_tasks`):
     given tasks the model cannot do are refused before any work; with ``None`` every task it can do,
-    the others named in one line."""
-    tasks, skipped = resolve_tasks(graphs, tasks, model_dir)
+    the others named in one line. ``classical``: tasks a classical method makes (DIS, ORB-VO)."""
+    tasks, skipped = resolve_tasks(graphs, tasks, model_dir, classical=classical)
     if skipped:
         log(f"geonet-infer batch: skipping {describe_skipped(skipped)} in {model_dir}; running {', '.join(tasks)}")
     return tasks
@@ -214,6 +215,8 @@ def run_batch(
     batch_size: int = 4,
     camera: Camera | None = None,
     vis: bool = True,
+    flow_method: str = "network",
+    pose_method: str = "network",
     resume: bool = False,
     ray_address: str | None = None,
     progress: bool = True,
@@ -223,7 +226,8 @@ def run_batch(
     """Run a batch job (see the package docstring); returns the summary (also OUT/summary.json).
 
     ``runner``: a name of :data:`RUNNERS` ("local" process pool, "ray" Ray Data); ``engine=`` is
-    its deprecated 0.x name.
+    its deprecated 0.x name. ``flow_method`` / ``pose_method``: "network", or "dis" / "orbvo"
+    (:mod:`geonet_infer.classical`), for every sequence.
 
     ``summary["exit_code"]``: 0 all good, 1 something failed (see failures.jsonl), 3 the
     operating system refused a write into OUT, 130 interrupted.
@@ -251,7 +255,8 @@ def run_batch(
     model_dir = resolve_model(model)
     manifest = load_manifest(model_dir)
     graphs = manifest.graph_names(precision)  # bad --model / --precision: exit 2 before any work
-    tasks = model_tasks(model_dir, graphs, tasks, log)
+    check_methods(flow_method, pose_method)
+    tasks = model_tasks(model_dir, graphs, tasks, log, classical_tasks(tasks or TASKS, flow_method, pose_method))
     out_dir = Path(os.path.abspath(out_dir))
     check_out(out_dir, units)
     claim(out_dir)
@@ -265,6 +270,8 @@ def run_batch(
         batch_size=batch_size,
         camera=camera,
         vis=vis,
+        flow_method=flow_method,
+        pose_method=pose_method,
     )
     options = probe.options()
     with _job_lock(out_dir):

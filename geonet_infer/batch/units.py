@@ -65,6 +65,8 @@ class BatchConfig:
     batch_size: int = 4
     camera: Camera | None = None
     vis: bool = True  # depth colour maps and flow colour wheels
+    flow_method: str = "network"  # or "dis" (geonet_infer.classical)
+    pose_method: str = "network"  # or "orbvo"
 
     def options(self) -> dict:
         """What decides the outputs (stored in each ``.done``; a resume with other options is refused)."""
@@ -79,7 +81,7 @@ class BatchConfig:
                 "size": None if self.camera.size is None else list(self.camera.size),
             }
         )
-        return {
+        options = {
             "model": str(resolve_model(self.model).resolve()),
             "precision": self.precision,
             "backend": self.backend,
@@ -88,6 +90,9 @@ class BatchConfig:
             "camera": cam,
             "vis": self.vis,
         }
+        # only when not the networks: a .done written before these options existed stays resumable
+        methods = {"flow_method": self.flow_method, "pose_method": self.pose_method}
+        return options | {k: v for k, v in methods.items() if v != "network"}
 
 
 def read_input_list(path: Path) -> list[Path]:
@@ -384,6 +389,8 @@ def run_sequence(
             batch_size=config.batch_size,
             progress=False,
             vis=config.vis,
+            flow_method=config.flow_method,
+            pose_method=config.pose_method,
         )
         failures = [
             {"sequence": unit.name, "input": unit.path, "frame": f["frame"], "reason": f["reason"]}

@@ -18,12 +18,13 @@ from geonet_infer.batch import (
     needs_own_calib,
     run_batch,
 )
-from geonet_infer.cli.common import add_camera_args, add_model_args, camera_from_args, positive_int
+from geonet_infer.classical import classical_tasks
+from geonet_infer.cli.common import add_camera_args, add_method_args, add_model_args, camera_from_args, positive_int
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
-from geonet_infer.pipeline import SUMMARY_NAME, parse_tasks
+from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks
 
 HELP = f"""\
 Predict depth, optical flow and camera poses for many sequences.
@@ -116,6 +117,7 @@ def add_parser(sub) -> None:
     )
     add_model_args(parser, threads=False, rigid_op=False)
     add_camera_args(parser)
+    add_method_args(parser)
     parser.add_argument(
         "--tasks",
         help="comma list of depth,pose,flow (default: every task the model can do; flow needs intrinsics: --calib, "
@@ -151,6 +153,7 @@ def run_command(args: argparse.Namespace) -> int:
         graphs,
         None if args.tasks is None else parse_tasks(args.tasks),
         (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
+        classical_tasks(TASKS, args.flow_method, args.pose_method),
     )
     if args.engine is not None:
         print("geonet-infer batch: note: --engine is deprecated, use --runner", file=sys.stderr)
@@ -160,7 +163,12 @@ def run_command(args: argparse.Namespace) -> int:
     if args.ray_address and runner != "ray":
         raise InputError(None, "--ray-address needs --runner ray")
     camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own
-    if "flow" in tasks and camera is None:
+    needing = [
+        what
+        for what, needs in (("flow", args.flow_method == "network"), ("ORB-VO poses", args.pose_method == "orbvo"))
+        if needs and ("flow" if what == "flow" else "pose") in tasks
+    ]
+    if needing and camera is None:
         from geonet_infer.batch import expand_inputs
 
         lacking = [p for p in expand_inputs(args.inputs) if needs_own_calib(p)]
@@ -168,8 +176,9 @@ def run_command(args: argparse.Namespace) -> int:
             more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
             raise InputError(
                 lacking[0],
-                f"flow needs camera intrinsics and this input has none{more}",
-                "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
+                f"{' and '.join(needing)} need{'s' if len(needing) == 1 else ''} camera intrinsics and this "
+                f"input has none{more}",
+                "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose, or --flow-method dis)",
             )
     # SIGTERM (a scheduler stopping the job) is handled like Ctrl-C: workers stopped, summary written.
     main_thread = threading.current_thread() is threading.main_thread()
@@ -188,6 +197,8 @@ def run_command(args: argparse.Namespace) -> int:
             batch_size=args.batch_size,
             camera=camera,
             vis=not args.no_vis,
+            flow_method=args.flow_method,
+            pose_method=args.pose_method,
             resume=args.resume,
             ray_address=args.ray_address,
             progress=not args.no_progress,

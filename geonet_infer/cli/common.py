@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer.cascade import RIGID_OPS
+from geonet_infer.classical import CLASSICAL_STAGES, DIS_PRESET, FLOW_METHODS, POSE_METHODS
 from geonet_infer.engines import AUTO, BACKENDS, ENGINES, usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
@@ -99,6 +100,27 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
     )
 
 
+def add_method_args(parser: argparse.ArgumentParser) -> None:
+    """--flow-method and --pose-method: the networks, or the classical methods the eval measures."""
+    group = parser.add_argument_group("methods (what makes the flow and the poses)")
+    group.add_argument(
+        "--flow-method",
+        choices=FLOW_METHODS,
+        default=FLOW_METHODS[0],
+        help=f"'network' (GeoNet's full flow) or 'dis' (OpenCV DIS optical flow, preset {DIS_PRESET}, at the "
+        "input resolution: the eval's DIS row, far better than the bundled model on real KITTI flow, see "
+        "docs/real_eval.md; needs no network and no intrinsics); same files either way (default: network)",
+    )
+    group.add_argument(
+        "--pose-method",
+        choices=POSE_METHODS,
+        default=POSE_METHODS[0],
+        help="'network' (PoseNet) or 'orbvo' (the eval's two-view ORB visual odometry per frame pair; each "
+        "step's length from the predicted depth of its matched points, so metres with --camera-height; "
+        "needs intrinsics and the depth network) (default: network)",
+    )
+
+
 def add_camera_args(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("camera (needed for flow)").add_mutually_exclusive_group()
     group.add_argument(
@@ -140,7 +162,7 @@ def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None
 
 def stage_table(per_frame_ms: dict[str, float], frames: int) -> str:
     """A plain-text table of the mean ms per frame of each stage that ran."""
-    rows = [(s, per_frame_ms[s]) for s in (*STAGES, "total") if per_frame_ms.get(s)]
+    rows = [(s, per_frame_ms[s]) for s in (*STAGES, *CLASSICAL_STAGES, "total") if per_frame_ms.get(s)]
     width = max([len(s) for s, _ in rows] + [5])
     lines = [f"per-frame latency (mean over {frames} frames)", f"  {'stage':<{width}}  {'ms':>8}"]
     lines += [f"  {s:<{width}}  {ms:8.2f}" for s, ms in rows]

@@ -7,8 +7,10 @@ import sys
 from pathlib import Path
 
 from geonet_infer.check import SequenceCheck
+from geonet_infer.classical import classical_tasks
 from geonet_infer.cli.common import (
     add_camera_args,
+    add_method_args,
     add_model_args,
     camera_from_args,
     load_predictor,
@@ -32,7 +34,7 @@ from geonet_infer.pipeline import (
     predict_to_dir,
 )
 from geonet_infer.predictor import describe_skipped
-from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND
+from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
 
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.
@@ -52,9 +54,10 @@ another predict is writing into. Ctrl-C or SIGTERM stops with summary.json marke
   flow_vis/<frame>.png   flow colour wheel
   poses_kitti.txt        3x4 camera-to-world per frame (first frame = identity)
   poses_tum.txt          time tx ty tz qx qy qz qw per frame
-  summary.json           counts, failures, per-stage timings, model, camera, and the output
-                         check: per pair of frames, does the flow (and the rigid flow from depth
-                         and pose) explain the next frame better than no motion at all?
+  summary.json           counts, failures, per-stage timings, model, camera, the method behind
+                         each output (--flow-method, --pose-method), per-frame metric scales, and
+                         the output check: per pair of frames, does the flow (and the rigid flow
+                         from depth and pose) explain the next frame better than no motion at all?
 
 examples:
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti
@@ -62,6 +65,8 @@ examples:
       --calib ../shared/realdata/udacity_dashcam/calib_advanced_lane_lines.txt
   geonet-infer predict frames/ --out out/frames --intrinsics 721.5,721.5,609.6,172.9 --precision int8
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_m --camera-height 1.65
+  geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_dis --flow-method dis \
+      --pose-method orbvo
 """
 
 
@@ -84,6 +89,7 @@ def add_parser(sub) -> None:
     )
     add_model_args(parser)
     add_camera_args(parser)
+    add_method_args(parser)
     parser.add_argument(
         "--tasks",
         default=None,
@@ -102,9 +108,19 @@ def add_parser(sub) -> None:
         default=None,
         metavar="METRES",
         help="camera height above a flat road: depth and pose translations in metres, from a "
-        "ground plane fitted to each frame's depth; a frame with the road hidden takes the previous "
-        "frame's scale, frames before the first fit take the first fit's, and a video with no road in "
-        f"its first {MAX_FRAMES_BEFORE_GROUND} frames stops (needs intrinsics; e.g. 1.65 for KITTI)",
+        "ground plane fitted to each frame's depth, smoothed over the video (--scale-smoothing); a video "
+        f"with no road in its first {MAX_FRAMES_BEFORE_GROUND} frames stops (needs intrinsics; e.g. 1.65 "
+        "for KITTI)",
+    )
+    parser.add_argument(
+        "--scale-smoothing",
+        type=_frames,
+        default=None,
+        metavar="FRAMES",
+        help="with --camera-height: each frame's scale is the robust mean (outliers dropped) of the ground "
+        "fits of this many frames before and after it, so metric depth does not flicker; frames are "
+        f"written this many frames late; 0 = each frame's own fit; summary.json keeps both (default: "
+        f"{SCALE_HALF_WINDOW})",
     )
     parser.add_argument(
         "--no-vis",
@@ -189,6 +205,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(
             None, f"--batch-size {args.batch_size} is over the limit of {MAX_BATCH_SIZE}", "4 to 16 is plenty on a CPU"
         )
+    if args.scale_smoothing is not None and args.camera_height is None:
+        raise InputError(None, "--scale-smoothing smooths the metric scale", "pass --camera-height METRES with it")
     source = _open_source(args)
     options = OutputOptions(
         point_cloud=args.point_cloud,
@@ -202,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
     camera = camera_from_args(args, source.default_calib)
     predictor = load_predictor(args)
     if tasks is None:
-        doable, skipped = predictor.resolve_tasks()
+        doable, skipped = predictor.resolve_tasks(classical=classical_tasks(TASKS, args.flow_method, args.pose_method))
         if skipped and not args.quiet:
             print(
                 f"geonet-infer predict: skipping {describe_skipped(skipped)} in {predictor.model_dir}; "
@@ -224,6 +242,9 @@ def run(args: argparse.Namespace) -> int:
             options=options,
             max_frames=args.max_frames,
             check=not args.no_check,
+            flow_method=args.flow_method,
+            pose_method=args.pose_method,
+            scale_smoothing=SCALE_HALF_WINDOW if args.scale_smoothing is None else args.scale_smoothing,
         )
     print(
         f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
@@ -244,6 +265,12 @@ def run(args: argparse.Namespace) -> int:
     if missing:  # one line for the frames a truncated video lacks (each is in summary.json)
         print(f"warning: {args.input}: video truncated: {summary['truncated']}", file=sys.stderr)
     return 1 if summary["failed"] else 0
+
+
+def _frames(text: str) -> int:
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a whole number of frames >= 0, got {text!r}")
+    return int(text)
 
 
 def _size(text: str) -> tuple[int, int]:
