@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 
 from geonet_infer import baselines
-from geonet_infer.check import check_pair
 from geonet_infer.cascade import Intrinsics, StageTimer, camera_at, read_frame
+from geonet_infer.check import check_pair
 from geonet_infer.conventions import rigid_inverse
 from geonet_infer.errors import InputError
 from geonet_infer.results import FrameResult
