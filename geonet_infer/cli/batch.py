@@ -21,6 +21,7 @@ from geonet_infer.batch import (
 from geonet_infer.cli.common import add_camera_args, add_model_args, camera_from_args, positive_int
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
+from geonet_infer.limits import MAX_BATCH_SIZE
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.pipeline import SUMMARY_NAME, parse_tasks
@@ -122,7 +123,10 @@ def add_parser(sub) -> None:
         "--intrinsics, or a KITTI drive's own calibration)",
     )
     parser.add_argument(
-        "--batch-size", type=positive_int, default=4, help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)"
+        "--batch-size",
+        type=positive_int,
+        default=4,
+        help=f"frames per DepthNet/PoseNet/ResFlowNet batch, at most {MAX_BATCH_SIZE} (default: 4)",
     )
     parser.add_argument(
         "--no-vis",
