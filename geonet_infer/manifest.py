@@ -493,17 +493,16 @@ def _check_entry_sizes(manifest: Manifest, graph: str, entry: GraphEntry, path: 
 
 
 def _check_snippet_length(manifest: Manifest, graph: str, entry: GraphEntry, path: Path) -> None:
-    """PoseNet takes ``seq_length`` frames stacked on channels and gives ``seq_length - 1`` poses: a
-    seq_length the graph was not exported for fails only at the first snippet, inside onnxruntime."""
+    """PoseNet takes ``seq_length`` frames stacked on channels: a seq_length the graph was not exported
+    for failed only at the first snippet, inside onnxruntime (its outputs are checked against the graph
+    by :func:`check_graph_io`)."""
     L = manifest.seq_length
-    for spec, axis, want, what in (
-        *((s, 1, 3 * L, "channels (3 per frame)") for s in entry.inputs if len(s.shape) == 4),
-        *((s, 1, L - 1, "poses (one per source frame)") for s in entry.outputs if len(s.shape) >= 2),
-    ):
-        if isinstance(spec.shape[axis], int) and spec.shape[axis] != want:
+    for spec in entry.inputs:
+        if len(spec.shape) == 4 and isinstance(spec.shape[1], int) and spec.shape[1] != 3 * L:
             raise ModelError(
                 path,
-                f"graph {graph} {spec.name!r} has {spec.shape[axis]} {what}, seq_length {L} needs {want}",
+                f"graph {graph} input {spec.name!r} has {spec.shape[1]} channels, seq_length {L} needs {3 * L} "
+                "(3 per frame)",
                 "seq_length must be the snippet length the PoseNet was exported for; " + REEXPORT_HINT,
             )
 

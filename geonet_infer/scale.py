@@ -174,7 +174,7 @@ def check_camera_height(camera_height_m) -> None:
     if not (ok and MIN_CAMERA_HEIGHT_M <= camera_height_m <= MAX_CAMERA_HEIGHT_M):
         raise InputError(
             None,
-            f"camera height (--camera-height / camera_height) must be a number of metres from "
+            f"camera height (--camera-height / camera_height) must be a positive number of metres from "
             f"{MIN_CAMERA_HEIGHT_M:g} to {MAX_CAMERA_HEIGHT_M:g}, got {camera_height_m!r}",
             "e.g. 1.65 for KITTI's colour cameras",
         )

@@ -29,8 +29,8 @@ from geonet_infer.pipeline import SUMMARY_NAME, parse_tasks
 HELP = f"""\
 Predict depth, optical flow and camera poses for many sequences.
 
-INPUTS are sequence folders (frames sorted by name), videos (.mp4 .avi .mov .mkv
-.webm), KITTI raw drives, or .txt files listing them (one a line, # comments;
+INPUTS are sequence folders (frames in name order, f3 before f10), videos (.mp4
+.avi .mov .mkv .webm), KITTI raw drives, or .txt files listing them (one a line, # comments;
 relative paths are relative to the list file's folder). Each sequence gets
 `geonet-infer predict`'s layout in OUT/<sequence>/ (sequence = folder name, video
 stem or drive name; inputs sharing a name become <name>__<parent folder>).

@@ -43,8 +43,8 @@ from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.
 
-INPUT is a video file (.mp4 .avi .mov .mkv .webm), a folder of frames (sorted by
-name), or a KITTI raw drive folder (frames from image_02/data; calibration
+INPUT is a video file (.mp4 .avi .mov .mkv .webm), a folder of frames (in name
+order, numbers as numbers: f3 before f10), or a KITTI raw drive folder (frames from image_02/data; calibration
 calib_cam_to_cam.txt found in the folder or up to two levels up).
 
 Outputs in --out (written atomically; a bad frame is recorded in summary.json and skipped).

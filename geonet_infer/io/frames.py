@@ -338,7 +338,7 @@ def open_frames(path) -> FrameSource:
       (or ``.../image_02``):
       a ``"kitti_drive"``; frames from ``image_02/data``; ``default_calib`` is the
       ``calib_cam_to_cam.txt`` in the drive folder or up to two levels above it.
-    * Any other folder: its images (:func:`~geonet_infer.io.images.list_images`), sorted by name.
+    * Any other folder: its images (:func:`~geonet_infer.io.images.list_images`), in natural order.
 
     Iterating yields :class:`Frame`; a frame that cannot be decoded is yielded with its
     ``error`` set (naming the file), so callers can report it and go on.
