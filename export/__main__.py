@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import re
 import sys
 from pathlib import Path
 
@@ -44,7 +45,11 @@ def _names(text: str) -> tuple[str, ...]:
 
 def _count_or_folder(text: str) -> int | Path:
     """--calib-frames: a frame count, or (the spelling of issue 28) the calibration folder itself."""
-    return int(text) if text.isdigit() and not Path(text).is_dir() else Path(text)
+    if Path(text).is_dir() or not re.fullmatch(r"[+-]?[0-9]+", text.strip()):
+        return Path(text)
+    if int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive number of frames (or a folder), got {text}")
+    return int(text)
 
 
 def build_parser() -> argparse.ArgumentParser:

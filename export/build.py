@@ -20,11 +20,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from export import manifest as mf
 from export import quantize as qz
-from export.to_onnx import OPSET, export_graph
+from export.to_onnx import OPSET, ExportCheckError, export_graph
 from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_inputs, io_spec, photometric_alpha
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
 from geonet_infer.errors import GeoNetError, InputError
@@ -317,12 +318,29 @@ def _export_fp32(cfg: ExportConfig, src: Source, graphs: list[str], tmp: Path) -
             meta,
         )
         exporters.add(result.exporter)
+        _check_outputs(result.path, example)
         entries[graph] = mf.graph_entry(
             tmp, f"{graph}.onnx", graph, src.height, src.width, src.seq_length, OPSET, "fp32", result.exporter
         )
         size = result.path.stat().st_size / 2**20
         _log(cfg, f"  fp32 {graph}.onnx  {size:.1f} MiB  ({result.seconds:.1f} s)")
     return entries, "; ".join(sorted(exporters))
+
+
+def _check_outputs(path: Path, example) -> None:
+    """The exported graph on its (random) example inputs: every output finite and not one value
+    everywhere. NaN or all-equal weights would give a model whose every frame fails or is blank."""
+    from export.verify import ort_outputs
+    from geonet_infer.engines.onnxruntime import make_session
+
+    session = make_session(path)
+    for out, value in zip(session.get_outputs(), ort_outputs(session, [np.asarray(x) for x in example])):
+        if not np.isfinite(value).all():
+            raise ExportCheckError(f"{path.name}: output {out.name} holds NaN/inf on example inputs: are the weights?")
+        if value.size > 1 and value.min() == value.max():
+            raise ExportCheckError(
+                f"{path.name}: output {out.name} is {value.flat[0]:g} everywhere on example inputs (degenerate weights)"
+            )
 
 
 def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):

@@ -171,6 +171,12 @@ class TFCheckpoint:
     @classmethod
     def open(cls, path: str | Path) -> TFCheckpoint:
         prefix = resolve_prefix(path)
+        if any(c in str(prefix) for c in "[]*?"):  # TensorFlow globs the prefix: it would find nothing
+            raise InputError(
+                prefix,
+                "TensorFlow reads checkpoint paths as glob patterns and cannot open one holding [ ] * or ?",
+                "rename the folder, or link the checkpoint files from a path without those characters",
+            )
         tf = _tf()
         try:
             reader = tf.train.load_checkpoint(str(prefix))
@@ -189,13 +195,20 @@ class TFCheckpoint:
 
     def tensor(self, name: str) -> np.ndarray:
         try:
-            return np.asarray(self.reader.get_tensor(name))
+            value = np.asarray(self.reader.get_tensor(name))
         except Exception as exc:  # TF raises DataLossError / OpError subclasses from C++; all mean unreadable
             raise InputError(
                 self.prefix,
                 f"cannot read variable {name} ({_first_line(exc)}): the checkpoint is truncated or corrupt",
                 "download it again",
             ) from None
+        if np.issubdtype(value.dtype, np.floating) and not np.isfinite(value).all():  # every frame would fail
+            raise InputError(
+                self.prefix,
+                f"variable {name} holds NaN/inf values ({np.count_nonzero(~np.isfinite(value))} of {value.size})",
+                "the checkpoint is corrupt or its training diverged: use another checkpoint",
+            )
+        return value
 
     def scope_variables(self, kind: str) -> set[str]:
         return {n for n in self.shapes if n.startswith(SCOPES[kind] + "/")}

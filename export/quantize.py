@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import onnx
 
-from geonet_infer.cascade import InputSpec, calibration_input, posenet_order
+from geonet_infer.cascade import InputSpec, calibration_input, check_image, posenet_order
 from geonet_infer.conventions import kitti_like_K, scale_intrinsics
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import list_images, read_calib_K, read_image
@@ -128,7 +128,7 @@ def load_frames(
         )
     frames, original = [], None
     for f in files:
-        rgb = read_image(f)
+        rgb = check_image(read_image(f), f)  # what the runtime refuses is no calibration frame either
         original = original or rgb.shape[:2]
         frames.append(cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA))
     return frames, original

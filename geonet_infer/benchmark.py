@@ -98,7 +98,14 @@ def cascade_feeds(
     L, k = predictor.seq_length, predictor.seq_length // 2
     feeds: dict[str, dict[str, np.ndarray]] = {}
     snippets = _snippets(x, [k + b for b in range(batch)], L)
-    run_cascade(predictor.graph_set, predictor.spec, snippets, [k] * batch, camera.K, size, feeds=feeds)
+    names = predictor.graphs
+    if "posenet" in names:  # a partial model runs as far as its graphs go
+        flow = "depthnet" in names and "rigidflow" in names
+        run_cascade(
+            predictor.graph_set, predictor.spec, snippets, [k] * batch, camera.K, size, with_flow=flow, feeds=feeds
+        )
+    if "depthnet" in names:
+        feeds.setdefault("depthnet", {"image": np.ascontiguousarray(snippets[:, k])})  # the targets, as the cascade
     return feeds
 
 

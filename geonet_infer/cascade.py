@@ -51,6 +51,7 @@ from geonet_infer.engines import AUTO, Engine, make_engine, pick_fastest
 from geonet_infer.errors import GeoNetError, InputError, ModelError
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.images import read_image
+from geonet_infer.limits import check_batch_size
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, check_graph_io
 from geonet_infer.results import FrameResult
 from geonet_infer.rigid import RigidFlowOp
@@ -211,11 +212,12 @@ def check_image(image, name: str | Path | None = None) -> np.ndarray:
             "pass 8-bit RGB; convert float images with (img * 255).round().astype(np.uint8)",
         )
     if image.ndim != 3 or image.shape[2] != 3:
-        raise InputError(
-            name,
-            f"image shape is {image.shape}, expected (H, W, 3) RGB",
-            "convert grey images with cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)",
-        )
+        channels = image.shape[2] if image.ndim == 3 else 1
+        hint = {
+            1: "convert grey images with cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)",
+            4: "drop the alpha channel with cv2.cvtColor(img, cv2.COLOR_RGBA2RGB)",
+        }.get(channels if image.ndim in (2, 3) else 0, "pass one (H, W, 3) RGB frame")
+        raise InputError(name, f"image shape is {image.shape}, expected (H, W, 3) RGB", hint)
     if min(image.shape[:2]) < 8:
         raise InputError(name, f"image is only {image.shape[1]}x{image.shape[0]} pixels", "pass a real frame")
     return np.ascontiguousarray(image)
@@ -618,8 +620,7 @@ def iter_frames(
     alone runs on any number. ``need_depth``: depth is needed though not asked for (metric scale).
     ``check``: each flow is checked against the frames (:mod:`geonet_infer.check`, at the graph size).
     """
-    if batch_size < 1:
-        raise InputError(None, f"batch_size must be >= 1, got {batch_size}")
+    check_batch_size(batch_size)
     with_flow = "flow" in tasks
     run_depth = need_depth or "depth" in tasks or with_flow
     run_pose = "pose" in tasks or with_flow

@@ -371,7 +371,7 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
         raise ModelError(path, "no manifest in this model directory", REEXPORT_HINT)
     try:
         raw: Any = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:  # Recursion: nested 10^5 deep
         raise ModelError(path, f"cannot parse the manifest ({exc})", REEXPORT_HINT) from None
     if not isinstance(raw, dict):
         raise ModelError(path, "the manifest is not a JSON object", REEXPORT_HINT)
@@ -407,6 +407,8 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
             raise ModelError(path, f"unknown precision {precision!r}", f"expected one of {PRECISIONS}")
         for name, entry in graphs.items():
             _check_entry_sizes(manifest, f"{precision}/{name}", entry, path)
+            if name == "posenet":
+                _check_snippet_length(manifest, f"{precision}/{name}", entry, path)
             file = _graph_path(directory, f"{precision}/{name}", entry.file, path)
             if verify_files:
                 _verify_file(file, entry.sha256)
@@ -458,11 +460,24 @@ def _check_convention_numbers(conv: dict, path: Path) -> None:
         raise ModelError(
             path, f"conventions.{conventions.PHOTOMETRIC_ALPHA} is {alpha!r}: not in [0, 1]", REEXPORT_HINT
         )
+    _check_number_types(conv, conventions.as_dict(), "conventions", path)
     scale = (conv.get("image_norm") or {}).get("scale")
     if isinstance(scale, (int, float)) and abs(scale) < MIN_NORM_SCALE:
         raise ModelError(
             path, f"conventions.image_norm.scale is {scale!r}: the graphs would see a constant image", REEXPORT_HINT
         )
+
+
+def _check_number_types(given: dict, defaults: dict, where: str, path: Path) -> None:
+    """Where this package's conventions hold a number, the manifest holds one too: JSON ``true`` would
+    be read as 1.0 (image_norm.scale true ran as scale 1)."""
+    for key, default in defaults.items():
+        value = given.get(key)
+        if isinstance(default, dict) and isinstance(value, dict):
+            _check_number_types(value, default, f"{where}.{key}", path)
+        elif key in given and isinstance(default, (int, float)) and not isinstance(default, bool):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ModelError(path, f"{where}.{key} is {value!r}: not a number", REEXPORT_HINT)
 
 
 def _check_entry_sizes(manifest: Manifest, graph: str, entry: GraphEntry, path: Path) -> None:
@@ -474,6 +489,21 @@ def _check_entry_sizes(manifest: Manifest, graph: str, entry: GraphEntry, path: 
                 f"graph {graph} input {spec.name!r} is {spec.shape[-2]}x{spec.shape[-1]}, the manifest says "
                 f"height x width {manifest.height}x{manifest.width}",
                 REEXPORT_HINT,
+            )
+
+
+def _check_snippet_length(manifest: Manifest, graph: str, entry: GraphEntry, path: Path) -> None:
+    """PoseNet takes ``seq_length`` frames stacked on channels: a seq_length the graph was not exported
+    for failed only at the first snippet, inside onnxruntime (its outputs are checked against the graph
+    by :func:`check_graph_io`)."""
+    L = manifest.seq_length
+    for spec in entry.inputs:
+        if len(spec.shape) == 4 and isinstance(spec.shape[1], int) and spec.shape[1] != 3 * L:
+            raise ModelError(
+                path,
+                f"graph {graph} input {spec.name!r} has {spec.shape[1]} channels, seq_length {L} needs {3 * L} "
+                "(3 per frame)",
+                "seq_length must be the snippet length the PoseNet was exported for; " + REEXPORT_HINT,
             )
 
 

@@ -53,6 +53,8 @@ from geonet_infer.io.flow import write_flow_kitti
 from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.images import write_image
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
+from geonet_infer.limits import MAX_BATCH_SIZE as MAX_BATCH_SIZE  # where callers of 0.x looked for it
+from geonet_infer.limits import MAX_HELD_PIXELS, MAX_WORLD_POINTS, check_batch_size, check_fps
 from geonet_infer.manifest import model_notice
 from geonet_infer.points import write_ply
 from geonet_infer.predictor import TASKS, Predictor
@@ -61,7 +63,6 @@ from geonet_infer.scale import SCALE_HALF_WINDOW, check_metric_request, metric_s
 from geonet_infer.viz import SteadyScale, depth_to_color, flow_to_color, side_by_side
 
 SUMMARY_NAME = "summary.json"
-MAX_BATCH_SIZE = 64  # frames per network batch; memory grows with it, speed does not past a few
 DEFAULT_COLOUR_SCALE = "first:8"
 POINT_CLOUDS = ("camera", "world")
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}  # what OpenCV's own FFmpeg writes everywhere
@@ -186,8 +187,8 @@ class OutputOptions:
     def __post_init__(self):
         if self.point_cloud not in (None, *POINT_CLOUDS):
             raise InputError(None, f"point cloud {self.point_cloud!r}", f"choose one of {', '.join(POINT_CLOUDS)}")
-        if self.point_stride < 1 or self.world_points < 1:
-            raise InputError(None, "point stride and world points must be >= 1")
+        if self.point_stride < 1 or not 1 <= self.world_points <= MAX_WORLD_POINTS:
+            raise InputError(None, f"point stride must be >= 1 and world points from 1 to {MAX_WORLD_POINTS:,}")
         if self.max_depth is not None and not self.max_depth > 0:
             raise InputError(None, f"max depth {self.max_depth} must be > 0")
         try:
@@ -196,8 +197,8 @@ class OutputOptions:
             raise InputError(None, str(err), "e.g. --colour-scale first:8") from None
         if self.video_out is not None and Path(self.video_out).suffix.lower() not in VIDEO_CODECS:
             raise InputError(self.video_out, "unsupported video suffix", f"use one of {' '.join(VIDEO_CODECS)}")
-        if self.video_fps is not None and not self.video_fps > 0:
-            raise InputError(None, f"video frame rate {self.video_fps} must be > 0")
+        if self.video_fps is not None:
+            check_fps(self.video_fps, "video frame rate (--fps)")
 
 
 def _frame_files(name: str, tasks: tuple[str, ...], vis: bool, options: OutputOptions = OutputOptions()) -> set[str]:
@@ -280,7 +281,7 @@ class _OwnedFolder:
         try:
             previous = json.loads(self.marker.read_text())["files"]
             assert isinstance(previous, list) and all(isinstance(f, str) for f in previous)
-        except (ValueError, KeyError, TypeError, AssertionError):
+        except (ValueError, KeyError, TypeError, AssertionError, RecursionError):
             raise InputError(
                 self.marker, "unreadable ownership marker", "pick another --out, or delete the folder yourself"
             ) from None
@@ -311,17 +312,21 @@ def _lock_pid(lock: Path) -> int | None:
 
 
 def _alive(pid: int) -> bool:
+    if pid < 1:  # 0 and negative numbers name process groups, not a predict run
+        return False
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
+    except (ProcessLookupError, OverflowError):  # Overflow: a number no pid reaches (an edited lock)
         return False
     except PermissionError:  # another user's process
         return True
     return True
 
 
-def _non_finite(result: FrameResult, tasks: tuple[str, ...]) -> str | None:
-    """The first output of ``result`` that would be written and holds NaN or inf, or None."""
+def _unusable(result: FrameResult, tasks: tuple[str, ...]) -> str | None:
+    """What is wrong with the first output of ``result`` that would be written and holds NaN or inf
+    ("NaN/inf depth"), or whose depth is degenerate: every pixel the same (all zeros, all equal), which no
+    scene gives ("degenerate depth ..."); None if all is well."""
     checks = (
         ("depth", "depth" in tasks and result.depth is not None, result.depth),
         ("flow", "flow" in tasks and result.flow is not None, result.flow),
@@ -329,7 +334,10 @@ def _non_finite(result: FrameResult, tasks: tuple[str, ...]) -> str | None:
     )
     for what, written, value in checks:
         if written and value is not None and not np.isfinite(value).all():
-            return what
+            return f"NaN/inf {what}"
+    depth = result.depth
+    if "depth" in tasks and depth is not None and depth.size > 1 and depth.min() == depth.max():
+        return f"degenerate depth (every pixel {float(depth.flat[0]):g})"
     return None
 
 
@@ -383,6 +391,7 @@ def predict_to_dir(
         with ``"interrupted": true`` for the frames written so far; no temp file is left.
     """
     out_dir = Path(out_dir)
+    check_batch_size(batch_size)
     check_methods(flow_method, pose_method)
     tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
         tasks, metric=camera_height is not None, classical=classical_tasks(tasks or TASKS, flow_method, pose_method)
@@ -432,7 +441,7 @@ def predict_to_dir(
     if video_in_out:
         files.add(os.path.relpath(os.path.abspath(options.video_out), os.path.abspath(out_dir)))  # type: ignore[arg-type]
     files |= set().union(*(_frame_files(name, tasks, vis, options) for name in names))
-    with _OwnedFolder(out_dir, files, source.path) as owned:
+    with _OwnedFolder(out_dir, files, source.location) as owned:
         return run(owned=owned)
 
 
@@ -526,15 +535,17 @@ def _predict(
             scale_smoothing=methods[2],
         )
         for result in results:
-            bad = _non_finite(result, tasks)
+            bad = _unusable(result, tasks)
             if bad is not None:
-                frames.failures.append({"frame": result.name, "reason": f"model produced NaN/inf {bad}"})
+                frames.failures.append({"frame": result.name, "reason": f"model produced {bad}"})
                 frames.kept.pop(result.index, None)
                 continue
             if result.check is not None:
                 checks.append((result.name, result.check))
             colours.observe(result.depth if "depth" in tasks else None, result.flow if "flow" in tasks else None)
             waiting.append(result)
+            if not colours.ready and len(waiting) * np.prod(frames.size or (0,)) > MAX_HELD_PIXELS:
+                colours.finish()  # "first:N" of huge frames: the scale from the frames memory holds
             if colours.ready:
                 emit(waiting)
         colours.finish()
@@ -564,7 +575,7 @@ def _predict(
         write_kitti_camera(out_dir / CAMERA_NAME, camera_at(camera, frames.size).K, width, height)
     truncated = None if interrupted else getattr(source, "truncated", None)
     if truncated:
-        reason = f"{source.path}: video truncated: {truncated}"
+        reason = f"{source.location}: truncated: {truncated}"
         frames.failures += [{"frame": name, "reason": reason} for name in getattr(source, "missing", ())]
     totals["total"] += totals["write"]
     if "pose" in tasks and poses:
@@ -575,7 +586,7 @@ def _predict(
     elapsed = time.perf_counter() - started
     summary = {
         "input": {
-            "path": str(source.path),
+            "path": source.location,
             "kind": source.kind,
             "name": source.name,
             "fps": getattr(source, "fps", None),

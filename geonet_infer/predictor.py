@@ -44,6 +44,7 @@ from geonet_infer.classical import (
 )
 from geonet_infer.engines import BACKENDS, usable_cpus
 from geonet_infer.errors import GeoNetError, InputError, ModelError
+from geonet_infer.limits import MAX_BATCH_SIZE, check_batch_size, check_threads
 from geonet_infer.manifest import PRECISIONS, Manifest, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
@@ -219,7 +220,7 @@ class Predictor:
         self.model_dir = Path(self.manifest.root or model_dir)
         self.precision = precision
         self.spec = InputSpec.from_manifest(self.manifest)
-        self.threads = usable_cpus() if threads is None else threads
+        self.threads = usable_cpus() if threads is None else check_threads(threads)
         self.backend = backend
         # One engine per graph; for benchmarks and export's INT8 calibration (geonet_infer.cascade).
         self.graph_set = GraphSet(self.manifest, precision, backend, self.threads, rigid_op)
@@ -298,7 +299,8 @@ class Predictor:
         """Depth of one image, or of a list of images run as one batch.
 
         Args:
-            image: uint8 RGB (H, W, 3) array or path; or a list of them (sizes may differ).
+            image: uint8 RGB (H, W, 3) array or path; or a list of at most ``MAX_BATCH_SIZE``
+                (:mod:`geonet_infer.limits`) of them (sizes may differ).
             camera: optional Camera (or K); a camera with lens distortion undistorts first.
             camera_height: metres between the camera and a flat road: depth is scaled so the
                 ground plane fitted to it lies that far below (needs ``camera``).
@@ -310,6 +312,12 @@ class Predictor:
         images: list[ImageLike] = list(image) if isinstance(image, (list, tuple)) else [image]
         if not images:
             return []
+        if len(images) > MAX_BATCH_SIZE:  # they run as one batch: memory grows with it (1000 frames took 13.7 GB)
+            raise InputError(
+                None,
+                f"depth() got {len(images)} images, over the limit of {MAX_BATCH_SIZE} per call",
+                f"pass at most {MAX_BATCH_SIZE} at a time, or stream them with iter_sequence(..., tasks=['depth'])",
+            )
         if camera_height is not None:
             check_metric_request(camera_height, camera)
         timer = StageTimer()
@@ -433,6 +441,7 @@ class Predictor:
         A missing graph or a bad request raises here, before any frame is read.
         """
         camera = _camera_keyword(camera, deprecated, "iter_sequence")
+        check_batch_size(batch_size)
         check_methods(flow_method, pose_method)
         asked = tuple(tasks)
         classical = classical_tasks(asked, flow_method, pose_method)

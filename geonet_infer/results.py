@@ -16,6 +16,7 @@ from functools import cached_property
 import numpy as np
 
 from geonet_infer.check import FrameCheck, SequenceCheck
+from geonet_infer.errors import InputError
 from geonet_infer.points import backproject
 
 
@@ -33,6 +34,12 @@ class _Points:
         from ``image`` (the input frame, RGB) or None. ``stride`` keeps every n-th pixel in u and v."""
         if self.depth is None or self.intrinsics is None:
             raise ValueError("points need depth and the camera intrinsics (pass a camera)")
+        if image is not None and np.shape(image)[:2] != self.depth.shape:
+            raise InputError(
+                None,
+                f"points(image) got an image of shape {np.shape(image)}, the depth is {self.depth.shape}",
+                "pass the frame this result was predicted from (the same height and width)",
+            )
         xyz, pixels = backproject(self.depth, self.intrinsics, stride, max_depth)
         colours = None if image is None else np.asarray(image)[pixels[:, 0], pixels[:, 1]]
         return xyz, colours

@@ -26,6 +26,8 @@ from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.results import FrameResult
 
 MAX_CAMERA_HEIGHT_M = 100.0  # above a road; more is a unit mix-up (mm, cm) and gives depth in kilometres
+# ... and at least 1 cm (a phone on the floor): 1e-300 passed "> 0" and turned every depth into zeros
+MIN_CAMERA_HEIGHT_M = 0.01
 
 
 @dataclass
@@ -170,11 +172,11 @@ def check_metric_request(camera_height_m: float | None, camera, where=None) -> N
 
 def check_camera_height(camera_height_m) -> None:
     ok = isinstance(camera_height_m, (int, float)) and np.isfinite(camera_height_m)
-    if not (ok and 0 < camera_height_m <= MAX_CAMERA_HEIGHT_M):
+    if not (ok and MIN_CAMERA_HEIGHT_M <= camera_height_m <= MAX_CAMERA_HEIGHT_M):
         raise InputError(
             None,
-            f"camera height (--camera-height / camera_height) must be a positive number of metres, "
-            f"at most {MAX_CAMERA_HEIGHT_M:g}, got {camera_height_m!r}",
+            f"camera height (--camera-height / camera_height) must be a positive number of metres from "
+            f"{MIN_CAMERA_HEIGHT_M:g} to {MAX_CAMERA_HEIGHT_M:g}, got {camera_height_m!r}",
             "e.g. 1.65 for KITTI's colour cameras",
         )
 

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
+
+from geonet_infer.limits import MAX_COLOUR_SCALE_FRAMES
 
 __all__ = ["flow_to_color", "depth_to_color", "side_by_side", "SteadyScale", "inverse_depth_range", "flow_range"]
 
@@ -259,7 +263,7 @@ class SteadyScale:
             self.finish()
 
     def finish(self) -> None:
-        """The input ended: "first:N" fixes its scale from the frames it got."""
+        """The input ended (or memory holds no more frames): "first:N" fixes its scale from the frames it got."""
         if self.mode == "first" and self._fixed is None:
             self._fixed = self._medians()
 
@@ -275,6 +279,7 @@ class SteadyScale:
         depth, flow = self.scales()
         return {
             "mode": self.mode if self.mode != "first" else f"first:{self.first_n}",
+            "frames": self._seen,  # whose ranges made the scale: first:N of huge frames may stop early
             "inverse_depth_max": depth,
             "flow_max_px": flow,
         }
@@ -283,7 +288,10 @@ class SteadyScale:
 def _parse_colour_scale(text: str) -> tuple[str, int]:
     if text in ("frame", "running"):
         return text, 0
-    head, _, n = text.partition(":")
-    if head == "first" and n.isdigit() and int(n) >= 1:
+    head, _, n = str(text).partition(":")
+    # ASCII digits only: str.isdigit() also takes '²', which int() refuses
+    if head == "first" and re.fullmatch(r"[0-9]+", n) and 1 <= int(n) <= MAX_COLOUR_SCALE_FRAMES:
         return "first", int(n)
-    raise ValueError(f"colour scale {text!r}: expected first:N (N >= 1), running or frame")
+    raise ValueError(
+        f"colour scale {text!r}: expected first:N (N from 1 to {MAX_COLOUR_SCALE_FRAMES}), running or frame"
+    )

@@ -235,7 +235,9 @@ def test_a_stream_cut_inside_a_frame_keeps_the_whole_frames(tmp_path, capsys, mo
     )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 3 and "ended inside frame 000003" in summary["truncated"]
-    assert rc == 0, err
+    # the partial frame fails (exit 1, one warning): a wrong --stdin-frames size ends like this too (issue 41)
+    assert rc == 1, err
+    assert summary["failures"] == [{"frame": "000003", "reason": f"-: truncated: {summary['truncated']}"}]
 
 
 def test_live_source_errors_are_one_line(tmp_path, capsys):

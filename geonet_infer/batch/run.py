@@ -40,6 +40,7 @@ from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
+from geonet_infer.limits import check_batch_size
 from geonet_infer.pipeline import SUMMARY_NAME
 from geonet_infer.predictor import TASKS, describe_skipped, resolve_tasks
 
@@ -176,18 +177,7 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
             redone.append({"sequence": unit.name, "reason": why})
             todo.append(unit)
             continue
-        skipped.append(
-            {
-                "index": unit.index,
-                "sequence": unit.name,
-                "input": unit.path,
-                "status": "skipped",
-                "frames": marker.get("frames", 0),
-                "failures": marker.get("failures", []),
-                "check": marker.get("check"),
-                "wall_s": 0.0,
-            }
-        )
+        skipped.append(_result_of_marker(unit, marker, "skipped"))
     return todo, skipped, redone
 
 
@@ -248,8 +238,7 @@ def run_batch(
     runner_name = runner
     if runner_name not in RUNNERS:
         raise InputError(None, f"unknown runner {runner_name!r}", f"choose one of {', '.join(RUNNERS)}")
-    if batch_size < 1:
-        raise InputError(None, f"batch size must be >= 1, got {batch_size}")
+    check_batch_size(batch_size, "--batch-size")
     check_counts(workers, threads)
     units = plan_units(expand_inputs(inputs))
     model_dir = resolve_model(model)
@@ -332,8 +321,13 @@ def run_batch(
             _stop(bar, stream, active)
             interrupted = interrupted or bool(caught)
             # A worker can finish a sequence (its .done marker written) after the job stopped listening:
-            # it is done on disk, and --resume skips it, so the summary counts it too.
-            n_done += sum(1 for u in todo if u.index not in results and read_marker(out_dir / u.name) is not None)
+            # it is done on disk, and --resume skips it, so the summary counts it too, frames and row
+            # alike (counted as done alone, an interrupted Ray job said "done 2" beside 20 frames).
+            for u in todo:
+                marker = None if u.index in results else read_marker(out_dir / u.name)
+                if marker is not None:
+                    results[u.index] = _result_of_marker(u, marker, "done")
+                    n_done += 1
             wall = time.perf_counter() - started
             ordered = [results[u.index] for u in units if u.index in results]
             records = [r for res in ordered for r in res["failures"]]
@@ -384,6 +378,20 @@ def run_batch(
     if os_error is not None:
         raise os_error
     return summary
+
+
+def _result_of_marker(unit: WorkUnit, marker: dict, status: str) -> dict:
+    """The result a sequence complete on disk stands for, from its ``.done`` marker."""
+    return {
+        "index": unit.index,
+        "sequence": unit.name,
+        "input": unit.path,
+        "status": status,
+        "frames": marker.get("frames", 0),
+        "failures": marker.get("failures", []),
+        "check": marker.get("check"),
+        "wall_s": 0.0,
+    }
 
 
 def _sequence_row(result: dict) -> dict:

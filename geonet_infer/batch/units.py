@@ -424,7 +424,7 @@ def read_marker(folder: Path) -> dict | None:
     try:
         marker = json.loads((folder / MARKER_NAME).read_text())
         return marker if isinstance(marker, dict) else None
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # RecursionError: JSON nested too deep
         return None
 
 

@@ -22,6 +22,7 @@ from geonet_infer.classical import classical_tasks
 from geonet_infer.cli.common import add_camera_args, add_method_args, add_model_args, camera_from_args, positive_int
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
+from geonet_infer.limits import MAX_BATCH_SIZE
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks
@@ -29,8 +30,8 @@ from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks
 HELP = f"""\
 Predict depth, optical flow and camera poses for many sequences.
 
-INPUTS are sequence folders (frames sorted by name), videos (.mp4 .avi .mov .mkv
-.webm), KITTI raw drives, or .txt files listing them (one a line, # comments;
+INPUTS are sequence folders (frames in name order, f3 before f10), videos (.mp4
+.avi .mov .mkv .webm), KITTI raw drives, or .txt files listing them (one a line, # comments;
 relative paths are relative to the list file's folder). Each sequence gets
 `geonet-infer predict`'s layout in OUT/<sequence>/ (sequence = folder name, video
 stem or drive name; inputs sharing a name become <name>__<parent folder>).
@@ -124,7 +125,10 @@ def add_parser(sub) -> None:
         "--intrinsics, or a KITTI drive's own calibration)",
     )
     parser.add_argument(
-        "--batch-size", type=positive_int, default=4, help="frames per DepthNet/PoseNet/ResFlowNet batch (default: 4)"
+        "--batch-size",
+        type=positive_int,
+        default=4,
+        help=f"frames per DepthNet/PoseNet/ResFlowNet batch, at most {MAX_BATCH_SIZE} (default: 4)",
     )
     parser.add_argument(
         "--no-vis",

@@ -59,6 +59,8 @@ from geonet_infer.cli.common import add_model_args, backend_help
 from geonet_infer.engines import BACKENDS, ENGINES, OrtEngine
 from geonet_infer.errors import BackendUnavailableError, InputError
 from geonet_infer.io.atomic import atomic_write
+from geonet_infer.io.images import check_pixels
+from geonet_infer.limits import MAX_BATCH_SIZE, MAX_SEQUENCE_FRAMES, check_batch_size, check_count, check_threads
 from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, git_commit, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.predictor import load
@@ -88,7 +90,12 @@ def add_parser(sub) -> None:
         metavar="LIST",
         help=f"comma list of {', '.join(PRECISIONS)} (default: every precision the model has)",
     )
-    group.add_argument("--batch", default="1", metavar="LIST", help="comma list of batch sizes (default: 1)")
+    group.add_argument(
+        "--batch",
+        default="1",
+        metavar="LIST",
+        help=f"comma list of batch sizes, each at most {MAX_BATCH_SIZE} (default: 1)",
+    )
     group.add_argument(
         "--tasks",
         default=None,
@@ -128,7 +135,7 @@ def add_parser(sub) -> None:
         "--seq-frames",
         type=int,
         default=8,
-        help="frames per timed sequence call (default: 8; the last frame has no flow)",
+        help=f"frames per timed sequence call, at most {MAX_SEQUENCE_FRAMES} (default: 8; the last has no flow)",
     )
     out = parser.add_argument_group("output")
     out.add_argument("--json", type=Path, default=None, metavar="FILE", help="write the results as JSON")
@@ -156,7 +163,7 @@ def _parse_batches(text: str) -> list[int]:
             value = 0
         if value < 1:
             raise InputError(None, f"--batch {text!r}: batch sizes must be positive integers", "e.g. --batch 1,4")
-        out.append(value)
+        out.append(check_batch_size(value, "--batch"))
     return list(dict.fromkeys(out))
 
 
@@ -169,6 +176,7 @@ def _parse_size(text: str) -> tuple[int, int] | None:
         raise InputError(None, f"--input-size {text!r} is not WxH", "e.g. --input-size 1242x375, or 'graph'") from None
     if w < 8 or h < 8:
         raise InputError(None, f"--input-size {text!r} is too small", "frames need at least 8x8 pixels")
+    check_pixels("--input-size", w, h)
     return w, h
 
 
@@ -183,6 +191,9 @@ def _check_args(args) -> dict:
         raise InputError(None, f"--rewarm-ms must be >= 0, got {args.rewarm_ms}")
     if args.seq_frames < 2:
         raise InputError(None, f"--seq-frames must be >= 2, got {args.seq_frames}", "a sequence needs a pair")
+    check_count(args.seq_frames, "--seq-frames", MAX_SEQUENCE_FRAMES)
+    if args.threads is not None:
+        check_threads(args.threads, "--threads")
     backends = _parse_list(args.backend, BACKENDS, "backend")
     for name in backends:
         engine = ENGINES.get(name)

@@ -13,9 +13,10 @@ import numpy as np
 
 from geonet_infer.cascade import RIGID_OPS
 from geonet_infer.classical import CLASSICAL_STAGES, DIS_PRESET, FLOW_METHODS, POSE_METHODS
-from geonet_infer.engines import AUTO, BACKENDS, ENGINES, usable_cpus
+from geonet_infer.engines import AUTO, BACKENDS, ENGINES
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
+from geonet_infer.limits import check_threads
 from geonet_infer.manifest import PRECISIONS
 from geonet_infer.models import DEFAULT_MODEL
 from geonet_infer.predictor import STAGES, Predictor, load
@@ -83,14 +84,8 @@ def add_model_args(parser: argparse.ArgumentParser, threads: bool = True, rigid_
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
     """The predictor the model options ask for; more --threads than usable CPUs is refused."""
-    cpus = usable_cpus()
-    if getattr(args, "threads", None) is not None and args.threads > cpus:
-        # oversubscribed onnxruntime pools spin against each other: --threads 5000 ran 300 s for 6 frames
-        raise InputError(
-            None,
-            f"--threads {args.threads} is more than the {cpus} CPUs this process may use",
-            f"pass --threads {cpus} or fewer (or leave it out: the default is {cpus})",
-        )
+    if getattr(args, "threads", None) is not None:
+        check_threads(args.threads, "--threads")
     return load(
         args.model,
         precision=args.precision,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -20,10 +21,16 @@ from geonet_infer.cli.common import (
 )
 from geonet_infer.errors import InputError
 from geonet_infer.io.frames import FrameSource, open_frames, open_stdin, open_stream
+from geonet_infer.limits import (
+    MAX_BATCH_SIZE,
+    MAX_COLOUR_SCALE_FRAMES,
+    MAX_VIDEO_FPS,
+    MAX_WORLD_POINTS,
+    check_batch_size,
+)
 from geonet_infer.pipeline import (
     DEFAULT_COLOUR_SCALE,
     FOLDER_FPS,
-    MAX_BATCH_SIZE,
     POINT_CLOUDS,
     SUMMARY_NAME,
     TASKS,
@@ -39,8 +46,8 @@ from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.
 
-INPUT is a video file (.mp4 .avi .mov .mkv .webm), a folder of frames (sorted by
-name), or a KITTI raw drive folder (frames from image_02/data; calibration
+INPUT is a video file (.mp4 .avi .mov .mkv .webm), a folder of frames (in name
+order, numbers as numbers: f3 before f10), or a KITTI raw drive folder (frames from image_02/data; calibration
 calib_cam_to_cam.txt found in the folder or up to two levels up).
 
 Outputs in --out (written atomically; a bad frame is recorded in summary.json and skipped).
@@ -146,7 +153,8 @@ def add_parser(sub) -> None:
         "--fps",
         type=float,
         default=None,
-        help=f"frame rate of stdin frames and of --video-out (default: the input's; {FOLDER_FPS:g} for folders)",
+        help=f"frame rate of stdin frames and of --video-out, at most {MAX_VIDEO_FPS:g} (default: the input's; "
+        f"{FOLDER_FPS:g} for folders)",
     )
     extra = parser.add_argument_group("3-D, pictures and video")
     extra.add_argument(
@@ -165,14 +173,16 @@ def add_parser(sub) -> None:
         "--world-points",
         type=positive_int,
         default=OutputOptions.world_points,
-        help=f"points in {WORLD_CLOUD_NAME} at most, randomly kept (default: {OutputOptions.world_points})",
+        help=f"points in {WORLD_CLOUD_NAME} at most, randomly kept, up to {MAX_WORLD_POINTS:,} "
+        f"(default: {OutputOptions.world_points})",
     )
     extra.add_argument(
         "--colour-scale",
         default=DEFAULT_COLOUR_SCALE,
         metavar="first:N|running|frame",
         help="one colour scale for the depth and flow pictures of the whole video, so a still scene keeps "
-        "its colours: fixed from the first N frames, or the running median of the frames' ranges; 'frame' "
+        f"its colours: fixed from the first N frames (N at most {MAX_COLOUR_SCALE_FRAMES}; fewer for huge frames), "
+        "or the running median of the frames' ranges; 'frame' "
         f"= each frame its own (the .npy and KITTI flow files never change) (default: {DEFAULT_COLOUR_SCALE})",
     )
     extra.add_argument(
@@ -201,10 +211,7 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     tasks = None if args.tasks is None else parse_tasks(args.tasks)
-    if args.batch_size > MAX_BATCH_SIZE:
-        raise InputError(
-            None, f"--batch-size {args.batch_size} is over the limit of {MAX_BATCH_SIZE}", "4 to 16 is plenty on a CPU"
-        )
+    check_batch_size(args.batch_size, "--batch-size")
     if args.scale_smoothing is not None and args.camera_height is None:
         raise InputError(None, "--scale-smoothing smooths the metric scale", "pass --camera-height METRES with it")
     source = _open_source(args)
@@ -263,7 +270,7 @@ def run(args: argparse.Namespace) -> int:
         if failure["frame"] not in missing:
             print(f"failed: {failure['frame']}: {failure['reason']}", file=sys.stderr)
     if missing:  # one line for the frames a truncated video lacks (each is in summary.json)
-        print(f"warning: {args.input}: video truncated: {summary['truncated']}", file=sys.stderr)
+        print(f"warning: {source.location}: truncated: {summary['truncated']}", file=sys.stderr)
     return 1 if summary["failed"] else 0
 
 
@@ -275,7 +282,7 @@ def _frames(text: str) -> int:
 
 def _size(text: str) -> tuple[int, int]:
     width, _, height = text.lower().partition("x")
-    if not (width.isdigit() and height.isdigit()):
+    if not (re.fullmatch(r"[0-9]+", width) and re.fullmatch(r"[0-9]+", height)):
         raise argparse.ArgumentTypeError(f"expected WxH, e.g. 1280x720, got {text!r}")
     return int(width), int(height)
 

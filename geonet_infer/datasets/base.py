@@ -218,15 +218,21 @@ class PoseItem:
         return read_camera(self.calib).K
 
 
+MAX_POSE_COORDINATE = 1e6  # metres (1000 km): past any drive; 1e308 is finite, its square is not
+
+
 def _finite_poses(path: Path) -> np.ndarray:
-    """Ground-truth poses of a file, refused if any holds NaN or infinity (it would score as "nan ± nan")."""
+    """Ground-truth poses of a file, refused if any holds NaN, infinity or a number over
+    :data:`MAX_POSE_COORDINATE` (each would score as "nan ± nan")."""
     poses = read_kitti_poses(path)
-    bad = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(~(np.abs(poses) <= MAX_POSE_COORDINATE).all(axis=(1, 2)))
     if bad.size:
         raise InputError(
             path,
-            f"pose line {bad[0] + 1} holds NaN or infinity ({bad.size} such line(s))",
-            "ground-truth poses must be finite: fix or regenerate the file",
+            f"pose line {bad[0] + 1} holds NaN, infinity or a number over {MAX_POSE_COORDINATE:g} "
+            f"({bad.size} such line(s))",
+            "ground-truth poses must be finite metres: fix or regenerate the file",
         )
     return poses
 

@@ -62,10 +62,14 @@ def atomic_write(path) -> Iterator[Path]:
         # mkstemp makes 0600 files; outputs get the mode a plain open() would give (0666 & ~umask).
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if tmp is not None:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
+        if isinstance(exc, OSError) and exc.filename is None:  # the error names the file it failed on
+            # numpy's short write (a full disk) says only "N requested and M written", without errno
+            why = exc.strerror or f"{exc} (a short write: is the disk full?)"
+            raise OSError(exc.errno, why, str(path)) from exc
         raise
 
 

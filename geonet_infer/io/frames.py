@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ import numpy as np
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import images
 from geonet_infer.io.images import IMAGE_SUFFIXES, list_images, read_image
+from geonet_infer.limits import MAX_CAMERA_INDEX
 
 __all__ = ["VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames", "open_stream", "open_stdin"]
 
@@ -63,6 +65,8 @@ class FrameSource:
 
     Attributes:
         path: the path given to :func:`open_frames`.
+        location: where the frames come from as the user wrote it (``str(path)``; a stream's URL
+            as given: a Path would fold its ``//`` into ``/``).
         name: sequence name (folder name, KITTI drive folder name or video file stem).
         kind: ``"folder"``, ``"video"``, ``"kitti_drive"``, ``"camera"``, ``"stream"`` or ``"stdin"``.
         frame_names: frame names in order; None for a video until it was read to the end, and
@@ -88,6 +92,7 @@ class FrameSource:
         default_calib: Path | None = None,
     ):
         self.path = path
+        self.location = str(path)
         self.name = name
         self.kind = kind
         self.frame_names = frame_names
@@ -195,9 +200,9 @@ class _CaptureSource(FrameSource):
 
     def __init__(self, spec: str):
         self.spec = spec
-        target: int | str = int(spec) if spec.isdigit() else spec
-        kind = "camera" if isinstance(target, int) else "stream"
-        cap = cv2.VideoCapture(target)
+        self.target = _camera_index(spec)
+        kind = "camera" if isinstance(self.target, int) else "stream"
+        cap = cv2.VideoCapture(self.target)
         try:
             if not cap.isOpened():
                 raise InputError(
@@ -206,22 +211,32 @@ class _CaptureSource(FrameSource):
                     "check the camera index (0 is the first camera) or that the URL plays (e.g. with ffplay)",
                 )
             fps = float(cap.get(cv2.CAP_PROP_FPS))
+            # the size INPUT has to keep to (0 where the stream does not tell before its first frame)
+            width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            images.check_pixels(spec, width, height)
         finally:
             cap.release()
         super().__init__(
             Path(spec), f"{kind}_{spec}" if kind == "camera" else kind, kind, None, fps if fps > 0 else None
         )
+        self.location = spec
 
     def __iter__(self) -> Iterator[Frame]:
-        cap = cv2.VideoCapture(int(self.spec) if self.spec.isdigit() else self.spec)
+        cap = cv2.VideoCapture(self.target)
         try:
             index = 0
             while True:
                 ok, bgr = cap.read()
                 if not ok or bgr is None:
                     return
-                yield Frame(f"{index:06d}", rgb=cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+                name = f"{index:06d}"
                 index += 1
+                try:  # a stream may change its size: a frame over the cap fails alone
+                    images.check_pixels(self.spec, bgr.shape[1], bgr.shape[0])
+                except GeoNetError as err:
+                    yield Frame(name, error=err)
+                    continue
+                yield Frame(name, rgb=cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
         finally:
             cap.release()
 
@@ -251,8 +266,12 @@ class _RawStdinSource(FrameSource):
             got = _read_into(stream, memoryview(buffer))
             if got == 0:
                 return
-            if got < size:  # the producer stopped inside a frame: that frame is dropped, named
-                self.truncated = f"the stream ended inside frame {index:06d} ({got} of {size} bytes)"
+            if got < size:  # the producer stopped inside a frame, or the frames are not WxH: fails, named
+                self.truncated = (
+                    f"the stream ended inside frame {index:06d} ({got} of {size} bytes); if the frames are not "
+                    f"{self.width}x{self.height} (--stdin-frames), every frame was read wrong"
+                )
+                self.missing = (f"{index:06d}",)
                 return
             rgb = np.frombuffer(buffer, np.uint8).reshape(self.height, self.width, 3)
             yield Frame(f"{index:06d}", rgb=rgb)
@@ -271,6 +290,15 @@ def _read_into(stream: BinaryIO, view: memoryview) -> int:
             break
         filled += n
     return filled
+
+
+def _camera_index(spec: str) -> int | str:
+    """--source as a camera index (ASCII digits: '²' is a digit to str.isdigit, not to int) or a URL."""
+    if not re.fullmatch(r"[0-9]+", spec):
+        return spec
+    if int(spec) > MAX_CAMERA_INDEX:  # OpenCV takes a C int; past it, a traceback
+        raise InputError(spec, f"camera index over {MAX_CAMERA_INDEX}", "0 is the first camera, 1 the second, ...")
+    return int(spec)
 
 
 def open_stream(spec: str) -> FrameSource:
@@ -310,7 +338,7 @@ def open_frames(path) -> FrameSource:
       (or ``.../image_02``):
       a ``"kitti_drive"``; frames from ``image_02/data``; ``default_calib`` is the
       ``calib_cam_to_cam.txt`` in the drive folder or up to two levels above it.
-    * Any other folder: its images (:func:`~geonet_infer.io.images.list_images`), sorted by name.
+    * Any other folder: its images (:func:`~geonet_infer.io.images.list_images`), in natural order.
 
     Iterating yields :class:`Frame`; a frame that cannot be decoded is yielded with its
     ``error`` set (naming the file), so callers can report it and go on.
