@@ -59,6 +59,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from benchmarks import teacher_experiment
 from geonet_infer import eval_all, evaluation, metrics
 from geonet_infer.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.errors import GeoNetError, InputError
@@ -836,6 +837,7 @@ def render_card(result: dict) -> str:
         _before_after,
         _real_section,
         _experiment_section,
+        _teacher_section,
         _files_section,
         _measured_section,
         _depth_section,
@@ -906,6 +908,11 @@ def _experiment_section(result: dict) -> list[str]:
     for e in rounds:
         L += _experiment_round(e, titled=len(rounds) > 1)
     return L
+
+
+def _teacher_section(result: dict) -> list[str]:
+    """Section "Classical-teacher experiment" (:func:`benchmarks.teacher_experiment.render`)."""
+    return teacher_experiment.render(result["teacher_rounds"]) if result.get("teacher_rounds") else []
 
 
 def _experiment_round(e: dict, titled: bool) -> list[str]:
@@ -1384,6 +1391,12 @@ def build_parser() -> argparse.ArgumentParser:
         "before/after numbers and verdict (repeat for each round, in order)",
     )
     p.add_argument(
+        "--teacher",
+        metavar="JSON",
+        action="append",
+        help="the JSON of `python -m benchmarks.teacher_experiment` (repeat for each round, in order)",
+    )
+    p.add_argument(
         "--real-training",
         metavar="TEXT",
         help="the real footage the model was also trained on, as a phrase (e.g. '45 minutes on 51 grey KITTI "
@@ -1449,6 +1462,8 @@ def main(argv=None) -> int:
         if args.experiment:
             result.pop("experiment", None)  # a card of one round, before rounds were a list
             result["experiments"] = [recorded_experiment(path) for path in args.experiment]
+        if args.teacher:
+            result["teacher_rounds"] = [recorded_json(path, "teacher_experiment", "rule") for path in args.teacher]
         if args.real_training:
             result["real_training"] = args.real_training
         if args.real:
@@ -1495,14 +1510,22 @@ def recorded_result(path: str | Path, model: str | Path) -> dict:
     return result
 
 
+def recorded_json(path: str | Path, writer: str, key: str) -> dict:
+    """A JSON that ``benchmarks.<writer>`` wrote (it must hold ``key``)."""
+    try:
+        recorded = json.loads(Path(path).read_text())
+        recorded[key]  # noqa: B018
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputError(path, f"not a {writer} JSON ({exc})", "pass the file it wrote") from None
+    return recorded
+
+
 def recorded_experiment(path: str | Path) -> dict:
     """The JSON of ``benchmarks.real_pose_experiment`` (the rule, and the scores once measured)."""
-    try:
-        experiment = json.loads(Path(path).read_text())
-        experiment["rule"], experiment["train_frames"]  # noqa: B018  (what the section renders)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise InputError(path, f"not a real_pose_experiment JSON ({exc})", "pass the file it wrote") from None
-    return experiment
+    recorded = recorded_json(path, "real_pose_experiment", "rule")
+    if "train_frames" not in recorded:
+        raise InputError(path, "not a real_pose_experiment JSON (no train_frames)", "pass the file it wrote")
+    return recorded
 
 
 def recorded_real(path: str | Path, model: str | Path) -> dict:

@@ -106,6 +106,67 @@ def verdict(before: dict, after: dict, hold_before: dict, hold_after: dict) -> d
     return {**checks, "ship": all(checks.values())}
 
 
+ROWS = (  # (label, key of benchmarks.real_pose_experiment.figures)
+    ("EPE-noc, KITTI 2015 flow 000010 (px)", FLOW_KEY),
+    ("real validation depth AbsRel", "validation_abs_rel"),
+    ("real pose ATE (paper ÷N), snippets no model trained on", "pose_ate_held_out"),
+    ("test drive depth AbsRel (not for choosing)", "test drive AbsRel"),
+)
+
+
+def _num(value) -> str:
+    return "–" if value is None else f"{value:.3g}"
+
+
+def render(rounds: list[dict]) -> list[str]:
+    """Markdown lines of the experiment for docs/models.md: per round its rule, what the candidate
+    is and, once scored, the numbers and the verdict."""
+    L = ["## Classical-teacher experiment (issue 46)", "", f"**Shipping rule (rounds 1 and 2).** {RULE}", ""]
+    for e in rounds:
+        L += [f"### Round {e['round']}", "", e["notes"], ""]
+        if "verdict" not in e:
+            L += ["Not scored.", ""]
+            continue
+        b, a, hold = e["before"], e["after"], e.get("holdback", {})
+        header = ["", "bundled FP32", "bundled INT8", "candidate FP32", "candidate INT8"]
+        rows = (
+            [
+                ["EPE against the teacher, held-back clip (px)"]
+                + [
+                    _num(hold.get(side, {}).get(p, {}).get("epe"))
+                    for side in ("bundled", "candidate")
+                    for p in ("fp32", "int8")
+                ]
+            ]
+            if hold
+            else []
+        )
+        rows += [
+            [label] + [_num(side.get(p, {}).get(key)) for side in (b, a) for p in ("fp32", "int8")]
+            for label, key in ROWS
+        ]
+        L += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        L += ["| " + " | ".join(r) + " |" for r in rows]
+        if hold:
+            zero = hold["bundled"]["fp32"]["zero_flow_epe"]
+            L += ["", f"Zero flow scores {zero:.2f} px against the teacher on the held-back clip "
+                  f"({hold['bundled']['fp32']['pairs']} pairs); on KITTI 2015 000010, 8.90 px (zero flow) and "
+                  "2.98 px (DIS medium)."]  # fmt: skip
+        if e.get("holdback_fp32"):
+            L += ["", "Candidates on the held-back clip (FP32 EPE against the teacher, px): "
+                  + ", ".join(f"`{c}` {v['epe']:.3f}" for c, v in e["holdback_fp32"].items())
+                  + f"; chosen: `{e['chosen']}`."]  # fmt: skip
+        checks = ", ".join(
+            f"{k.replace('_', ' ')}: {'yes' if v else 'no'}" for k, v in e["verdict"].items() if k != "ship"
+        )
+        L += [
+            "",
+            f"Verdict: {checks}: the candidate is **{'shipped' if e['verdict']['ship'] else 'not shipped'}**.",
+            "",
+        ]
+    return L
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.teacher_experiment", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
