@@ -712,7 +712,15 @@ class _FrameWriter:
             self.on_written(result, rgb, written)
 
     def close(self) -> None:
-        self.pool.shutdown(wait=True, cancel_futures=True)
+        interrupt = None
+        while True:  # an interrupt here would leave writes running while the caller cleans up after them
+            try:
+                self.pool.shutdown(wait=True, cancel_futures=True)
+                break
+            except BaseException as exc:  # Ctrl-C, SIGTERM: raised once the started writes are done
+                interrupt = exc
+        if interrupt is not None:
+            raise interrupt
 
 
 def _pictures(

@@ -235,3 +235,132 @@ def test_the_temp_video_of_a_killed_run_is_removed_by_the_next(tmp_path, where):
     assert frame_count(video) == 3
     assert summary_of(out)["video"]["frames"] == 3
     json.loads((out / ".geonet-predict").read_text())  # the marker stays readable
+
+
+# ----------------------------------------------------------------------------- 6. SIGTERM at any moment
+class _Exited(BaseException):
+    """os._exit, made visible to the test."""
+
+
+def test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker(tmp_path, monkeypatch):
+    """Case 6: a SIGTERM sent to the whole group reaches a busy worker, then the job's own SIGTERM (stopping
+    the pool) comes while the worker removes its unfinished folder. That one must neither cut the clean-up
+    short (stray files, no marker: --resume refused) nor escape to the pool's loop (the next sequence starts)."""
+    from geonet_infer.batch import BatchConfig, WorkUnit, local
+
+    out = tmp_path / "out"
+    out.mkdir()
+    unit = WorkUnit(0, "s1", str(tmp_path / "in"))
+
+    def sequence(unit, config, predictor, on_frame, options):  # a sequence stopped while it writes
+        folder = out / unit.name
+        (folder / "depth").mkdir(parents=True)
+        (folder / ".geonet-batch").write_text("{}\n")
+        (folder / ".geonet-predict").write_text(json.dumps({"files": ["depth/000000.npy", "depth/000001.npy"]}))
+        (folder / "depth" / "000000.npy").write_bytes(b"written")
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises here
+        return {"status": "done"}
+
+    real_discard = local.discard
+
+    def discard(folder):
+        os.kill(os.getpid(), signal.SIGTERM)  # the job's own SIGTERM, during the clean-up
+        real_discard(folder)
+
+    def exit_(code):
+        raise _Exited(code)
+
+    monkeypatch.setattr(local, "run_sequence", sequence)
+    monkeypatch.setattr(local, "discard", discard)
+    monkeypatch.setattr(local.os, "_exit", exit_)
+    monkeypatch.setattr(local, "_WORKER", {})
+    local._WORKER.update(config=BatchConfig(out_dir=str(out)), options={}, started=[0], busy=None, predictor=object())
+    previous = signal.signal(signal.SIGTERM, local._on_sigterm)
+    try:
+        with pytest.raises(_Exited) as exited:
+            local._work(unit)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert exited.value.args == (143,)
+    assert os.listdir(out) == []  # the unfinished sequence is gone, markers and all
+
+
+def test_the_summary_counts_a_sequence_finished_after_the_stop_with_its_frames(tmp_path, monkeypatch):
+    """Case 6: a sequence completes on disk (its .done written) after the job stopped listening; the summary
+    counts it as done, with its frames and its row (it said done 1, frames 0, per_sequence [])."""
+    from geonet_infer.batch import run as batch_run
+    from geonet_infer.batch import run_sequence
+    from geonet_infer.predictor import load
+
+    class LateRunner:  # the job is stopped right after the sequence finished, before its result came back
+        name, workers, threads, limits, address = "late", 1, 1, [], None
+
+        @classmethod
+        def start(cls, config, options, n_units, workers, threads, *, manifest, address, log):
+            runner = cls()
+            runner.config, runner.options = config, options
+            return runner
+
+        def results(self, units):
+            run_sequence(units[0], self.config, load(threads=1), None, self.options)
+            raise KeyboardInterrupt
+            yield  # a generator, as the runners' results are
+
+        def live_frames(self):
+            return 0
+
+        def close(self):
+            pass
+
+    monkeypatch.setitem(batch_run.RUNNERS, "late", LateRunner)
+    (seq,) = make_sequences(tmp_path / "in", ["s1"], 3)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        batch_run.run_batch([seq], out, runner="late", tasks=("depth",), progress=False, vis=False)
+    assert (out / "s1" / ".done").is_file()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] is True and summary["sequences"]["done"] == 1
+    assert summary["frames"] == 3 == len(list((out / "s1" / "depth").glob("*.npy")))
+    assert [(r["sequence"], r["status"], r["frames"]) for r in summary["per_sequence"]] == [("s1", "done", 3)]
+
+
+def _progress(out: Path) -> int:
+    return len(list(out.glob("s[0-9]/depth/*.npy")))
+
+
+@pytest.mark.parametrize("after, again", [(1, 0.1), (4, 0.0), (14, None)])
+def test_sigterm_to_the_group_at_any_moment_leaves_a_state_resume_accepts(tmp_path, after, again):
+    """Case 6: SIGTERM to the job's process group (as `timeout` and schedulers send it) when ``after`` frames
+    are written, and ``again`` seconds later once more: exit 130; no sequence that had not started completes;
+    the summary agrees with the folders; every unfinished folder is gone; --resume finishes the job."""
+    seqs = make_sequences(tmp_path / "in", ["s1", "s2", "s3"], 12)
+    out = tmp_path / "out"
+    argv = [*CLI, "batch", *map(str, seqs), "--out", str(out), *DEPTH, "--no-vis", "--workers", "2"]
+    proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while _progress(out) < after and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert proc.poll() is None, "the job ended before the signal"
+        os.killpg(proc.pid, signal.SIGTERM)
+        started = {p.name for p in out.glob("s[0-9]")}
+        if again is not None:
+            time.sleep(again)
+            os.killpg(proc.pid, signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, stderr[-2000:]
+    done = {p.parent.name for p in out.glob("s[0-9]/.done")}
+    assert done <= started, f"{sorted(done - started)} started after the SIGTERM"
+    assert {p.name for p in out.glob("s[0-9]")} == done  # unfinished folders removed, markers and all
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["sequences"]["done"] == len(done)
+    assert {r["sequence"] for r in summary["per_sequence"] if r["status"] == "done"} == done
+    assert summary["frames"] == sum(json.loads((out / s / ".done").read_text())["frames"] for s in done)
+    resume = subprocess.run([*argv, "--resume"], cwd=REPO, capture_output=True, text=True, timeout=180)
+    assert resume.returncode == 0, resume.stderr[-2000:]
+    assert {p.parent.name for p in out.glob("s[0-9]/.done")} == {"s1", "s2", "s3"}

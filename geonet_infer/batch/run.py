@@ -175,18 +175,21 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
             redone.append({"sequence": unit.name, "reason": why})
             todo.append(unit)
             continue
-        skipped.append(
-            {
-                "index": unit.index,
-                "sequence": unit.name,
-                "input": unit.path,
-                "status": "skipped",
-                "frames": marker.get("frames", 0),
-                "failures": marker.get("failures", []),
-                "wall_s": 0.0,
-            }
-        )
+        skipped.append(_from_marker(unit, marker, "skipped"))
     return todo, skipped, redone
+
+
+def _from_marker(unit: WorkUnit, marker: dict, status: str) -> dict:
+    """A complete sequence's result as its ``.done`` records it."""
+    return {
+        "index": unit.index,
+        "sequence": unit.name,
+        "input": unit.path,
+        "status": status,
+        "frames": marker.get("frames", 0),
+        "failures": marker.get("failures", []),
+        "wall_s": 0.0,
+    }
 
 
 def model_tasks(model_dir, graphs, tasks: Iterable[str] | None, log) -> tuple[str, ...]:
@@ -324,8 +327,12 @@ def run_batch(
             _stop(bar, stream, active)
             interrupted = interrupted or bool(caught)
             # A worker can finish a sequence (its .done marker written) after the job stopped listening:
-            # it is done on disk, and --resume skips it, so the summary counts it too.
-            n_done += sum(1 for u in todo if u.index not in results and read_marker(out_dir / u.name) is not None)
+            # it is done on disk, and --resume skips it, so the summary counts it too, with its frames.
+            for unit in todo:
+                marker = None if unit.index in results else read_marker(out_dir / unit.name)
+                if marker is not None:
+                    results[unit.index] = _from_marker(unit, marker, "done")
+                    n_done += 1
             wall = time.perf_counter() - started
             ordered = [results[u.index] for u in units if u.index in results]
             records = [r for res in ordered for r in res["failures"]]
