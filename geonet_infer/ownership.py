@@ -96,6 +96,14 @@ def check_writes(
     ``inputs``, or when a file it writes exists and no earlier run listed it (the user's)."""
     previous = set(previous)
     writes = set(writes)
+    root = real(folder)
+    for rel in sorted(writes):
+        if root not in real(folder / rel).parents:
+            raise InputError(
+                folder / rel,
+                f"leads out of {folder} (a symlink on the way)",
+                "remove the symlink or pick another --out",
+            )
     touched = {real(p): p for p in listed_paths(folder, writes | previous)}
     if outside is not None:
         touched[real(outside)] = outside

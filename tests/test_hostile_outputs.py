@@ -100,11 +100,12 @@ def test_outputs_through_a_symlinked_folder_are_refused(tmp_path, capsys):
     elsewhere.mkdir()
     (out / "points").symlink_to(elsewhere)
     argv = ("predict", frames, "--out", out, *DEPTH, "--intrinsics", "400,400,208,64", "--point-cloud", "camera")
+    before = digest(out)
     rc, _, stderr = run_cli(capsys, *argv)
     assert rc == 2, stderr
     [line] = error_lines(stderr)
     assert "points" in line
-    assert os.listdir(elsewhere) == []
+    assert os.listdir(elsewhere) == [] and digest(out) == before  # refused before anything was written
 
 
 # ----------------------------------------------------------------------------- 3, 5. inputs never written or removed

@@ -249,9 +249,9 @@ def _mark(folder: Path) -> None:
 
 def discard(folder: Path) -> None:
     """Remove what batch made in a sequence folder: its ``.done``, the files its run listed (the folder's
-    ``.geonet-predict``, :mod:`geonet_infer.ownership`; an older batch's ``.done`` list), then the folder
-    itself if nothing else is left. Files a user added stay, and so does the folder with batch's marker.
-    A folder batch did not make is left alone (GeoNetError) unless it is empty."""
+    ``.geonet-predict``, :mod:`geonet_infer.ownership`; an older batch's ``.done`` list), then the markers
+    and the folder if nothing else is left. Files a user added stay, and so does the folder with its
+    markers. A folder batch did not make is left alone (GeoNetError) unless it is empty."""
     if not folder.exists():
         return
     if not owned(folder):
@@ -264,9 +264,10 @@ def discard(folder: Path) -> None:
         listed |= set(json.loads((folder / MARKER_NAME).read_text())["outputs"])
     (folder / MARKER_NAME).unlink(missing_ok=True)  # first: a folder half cleared is never complete
     ownership.remove_listed(folder, sorted(listed))
-    (folder / OUTPUT_MARKER).unlink(missing_ok=True)
-    if [p.name for p in folder.iterdir()] == [OWNER_NAME]:
-        (folder / OWNER_NAME).unlink()
+    markers = (OUTPUT_MARKER, OWNER_NAME)  # kept while anything else is there (a user's file, a late write)
+    if all(p.name in markers for p in folder.iterdir()):
+        for name in markers:
+            (folder / name).unlink(missing_ok=True)
         folder.rmdir()
 
 
