@@ -24,6 +24,7 @@ the listed files of the previous one before writing.
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import itertools
 import json
@@ -41,13 +42,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from geonet_infer import __version__
+from geonet_infer import __version__, ownership
 from geonet_infer.cascade import camera_at
 from geonet_infer.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
 from geonet_infer.classical import check_methods, classical_tasks
 from geonet_infer.classical import describe as describe_methods
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.io.atomic import _umask, atomic_write, leftover_temps, save_npy_atomic
+from geonet_infer.io.atomic import _umask, atomic_write, save_npy_atomic
 from geonet_infer.io.calib import Camera, write_kitti_camera
 from geonet_infer.io.flow import write_flow_kitti
 from geonet_infer.io.frames import FrameSource
@@ -55,7 +56,7 @@ from geonet_infer.io.images import write_image
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.limits import MAX_BATCH_SIZE as MAX_BATCH_SIZE  # where callers of 0.x looked for it
 from geonet_infer.limits import MAX_HELD_PIXELS, MAX_WORLD_POINTS, check_batch_size, check_fps
-from geonet_infer.manifest import model_notice
+from geonet_infer.manifest import file_sha256, model_notice
 from geonet_infer.points import write_ply
 from geonet_infer.predictor import TASKS, Predictor
 from geonet_infer.results import FrameResult
@@ -212,40 +213,65 @@ def _frame_files(name: str, tasks: tuple[str, ...], vis: bool, options: OutputOp
 
 
 class _OwnedFolder:
-    """OUT as the folder of one predict run: lock, ownership marker, removal of the previous run's files.
+    """OUT as the folder of one predict run: lock, ownership marker, removal of the previous run's files
+    (the rule of :mod:`geonet_infer.ownership`, shared with batch).
 
     * Lock: ``OUT/.geonet-predict.lock`` created with O_EXCL holds this pid and is removed at exit;
       a lock whose pid is alive refuses the run, one whose process is gone (killed) is taken over.
     * Ownership: a non-empty OUT without ``OUT/.geonet-predict`` is refused (its files are not ours).
       With the marker, the files it lists (and temp files of an interrupted writer) are removed,
-      nothing else: files a user added to OUT stay.
+      nothing else: files a user added to OUT stay. A file this run writes that exists and is not
+      listed, or that is an input, refuses the run before anything is removed.
     * The marker is written before the first output and lists every file this run may write, so a
       run that is killed still leaves a marker that covers all it wrote.
+    * ``claimed_by``: names of another owner's markers in OUT (batch's): that owner holds the lock and
+      vouches for OUT; its files are never touched.
     """
 
-    def __init__(self, out_dir: Path, files: set[str], input_path):
+    def __init__(
+        self,
+        out_dir: Path,
+        files: set[str],
+        input_path,
+        inputs: tuple[Path, ...] = (),
+        outside: Path | None = None,
+        claimed_by: tuple[str, ...] = (),
+    ):
         self.out_dir, self.files, self.input = out_dir, set(files), str(input_path)
+        self.inputs, self.claimed_by = inputs, claimed_by
+        self.outside = None if outside is None else ownership.real(outside)  # the video, outside OUT
+        self.outside_sha256: str | None = None  # once it is complete
         self.lock = out_dir / OUTPUT_LOCK
         self.marker = out_dir / OUTPUT_MARKER
 
     def __enter__(self) -> _OwnedFolder:
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        self._take_lock()
+        if not self.claimed_by:
+            self._take_lock()
         try:
             self._clear_previous_run()
             self._write_marker()
         except BaseException:
-            self.lock.unlink(missing_ok=True)
+            if not self.claimed_by:
+                self.lock.unlink(missing_ok=True)
             raise
         return self
 
     def __exit__(self, *exc) -> None:
-        self.lock.unlink(missing_ok=True)
+        if not self.claimed_by:
+            self.lock.unlink(missing_ok=True)
 
     def add(self, files: set[str]) -> None:
         """Record more files before writing them (a video that decodes more frames than it lists)."""
         if not files <= self.files:
+            ownership.check_writes(self.out_dir, files - self.files, (), self.inputs)
             self.files |= files
+            self._write_marker()
+
+    def video_written(self, path: Path) -> None:
+        """Record the digest of the finished video outside OUT: an identical re-run may replace it."""
+        if self.outside is not None and ownership.real(path) == self.outside:
+            self.outside_sha256 = file_sha256(path)
             self._write_marker()
 
     def _take_lock(self) -> None:
@@ -269,38 +295,26 @@ class _OwnedFolder:
         raise InputError(self.out_dir, "another geonet-infer predict took this folder", "pick another --out")
 
     def _clear_previous_run(self) -> None:
-        others = [p for p in self.out_dir.iterdir() if p.name != OUTPUT_LOCK]
-        if not others:
-            return
-        if not self.marker.is_file():
+        others = [p for p in self.out_dir.iterdir() if p.name not in (OUTPUT_LOCK, *self.claimed_by)]
+        previous: dict = {"files": [], "outside": []}
+        if self.marker.is_file():
+            previous = ownership.read_marker(self.marker)
+        elif others and not (set(self.claimed_by) & {p.name for p in self.out_dir.iterdir()}):
             raise InputError(
                 self.out_dir,
                 "this folder is not empty and was not written by geonet-infer predict",
                 "pick another --out (predict never overwrites files it did not write)",
             )
-        try:
-            previous = json.loads(self.marker.read_text())["files"]
-            assert isinstance(previous, list) and all(isinstance(f, str) for f in previous)
-        except (ValueError, KeyError, TypeError, AssertionError, RecursionError):
-            raise InputError(
-                self.marker, "unreadable ownership marker", "pick another --out, or delete the folder yourself"
-            ) from None
-        root = self.out_dir.resolve()
-        for rel in previous:
-            path = self.out_dir / rel
-            if Path(rel).is_absolute() or ".." in Path(rel).parts or root not in path.resolve().parents:
-                continue  # a marker never lists such a path; an edited one cannot make us delete elsewhere
-            if path.is_file() or path.is_symlink():
-                path.unlink()
-            for leftover in leftover_temps(path):  # of a run killed while writing this file
-                leftover.unlink()
-        for sub in ("depth", "flow", "flow_vis"):
-            with contextlib.suppress(OSError):  # only when empty: a user's file there keeps it
-                (self.out_dir / sub).rmdir()
+        ownership.check_writes(
+            self.out_dir, self.files, previous["files"], self.inputs, self.outside, previous["outside"]
+        )
+        ownership.remove_listed(self.out_dir, previous["files"])
+        ownership.remove_outside_temps(previous["outside"])
 
     def _write_marker(self) -> None:
         marker: dict[str, object] = {"written_by": "geonet-infer predict", "version": __version__, "input": self.input}
         marker["files"] = sorted(self.files)
+        marker["outside"] = [] if self.outside is None else [{"path": str(self.outside), "sha256": self.outside_sha256}]
         with atomic_write(self.marker) as tmp:
             tmp.write_text(json.dumps(marker) + "\n")
 
@@ -359,6 +373,7 @@ def predict_to_dir(
     flow_method: str = "network",
     pose_method: str = "network",
     scale_smoothing: int = SCALE_HALF_WINDOW,
+    claimed_by: tuple[str, ...] = (),
 ) -> dict:
     """Predict every frame of ``source`` into ``out_dir`` (layout in the module docstring).
 
@@ -381,6 +396,8 @@ def predict_to_dir(
         check: check each flow against the frames (``summary["check"]``, :mod:`geonet_infer.check`).
         flow_method, pose_method: "network", or "dis" / "orbvo" (:mod:`geonet_infer.classical`).
         scale_smoothing: frames each side over which the camera-height scale is smoothed (0: none).
+        claimed_by: (``exclusive``) the marker names of a caller that owns ``out_dir`` and locks it
+            (batch): then no pid lock, and those files are never touched.
     Returns:
         The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad
         frames (unreadable, odd size, NaN/inf output, or missing from a truncated video).
@@ -418,13 +435,10 @@ def predict_to_dir(
         raise InputError(
             source.path, "a world point cloud needs poses", "keep pose in --tasks, or use --point-cloud camera"
         )
-    video_in_out = options.video_out is not None and _inside(Path(options.video_out), out_dir)
-    if options.video_out is not None and not video_in_out and Path(options.video_out).exists():
-        raise InputError(
-            options.video_out,
-            "exists, and predict does not overwrite files it did not write",
-            "remove it or pick a new name",
-        )
+    video = None if options.video_out is None else Path(options.video_out)
+    video_in_out = video is not None and ownership.inside(video, out_dir)  # symlinks resolved
+    if video is not None and not exclusive and video.exists():
+        raise ownership.not_written(video)
     run = functools.partial(
         _predict,
         predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis,
@@ -438,15 +452,13 @@ def predict_to_dir(
     files = {SUMMARY_NAME, *extra_outputs, *(_POSE_FILES if "pose" in tasks else ())}
     files |= {CAMERA_NAME} if camera is not None else set()
     files |= {WORLD_CLOUD_NAME} if options.point_cloud == "world" else set()
-    if video_in_out:
-        files.add(os.path.relpath(os.path.abspath(options.video_out), os.path.abspath(out_dir)))  # type: ignore[arg-type]
+    if video is not None and video_in_out:
+        files.add(os.path.relpath(ownership.real(video), ownership.real(out_dir)))
     files |= set().union(*(_frame_files(name, tasks, vis, options) for name in names))
-    with _OwnedFolder(out_dir, files, source.location) as owned:
+    inputs = tuple(getattr(source, "files", None) or ([Path(source.path)] if source.kind == "video" else []))
+    outside = video if video is not None and not video_in_out else None
+    with _OwnedFolder(out_dir, files, source.location, inputs, outside, claimed_by) as owned:
         return run(owned=owned)
-
-
-def _inside(path: Path, folder: Path) -> bool:
-    return os.path.abspath(path).startswith(os.path.abspath(folder) + os.sep)
 
 
 def _predict(
@@ -568,6 +580,8 @@ def _predict(
         bar.close()
         if video is not None:
             video.close(keep=done > 0 and sys.exc_info()[0] is None)
+    if owned is not None and video is not None and video.frames:
+        owned.video_written(video.path)
     if world is not None:
         world.write(out_dir / WORLD_CLOUD_NAME, camera_height)
     if camera is not None and frames.size is not None:
@@ -745,7 +759,15 @@ class _FrameWriter:
             self.on_written(result, rgb, written)
 
     def close(self) -> None:
-        self.pool.shutdown(wait=True, cancel_futures=True)
+        interrupt = None
+        while True:  # an interrupt here would leave writes running while the caller cleans up after them
+            try:
+                self.pool.shutdown(wait=True, cancel_futures=True)
+                break
+            except BaseException as exc:  # Ctrl-C, SIGTERM: raised once the started writes are done
+                interrupt = exc
+        if interrupt is not None:
+            raise interrupt
 
 
 def _pictures(
@@ -873,13 +895,37 @@ class _VideoOut:
         self.frames += 1
 
     def close(self, keep: bool) -> None:
+        """Finish the video (``keep``) or remove it. A kept video is re-opened and its frames counted
+        first: OpenCV's writer ignores a failed write (a full disk), so that is where it shows (OSError)."""
         if self.writer is not None:
             self.writer.release()
             self.writer = None
         if self.tmp is not None:
-            if keep and self.frames:
-                os.chmod(self.tmp, 0o666 & ~_umask())
-                os.replace(self.tmp, self.path)
-            else:
-                self.tmp.unlink(missing_ok=True)
-            self.tmp = None
+            tmp, self.tmp = self.tmp, None
+            try:
+                if not (keep and self.frames):
+                    return
+                readable = _decodable_frames(tmp)
+                if readable != self.frames:
+                    raise OSError(
+                        errno.EIO,
+                        f"the video reads back with {readable} of its {self.frames} frames (the disk may be "
+                        "full); it was not kept",
+                        str(self.path),
+                    )
+                os.chmod(tmp, 0o666 & ~_umask())
+                os.replace(tmp, self.path)
+            finally:
+                tmp.unlink(missing_ok=True)
+
+
+def _decodable_frames(video: Path) -> int:
+    """Frames OpenCV decodes from ``video`` (0 when it cannot be opened)."""
+    cap = cv2.VideoCapture(str(video))
+    try:
+        count = 0
+        while cap.isOpened() and cap.grab():
+            count += 1
+        return count
+    finally:
+        cap.release()

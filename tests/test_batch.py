@@ -65,11 +65,13 @@ def done_record(folder: Path) -> dict:
 
 
 def assert_complete_and_clean(out: Path, names) -> None:
-    """Every sequence has its .done; no temporary file anywhere (only .done, the ownership markers and
-    the job's .lock are hidden)."""
+    """Every sequence has its .done; no temporary file anywhere (only .done, the ownership markers (batch's,
+    and each sequence's list of its files) and the job's .lock are hidden)."""
     for name in names:
         assert (out / name / MARKER_NAME).is_file(), name
-    hidden = [p for p in out.rglob(".*") if p.name not in (MARKER_NAME, OWNER_NAME) and p != out / ".lock"]
+    hidden = [
+        p for p in out.rglob(".*") if p.name not in (MARKER_NAME, OWNER_NAME, OUTPUT_MARKER) and p != out / ".lock"
+    ]
     assert hidden == []
 
 
@@ -273,12 +275,15 @@ def test_killed_job_resumes_to_identical_outputs(tmp_path, capfd, how):
         # the workers die with the job: nothing keeps writing into OUT while --resume runs
         assert _wait_for(lambda: not any(_alive(w) for w in workers), 30), "orphan workers"
         # and a partial folder (as after a power cut) is redone: plant one with a stray temp file
-        # (with batch's ownership marker, which it writes before anything else)
+        # (with batch's ownership marker and the list of the files its run may write, both written
+        # before anything else)
         partial = out / names[-1]
         (partial / "depth").mkdir(parents=True, exist_ok=True)
         (partial / OWNER_NAME).write_text("{}\n")
+        listed = ["depth/000000.npy", "depth/000001.npy"]
+        (partial / OUTPUT_MARKER).write_text(json.dumps({"files": listed}) + "\n")
         (partial / "depth" / "000000.npy").write_bytes(b"half")
-        (partial / "depth" / ".000001.abc123.npy").write_bytes(b"tmp")
+        (partial / "depth" / ".000001.abc123_x.npy").write_bytes(b"tmp")  # mkstemp's 8 random characters
 
     rc, stdout, stderr = cli(capfd, "batch", *seqs, "--out", out, *common, "--resume")
     assert rc == 0, stderr

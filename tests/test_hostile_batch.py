@@ -27,7 +27,8 @@ from tests.test_batch import CLI, FRAMES, SAMPLE_CALIB, _wait_for, cli, make_seq
 
 DEPTH = ["--tasks", "depth", "--no-progress", "--no-vis"]
 OWNER_NAME = ".geonet-batch"  # the ownership marker batch writes in each folder it makes
-KNOWN_HIDDEN = {MARKER_NAME, OWNER_NAME, ".lock"}
+FILES_MARKER = ".geonet-predict"  # the list of the files a sequence's run may write (what a re-run removes)
+KNOWN_HIDDEN = {MARKER_NAME, OWNER_NAME, FILES_MARKER, ".lock"}
 
 
 def digest(folder: Path) -> dict[str, str]:

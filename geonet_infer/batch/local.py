@@ -41,6 +41,9 @@ class _Stopped(BaseException):
 
 
 def _on_sigterm(signum, frame):
+    # Once only: a SIGTERM sent to the whole group is followed by the job's own (stopping the pool); a
+    # second _Stopped would cut the clean-up short, and escape to the pool's loop, which runs the next sequence.
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if _WORKER.get("busy") is not None:
         raise _Stopped()
     os._exit(0)
@@ -102,18 +105,23 @@ def _count_frame() -> None:
 
 
 def _work(unit: WorkUnit) -> dict:
-    out = Path(_WORKER["config"].out_dir) / unit.name
+    try:
+        return _run(unit)
+    except _Stopped:  # also when it came in _run's own clean-up: the worker never takes another sequence
+        out = Path(_WORKER["config"].out_dir) / unit.name
+        if read_marker(out) is None:
+            with contextlib.suppress(Exception):
+                discard(out)
+        os._exit(143)
+
+
+def _run(unit: WorkUnit) -> dict:
     _WORKER["started"][unit.index] = os.getpid()
     _WORKER["busy"] = unit
     try:
         if _WORKER["predictor"] is None:
             return failed_result(unit, f"the worker could not load the model: {describe_error(_WORKER['load_error'])}")
         return run_sequence(unit, _WORKER["config"], _WORKER["predictor"], _count_frame, _WORKER["options"])
-    except _Stopped:
-        if read_marker(out) is None:
-            with contextlib.suppress(Exception):
-                discard(out)
-        os._exit(143)
     finally:
         _WORKER["busy"] = None
 

@@ -8,20 +8,19 @@ import contextlib
 import errno
 import json
 import os
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from geonet_infer import __version__
+from geonet_infer import __version__, ownership
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
 from geonet_infer.manifest import file_sha256
-from geonet_infer.pipeline import SUMMARY_NAME, TASKS, predict_to_dir
+from geonet_infer.pipeline import OUTPUT_MARKER, SUMMARY_NAME, TASKS, predict_to_dir
 
 MARKER_NAME = ".done"
 OWNER_NAME = ".geonet-batch"
@@ -254,7 +253,10 @@ def _mark(folder: Path) -> None:
 
 
 def discard(folder: Path) -> None:
-    """Remove a sequence folder batch made (or an empty one); anything else is left alone (GeoNetError)."""
+    """Remove what batch made in a sequence folder: its ``.done``, the files its run listed (the folder's
+    ``.geonet-predict``, :mod:`geonet_infer.ownership`; an older batch's ``.done`` list), then the markers
+    and the folder if nothing else is left. Files a user added stay, and so does the folder with its
+    markers. A folder batch did not make is left alone (GeoNetError) unless it is empty."""
     if not folder.exists():
         return
     if not owned(folder):
@@ -262,9 +264,23 @@ def discard(folder: Path) -> None:
             folder.rmdir()
             return
         raise not_ours(folder)
-    shutil.rmtree(folder, ignore_errors=True)
-    if folder.exists():  # something kept writing into it; one more try, then let it fail loudly
-        shutil.rmtree(folder)
+    listed = set(_listed(folder))
+    with contextlib.suppress(OSError, ValueError, AttributeError):  # an older batch listed its outputs here
+        listed |= set(json.loads((folder / MARKER_NAME).read_text())["outputs"])
+    (folder / MARKER_NAME).unlink(missing_ok=True)  # first: a folder half cleared is never complete
+    ownership.remove_listed(folder, sorted(listed))
+    markers = (OUTPUT_MARKER, OWNER_NAME)  # kept while anything else is there (a user's file, a late write)
+    if all(p.name in markers for p in folder.iterdir()):
+        for name in markers:
+            (folder / name).unlink(missing_ok=True)
+        folder.rmdir()
+
+
+def _listed(folder: Path) -> list[str]:
+    """The files the sequence's run listed as its own (none when it listed nothing yet)."""
+    if not (folder / OUTPUT_MARKER).is_file():
+        return []
+    return ownership.read_marker(folder / OUTPUT_MARKER)["files"]
 
 
 def _input_files(source: FrameSource, own_calib: bool) -> list[Path]:
@@ -286,12 +302,14 @@ def _fingerprint(unit_path: str, files: list[Path]) -> list[list]:
 
 
 def _record_outputs(folder: Path) -> dict[str, list]:
-    """{relative path: [size, sha256]} of every file of a sequence folder but batch's own markers."""
-    own = {folder / MARKER_NAME, folder / OWNER_NAME}
+    """{relative path: [size, sha256]} of every file the sequence's run listed and wrote (a user's files
+    in the folder are not outputs)."""
     return {
-        p.relative_to(folder).as_posix(): [p.stat().st_size, file_sha256(p)]
-        for p in sorted(folder.rglob("*"))
-        if p.is_file() and p not in own
+        rel: [p.stat().st_size, file_sha256(p)]
+        for rel, p in sorted(
+            (p.relative_to(folder).as_posix(), p) for p in ownership.listed_paths(folder, _listed(folder))
+        )
+        if p.is_file()
     }
 
 
@@ -369,7 +387,7 @@ def run_sequence(
     }
     writing = False
     try:
-        discard(out)  # a partial folder of an interrupted run, or the results of an earlier job
+        discard(out)  # the files of an interrupted run, or of an earlier job
         source = open_frames(unit.path)
         camera = config.camera
         if camera is None and source.default_calib is not None:
@@ -378,7 +396,7 @@ def run_sequence(
         if on_frame is not None:
             source = _CountingSource(source, on_frame)  # type: ignore[assignment]  # a FrameSource proxy
         writing = True
-        out.mkdir()
+        out.mkdir(exist_ok=True)  # it may hold a user's files, which stay
         _mark(out)
         summary = predict_to_dir(
             predictor,
@@ -391,6 +409,8 @@ def run_sequence(
             vis=config.vis,
             flow_method=config.flow_method,
             pose_method=config.pose_method,
+            exclusive=True,  # lists its files before writing them: what discard removes
+            claimed_by=(OWNER_NAME, MARKER_NAME),
         )
         failures = [
             {"sequence": unit.name, "input": unit.path, "frame": f["frame"], "reason": f["reason"]}

@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-import signal
 import sys
-import threading
 from pathlib import Path
 
 from geonet_infer.batch import (
@@ -19,7 +16,14 @@ from geonet_infer.batch import (
     run_batch,
 )
 from geonet_infer.classical import classical_tasks
-from geonet_infer.cli.common import add_camera_args, add_method_args, add_model_args, camera_from_args, positive_int
+from geonet_infer.cli.common import (
+    add_camera_args,
+    add_method_args,
+    add_model_args,
+    camera_from_args,
+    positive_int,
+    sigterm_as_interrupt,
+)
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.limits import MAX_BATCH_SIZE
@@ -145,10 +149,6 @@ def add_parser(sub) -> None:
     parser.set_defaults(run=run_command)
 
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def run_command(args: argparse.Namespace) -> int:
     model_dir = resolve_model(args.model)
     graphs = load_manifest(model_dir, verify_files=False).graph_names(args.precision)  # run_batch verifies
@@ -184,10 +184,7 @@ def run_command(args: argparse.Namespace) -> int:
                 f"input has none{more}",
                 "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose, or --flow-method dis)",
             )
-    # SIGTERM (a scheduler stopping the job) is handled like Ctrl-C: workers stopped, summary written.
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
-    try:
+    with sigterm_as_interrupt():  # SIGTERM is handled like Ctrl-C: workers stopped, summary written
         summary = run_batch(
             args.inputs,
             args.out,
@@ -207,10 +204,6 @@ def run_command(args: argparse.Namespace) -> int:
             ray_address=args.ray_address,
             progress=not args.no_progress,
         )
-    finally:
-        if main_thread:
-            with contextlib.suppress(Exception):
-                signal.signal(signal.SIGTERM, previous)
     seqs = summary["sequences"]
     redone = f", {len(summary['redone'])} redone (changed since their run)" if summary["resume"] else ""
     print(

@@ -164,23 +164,30 @@ def stage_table(per_frame_ms: dict[str, float], frames: int) -> str:
     return "\n".join(lines)
 
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 @contextlib.contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
     """SIGTERM (a scheduler or ``kill`` stopping the job) handled like Ctrl-C inside the block.
 
     The KeyboardInterrupt unwinds through the writers (temp files removed), ``predict_to_dir``
     writes its summary with ``"interrupted": true`` and ``main()`` exits 130 with one line.
+    Later SIGTERMs (a group-wide one, then the job's own; a scheduler sending it again) are ignored:
+    they would cut that clean-up short, or end the process with another status; so after one the
+    handler is not put back (the run is ending).
     Signal handlers can only be set from the main thread; elsewhere this does nothing.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    received: list[int] = []
+
+    def interrupt(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        if not received:
+            signal.signal(signal.SIGTERM, previous)

@@ -52,8 +52,9 @@ calib_cam_to_cam.txt found in the folder or up to two levels up).
 
 Outputs in --out (written atomically; a bad frame is recorded in summary.json and skipped).
 --out must be new, empty, or an earlier predict's output folder: then exactly the files that
-run wrote are replaced (files you added stay); any other folder is refused, and so is a folder
-another predict is writing into. Ctrl-C or SIGTERM stops with summary.json marked interrupted:
+run wrote are replaced (files you added stay, and a run that would write over one of them or
+over its own input is refused); any other folder is refused, and so is a folder another
+predict is writing into. Ctrl-C or SIGTERM stops with summary.json marked interrupted:
   depth/<frame>.npy      float32 depth at the input resolution (relative scale; metres
                          with --camera-height)
   depth/<frame>.png      colour map (near = bright)
@@ -191,7 +192,8 @@ def add_parser(sub) -> None:
         default=None,
         metavar="FILE",
         help=f"also write a side-by-side video, frame | depth | flow ({' '.join(VIDEO_CODECS)}), streamed, "
-        "at the input's frame rate",
+        "at the input's frame rate, and read back to count its frames; an existing FILE is replaced only "
+        "when an earlier run into the same --out wrote it",
     )
     parser.add_argument(
         "--no-check",
