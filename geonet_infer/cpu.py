@@ -73,7 +73,7 @@ def int8_kernel(isa: dict[str, bool | None]) -> str:
 
 
 def isa_line(info: dict | None = None) -> str:
-    """One line: the features present, then the INT8 arithmetic they give, then the CPU model."""
+    """One line: the features present, then the INT8 arithmetic they give."""
     info = info or cpu_info()
     present = [f for f in ISA_FLAGS if info["isa"].get(f)]
     unknown = [f for f in ISA_FLAGS if info["isa"].get(f) is None]
@@ -81,4 +81,4 @@ def isa_line(info: dict | None = None) -> str:
     line = f"{' '.join(present) or 'none of ' + ', '.join(ISA_FLAGS)} (INT8 kernel {info['int8_kernel']}: {arith})"
     if unknown:
         line += f"; unknown: {', '.join(unknown)}"
-    return line + (f"; {info['model']}" if info["model"] else "")
+    return line

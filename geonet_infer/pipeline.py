@@ -42,6 +42,7 @@ import numpy as np
 
 from geonet_infer import __version__
 from geonet_infer.cascade import camera_at
+from geonet_infer.cpu import isa_line
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import _umask, atomic_write, leftover_temps, save_npy_atomic
 from geonet_infer.io.calib import Camera, write_kitti_camera
@@ -573,6 +574,8 @@ def _predict(
             "dir": str(predictor.model_dir),
             "arch": predictor.manifest.arch,
             "precision": predictor.precision,
+            "graphs": predictor.graph_set.runs,  # per graph: engine, precision and why
+            "isa": isa_line(),
             "threads": predictor.threads,
             "graph_size": [predictor.spec.height, predictor.spec.width],
             "random_init": predictor.manifest.random_init,

@@ -104,3 +104,36 @@ def test_manifest_records_the_kernels_each_int8_graph_is_exact_on(graph):
     manifest = load_manifest(resolve_model())
     model = onnx.load(str(manifest.path(graph, "int8")))
     assert manifest.quantization.int8_kernels[graph] == int8_kernels(model)
+
+
+def test_which_engine_is_exact_on_which_cpu():
+    from geonet_infer.int8_safety import int8_unsafe_reason
+
+    over, within = {"avx2_u8s8": False}, {"avx2_u8s8": True}
+    assert "beyond +-64" in int8_unsafe_reason("openvino", over, "avx2")
+    assert "does not record" in int8_unsafe_reason("openvino", None, "avx2")
+    assert int8_unsafe_reason("openvino", within, "avx2") is None
+    assert int8_unsafe_reason("onnxruntime", over, "avx2") is None  # its sessions set the remedy
+    for kernel in ("avx512_vnni", "avx_vnni", "amx_int8"):
+        assert int8_unsafe_reason("openvino", over, kernel) is None
+
+
+def test_auto_skips_an_engine_inexact_on_an_avx2_cpu(monkeypatch, capsys):
+    """On a CPU without VNNI (stubbed), auto keeps OpenVINO off the bundled INT8 graphs (their
+    weights pass +-64; OpenVINO's INT8 under qemu Haswell: DepthNet correlation 0.70 -> 0.47) and says
+    why in summary.json's per-graph record; --backend openvino runs them after one warning line."""
+    from geonet_infer import int8_safety
+    from geonet_infer.cascade import GraphSet
+    from geonet_infer.engines import OpenVinoEngine
+
+    monkeypatch.setattr(int8_safety, "cpu_info", lambda: {"int8_kernel": "avx2"})
+    manifest = load_manifest(resolve_model())
+    graphs = GraphSet(manifest, "int8", "auto", 1)
+    assert {run["engine"] for name, run in graphs.runs.items()} == {"onnxruntime"}
+    if not OpenVinoEngine.available():
+        return
+    assert "skipped openvino INT8 without VNNI" in graphs.runs["depthnet"]["why"]
+    capsys.readouterr()
+    GraphSet(manifest, "int8", "openvino", 1)
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 3 and all(line.startswith("geonet-infer: warning: ") for line in err), err
