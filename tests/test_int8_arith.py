@@ -137,3 +137,23 @@ def test_auto_skips_an_engine_inexact_on_an_avx2_cpu(monkeypatch, capsys):
     GraphSet(manifest, "int8", "openvino", 1)
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 3 and all(line.startswith("geonet-infer: warning: ") for line in err), err
+
+
+# /proc/cpuinfo excerpts (flags abridged to the ones that matter, plus neighbours)
+ZEN3 = "model name\t: AMD EPYC 7763 64-Core Processor\nflags\t\t: fpu sse4_2 avx f16c avx2 bmi2 sha_ni vaes\n"
+SPR = (
+    "model name\t: Intel(R) Xeon(R) Platinum 8480+\n"
+    "flags\t\t: avx2 avx512f avx512bw avx512_vnni avx_vnni amx_tile amx_int8\n"
+)
+
+
+def test_isa_from_proc_cpuinfo():
+    from geonet_infer.cpu import _from_proc, int8_kernel, isa_line
+
+    model, isa = _from_proc(ZEN3)
+    assert model == "AMD EPYC 7763 64-Core Processor" and int8_kernel(isa) == "avx2"
+    assert isa_line({"isa": isa, "int8_kernel": "avx2"}) == "avx2 (INT8 kernel avx2: int16 pairs, saturating)"
+    _, isa = _from_proc(SPR)
+    assert [f for f, present in isa.items() if present] == ["avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8"]
+    assert int8_kernel(isa) == "amx_int8"
+    assert _from_proc("processor\t: 0\nBogoMIPS\t: 50.00\n") is None  # no flags line (not x86): numpy's detection
