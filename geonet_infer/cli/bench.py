@@ -319,6 +319,7 @@ def run(args: argparse.Namespace) -> int:
                 name: {
                     **predictor.graph_set.engine(name).describe(),
                     **({"auto": predictor.backend_choice[name]} if name in predictor.backend_choice else {}),
+                    "run": predictor.graph_set.runs.get(name),  # engine, precision and why
                 }
                 for name in predictor.graphs
             }
