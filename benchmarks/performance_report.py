@@ -14,7 +14,8 @@ import json
 import sys
 from pathlib import Path
 
-KEPT_SECTIONS = ("## Batch throughput", "## Speed targets")  # written by batch_throughput.py, speed_targets.py
+# written by batch_throughput.py, speed_targets.py, and by hand (issue 45)
+KEPT_SECTIONS = ("## Batch throughput", "## Speed targets", "## AVX2-only CPUs")
 TASK_LABELS = {
     "depth": "depth",
     "pose": "pose",
@@ -77,6 +78,17 @@ LEVERS = """\
   the furthest from its target.
 - *Post-processing*: the residual flow at the input size is now flow − rigid flow (resizing is
   linear), one bilinear resize less per frame."""
+
+
+def isa_of(env: dict) -> str:
+    """The ISA line of a bench run (``geonet-infer info``'s), from its record or its cpu_flags (older runs)."""
+    from geonet_infer.cpu import ISA_FLAGS, int8_kernel, isa_line
+
+    if env.get("isa"):
+        return env["isa"]["line"]
+    flags = set(env.get("cpu_flags", []))
+    isa: dict[str, bool | None] = {f: f in flags for f in ISA_FLAGS}
+    return isa_line({"isa": isa, "int8_kernel": int8_kernel(isa)})
 
 
 def row(data: dict, task: str, mode: str, precision: str, batch: int = 1, backend: str = "onnxruntime") -> dict | None:
@@ -157,6 +169,7 @@ def report(small: dict, r50: dict, peers: list[str], memory: list[dict] | None =
         "| | |",
         "|---|---|",
         f"| CPU | {env['cpu']}; flags {' '.join(env.get('cpu_flags', []))} |",
+        f"| ISA (INT8 arithmetic) | {isa_of(env)}; every table of this page, unless its section names another CPU |",
         f"| usable CPUs / threads per graph | {env['usable_cpus']} / {env.get('threads')} |",
         f"| versions | Python {env['python']}, onnxruntime {env['onnxruntime']}, "
         f"OpenVINO {env.get('openvino') or r50['environment'].get('openvino')}, numpy {env['numpy']}, "

@@ -21,10 +21,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import onnx
 import torch
 
 from export import manifest as mf
 from export import quantize as qz
+from export.int8_arith import int8_kernels
 from export.to_onnx import OPSET, ExportCheckError, export_graph
 from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_inputs, io_spec, photometric_alpha
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
@@ -436,8 +438,13 @@ def _write_graphs(cfg: ExportConfig, src: Source, graphs: list[str], precisions:
         int8, settings, samples, k_source, plan_notes = _export_int8(cfg, src, fp32, tmp)
         all_graphs["int8"] = int8
         delta, reason = _accuracy_delta(cfg, src, all_graphs, tmp)
+        kernels = {  # which x86 INT8 kernels compute each quantised graph exactly (issue 45)
+            graph: int8_kernels(onnx.load(str(tmp / entry.file)))
+            for graph, entry in int8.items()
+            if graph not in qz.FP32_ONLY_GRAPHS
+        }
         quant = mf.quantization_record(
-            settings.describe(), str(cfg.calib_data), samples, k_source, plan_notes, delta, reason
+            settings.describe(), str(cfg.calib_data), samples, k_source, plan_notes, delta, reason, kernels
         )
     prov = mf.provenance(src.arch, src.random_init, exporter, src.checkpoint, src.ckpt)
     if src.sources is not None:

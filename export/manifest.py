@@ -199,6 +199,7 @@ def quantization_record(
     graph_notes: dict,
     accuracy_delta: dict | None,
     reason: str | None,
+    int8_kernels: dict | None = None,
 ) -> Quantization:
     from export.quantize import FP32_ONLY_GRAPHS
 
@@ -217,4 +218,5 @@ def quantization_record(
         accuracy_delta=json_safe(accuracy_delta),
         accuracy_delta_reason=reason,
         op_types=tuple(settings_description.get("op_types", ())),
+        int8_kernels=dict(int8_kernels or {}),
     )

@@ -18,6 +18,7 @@ import numpy as np
 from geonet_infer import __version__
 from geonet_infer.cascade import flow_to_input, graph_intrinsics, run_cascade
 from geonet_infer.conventions import scale_intrinsics
+from geonet_infer.cpu import cpu_info, isa_line
 from geonet_infer.engines import ENGINES, check_graphs, usable_cpus
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.images import list_images, read_image
@@ -354,13 +355,7 @@ def paper_line(results: list[dict], precision: str, backend: str) -> str | None:
 
 # ----------------------------------------------------------------------------- environment
 def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    return cpu_info()["model"] or platform.machine()
 
 
 @dataclass(frozen=True)
@@ -375,6 +370,7 @@ class Environment:
     providers: list[str]  # onnxruntime execution providers
     platform: str
     cpu: str
+    isa: dict  # geonet_infer.cpu.cpu_info(): the x86 features INT8 depends on, and the INT8 kernel
     usable_cpus: int  # affinity mask and cgroup quota (geonet_infer.engines.usable_cpus)
     default_threads: int  # threads per graph when none are given
     bundled_models: list[str]
@@ -393,6 +389,7 @@ class Environment:
             providers=ort.get_available_providers(),
             platform=platform.platform(),
             cpu=cpu_model(),
+            isa={**cpu_info(), "line": isa_line()},
             usable_cpus=cpus,
             default_threads=cpus,
             bundled_models=list(bundled_models()),

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import json
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -47,8 +48,9 @@ import numpy as np
 from geonet_infer import conventions
 from geonet_infer.check import GREY_WEIGHTS, check_pair
 from geonet_infer.conventions import rigid_inverse
-from geonet_infer.engines import AUTO, Engine, make_engine, pick_fastest
+from geonet_infer.engines import AUTO, ENGINES, Engine, make_engine, pick_fastest
 from geonet_infer.errors import GeoNetError, InputError, ModelError
+from geonet_infer.int8_safety import int8_unsafe_reason
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.images import read_image
 from geonet_infer.limits import check_batch_size
@@ -429,9 +431,11 @@ class GraphSet:
         self.manifest = manifest
         self.precision = precision
         self.backend_choice: dict[str, dict] = {}  # backend="auto": per graph, the timings behind the choice
+        self.runs: dict[str, dict] = {}  # per graph: engine, precision and why (summary.json, bench)
         self._engines: dict[str, Engine | RigidFlowOp] = {}
         for name in manifest.graph_names(precision):
             path = manifest.path(name, precision)
+            unsafe = self._int8_unsafe(name, backend)
             if name == "rigidflow" and rigid_op == "numpy" and RigidFlowOp.supports(manifest.conventions):
                 graph = make_engine(path, "onnxruntime", 1)  # read once: its declared io is the op's
                 check_graph_io(manifest.graph(name, precision), path, *graph.io())
@@ -439,12 +443,32 @@ class GraphSet:
                 self._engines[name] = RigidFlowOp(
                     conventions.UNRECORDED_PHOTOMETRIC_ALPHA if alpha is None else alpha, graph.io()
                 )
+                self.runs[name] = {"engine": "numpy", "precision": "fp32", "why": "rigid_op numpy (geometry)"}
                 continue
             if backend == AUTO:
-                self._engines[name], self.backend_choice[name] = pick_fastest(path, threads)
+                self._engines[name], self.backend_choice[name] = pick_fastest(path, threads, unsafe)
+                why = "auto: fastest installed engine at load"
             else:
                 self._engines[name] = make_engine(path, backend, threads)
+                why = f"backend {backend}"
             check_graph_io(manifest.graph(name, precision), path, *self._engines[name].io())
+            chosen = self._engines[name].name
+            why += "".join(f"; {'' if e == chosen else 'skipped '}{r}" for e, r in unsafe.items())
+            fp32 = precision == "fp32" or (manifest.quantization and name in manifest.quantization.fp32_graphs)
+            self.runs[name] = {"engine": chosen, "precision": "fp32" if fp32 else precision, "why": why}
+
+    def _int8_unsafe(self, name: str, backend: str) -> dict[str, str]:
+        """{engine: why its INT8 of graph ``name`` is not exact on this CPU} (geonet_infer.int8_safety).
+        Auto skips those engines (onnxruntime is always exact: its sessions set the remedy); an engine
+        named by ``backend`` runs the graph anyway, after one line on stderr."""
+        q = self.manifest.quantization
+        if self.precision != "int8" or q is None or name in q.fp32_graphs:
+            return {}
+        names = [e.name for e in ENGINES.values() if e.available()] if backend == AUTO else [backend]
+        unsafe = {e: r for e in names if (r := int8_unsafe_reason(e, q.int8_kernels.get(name)))}
+        if backend in unsafe:
+            print(f"geonet-infer: warning: {name} INT8 may be inexact: {unsafe[backend]}", file=sys.stderr)
+        return unsafe
 
     @property
     def names(self) -> tuple[str, ...]:

@@ -47,6 +47,7 @@ from geonet_infer.cascade import camera_at
 from geonet_infer.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
 from geonet_infer.classical import check_methods, classical_tasks
 from geonet_infer.classical import describe as describe_methods
+from geonet_infer.cpu import isa_line
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import _umask, atomic_write, save_npy_atomic
 from geonet_infer.io.calib import Camera, write_kitti_camera
@@ -628,6 +629,8 @@ def _predict(
             "dir": str(predictor.model_dir),
             "arch": predictor.manifest.arch,
             "precision": predictor.precision,
+            "graphs": predictor.graph_set.runs,  # per graph: engine, precision and why
+            "isa": isa_line(),
             "threads": predictor.threads,
             "graph_size": [predictor.spec.height, predictor.spec.width],
             "random_init": predictor.manifest.random_init,

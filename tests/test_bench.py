@@ -150,6 +150,9 @@ def test_environment_block(bundled_run):
     mem = env["memory"]["onnxruntime/fp32"]
     assert mem["graph_files_mib"] > 0 and mem["peak_rss_mib"] >= mem["rss_after_load_mib"] > 0
     assert env["peak_rss_mib"] >= mem["peak_rss_mib"]
+    assert "INT8 kernel" in env["isa"]["line"] and env["isa"]["int8_kernel"]
+    runs = {name: e["run"] for name, e in env["engines"]["onnxruntime/fp32"].items()}
+    assert runs["depthnet"] == {"engine": "onnxruntime", "precision": "fp32", "why": "backend onnxruntime"}
 
 
 def test_json_records_the_speed_targets_this_run_measured(bundled_run):

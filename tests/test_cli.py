@@ -242,12 +242,14 @@ def test_info_text_and_json(capsys):
     arch = json.loads((MODEL_DIR / "manifest.json").read_text())["arch"]
     rc, stdout, _ = run_cli(capsys, "info")
     assert rc == 0 and f"arch {arch}" in stdout
+    assert any(line.startswith("isa: ") and "INT8 kernel" in line for line in stdout.splitlines())
     rc, stdout, _ = run_cli(capsys, "info", "--json")
     assert rc == 0
     info = json.loads(stdout)
     assert {"environment", "model"} <= set(info)
     assert info["model"]["arch"] == arch and info["model"]["size"] == [128, 416]
     assert "small_synth" in info["environment"]["bundled_models"]
+    assert set(info["environment"]["isa"]["isa"]) == {"avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8"}
 
 
 def test_no_command_prints_help_and_exits_2(capsys):

@@ -431,6 +431,9 @@ def test_int8_graphs_load_run_and_report_delta(model_dir):
     writer = {out: node for node in flow8.graph.node for out in node.output}
     assert writer["residual_flow"].op_type == "Conv" and writer["residual_flow"].input[1] in float_kernels
     assert any(line.startswith("fp32 nodes:") for line in quant.graph_notes["resflownet"])
+    # which x86 kernels compute each graph exactly; per-channel 8-bit weights reach +-127 in every channel
+    assert set(quant.int8_kernels) == {"depthnet", "posenet", "resflownet"}
+    assert quant.int8_kernels["depthnet"]["vnni"] and not quant.int8_kernels["depthnet"]["avx2_u8s8"]
     delta = quant.accuracy_delta
     for key in ("depth_abs_rel", "flow_epe_noc"):
         assert np.isfinite(delta[key]["delta"])

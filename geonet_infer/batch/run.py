@@ -36,6 +36,7 @@ from geonet_infer.batch.units import (
     stale,
 )
 from geonet_infer.classical import check_methods, classical_tasks
+from geonet_infer.cpu import isa_line
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
@@ -365,7 +366,8 @@ def run_batch(
                 "model": options["model"],
                 "model_notice": model_notice(manifest),  # synthetic-only model: how it does on real video
                 "precision": precision,
-                "backend": backend,
+                "backend": backend,  # per graph engine, precision and why: each sequence's summary.json
+                "isa": isa_line(),
                 "camera": "per input (its own calibration, if any)" if camera is None else camera.source,
                 "per_sequence": [_sequence_row(r) for r in ordered],
                 "versions": {"geonet_infer": __version__, "python": platform.python_version()},

@@ -330,6 +330,7 @@ def run(args: argparse.Namespace) -> int:
                 name: {
                     **predictor.graph_set.engine(name).describe(),
                     **({"auto": predictor.backend_choice[name]} if name in predictor.backend_choice else {}),
+                    "run": predictor.graph_set.runs.get(name),  # engine, precision and why
                 }
                 for name in predictor.graphs
             }
@@ -356,6 +357,7 @@ def run(args: argparse.Namespace) -> int:
         f"{', RANDOM WEIGHTS' if manifest.random_init else ''}); e2e input {env['input_size'][0]}x"
         f"{env['input_size'][1]}; {env.get('threads')} threads; {env['cpu']} ({cpus} usable CPUs)"
     )
+    print(f"isa: {env['isa']['line']}")
     print(
         f"{args.iters} timed calls per case after {args.warmup} warm-up, block-interleaved; "
         f"sequence rows per frame ({args.seq_frames} frames per call)"

@@ -52,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
             else f"{engine.name}: not installed ({engine.install_hint} for --backend {engine.name}|auto)"
         )
     print(f"cpu: {env['cpu']}; usable CPUs {env['usable_cpus']} (default threads per graph)")
+    print(f"isa: {env['isa']['line']}")
     print(f"bundled models: {', '.join(env['bundled_models']) or 'none'}")
     print(f"model: {model['dir']}")
     print(

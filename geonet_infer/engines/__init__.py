@@ -185,19 +185,21 @@ def _first_line(exc: Exception) -> str:
     return str(exc).splitlines()[0][:200]
 
 
-def pick_fastest(path: str | Path, threads: int | None) -> tuple[Engine, dict]:
+def pick_fastest(path: str | Path, threads: int | None, skip: dict[str, str] | None = None) -> tuple[Engine, dict]:
     """The fastest engine for one graph on this machine (batch 1), and the record behind the choice.
 
     Every installed engine is timed against the first of :data:`ENGINES`. The record is
     ``{"chosen": name, "p50_ms_batch1": {name: ms}}``, or ``{"chosen": first, "reason": ...}``
     when no other engine is installed or one fails to load or run the graph (an engine that
-    is not installed is skipped; "skipped" lists them when others were timed). Timing noise
-    only matters when two are within a few %.
+    is not installed, or named in ``skip`` (name -> why), is skipped; "skipped" lists them when
+    others were timed). Timing noise only matters when two are within a few %.
     """
+    skip = skip or {}
     first, *others = ENGINES.values()
     fallback = first(path, threads)
     skipped = [f"{cls.name} not installed" for cls in others if not cls.available()]
-    others = [cls for cls in others if cls.available()]
+    skipped += [f"{cls.name}: {skip[cls.name]}" for cls in others if cls.available() and cls.name in skip]
+    others = [cls for cls in others if cls.available() and cls.name not in skip]
     if not others:
         return fallback, {"chosen": fallback.name, "reason": "; ".join(skipped)}
     try:

@@ -18,6 +18,11 @@ CPU facts behind the defaults (``../shared/reference/onnx_notes.md`` section 2):
   interleaved run (issue 30, docs/performance.md): peak memory after a 4-frame sequence
   178 -> 112 MiB for the small INT8 model, predict as fast; with no arena at all 110 MiB, but
   every run's buffers are then fresh pages (system time 0.9 -> 1.4 s, predict 6-10 % slower).
+* INT8 on CPUs without VNNI (AVX2 only, plain AVX-512): onnxruntime's U8S8 kernels add pairs of
+  uint8 x int8 products in int16 with saturation (VPMADDUBSW), so 8-bit weights beyond +-64
+  overflow (``export/int8_arith.py`` emulates it). :data:`X64_QUANT_PRECISION` turns on
+  onnxruntime's own remedy: it stores such a graph's int8 weights as uint8 and runs exact U8U8
+  kernels; it changes nothing on CPUs with VNNI or AMX (issue 45, docs/performance.md).
 """
 
 from __future__ import annotations
@@ -31,6 +36,9 @@ import onnxruntime as ort
 
 from geonet_infer.errors import InputError, ModelError
 from geonet_infer.manifest import IoSpec
+
+# onnxruntime's kOrtSessionOptionsAvx2PrecisionMode (see the module docstring)
+X64_QUANT_PRECISION = "session.x64quantprecision"
 
 OPT_LEVELS = {
     "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
@@ -65,6 +73,7 @@ def make_session_options(
     flag = "1" if spinning else "0"
     so.add_session_config_entry("session.intra_op.allow_spinning", flag)
     so.add_session_config_entry("session.inter_op.allow_spinning", flag)
+    so.add_session_config_entry(X64_QUANT_PRECISION, "1")
     so.log_severity_level = 3  # errors only; warnings about unused initialisers are noise
     return so
 
@@ -161,7 +170,12 @@ class OrtEngine:
             "enable_cpu_mem_arena": so.enable_cpu_mem_arena,
             "enable_mem_pattern": so.enable_mem_pattern,
         }
-        for key in ("session.intra_op.allow_spinning", "session.inter_op.allow_spinning", "session.use_env_allocators"):
+        for key in (
+            "session.intra_op.allow_spinning",
+            "session.inter_op.allow_spinning",
+            "session.use_env_allocators",
+            X64_QUANT_PRECISION,
+        ):
             try:
                 out[key] = so.get_session_config_entry(key)
             except Exception:  # noqa: BLE001 -- unset keys raise in some onnxruntime versions

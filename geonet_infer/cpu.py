@@ -1,0 +1,84 @@
+"""What this CPU offers INT8 inference: the x86 features that decide speed and arithmetic (issue 45).
+
+* ``avx2``: the baseline of every x86 server the runtime meets.
+* ``avx512f``: wider vectors (AVX-512).
+* ``avx512_vnni`` / ``avx_vnni``: VPDPBUSD adds four uint8 x int8 products in int32, exactly.
+* ``amx_int8``: AMX tile multiplies (Sapphire Rapids and later), exact as well.
+
+Without VNNI or AMX, INT8 kernels add pairs of products in int16 with saturation
+(:func:`int8_kernel` returns "avx2"; ``export/int8_arith.py`` emulates the arithmetic).
+Read from ``/proc/cpuinfo`` on Linux; elsewhere numpy's runtime CPU detection, which knows
+avx2, avx512f and avx512_vnni (the other flags are then None: unknown).
+"""
+
+from __future__ import annotations
+
+import platform
+from functools import lru_cache
+from pathlib import Path
+
+ISA_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8")
+_NUMPY_NAMES = {"avx2": "AVX2", "avx512f": "AVX512F", "avx512_vnni": "AVX512VNNI"}
+
+
+def _from_proc(text: str) -> tuple[str | None, dict[str, bool | None]] | None:
+    """(model name, {flag: present}) from /proc/cpuinfo text; None if it lists no flags (not x86)."""
+    model, flags = None, None
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if key == "model name" and model is None:
+            model = value.strip()
+        elif key == "flags" and flags is None:
+            flags = set(value.split())
+    if flags is None:
+        return None
+    isa: dict[str, bool | None] = {f: f in flags for f in ISA_FLAGS}
+    return model, isa
+
+
+def _from_numpy() -> dict[str, bool | None]:
+    import importlib
+
+    try:  # numpy >= 2, then 1.x
+        features = importlib.import_module("numpy._core._multiarray_umath").__cpu_features__
+    except ImportError:  # pragma: no cover
+        features = importlib.import_module("numpy.core._multiarray_umath").__cpu_features__
+    return {f: bool(features.get(_NUMPY_NAMES[f], False)) if f in _NUMPY_NAMES else None for f in ISA_FLAGS}
+
+
+@lru_cache(maxsize=1)
+def cpu_info() -> dict:
+    """``{"model": str | None, "isa": {flag: True/False/None}, "int8_kernel": str, "source": str}``."""
+    parsed = None
+    try:
+        parsed = _from_proc(Path("/proc/cpuinfo").read_text(errors="replace"))
+    except OSError:
+        pass
+    if parsed is not None:
+        model, isa = parsed
+        source = "/proc/cpuinfo"
+    else:
+        model, isa, source = platform.processor() or None, _from_numpy(), "numpy CPU detection"
+    return {"model": model, "isa": isa, "int8_kernel": int8_kernel(isa), "source": source}
+
+
+def int8_kernel(isa: dict[str, bool | None]) -> str:
+    """The uint8 x int8 kernel class onnxruntime uses on a CPU with these features:
+    "amx_int8", "avx512_vnni", "avx_vnni" (all exact), "avx2" (int16 pairs, saturating), or "none"."""
+    for flag in ("amx_int8", "avx512_vnni", "avx_vnni", "avx2"):
+        if isa.get(flag):
+            return flag
+    return "none"
+
+
+def isa_line(info: dict | None = None) -> str:
+    """One line: the features present, then the INT8 arithmetic they give."""
+    info = info or cpu_info()
+    present = [f for f in ISA_FLAGS if info["isa"].get(f)]
+    unknown = [f for f in ISA_FLAGS if info["isa"].get(f) is None]
+    arith = {"avx2": "int16 pairs, saturating", "none": "no x86 INT8 kernels"}.get(info["int8_kernel"], "exact")
+    line = f"{' '.join(present) or 'none of ' + ', '.join(ISA_FLAGS)} (INT8 kernel {info['int8_kernel']}: {arith})"
+    if unknown:
+        line += f"; unknown: {', '.join(unknown)}"
+    return line

@@ -1,0 +1,159 @@
+"""INT8 arithmetic of x86 CPUs without VNNI, emulated so that any CPU can check it (issue 45).
+
+On AVX2-only CPUs onnxruntime's uint8 x int8 kernels add pairs of products in int16 with
+saturation (``export/int8_arith.py``); the bundled INT8 graphs have 8-bit weights that overflow
+there unless the session turns on onnxruntime's exact path, as the runtime's sessions do.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+from onnx import helper, numpy_helper
+
+from export.int8_arith import (
+    conv_weights,
+    dot_as_onnxruntime_runs_it,
+    dot_avx2_u8s8,
+    dot_exact,
+    int8_kernels,
+)
+from geonet_infer.cpu import cpu_info
+from geonet_infer.engines.onnxruntime import X64_QUANT_PRECISION, make_session_options
+from geonet_infer.io import list_images, read_image
+from geonet_infer.manifest import load_manifest
+from geonet_infer.models import resolve_model
+from geonet_infer.samples import SAMPLE_FRAMES
+
+
+def test_avx2_pairs_saturate_in_int16():
+    """Hand-computed: 255*127 + 255*127 = 64770 is stored as 32767; 255*64 + 255*64 = 32640 fits.
+    VNNI sums all four exactly: 255 * (127 + 127 + 64 + 64) = 97410."""
+    a = np.array([[255, 255, 255, 255]], np.uint8)
+    w = np.array([[127], [127], [64], [64]], np.int8)
+    assert dot_avx2_u8s8(a, w)[0, 0] == 32767 + 32640
+    assert dot_exact(a, w)[0, 0] == 97410
+    # a negative pair saturates at -32768; an odd K is padded with a zero product
+    assert dot_avx2_u8s8(np.array([[255, 255, 7]], np.uint8), np.array([[-128], [-128], [3]], np.int8))[0, 0] == (
+        -32768 + 21
+    )
+
+
+def test_emulation_is_what_this_cpus_onnxruntime_computes():
+    """A plain onnxruntime MatMulInteger (uint8 x int8, no remedy) gives the emulation of this CPU's
+    kernel: exact with VNNI/AMX, the saturating sums without (checked by the suite on AVX2-only CPUs)."""
+    import onnxruntime as ort
+
+    kernel = cpu_info()["int8_kernel"]
+    if kernel == "none":
+        pytest.skip("not an x86 CPU")
+    rng = np.random.default_rng(45)
+    a = rng.integers(0, 256, (16, 147)).astype(np.uint8)  # odd K, like a 7x7x3 kernel
+    w = rng.integers(-127, 128, (147, 24)).astype(np.int8)
+    graph = helper.make_graph(
+        [helper.make_node("MatMulInteger", ["a", "w"], ["y"])],
+        "g",
+        [helper.make_tensor_value_info("a", onnx.TensorProto.UINT8, list(a.shape))],
+        [helper.make_tensor_value_info("y", onnx.TensorProto.INT32, None)],
+        [numpy_helper.from_array(w, "w")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    got = session.run(None, {"a": a})[0]
+    assert np.array_equal(got, dot_as_onnxruntime_runs_it(a, w, kernel, precision_mode=False)), kernel
+    assert not np.array_equal(dot_avx2_u8s8(a, w), dot_exact(a, w))  # the case can tell the two apart
+
+
+def _first_conv_inputs(model: onnx.ModelProto, image: np.ndarray, kernel: tuple[int, int]) -> np.ndarray:
+    """uint8 im2col rows (c, kh, kw order) of a frame as the graph's input QuantizeLinear stores it."""
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    quant = next(n for n in model.graph.node if n.op_type == "QuantizeLinear" and n.input[0] == "image")
+    scale, zero = float(inits[quant.input[1]]), int(inits[quant.input[2]])
+    x = image.astype(np.float32).transpose(2, 0, 1) / 255 * 2 - 1  # the network range (cascade.InputSpec)
+    q = np.clip(np.round(x / scale) + zero, 0, 255).astype(np.uint8)
+    windows = np.lib.stride_tricks.sliding_window_view(q, kernel, axis=(1, 2))[:, ::4, ::4]  # (C, h, w, kh, kw)
+    return windows.transpose(1, 2, 0, 3, 4).reshape(-1, q.shape[0] * kernel[0] * kernel[1])
+
+
+def test_bundled_int8_convs_exact_on_avx2_as_the_runtime_runs_them():
+    """The bundled INT8 DepthNet's first convolution on a real sample frame: AVX2's saturating sums
+    differ from the exact ones (8-bit weights overflow int16 pairs); with the runtime's session options
+    onnxruntime computes it exactly on AVX2 too (it fails without X64_QUANT_PRECISION in them)."""
+    manifest = load_manifest(resolve_model())
+    model = onnx.load(str(manifest.path("depthnet", "int8")))
+    name, w = next(iter(conv_weights(model).items()))
+    frame = read_image(list_images(SAMPLE_FRAMES)[0])
+    h, w_ = manifest.height, manifest.width
+    import cv2
+
+    a = _first_conv_inputs(model, cv2.resize(frame, (w_, h), interpolation=cv2.INTER_AREA), w.shape[2:])
+    weights = w.reshape(w.shape[0], -1).T  # (K, out channels)
+    exact = dot_exact(a, weights)
+    assert not np.array_equal(dot_avx2_u8s8(a, weights), exact), f"{name}: no saturation on this frame"
+    try:
+        precision_mode = make_session_options().get_session_config_entry(X64_QUANT_PRECISION) == "1"
+    except RuntimeError:  # onnxruntime raises for a key never set
+        precision_mode = False
+    assert np.array_equal(dot_as_onnxruntime_runs_it(a, weights, "avx2", precision_mode), exact)
+
+
+@pytest.mark.parametrize("graph", ["depthnet", "posenet", "resflownet"])
+def test_manifest_records_the_kernels_each_int8_graph_is_exact_on(graph):
+    """quantization.int8_kernels of the bundled manifest is what the graph's weights give."""
+    manifest = load_manifest(resolve_model())
+    model = onnx.load(str(manifest.path(graph, "int8")))
+    assert manifest.quantization.int8_kernels[graph] == int8_kernels(model)
+
+
+def test_which_engine_is_exact_on_which_cpu():
+    from geonet_infer.int8_safety import int8_unsafe_reason
+
+    over, within = {"avx2_u8s8": False}, {"avx2_u8s8": True}
+    assert "beyond +-64" in int8_unsafe_reason("openvino", over, "avx2")
+    assert "does not record" in int8_unsafe_reason("openvino", None, "avx2")
+    assert int8_unsafe_reason("openvino", within, "avx2") is None
+    assert int8_unsafe_reason("onnxruntime", over, "avx2") is None  # its sessions set the remedy
+    for kernel in ("avx512_vnni", "avx_vnni", "amx_int8"):
+        assert int8_unsafe_reason("openvino", over, kernel) is None
+
+
+def test_auto_skips_an_engine_inexact_on_an_avx2_cpu(monkeypatch, capsys):
+    """On a CPU without VNNI (stubbed), auto keeps OpenVINO off the bundled INT8 graphs (their
+    weights pass +-64; OpenVINO's INT8 under qemu Haswell: DepthNet correlation 0.70 -> 0.47) and says
+    why in summary.json's per-graph record; --backend openvino runs them after one warning line."""
+    from geonet_infer import int8_safety
+    from geonet_infer.cascade import GraphSet
+    from geonet_infer.engines import OpenVinoEngine
+
+    monkeypatch.setattr(int8_safety, "cpu_info", lambda: {"int8_kernel": "avx2"})
+    manifest = load_manifest(resolve_model())
+    graphs = GraphSet(manifest, "int8", "auto", 1)
+    assert {run["engine"] for name, run in graphs.runs.items()} == {"onnxruntime"}
+    if not OpenVinoEngine.available():
+        return
+    assert "skipped openvino INT8 without VNNI" in graphs.runs["depthnet"]["why"]
+    capsys.readouterr()
+    GraphSet(manifest, "int8", "openvino", 1)
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 3 and all(line.startswith("geonet-infer: warning: ") for line in err), err
+
+
+# /proc/cpuinfo excerpts (flags abridged to the ones that matter, plus neighbours)
+ZEN3 = "model name\t: AMD EPYC 7763 64-Core Processor\nflags\t\t: fpu sse4_2 avx f16c avx2 bmi2 sha_ni vaes\n"
+SPR = (
+    "model name\t: Intel(R) Xeon(R) Platinum 8480+\n"
+    "flags\t\t: avx2 avx512f avx512bw avx512_vnni avx_vnni amx_tile amx_int8\n"
+)
+
+
+def test_isa_from_proc_cpuinfo():
+    from geonet_infer.cpu import _from_proc, int8_kernel, isa_line
+
+    model, isa = _from_proc(ZEN3)
+    assert model == "AMD EPYC 7763 64-Core Processor" and int8_kernel(isa) == "avx2"
+    assert isa_line({"isa": isa, "int8_kernel": "avx2"}) == "avx2 (INT8 kernel avx2: int16 pairs, saturating)"
+    _, isa = _from_proc(SPR)
+    assert [f for f, present in isa.items() if present] == ["avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8"]
+    assert int8_kernel(isa) == "amx_int8"
+    assert _from_proc("processor\t: 0\nBogoMIPS\t: 50.00\n") is None  # no flags line (not x86): numpy's detection
