@@ -141,10 +141,15 @@ def main(argv=None) -> int:
     except GeoNetError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    with atomic_write(Path(args.out)) as tmp:
+    write_result(args.out, out)
+    return 0
+
+
+def write_result(path: str | Path, out: dict) -> None:
+    """An experiment's JSON, written atomically; its verdict (or that only the rule was written) printed."""
+    with atomic_write(Path(path)) as tmp:
         tmp.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out.get("verdict", {"rule": "written, nothing scored"}), indent=2))
-    return 0
 
 
 if __name__ == "__main__":

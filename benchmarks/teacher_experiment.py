@@ -22,10 +22,9 @@ import cv2
 import numpy as np
 
 import geonet_infer
-from benchmarks.real_pose_experiment import _load, figures
+from benchmarks.real_pose_experiment import _load, figures, write_result
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import read_flow_kitti
-from geonet_infer.io.atomic import atomic_write
 
 RULE = (
     "Written before any candidate was scored. Two candidates (A: lr 2e-4, B: lr 1e-4; otherwise the same "
@@ -204,9 +203,7 @@ def main(argv=None) -> int:
     except (GeoNetError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    with atomic_write(Path(args.out)) as tmp:
-        tmp.write_text(json.dumps(out, indent=2) + "\n")
-    print(json.dumps(out.get("verdict", {"rule": "written"}), indent=2))
+    write_result(args.out, out)
     return 0
 
 

@@ -24,24 +24,8 @@ REALDATA=../shared/realdata CLIPS=../shared/realdata/udacity_dashcam
 run() { echo "+ $*"; "$@"; }
 mkdir -p "$OUT" data
 
-# real odometry frames, linked into a dev-kit layout prepare reads (grey image_0 + calib.txt)
 ODOM_SRC=data/real_odom_src
-if [ ! -d "$ODOM_SRC" ]; then
-    for spec in "06 31 50" "01 0 30"; do
-        read -r seq first last <<<"$spec"
-        dst=$ODOM_SRC/sequences/$seq
-        mkdir -p "$dst/image_0"
-        ln -s "$(realpath "$REALDATA/kitti_odometry_$seq/sequences/$seq/calib.txt")" "$dst/calib.txt"
-        for i in $(seq "$first" "$last"); do
-            f=$(printf '%06d.png' "$i")
-            ln -s "$(realpath "$REALDATA/kitti_odometry_$seq/sequences/$seq/image_0/$f")" "$dst/image_0/$f"
-        done
-    done
-fi
-mkdir -p $ODOM_SRC/poses  # the dev kit's poses/ beside sequences/ (read with --train-pose)
-for seq in 06 01; do
-    [ -e $ODOM_SRC/poses/$seq.txt ] || ln -s "$(realpath $REALDATA/kitti_odometry_$seq/poses/$seq.txt)" $ODOM_SRC/poses/$seq.txt
-done
+bash scripts/link_real_odom.sh "$REALDATA" "$ODOM_SRC"  # 06 frames 31-50, 01 frames 0-30, their poses
 ODOM=data/real_odom SYNTH=data/synth40_prepared TRUTH=() SUPERVISION=()
 if [ "$POSE_SUPERVISION" != 0 ]; then
     ODOM=data/real_odom_pose SYNTH=data/synth40_pose TRUTH=(--train-pose) SUPERVISION=(--pose-supervision "$POSE_SUPERVISION")

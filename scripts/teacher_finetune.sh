@@ -41,17 +41,8 @@ if want prepare; then
     [ -f data/t_holdback_prepared/train.txt ] || run $PY -m training.prepare --kind video --src data/t_holdback \
         --calib "$CLIPS/calib_advanced_lane_lines.txt" --crop 0,229,1280,394 --out data/t_holdback_prepared \
         --teacher-flow dis --val-fraction 0
-    ODOM_SRC=data/real_odom_src  # the real-pose experiment's frames, linked into a dev-kit layout
-    [ -f data/t_odom/train.txt ] || for spec in "06 31 50" "01 0 30"; do
-        read -r seq first last <<<"$spec"
-        dst=$ODOM_SRC/sequences/$seq
-        mkdir -p "$dst/image_0"
-        ln -sf "$(realpath "$REALDATA/kitti_odometry_$seq/sequences/$seq/calib.txt")" "$dst/calib.txt"
-        for i in $(seq "$first" "$last"); do
-            f=$(printf '%06d.png' "$i")
-            ln -sf "$(realpath "$REALDATA/kitti_odometry_$seq/sequences/$seq/image_0/$f")" "$dst/image_0/$f"
-        done
-    done
+    ODOM_SRC=data/real_odom_src  # the real-pose experiment's frames
+    [ -f data/t_odom/train.txt ] || bash scripts/link_real_odom.sh "$REALDATA" "$ODOM_SRC"
     [ -f data/t_odom/train.txt ] || run $PY -m training.prepare --kind kitti_odom --src $ODOM_SRC \
         --out data/t_odom --seq-length 3 --val-fraction 0 --teacher-flow dis
 fi
