@@ -246,7 +246,22 @@ class _Exited(BaseException):
 def test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker(tmp_path, monkeypatch):
     """Case 6: a SIGTERM sent to the whole group reaches a busy worker, then the job's own SIGTERM (stopping
     the pool) comes while the worker removes its unfinished folder. That one must neither cut the clean-up
-    short (stray files, no marker: --resume refused) nor escape to the pool's loop (the next sequence starts)."""
+    short (stray files, no marker: --resume refused) nor escape to the pool's loop (the next sequence starts).
+
+    It signals its own process, so it runs in a fresh interpreter: in the whole suite's process, where
+    earlier tests loaded TensorFlow, Ray and OpenVINO, the same signals ended pytest with SIGSEGV."""
+    if not os.environ.get("GEONET_ISOLATED_TEST"):
+        name = f"{Path(__file__).relative_to(REPO)}::test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker"
+        proc = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", name],
+            cwd=REPO,
+            env={**os.environ, "GEONET_ISOLATED_TEST": "1"},
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        return
     from geonet_infer.batch import BatchConfig, WorkUnit, local
 
     out = tmp_path / "out"
