@@ -95,10 +95,9 @@ def depth_verdict(before: dict, after: dict) -> dict:
 
 def verdict(before: dict, after: dict, hold_before: dict, hold_after: dict) -> dict:
     b, a = figures(before, "fp32"), figures(after, "fp32")
-    flow_key = FLOW_KEY
     checks = {
         "holdback_flow_improves": hold_after["epe"] < hold_before["epe"],
-        "real_flow_improves": a[flow_key] < b[flow_key],
+        "real_flow_improves": a[FLOW_KEY] < b[FLOW_KEY],
         "validation_not_worse": a["validation_abs_rel"] <= b["validation_abs_rel"],
         "pose_not_worse": a["pose_ate_held_out"] <= b["pose_ate_held_out"],
     }
