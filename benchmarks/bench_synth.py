@@ -29,7 +29,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from geonet_infer.benchmark import cpu_model  # noqa: E402
+from geonet_infer.bench.environment import cpu_model  # noqa: E402
 from training import synth  # noqa: E402
 
 

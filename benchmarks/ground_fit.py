@@ -27,10 +27,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import geonet_infer  # noqa: E402
-from geonet_infer import metrics  # noqa: E402
-from geonet_infer.datasets import load_dataset  # noqa: E402
 from geonet_infer.errors import GeoNetError  # noqa: E402
-from geonet_infer.evaluation import MAX_DEPTH, MIN_DEPTH, depth_intrinsics  # noqa: E402
+from geonet_infer.eval import metrics  # noqa: E402
+from geonet_infer.eval.datasets import load_dataset  # noqa: E402
+from geonet_infer.eval.evaluation import MAX_DEPTH, MIN_DEPTH, depth_intrinsics  # noqa: E402
 from geonet_infer.io import read_image  # noqa: E402
 from geonet_infer.scale import fit_ground_plane  # noqa: E402
 from training.synth.scene import CAM_HEIGHT  # noqa: E402

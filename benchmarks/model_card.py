@@ -7,8 +7,8 @@
 Every number in the card comes from this run: the ONNX graphs are run through the
 runtime (:class:`geonet_infer.predictor.Predictor`), in fp32 and, when the manifest
 has them, INT8, and scored by the code ``geonet-infer eval`` uses (data from
-:mod:`geonet_infer.datasets`, scores from :mod:`geonet_infer.evaluation`, baselines
-from :mod:`geonet_infer.baselines`); this module only picks the data and renders:
+:mod:`geonet_infer.eval.datasets`, scores from :mod:`geonet_infer.eval.evaluation`, baselines
+from :mod:`geonet_infer.eval.baselines`); this module only picks the data and renders:
 
 * held-out synthetic sequences (``heldout.txt`` of the prepared dir, never trained
   on): depth (Eigen errors, per-image median scaling, 80 m cap, every pixel with
@@ -60,9 +60,9 @@ from typing import NamedTuple
 import numpy as np
 
 from benchmarks import teacher_experiment
-from geonet_infer import eval_all, evaluation, metrics
-from geonet_infer.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.eval import eval_all, evaluation, metrics
+from geonet_infer.eval.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, git_commit, load_manifest
 from geonet_infer.predictor import Predictor
@@ -587,7 +587,7 @@ def _floor_text(block: dict, before: dict | None) -> list[str]:
     was = f"; before: {shares(before)}" if before else ""
     return [
         "Depth floor, without ground truth: the share of the lower image half in the fullest 0.2 %-wide "
-        "bin of log depth, mean over these frames (`geonet_infer.metrics.depth_floor_share`). A road "
+        "bin of log depth, mean over these frames (`geonet_infer.eval.metrics.depth_floor_share`). A road "
         "scene's depth spreads to a few %; a near field predicted as one value (dead decoder features "
         f"leave the disparity head's bias) shows as a large share: {shares(block)}{was}.",
         "",
@@ -860,7 +860,7 @@ def _real_section(result: dict) -> list[str]:
         f"Measured by `{real['command']} --json {result.get('real_json', 'REAL.json')}` (from the repository "
         f"root; {real['generated_utc']}) and rendered here from that JSON by "
         f"`{result.get('real_render_command', 'python -m benchmarks.model_card --real REAL.json ...')}`; every "
-        "number below comes from that run, scored by the code of `geonet-infer eval` (`geonet_infer.eval_all`).",
+        "number below comes from that run, scored by the code of `geonet-infer eval` (`geonet_infer.eval.eval_all`).",
         "",
         *body[2:],  # its first line (model, command, date) is said above
         "",
@@ -1092,14 +1092,14 @@ def _measured_section(result: dict) -> list[str]:
         + (f"; one frame / pair / snippet in {s['stride']} (`--stride {s['stride']}`)" if s["stride"] > 1 else "")
         + ". Depth: every pixel with ground truth (no crop), per-image median scaling, clamp to "
         f"[{MIN_DEPTH:g}, {result['settings']['max_depth']:g}] m "
-        "(`geonet_infer.evaluation.evaluate_depth`). Flow t→t+1 from the snippet "
+        "(`geonet_infer.eval.evaluation.evaluate_depth`). Flow t→t+1 from the snippet "
         + (
             "[t−1, t, t+1]"
             if result["settings"]["flow_seq_length"] == 3
             else "pair [t, t+1] (padded by the runtime; `evaluate_flow` passes triplets only)"
         )
         + ", EPE and Fl (EPE > 3 px and > 5 %) on non-occluded (noc) and all in-view (occ) pixels "
-        "(`geonet_infer.evaluation.evaluate_flow`).",
+        "(`geonet_infer.eval.evaluation.evaluate_flow`).",
         f"* **Pose**: ATE on {SNIPPET}-frame snippets (every target t = 2 … N−3"
         + (f", stride {s['stride']}" if s["stride"] > 1 else "")
         + ") against the synthetic ground-truth "
@@ -1108,10 +1108,10 @@ def _measured_section(result: dict) -> list[str]:
         "`ATE, paper` is `metrics.ate_snippet`, the SfMLearner/GeoNet value with its quirk kept: "
         "√(Σ‖e‖²)/N, i.e. the true RMSE ÷ √5, with only a scale (no rotation) fitted per snippet. "
         "`ATE, true RMSE` is `metrics.ate_rmse_true` after the same alignment "
-        "(`geonet_infer.evaluation.evaluate_pose`). Units are the synthetic world's metres.",
+        "(`geonet_infer.eval.evaluation.evaluate_pose`). Units are the synthetic world's metres.",
         f"* **Real KITTI**: {_data_kitti(result)}, never trained on. Ground truth: "
         + (
-            "the Velodyne scans projected by `geonet_infer.velodyne.velodyne_to_depth_map` (camera 2, Velodyne "
+            "the Velodyne scans projected by `geonet_infer.eval.velodyne.velodyne_to_depth_map` (camera 2, Velodyne "
             "forward distance)"
             if k["ground_truth"] == "velodyne"
             else "the sparse depth PNGs of `proj_depth/groundtruth/image_02`"
@@ -1121,14 +1121,14 @@ def _measured_section(result: dict) -> list[str]:
         "the runtime returns depth at the input resolution.",
         "* **Baselines**: *constant depth* predicts one value per image; after median scaling that is the "
         "image's median GT depth. *Zero flow* predicts no motion; *DIS medium* is OpenCV's DIS optical flow, "
-        "medium preset, on grey frames (`geonet_infer.baselines.dis_flow`). *Identity pose* predicts no camera "
+        "medium preset, on grey frames (`geonet_infer.eval.baselines.dis_flow`). *Identity pose* predicts no camera "
         "motion; its ATE is the snippet's own extent. The per-snippet least-squares scale can shrink any "
         "prediction to zero, so a model's ATE can never exceed the identity baseline's on the same snippet: "
         "the baseline is an upper bound, and the gap to it is what the pose network contributes. *ORB-VO* is "
         "two-view ORB visual odometry per consecutive pair (5-point essential matrix, `recoverPose`, unit-length "
-        "steps, then the same per-snippet scale; `geonet_infer.baselines.orb_vo`); "
+        "steps, then the same per-snippet scale; `geonet_infer.eval.baselines.orb_vo`); "
         f"{orb['failed_pairs']} of its {orb['pairs']} pairs failed and repeated the previous step. Every baseline "
-        "is the function `geonet-infer eval --method` runs (`geonet_infer.evaluation.baseline_fns`).",
+        "is the function `geonet-infer eval --method` runs (`geonet_infer.eval.evaluation.baseline_fns`).",
         "",
     ]
 

@@ -56,12 +56,8 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from geonet_infer.benchmark import (  # noqa: E402
-    bench_frames,
-    cascade_feeds,
-    cpu_flags,
-    cpu_model,  # noqa: E402
-)
+from geonet_infer.bench.cases import bench_frames, cascade_feeds  # noqa: E402
+from geonet_infer.bench.environment import cpu_flags, cpu_model  # noqa: E402
 from geonet_infer.engines import usable_cpus  # noqa: E402
 from geonet_infer.engines.onnxruntime import make_session, make_session_options  # noqa: E402
 from geonet_infer.manifest import load_manifest  # noqa: E402

@@ -37,9 +37,9 @@ import target_limits
 from identical_outputs import REPO, revision_tree
 from memory import CHILD as MEMORY_CHILD
 from predict_fps import OUTPUTS, one_run
+from speed_milestones import SPEED_TARGETS, speed_target_values, target_distance
 from target_limits import median_ms
 
-from geonet_infer.benchmark import SPEED_TARGETS, speed_target_values, target_distance
 from geonet_infer.models import resolve_model
 
 SECTION = "## Speed targets"
@@ -88,7 +88,7 @@ def figures(
     resnet50: dict | None = None,
 ) -> dict:
     """One tree's value for each target (ms, ratio, frames/s or MiB); 1-4 as ``geonet-infer bench --json``
-    reports them (:func:`geonet_infer.benchmark.speed_target_values`), the rigid op in its fastest form;
+    reports them (:func:`speed_milestones.speed_target_values`), the rigid op in its fastest form;
     and predict's CPU ms per frame (``predicts``: :func:`predict_fps.one_run` per output setting)."""
     measured = speed_target_values(bench["results"], "small")
     r50 = speed_target_values(resnet50["results"], "resnet50") if resnet50 else {}
@@ -130,7 +130,7 @@ LIMIT_KEYS = (
 
 BENCH_KEYS = ("1a_best_engine_ms", "1b_onnxruntime_ms", "2_pre_post_ms", "3_rigid_op_ms", "4_int8_speedup_onnxruntime")
 R50_KEYS = ("7a_resnet50_int8_depth_ms", "7b_resnet50_int8_flow_pair_ms")
-TARGETS = {  # key: (what, target, "max" = at most / "min" = at least); 1-4 from geonet_infer.benchmark
+TARGETS = {  # key: (what, target, "max" = at most / "min" = at least); 1-4 from speed_milestones.py
     **{key: SPEED_TARGETS[key] for key in BENCH_KEYS},
     "4b_int8_flow_epe_delta_pct": ("INT8 flow EPE-noc vs FP32, synthetic held-out, from the manifest (+%)", 5, "max"),
     "5a_predict_fps": ("predict, 78-frame KITTI drive, all outputs (frames/s)", 25, "min"),

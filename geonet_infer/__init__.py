@@ -6,16 +6,24 @@ result = predictor.depth("frame.png")        # DepthResult: depth (H, W), timing
 """
 
 from geonet_infer.errors import BackendUnavailableError, GeoNetError, GeoNetInputError, InputError, ModelError
+from geonet_infer.predictor import Predictor, load
+from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
 
-try:  # one version, in pyproject.toml
+
+def __getattr__(name: str) -> str:
+    """``__version__``, read from the installed package's metadata on first use: importlib.metadata
+    costs about 0.1 s, which ``import geonet_infer`` should not pay for a string few callers read."""
+    if name != "__version__":
+        raise AttributeError(f"module 'geonet_infer' has no attribute {name!r}")
     from importlib.metadata import PackageNotFoundError, version
 
-    __version__ = version("geonet-infer")
-except PackageNotFoundError:  # running from a source tree that was never installed
-    __version__ = "0+unknown"
+    try:  # one version, in pyproject.toml
+        found = version("geonet-infer")
+    except PackageNotFoundError:  # running from a source tree that was never installed
+        found = "0+unknown"
+    globals()["__version__"] = found
+    return found
 
-from geonet_infer.predictor import Predictor, load  # noqa: E402
-from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult  # noqa: E402
 
 __all__ = [
     "BackendUnavailableError",

@@ -1,13 +1,13 @@
 """The classical methods as choices beside the networks: DIS flow and ORB-VO poses for a sequence.
 
-The eval scores them as baselines (:mod:`geonet_infer.baselines`, ``geonet-infer eval all``);
+The eval scores them as baselines (:mod:`geonet_infer.eval.baselines`, ``geonet-infer eval all``);
 here the same code fills a sequence's :class:`~geonet_infer.results.FrameResult` flow or poses,
 so ``predict``, ``batch`` and :meth:`Predictor.iter_sequence` write them in the usual layout.
 
-* ``flow_method="dis"``: OpenCV DIS optical flow, preset medium (:func:`baselines.dis_flow`, the
+* ``flow_method="dis"``: OpenCV DIS optical flow, preset medium (:func:`dis_flow`, the
   eval's "DIS medium"), frame t -> t+1 at the input resolution on the frames as the networks
   see them (undistorted when the camera has distortion). No network and no intrinsics needed.
-* ``pose_method="orbvo"``: the eval's two-view ORB-VO step (:func:`baselines.relative_pose`:
+* ``pose_method="orbvo"``: the eval's two-view ORB-VO step (:func:`relative_pose`:
   ORB, cross-checked matches, 5-point RANSAC, ``recoverPose``) per consecutive pair. Monocular
   steps have no length; each step's is set from the frame's predicted depth: the step's inliers
   are triangulated with a unit step and the length is the median of (predicted depth /
@@ -24,11 +24,11 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import replace
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from geonet_infer import baselines
 from geonet_infer.cascade import Intrinsics, StageTimer, camera_at, read_frame
 from geonet_infer.check import check_pair
 from geonet_infer.conventions import rigid_inverse
@@ -45,6 +45,66 @@ MIN_TRIANGULATED = 8  # inliers in front of both cameras needed to set a step's 
 STILL_SHIFT_PX = 0.5
 CLASSICAL_STAGES = ("dis", "orbvo")  # timings_ms keys of the classical methods
 CLASSICAL_GRAPHS = {"flow": (), "pose": ("depthnet",)}  # ORB-VO takes its steps' length from the depth
+
+DIS_PRESETS = {"medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST}
+ORB_FEATURES = 3000
+ORB_MIN_INLIERS = 8  # the 5-point RANSAC needs more than 5; below 8 the essential matrix is unreliable
+
+
+def grey(rgb: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+
+
+def dis_flow(preset: str):
+    """OpenCV DIS optical flow (Kroeger et al. ECCV16) with one of :data:`DIS_PRESETS`, on grey frames."""
+    code = DIS_PRESETS[preset]
+
+    def predict(frames: list, K=None) -> np.ndarray:
+        dis = cv2.DISOpticalFlow.create(code)  # per call: the object keeps no useful state between pairs
+        return dis.calc(grey(frames[-2]), grey(frames[-1]), None)
+
+    return predict
+
+
+def orb_matcher() -> tuple[cv2.ORB, cv2.BFMatcher]:
+    """The ORB detector and cross-checked Hamming matcher of :func:`orb_vo` (and of ``--pose-method orbvo``)."""
+    return cv2.ORB.create(nfeatures=ORB_FEATURES), cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+
+
+class PairPose(NamedTuple):
+    """One ORB-VO step (:func:`relative_pose`)."""
+
+    T: np.ndarray | None  # (4, 4) camera-a points -> camera-b, |t| = 1; None: the pair failed
+    inliers: int
+    pixels: tuple[np.ndarray, np.ndarray] | None  # the inliers' pixels in a and b, (N, 2) each, with T
+    shift: float | None  # median pixel displacement of all cross-checked matches (None: no match)
+
+
+def relative_pose(orb, matcher, a: np.ndarray, b: np.ndarray, K: np.ndarray) -> PairPose:
+    """The ORB-VO step from grey frame ``a`` to grey frame ``b`` (see :func:`orb_vo`)."""
+    kp_a, des_a = orb.detectAndCompute(a, None)
+    kp_b, des_b = orb.detectAndCompute(b, None)
+    if des_a is None or des_b is None:
+        return PairPose(None, 0, None, None)
+    matches = matcher.match(des_a, des_b)
+    p_a = np.array([kp_a[m.queryIdx].pt for m in matches], dtype=np.float64).reshape(-1, 2)
+    p_b = np.array([kp_b[m.trainIdx].pt for m in matches], dtype=np.float64).reshape(-1, 2)
+    shift = float(np.median(np.linalg.norm(p_b - p_a, axis=1))) if len(matches) else None
+    if len(matches) < ORB_MIN_INLIERS:
+        return PairPose(None, len(matches), None, shift)
+    try:
+        E, mask = cv2.findEssentialMat(p_a, p_b, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
+    except cv2.error:  # OpenCV 5 asserts (solvePoly) where 4.x returned no solution: no motion to solve
+        return PairPose(None, 0, None, shift)
+    if E is None or E.shape != (3, 3):  # several solutions stacked, or none: degenerate motion
+        return PairPose(None, 0 if mask is None else int(mask.sum()), None, shift)
+    inliers, R, t, mask = cv2.recoverPose(E, p_a, p_b, K, mask=mask)
+    if inliers < ORB_MIN_INLIERS:
+        return PairPose(None, int(inliers), None, shift)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t.ravel()
+    keep = mask.ravel() > 0  # the RANSAC inliers that recoverPose found in front of both cameras
+    return PairPose(T, int(inliers), (p_a[keep], p_b[keep]), shift)
 
 
 def check_methods(flow_method: str, pose_method: str) -> None:
@@ -143,8 +203,8 @@ def classical_frames(
     networks have read t+1 before they yield t; a last frame has no next one). ``check_size``
     (h, w): DIS flow is checked against the frames there (:mod:`geonet_infer.check`), as the
     networks' flow is at their size; None: not checked."""
-    dis = baselines.dis_flow(DIS_PRESET) if flow_method == "dis" else None
-    orb = baselines.orb_matcher() if pose_method == "orbvo" else None
+    dis = dis_flow(DIS_PRESET) if flow_method == "dis" else None
+    orb = orb_matcher() if pose_method == "orbvo" else None
     frames: dict[int, np.ndarray] = {}  # undistorted RGB at the input size, by index
     step = np.eye(4)
     pose_world = np.eye(4)
@@ -194,7 +254,7 @@ def _orb_step(orb, a: np.ndarray, b: np.ndarray, result: FrameResult, previous: 
     cv2.setRNGSeed(0)  # RANSAC draws from OpenCV's global RNG: a frame's pose does not depend on the ones before
     K = result.intrinsics
     detector, matcher = orb
-    pair = baselines.relative_pose(detector, matcher, baselines.grey(a), baselines.grey(b), K)
+    pair = relative_pose(detector, matcher, grey(a), grey(b), K)
     T, pixels = pair.T, pair.pixels
     length = None if T is None or pixels is None else step_length(T, pixels, result.depth, K)
     if pair.shift is not None and pair.shift < STILL_SHIFT_PX:

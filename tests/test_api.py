@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer import BackendUnavailableError, GeoNetError, GeoNetInputError, InputError, ModelError, datasets
+from geonet_infer import BackendUnavailableError, GeoNetError, GeoNetInputError, InputError, ModelError
 from geonet_infer.cli import main
-from geonet_infer.datasets import DepthItem, Found, Layout
 from geonet_infer.engines import ENGINES
+from geonet_infer.eval import datasets
+from geonet_infer.eval.datasets import DepthItem, Found, Layout
 from geonet_infer.io import list_images, read_camera, read_image
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 

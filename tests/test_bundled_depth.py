@@ -14,8 +14,8 @@ from __future__ import annotations
 import pytest
 
 import geonet_infer
+from geonet_infer.eval.metrics import depth_floor_share
 from geonet_infer.io import open_frames, read_image
-from geonet_infer.metrics import depth_floor_share
 
 MAX_SHARE = 0.1
 

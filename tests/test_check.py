@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer.baselines import dis_flow
 from geonet_infer.check import AGREE_PX, FrameCheck, SequenceCheck, check_pair
 from geonet_infer.cli import main
+from geonet_infer.eval.baselines import dis_flow
 from geonet_infer.io import read_camera
 
 SAMPLE = Path(geonet_infer.__file__).resolve().parent / "samples" / "synth_seq"

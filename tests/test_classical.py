@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.classical import _euler_xyz, step_length
 from geonet_infer.cli import main
-from geonet_infer.datasets import load_dataset
+from geonet_infer.eval import baselines, evaluation, metrics
+from geonet_infer.eval.datasets import load_dataset
 from geonet_infer.io.calib import read_camera
 from geonet_infer.io.flow import read_flow_kitti
 from geonet_infer.io.images import list_images, read_image

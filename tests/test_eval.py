@@ -1,4 +1,4 @@
-"""geonet-infer eval / geonet_infer.evaluation: readers on real files, the DIS acceptance check against
+"""geonet-infer eval / geonet_infer.eval.evaluation: readers on real files, the DIS acceptance check against
 an independent EPE, hand-computed golden values on hand-built folders, and bad input."""
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
-from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.cli import main as cli_main
-from geonet_infer.datasets import depth_dataset, flow_dataset, pose_dataset
 from geonet_infer.errors import GeoNetError
+from geonet_infer.eval import baselines, evaluation, metrics
+from geonet_infer.eval.datasets import depth_dataset, flow_dataset, pose_dataset
 from geonet_infer.io import read_image
 
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"
@@ -343,7 +343,7 @@ def small_real_root(realdata: Path, root: Path) -> Path:
 
 
 def test_eval_all_scores_every_set_and_the_validation_mean_of_its_frames(realdata, tmp_path, capsys):
-    from geonet_infer import stereo
+    from geonet_infer.eval import stereo
 
     root = small_real_root(realdata, tmp_path / "realdata")
     out, md = tmp_path / "all.json", tmp_path / "all.md"
@@ -364,7 +364,7 @@ def test_eval_all_scores_every_set_and_the_validation_mean_of_its_frames(realdat
     assert [m["set"] for m in result["missing"]] == ["KITTI raw 2011_09_26 (test drive)", "KITTI odometry 01"]
     assert "**not scored, folder missing**: KITTI odometry 01 (kitti_odometry_01/sequences/01)" in printed
     assert {n["folder"]: n["why"] for n in result["not_scored"]} == {
-        "mystery": "no entry in geonet_infer.eval_all.REAL_SETS",
+        "mystery": "no entry in geonet_infer.eval.eval_all.REAL_SETS",
         "udacity_dashcam": "no ground truth",
     }
     # one row per (set, metric), the model at both precisions beside the task's baselines

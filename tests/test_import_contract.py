@@ -18,6 +18,7 @@ import geonet_infer
 ROOT = Path(__file__).resolve().parents[1]
 RUNTIME = ROOT / "geonet_infer"
 FORBIDDEN = ("torch", "training", "export")
+TOP_LEVEL = {"geonet_infer", "training", "export", "benchmarks", "tests", "scripts"}  # the repository's packages
 
 
 def imported_modules(tree: ast.AST) -> list[tuple[int, str]]:
@@ -66,21 +67,27 @@ def test_importing_every_runtime_module_loads_none_of_them():
 
 
 def module_imports(path: Path, name: str, known: set[str]) -> set[str]:
-    """The ``geonet_infer`` modules that module ``name`` (file ``path``) imports, anywhere in it.
+    """The modules of ``known`` that module ``name`` (file ``path``) imports, anywhere in it.
 
     ``from a.b import c`` counts as an import of ``a.b.c`` when that is a module, else of ``a.b``;
-    relative imports are resolved against ``name``'s package.
+    relative imports are resolved against ``name``'s package, and a plain ``import x`` that names no
+    known module against the folder (the scripts of benchmarks/ import their neighbours so).
     """
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+
+    def sibling(target: str) -> str:
+        return target if target in known or not package else f"{package}.{target}"
+
     found = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            targets = [alias.name for alias in node.names]
+            targets = [sibling(alias.name) for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
                 parts = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join(parts + ([base] if base else []))
+            base = sibling(base) if node.level == 0 and base.split(".")[0] not in TOP_LEVEL else base
             targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in node.names]
         else:
             continue
@@ -111,12 +118,24 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
     return None
 
 
+def import_graph(files: list[Path]) -> dict[str, set[str]]:
+    """module -> the modules of ``files`` it imports (names from the paths under the repository root)."""
+    named = {".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"): f for f in files}
+    known = set(named)
+    return {name: module_imports(path, name, known) for name, path in named.items()}
+
+
 def runtime_import_graph() -> dict[str, set[str]]:
-    files = {
-        ".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"): f for f in RUNTIME.rglob("*.py")
-    }
-    known = set(files)
-    return {name: module_imports(path, name, known) for name, path in files.items()}
+    return import_graph(list(RUNTIME.rglob("*.py")))
+
+
+def repository_files() -> list[Path]:
+    """Every Python file of the repository: packages, scripts, benchmarks and tests (not venvs, builds, data)."""
+    return [
+        f
+        for f in ROOT.rglob("*.py")
+        if not any(part.startswith(".") or part in ("build", "data", "runs") for part in f.relative_to(ROOT).parts)
+    ]
 
 
 def test_the_cycle_finder_finds_a_cycle_and_accepts_a_tree():
@@ -127,7 +146,10 @@ def test_the_cycle_finder_finds_a_cycle_and_accepts_a_tree():
 def test_the_import_graph_sees_this_package():
     graph = runtime_import_graph()
     assert "geonet_infer.errors" in graph["geonet_infer.predictor"]
-    assert "geonet_infer.cli.predict" in graph["geonet_infer.cli"]  # `from geonet_infer.cli import predict`
+    assert "geonet_infer.cli" in graph["geonet_infer.cli.predict"]  # `from geonet_infer.cli import COMMANDS`
+    assert (
+        "geonet_infer.eval.metrics" in graph["geonet_infer.eval.evaluation"]
+    )  # `from geonet_infer.eval import metrics`
 
 
 def test_no_import_cycle_inside_geonet_infer():
@@ -135,3 +157,64 @@ def test_no_import_cycle_inside_geonet_infer():
     function body is still two modules that cannot be understood (or moved) one without the other."""
     cycle = find_cycle(runtime_import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def modules_loaded_by(statement: str) -> list[str]:
+    """The ``geonet_infer`` modules a fresh interpreter has loaded after running ``statement``."""
+    code = f"import sys\n{statement}\nprint(sorted(m for m in sys.modules if m.startswith('geonet_infer')))"
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    return eval(run.stdout)  # a printed list of str
+
+
+# Not on the runtime's import path: what `import geonet_infer` (and so `load()`) must not pay for.
+OFF_THE_RUNTIME_PATH = ("geonet_infer.eval", "geonet_infer.bench", "geonet_infer.batch", "geonet_infer.output")
+
+
+def test_import_geonet_infer_loads_no_eval_bench_batch_or_output_module():
+    loaded = modules_loaded_by("import geonet_infer")
+    assert "geonet_infer.predictor" in loaded  # the check can fail: it sees what the import loads
+    off = [m for m in loaded if m.startswith(OFF_THE_RUNTIME_PATH) or m == "geonet_infer.pipeline"]
+    assert not off, off
+
+
+def test_import_geonet_infer_does_not_read_package_metadata():
+    """``__version__`` is read on first use (importlib.metadata alone costs about 0.1 s)."""
+    loaded = modules_loaded_by("import geonet_infer, importlib.util\nassert 'importlib.metadata' not in sys.modules")
+    assert "geonet_infer" in loaded
+
+
+def test_import_cli_loads_no_subcommand_and_a_command_loads_only_its_own():
+    from geonet_infer.cli import COMMANDS
+
+    loaded = modules_loaded_by("import geonet_infer.cli")
+    assert "geonet_infer.cli" in loaded
+    assert not [m for m in loaded if m.startswith("geonet_infer.cli.")], loaded
+    info = modules_loaded_by("from geonet_infer.cli import build_parser\nbuild_parser('info')")
+    assert "geonet_infer.cli.info" in info
+    assert not [f"geonet_infer.cli.{c}" for c in COMMANDS if c != "info" and f"geonet_infer.cli.{c}" in info]
+    assert not [m for m in info if m.startswith(("geonet_infer.eval", "geonet_infer.batch"))]
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    """Every module ``start`` imports, directly or through others (imports inside functions included;
+    importing ``a.b.c`` runs the packages ``a`` and ``a.b`` first)."""
+    seen, todo = set(), [start]
+    while todo:
+        module = todo.pop()
+        parents = {module.rsplit(".", n)[0] for n in range(1, module.count(".") + 1)}
+        for nxt in graph.get(module, set()) | parents:
+            if nxt not in seen:
+                seen.add(nxt)
+                todo.append(nxt)
+    return seen
+
+
+def test_the_core_never_imports_output_batch_eval_or_bench():
+    """The core is what ``import geonet_infer`` and ``load()`` can run: everything the package's
+    ``__init__`` reaches, statically, through imports anywhere in a module (not only those executed)."""
+    graph = runtime_import_graph()
+    core = reachable(graph, "geonet_infer")
+    assert {"geonet_infer.predictor", "geonet_infer.engines", "geonet_infer.io.frames"} <= core
+    bad = sorted(m for m in core if m.startswith((*OFF_THE_RUNTIME_PATH, "geonet_infer.cli", "geonet_infer.pipeline")))
+    assert not bad, bad

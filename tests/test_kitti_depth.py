@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from geonet_infer.errors import GeoNetError
-from geonet_infer.velodyne import (
+from geonet_infer.eval.velodyne import (
     load_velodyne_points,
     project_velodyne,
     velodyne_to_depth_map,

@@ -1,4 +1,4 @@
-"""Golden-value tests of geonet_infer.metrics; every expected number is worked out by hand below."""
+"""Golden-value tests of geonet_infer.eval.metrics; every expected number is worked out by hand below."""
 
 import math
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from geonet_infer.errors import GeoNetError
-from geonet_infer.metrics import (
+from geonet_infer.eval.metrics import (
     aggregate,
     ate_rmse_true,
     ate_snippet,

@@ -27,6 +27,8 @@ from onnx import TensorProto, helper, numpy_helper
 from benchmarks.model_card import main, render_card, sig3
 from export.wrappers import io_spec
 from geonet_infer import conventions
+from geonet_infer.eval.metrics import depth_floor_share
+from geonet_infer.eval.velodyne import velodyne_to_depth_map
 from geonet_infer.io import read_image
 from geonet_infer.manifest import (
     GraphEntry,
@@ -38,9 +40,7 @@ from geonet_infer.manifest import (
     load_manifest,
     write_manifest,
 )
-from geonet_infer.metrics import depth_floor_share
 from geonet_infer.predictor import Predictor
-from geonet_infer.velodyne import velodyne_to_depth_map
 
 ROOT = Path(__file__).resolve().parents[1]
 H, W = 32, 96  # graph size of the stand-in models
@@ -659,8 +659,8 @@ def test_real_section_is_rendered_from_the_eval_all_json(card3, tmp_path, kitti_
     """`--real` renders the JSON of `geonet-infer eval all` (here on the KITTI object frames) as the card's real
     section and its limitation; an eval-all JSON of other graph files is refused."""
     from benchmarks.model_card import recorded_real
-    from geonet_infer import eval_all, evaluation
     from geonet_infer.errors import GeoNetError
+    from geonet_infer.eval import eval_all, evaluation
 
     _, result = card3
     model_dir = Path(result["model"]["dir"])

@@ -305,8 +305,8 @@ def _pose_eval_folder(root: Path, frames: list[np.ndarray], K: np.ndarray) -> Pa
 
 
 def test_eval_pose_feeds_a_seq5_model_the_official_snippet_and_a_seq3_model_still_works(models, frames, K, tmp_path):
-    from geonet_infer.datasets import pose_dataset
-    from geonet_infer.evaluation import evaluate_pose, model_pose_fn
+    from geonet_infer.eval.datasets import pose_dataset
+    from geonet_infer.eval.evaluation import evaluate_pose, model_pose_fn
 
     data = pose_dataset(_pose_eval_folder(tmp_path, frames[:6], K))
     assert [item.name for item in data.items] == ["seq_0000/000000", "seq_0000/000001"]

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from geonet_infer import GeoNetError
+from geonet_infer.eval.velodyne import velodyne_to_depth_map
 from geonet_infer.io.calib import read_camera
 from geonet_infer.scale import fit_ground_plane, metric_depth
-from geonet_infer.velodyne import velodyne_to_depth_map
 
 H, W = 128, 416
 K = np.array([[0.58 * W, 0, 0.5 * W], [0, 1.92 * H, 0.5 * H], [0, 0, 1.0]])

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from geonet_infer.datasets import load_dataset
+from geonet_infer.eval.datasets import load_dataset
 from geonet_infer.io import read_calib_file, read_depth_kitti
 from training.stereo_val import PAIRS, focal_and_baseline, main, stereo_depth
 

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from geonet_infer.errors import GeoNetError
+from geonet_infer.eval.stereo import focal_and_baseline, stereo_depth
 from geonet_infer.io import read_depth_kitti, read_image, read_kitti_poses
-from geonet_infer.stereo import focal_and_baseline, stereo_depth
 from training import prepare as P
 from training.teachers import (
     DEPTH_LABEL_MEDIAN,

@@ -18,8 +18,8 @@ from torch.utils.data import DataLoader, Dataset
 from geonet_infer.cascade import snippet_indices
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
 from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.eval.metrics import resize_flow_gt
 from geonet_infer.io import read_cam_txt, read_depth_kitti, read_flow_kitti, read_image, read_kitti_poses
-from geonet_infer.metrics import resize_flow_gt
 
 SPLITS = ("train", "val", "heldout")
 PREPARE_CMD = "run python -m training.prepare --kind synth|kitti_raw|kitti_odom --src DIR --out ROOT first"

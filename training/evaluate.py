@@ -4,7 +4,7 @@
 --heldout data/synth40_prepared/heldout.txt --task all``
 
 This module only turns a checkpoint into the numpy callables that
-:mod:`geonet_infer.evaluation` scores (so a checkpoint, its ONNX fp32 export and the
+:mod:`geonet_infer.eval.evaluation` scores (so a checkpoint, its ONNX fp32 export and the
 INT8 twin are measured by one code path). Frames go through the runtime's own pre- and
 post-processing (:mod:`geonet_infer.cascade`: area resize to the training size,
 normalisation, outputs mapped back to the input size), so any layout works, KITTI included.
@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geonet_infer import baselines, evaluation, metrics
 from geonet_infer.cascade import InputSpec, disparity_to_input, flow_to_input, graph_intrinsics
-from geonet_infer.datasets import LAYOUTS, depth_dataset, flow_dataset, load_dataset, read_heldout
 from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.eval import baselines, evaluation, metrics
+from geonet_infer.eval.datasets import LAYOUTS, depth_dataset, flow_dataset, load_dataset, read_heldout
 from training.checkpoint import load_weights, model_from_checkpoint
 from training.geometry import pose_vec_to_mat
 from training.model import GeoNet
@@ -56,7 +56,7 @@ def evaluate_depth(
 ) -> dict:
     """{"model": means, "constant_baseline": means, "frames": n} on held-out synthetic sequences.
 
-    ``crop``: None (every pixel with ground truth) or a crop name of :func:`geonet_infer.metrics.crop_mask`.
+    ``crop``: None (every pixel with ground truth) or a crop name of :func:`geonet_infer.eval.metrics.crop_mask`.
     """
     data = depth_dataset(synth_dir, "synth", sequences, stride)
     keys = (*metrics.DEPTH_KEYS, "scale", "n_valid")

@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, rigid_inverse, scale_intrinsics
 from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.eval.metrics import resize_flow_gt
 from geonet_infer.io import (
     IMAGE_SUFFIXES,
     VIDEO_SUFFIXES,
@@ -60,7 +61,6 @@ from geonet_infer.io import (
     write_image,
     write_kitti_poses,
 )
-from geonet_infer.metrics import resize_flow_gt
 from training.teachers import (
     TEACHER_DEPTHS,
     TEACHER_FLOWS,

@@ -14,7 +14,7 @@ semi-global matching, kept only where the left and right disparities agree withi
 ``calib.txt`` projection matrices. It is a noisy yardstick (two frames, SGBM errors at
 occlusions and on thin poles), fit for comparing recipes, not for publishing.
 ``geonet-infer eval all`` scores these frames with the other real depth outside the test drive
-(the real validation figure); the matcher lives in :mod:`geonet_infer.stereo` for that reason.
+(the real validation figure); the matcher lives in :mod:`geonet_infer.eval.stereo` for that reason.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 from geonet_infer.errors import GeoNetError
-from geonet_infer.stereo import (  # noqa: F401  (re-exported: the names this module always had)
+from geonet_infer.eval.stereo import (  # noqa: F401  (re-exported: the names this module always had)
     BLOCK,
     LR_TOLERANCE,
     MAX_DISPARITY,

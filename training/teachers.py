@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from geonet_infer.baselines import dis_flow, orb_vo
-from geonet_infer.metrics import rigid_inverse
+from geonet_infer.eval.baselines import dis_flow, orb_vo
+from geonet_infer.eval.metrics import rigid_inverse
 
 TEACHER_FLOWS = ("dis",)
 TEACHER_POSES = ("orbvo",)

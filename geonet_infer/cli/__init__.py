@@ -1,6 +1,8 @@
 """``geonet-infer``: depth, optical flow and camera pose from video on CPU.
 
-One module per subcommand; each has ``add_parser(subparsers)`` and ``run(args) -> int``.
+One module per subcommand; each has ``add_parser(subparsers)`` and ``run(args) -> int``, and is
+imported only when chosen (``geonet-infer info`` does not load the batch or eval code): the
+other subcommands are listed from :data:`COMMANDS` alone.
 Exit codes, for every subcommand: 0 all good, 1 some items failed (recorded in the
 output), 2 bad usage or input (one line on stderr naming the item), 3 the operating system
 refused a read or write (permission, disk full, read-only; one line naming the path),
@@ -10,17 +12,34 @@ refused a read or write (permission, disk full, read-only; one line naming the p
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
+from collections.abc import Sequence
 
-from geonet_infer import __version__
-from geonet_infer.cli import batch, bench, demo, eval, info, predict
 from geonet_infer.errors import GeoNetError
 
-SUBCOMMANDS = (predict, batch, demo, info, bench, eval)
+# subcommand -> its one-line help (module geonet_infer.cli.<name>), in the order --help lists them
+COMMANDS = {
+    "predict": "depth, flow and poses for a video or a folder of frames",
+    "batch": "many sequences (folders, videos, KITTI drives, lists) on many CPUs",
+    "demo": "run on the bundled sample and write demo.png",
+    "info": "versions, CPU, threads and the model's manifest",
+    "bench": "latency of each stage (network only and end to end), table + JSON",
+    "eval": "accuracy against ground truth (model or baselines), paper's tables",
+}
 EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, EXIT_OS_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
 
-def build_parser() -> argparse.ArgumentParser:
+def chosen_command(argv: Sequence[str]) -> str | None:
+    """The subcommand named in ``argv`` (the first word not an option: the top level's options take no value)."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser with ``command``'s full arguments (its module imported); the others by name and help only."""
+    from geonet_infer import __version__
+
     parser = argparse.ArgumentParser(
         prog="geonet-infer",
         description="GeoNet (CVPR 2018) monocular depth, optical flow and camera pose on CPU with onnxruntime. "
@@ -31,13 +50,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"geonet-infer {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in SUBCOMMANDS:
-        module.add_parser(sub)
+    for name, help_line in COMMANDS.items():
+        if name == command:
+            importlib.import_module(f"geonet_infer.cli.{name}").add_parser(sub)
+        else:
+            sub.add_parser(name, help=help_line, add_help=False)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(chosen_command(sys.argv[1:] if argv is None else argv))
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse exits 2 on bad usage and 0 on --help/--version

@@ -16,6 +16,7 @@ from geonet_infer.batch import (
     run_batch,
 )
 from geonet_infer.classical import classical_tasks
+from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import (
     add_camera_args,
     add_method_args,
@@ -76,7 +77,7 @@ examples:
 def add_parser(sub) -> None:
     parser = sub.add_parser(
         "batch",
-        help="many sequences (folders, videos, KITTI drives, lists) on many CPUs",
+        help=COMMANDS["batch"],
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

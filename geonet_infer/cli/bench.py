@@ -39,22 +39,10 @@ import sys
 import time
 from pathlib import Path
 
-from geonet_infer.benchmark import (
-    DEFAULT_INPUT_SIZE,
-    MODES,
-    TASK_GRAPHS,
-    TASKS,
-    Environment,
-    bench_frames,
-    build_cases,
-    cpu_flags,
-    format_table,
-    model_summary,
-    paper_line,
-    result_row,
-    speed_targets,
-    thread_env,
-)
+from geonet_infer.bench.cases import DEFAULT_INPUT_SIZE, MODES, TASK_GRAPHS, TASKS, bench_frames, build_cases
+from geonet_infer.bench.environment import Environment, cpu_flags, model_summary, thread_env
+from geonet_infer.bench.report import format_table, paper_line, result_row
+from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import add_model_args, backend_help
 from geonet_infer.engines import BACKENDS, ENGINES, OrtEngine
 from geonet_infer.errors import BackendUnavailableError, InputError
@@ -71,7 +59,7 @@ from geonet_infer.timing import current_rss_mib, load_average, peak_rss_mib, tim
 def add_parser(sub) -> None:
     parser = sub.add_parser(
         "bench",
-        help="latency of each stage (network only and end to end), table + JSON",
+        help=COMMANDS["bench"],
         description="Time DepthNet, PoseNet, the rigid-flow op, ResFlowNet, the flow cascade for one pair and "
         "the per-frame cost of a sequence, each network-only ('graph') and end to end from uint8 "
         "frames ('e2e'), on the bundled sample frames. Reports p50/p90/p99, mean +- std (ms) and "
@@ -381,13 +369,7 @@ def run(args: argparse.Namespace) -> int:
             f"batch {s.get('batch', '-')}: {s['reason']}"
         )
     if args.json is not None:
-        kitti_size = tuple(env["input_size"]) == DEFAULT_INPUT_SIZE
-        record = {
-            "environment": env,
-            "results": results,
-            "skipped": skipped,
-            "speed_targets": speed_targets(results, model["arch"], kitti_size),
-        }
+        record = {"environment": env, "results": results, "skipped": skipped}
         with atomic_write(args.json) as tmp:
             tmp.write_text(json.dumps(record, indent=2) + "\n")
         print(f"JSON -> {args.json}")

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 import geonet_infer
+from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import add_model_args, load_predictor, sigterm_as_interrupt, stage_table
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import read_camera
@@ -40,7 +41,7 @@ def find_real_drive() -> Path:
 def add_parser(sub) -> None:
     parser = sub.add_parser(
         "demo",
-        help="run on the bundled sample and write demo.png",
+        help=COMMANDS["demo"],
         description="Run `predict` on the bundled sample sequence (synthetic frames made by our own "
         "generator), write a side-by-side demo.png (frame | depth | flow | rigid | residual) "
         "for the middle frame and print the per-stage latency table. With --real: the same on "

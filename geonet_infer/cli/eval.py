@@ -10,11 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer import eval_all, evaluation
+from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import add_model_args, load_predictor, positive_int
-from geonet_infer.datasets import LAYOUTS, REGISTRY, TASKS, load_dataset, read_heldout
 from geonet_infer.engines import BACKENDS
 from geonet_infer.errors import InputError
+from geonet_infer.eval import eval_all, evaluation
+from geonet_infer.eval.datasets import LAYOUTS, REGISTRY, TASKS, load_dataset, read_heldout
 from geonet_infer.io.atomic import atomic_write
 
 HELP_TEMPLATE = """\
@@ -95,7 +96,7 @@ HELP = HELP_TEMPLATE.replace("{layouts}", layouts_help(), 1)
 def add_parser(sub) -> None:
     parser = sub.add_parser(
         "eval",
-        help="accuracy against ground truth (model or baselines), paper's tables",
+        help=COMMANDS["eval"],
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -230,7 +231,7 @@ NOT_FOR_ALL = {
 
 
 def run_all(args: argparse.Namespace) -> int:
-    """`eval all`: the model at each precision and the baselines on every real set (geonet_infer.eval_all)."""
+    """`eval all`: the model at each precision and the baselines on every real set (geonet_infer.eval.eval_all)."""
     for name, default in NOT_FOR_ALL.items():
         if getattr(args, name) != default:
             flag = "--" + name.replace("_", "-")

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from geonet_infer.benchmark import NOT_MEASURED, Environment, model_summary
+from geonet_infer.bench.environment import NOT_MEASURED, Environment, model_summary
+from geonet_infer.cli import COMMANDS
 from geonet_infer.engines import ENGINES
 from geonet_infer.models import DEFAULT_MODEL
 from geonet_infer.predictor import RIGID_FLOW_GRAPHS
@@ -14,7 +15,7 @@ from geonet_infer.predictor import RIGID_FLOW_GRAPHS
 def add_parser(sub) -> None:
     parser = sub.add_parser(
         "info",
-        help="versions, CPU, threads and the model's manifest",
+        help=COMMANDS["info"],
         description="Print versions, onnxruntime providers, the CPU and the threads "
         "geonet-infer would use, and a summary of a model's manifest.",
     )

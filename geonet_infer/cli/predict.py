@@ -9,6 +9,7 @@ from pathlib import Path
 
 from geonet_infer.check import SequenceCheck
 from geonet_infer.classical import classical_tasks
+from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import (
     add_camera_args,
     add_method_args,
@@ -81,7 +82,7 @@ examples:
 def add_parser(sub) -> None:
     parser = sub.add_parser(
         "predict",
-        help="depth, flow and poses for a video or a folder of frames",
+        help=COMMANDS["predict"],
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -16,7 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from geonet_infer.datasets.base import (
+from geonet_infer.errors import InputError
+from geonet_infer.eval.datasets.base import (
     SNIPPET,
     Found,
     Layout,
@@ -25,7 +26,6 @@ from geonet_infer.datasets.base import (
     _require_file,
     _snippets,
 )
-from geonet_infer.errors import InputError
 from geonet_infer.io import list_images, read_calib_file
 
 

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from geonet_infer.datasets.base import (
+from geonet_infer.errors import InputError
+from geonet_infer.eval.datasets.base import (
     FlowItem,
     Found,
     Layout,
     _require_dir,
 )
-from geonet_infer.errors import InputError
 
 
 class Middlebury(Layout):

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from geonet_infer.datasets.base import (
+from geonet_infer.errors import InputError
+from geonet_infer.eval.datasets.base import (
     FlowItem,
     Found,
     Layout,
@@ -20,7 +21,6 @@ from geonet_infer.datasets.base import (
     _require_file,
     benchmark_root,
 )
-from geonet_infer.errors import InputError
 
 
 class KittiFlow(Layout):

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.datasets.base import (
+from geonet_infer.errors import InputError
+from geonet_infer.eval.datasets.base import (
     KITTI_CALIB,
     DepthItem,
     Found,
@@ -20,7 +21,6 @@ from geonet_infer.datasets.base import (
     _require_dir,
     calibration_K_or_error,
 )
-from geonet_infer.errors import InputError
 from geonet_infer.io import list_images
 from geonet_infer.io.frames import find_up
 

@@ -15,15 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.datasets.base import (
+from geonet_infer.errors import InputError
+from geonet_infer.eval.datasets.base import (
     DepthItem,
     Found,
     Layout,
     benchmark_root,
     calibration_K_or_error,
 )
-from geonet_infer.errors import InputError
-from geonet_infer.stereo import focal_and_baseline
+from geonet_infer.eval.stereo import focal_and_baseline
 
 GT_FOLDERS = ("disp_occ_0", "disp_noc_0")  # preference order: occ has every pixel with data
 CALIB_FOLDER = "calib_cam_to_cam"

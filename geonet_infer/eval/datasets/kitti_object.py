@@ -3,7 +3,7 @@
 ``[training/]image_2/NNNNNN.png`` (left colour camera), ``velodyne/NNNNNN.bin`` (the frame's
 Velodyne scan) and ``calib/NNNNNN.txt`` (its own calibration: P0–P3, R0_rect, Tr_velo_to_cam).
 Ground truth: the scan projected with ``P2 · R0_rect · Tr_velo_to_cam`` by the KITTI raw code
-(:func:`geonet_infer.velodyne.object_velodyne_to_depth_map`: same rounding, same nearest point
+(:func:`geonet_infer.eval.velodyne.object_velodyne_to_depth_map`: same rounding, same nearest point
 per pixel, Velodyne forward distance). The frames are single, unrelated images: depth only.
 """
 
@@ -13,14 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.datasets.base import (
+from geonet_infer.errors import InputError
+from geonet_infer.eval.datasets.base import (
     DepthItem,
     Found,
     Layout,
     benchmark_root,
     calibration_K_or_error,
 )
-from geonet_infer.errors import InputError
 from geonet_infer.io import list_images
 
 FOLDERS = ("image_2", "velodyne", "calib")

@@ -1,7 +1,7 @@
 """What every evaluation layout shares: the item types, the dataset record, file helpers.
 
 One module per layout (:mod:`.synth`, :mod:`.kitti_raw`, ...) subclasses :class:`Layout`;
-:mod:`geonet_infer.datasets` collects them in its registry.
+:mod:`geonet_infer.eval.datasets` collects them in its registry.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer.errors import InputError
+from geonet_infer.eval.velodyne import object_velodyne_to_depth_map, velodyne_to_depth_map
 from geonet_infer.io import (
     read_calib_K,
     read_camera,
@@ -22,7 +23,6 @@ from geonet_infer.io import (
     read_flow_kitti,
     read_kitti_poses,
 )
-from geonet_infer.velodyne import object_velodyne_to_depth_map, velodyne_to_depth_map
 
 TASKS = ("depth", "flow", "pose")
 SNIPPET = 5  # frames per pose snippet (the paper's ATE protocol)
@@ -310,7 +310,7 @@ class Layout:
     fallback = False  # detected only when no other layout claims the folder
     depth_crop: str | None = None  # default depth crop ("garg", "eigen" or None: every GT pixel)
     # extra keyword options :meth:`items` takes (e.g. ``("fx", "baseline")``), passed by
-    # :func:`~geonet_infer.datasets.load_dataset` only to a layout that names them
+    # :func:`~geonet_infer.eval.datasets.load_dataset` only to a layout that names them
     options: tuple[str, ...] = ()
 
     @staticmethod

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.datasets.base import (
+from geonet_infer.errors import InputError
+from geonet_infer.eval.datasets.base import (
     DepthItem,
     FlowItem,
     Found,
@@ -24,7 +25,6 @@ from geonet_infer.datasets.base import (
     calibration_K_or_error,
     synth_sequences,
 )
-from geonet_infer.errors import InputError
 from geonet_infer.io import list_images
 
 

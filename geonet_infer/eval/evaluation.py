@@ -1,0 +1,531 @@
+"""Scoring loops shared by ``geonet-infer eval`` (ONNX), ``python -m training.evaluate``
+(PyTorch checkpoints) and the results report: one metric code path for every method.
+
+A method is a plain numpy callable (model adapters below, baselines in
+:mod:`geonet_infer.eval.baselines`, torch predictors in ``training.evaluate``):
+
+* depth ``fn(rgb uint8 (H, W, 3)) -> depth (h, w)``, resized to the GT size (bilinear, on depth);
+* flow ``fn(frames, K) -> flow (h, w, 2)`` from ``frames[-2]`` to ``frames[-1]`` (``frames`` =
+  [t-1, t, t+1] or the pair [t, t+1]), resized to the GT size with nearest neighbour and
+  vectors scaled per axis (the official test);
+* pose ``fn(frames (5), K) -> poses (5, 4, 4)`` of each frame in the first frame's coordinates.
+
+Any callable may return ``(array, info_dict)``; ``info`` is kept with the item. A
+prediction holding NaN or infinity is *reported*: the item's metrics become NaN, so
+every mean over it is NaN too (never dropped), and ``errors`` names the item.
+Depth scaled by the camera height (``scaling="camera_height"``) can fail on a frame
+whose prediction shows no plausible ground plane: such a frame is *not scored* (never
+median-scaled instead); ``errors`` and ``ground_fit_failed`` name it, the means cover
+the other frames and ``count`` says how many those are.
+Broken data (missing file, size mismatch, no valid ground-truth pixel) raises
+:class:`~geonet_infer.errors.GeoNetError` naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.eval import metrics
+from geonet_infer.eval.datasets import SNIPPET, Dataset, layout_class
+from geonet_infer.io import read_image
+from geonet_infer.io.atomic import atomic_write
+from geonet_infer.scale import check_camera_height, fit_ground_plane
+
+MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
+SCALINGS = ("median", "camera_height", "none")
+# Paper column order (Tables 1-3), then our extra columns. (header, key, format)
+COLUMNS = {
+    "depth": [
+        ("AbsRel", "abs_rel", "{:.3f}"),
+        ("SqRel", "sq_rel", "{:.3f}"),
+        ("RMSE", "rmse", "{:.3f}"),
+        ("RMSElog", "rmse_log", "{:.3f}"),
+        ("δ<1.25", "a1", "{:.3f}"),
+        ("δ<1.25²", "a2", "{:.3f}"),
+        ("δ<1.25³", "a3", "{:.3f}"),
+    ],
+    "flow": [
+        ("EPE Noc", "epe_noc", "{:.2f}"),
+        ("EPE All", "epe_all", "{:.2f}"),
+        ("Fl-noc", "fl_noc", "{:.1%}"),
+        ("Fl-all", "fl_all", "{:.1%}"),
+    ],
+    "pose": [("ATE (paper, ÷N)", "ate_snippet", "{:.4f}"), ("ATE RMSE", "ate_rmse_true", "{:.4f}")],
+}
+COUNT_LABEL = {"depth": "frames", "flow": "pairs", "pose": "snippets"}
+
+
+# ----------------------------------------------------------------------------- calling methods
+def _call(fn, *args) -> tuple[np.ndarray, dict]:
+    out = fn(*args)
+    if isinstance(out, tuple):
+        return np.asarray(out[0]), dict(out[1])
+    return np.asarray(out), {}
+
+
+def _nonfinite(pred: np.ndarray) -> int:
+    return int(pred.size - np.count_nonzero(np.isfinite(pred)))
+
+
+def _nan_row(keys) -> dict:
+    return {k: math.nan for k in keys}
+
+
+def _intrinsics(item, fn, override: np.ndarray | None) -> np.ndarray | None:
+    """K for methods that need it: ``override`` (at the item's frame size) or the item's calibration."""
+    if not getattr(fn, "needs_intrinsics", False):
+        return None
+    if override is not None:
+        return np.asarray(override, dtype=np.float64)
+    K = item.intrinsics()
+    if K is None:
+        raise InputError(
+            item.frames[-1],
+            "no camera intrinsics for this pair",
+            "the model's rigid flow needs K: add the calibration file of this layout or pass --intrinsics FX,FY,CX,CY",
+        )
+    return K
+
+
+def _read_frames(paths: list[Path]) -> list[np.ndarray]:
+    frames = [read_image(p) for p in paths]
+    for p, f in zip(paths, frames):
+        if f.shape != frames[-1].shape:
+            raise InputError(
+                p,
+                f"frame is {f.shape[1]}x{f.shape[0]}, {paths[-1].name} is {frames[-1].shape[1]}x{frames[-1].shape[0]}",
+                "frames of one item must share a size",
+            )
+    return frames
+
+
+def _result(
+    task: str, method: str, dataset: Dataset, settings: dict, rows: list[dict], errors: list[dict], std: bool = False
+) -> dict:
+    keys = [k for _, k, _ in COLUMNS[task]]
+    # Rows marked not scored (a failed ground fit) stay in items and errors but not in the means.
+    values = [{k: r[k] for k in keys} for r in rows if r.get("ground_fit") != "failed"]
+    out = {
+        "task": task,
+        "method": method,
+        "data": dataset.describe(),
+        "settings": settings,
+        "metrics": metrics.aggregate(values) if values else _nan_row(keys) | {"count": 0},
+        "items": rows,
+        "errors": errors,
+    }
+    if std:
+        out["std"] = metrics.aggregate_std(values)
+    return out
+
+
+# ----------------------------------------------------------------------------- depth
+def depth_intrinsics(item, layout: str) -> np.ndarray:
+    """K at the image size of a depth item, as its layout reads it (:meth:`Layout.depth_intrinsics`)."""
+    return layout_class(layout).depth_intrinsics(item)
+
+
+def evaluate_depth(
+    fn: Callable,
+    dataset: Dataset,
+    *,
+    method: str = "model",
+    max_depth: float = MAX_DEPTH,
+    min_depth: float = MIN_DEPTH,
+    crop: str | None = "auto",
+    scaling: str = "median",
+    camera_height: float | None = None,
+    intrinsics: np.ndarray | None = None,
+    observe: Callable | None = None,
+) -> dict:
+    """Eigen depth metrics of ``fn`` on every item, averaged per image.
+
+    crop: "garg", "eigen", None, or "auto" (Garg on KITTI, none on synthetic frames, which have
+    no bonnet or empty sky band to crop).
+    scaling: "median" (per image, median GT / median prediction: the paper's protocol), "none"
+    (raw depths: metric or stereo-scaled models), or "camera_height": per image, the factor that
+    puts the ground plane fitted to the prediction (:func:`geonet_infer.scale.fit_ground_plane`)
+    ``camera_height`` metres below the camera, no ground truth used. ``intrinsics``: K at the
+    image size for that fit; default the item's calibration (:func:`depth_intrinsics`). A frame
+    without a plausible ground plane is not scored: named in ``errors`` and ``ground_fit_failed``.
+    ``observe(item, rgb, gt, pred, row)`` sees each scored frame; ``pred`` is resized to the GT
+    but not scaled (``row["scale"]`` is the factor applied). Returns the result dict (see module
+    docstring).
+    """
+    if scaling not in SCALINGS:
+        raise InputError(None, f"unknown depth scaling {scaling!r}", f"choose one of {', '.join(SCALINGS)}")
+    if scaling == "camera_height":
+        check_camera_height(camera_height)
+    if crop == "auto":
+        crop = layout_class(dataset.layout).depth_crop
+    keys = [k for _, k, _ in COLUMNS["depth"]]
+    rows, errors, fit_failed = [], [], []
+    for item in dataset.items:
+        rgb = read_image(item.image)
+        gt = item.load_gt(rgb.shape[:2])
+        mask = (gt > min_depth) & (gt < max_depth) & metrics.crop_mask(gt.shape, crop)
+        if not mask.any():
+            raise InputError(
+                item.gt,
+                f"no ground-truth pixel in ({min_depth:g}, {max_depth:g}) m inside the {crop or 'full-image'} crop",
+                "check the ground truth of this frame",
+            )
+        pred, info = _call(fn, rgb)
+        if pred.ndim != 2:
+            raise InputError(
+                item.image,
+                f"predicted depth has shape {pred.shape}, expected (H, W)",
+                "the depth method must return one 2-D map per image",
+            )
+        bad = _nonfinite(pred)
+        # what the frame's ground truth offers, whatever the method does: checkable against the data itself
+        row = {"name": item.name, "gt_pixels": int(mask.sum()), "gt_min": float(gt[mask].min())}
+        row["gt_max"] = float(gt[mask].max())
+        if bad:
+            errors.append({"item": item.name, "problem": f"prediction has {bad} NaN/inf values"})
+            rows.append(row | _nan_row(keys) | info)
+            continue
+        pred = metrics.resize_depth_to(pred, gt.shape)
+        scale = 1.0
+        if scaling == "camera_height":
+            K = np.asarray(intrinsics, np.float64) if intrinsics is not None else depth_intrinsics(item, dataset.layout)
+            try:  # the runtime's own fit (what `predict --camera-height` applies), on the depth at GT size
+                fit = fit_ground_plane(pred, K)
+            except GeoNetError as err:  # the prediction shows no road: the method's failure on this frame
+                problem = f"ground plane fit failed: {err.problem}"
+                errors.append({"item": item.name, "problem": problem})
+                fit_failed.append(item.name)
+                rows.append(row | _nan_row(keys) | {"ground_fit": "failed", "problem": problem} | info)
+                continue
+            assert camera_height is not None  # checked above: scaling by camera height needs one
+            scale = fit.scale_for(camera_height)
+            info = {"ground_height": fit.height, "ground_inliers": fit.inlier_fraction} | info
+        try:
+            scores = metrics.depth_metrics(
+                gt, pred * scale, min_depth, max_depth, crop=crop, median_scaling=scaling == "median"
+            )
+        except GeoNetError as err:  # e.g. non-positive median prediction: the method's fault
+            errors.append({"item": item.name, "problem": err.problem})
+            scores = _nan_row(keys)
+        if scaling == "camera_height":
+            scores["scale"] = scale
+        rows.append(row | scores | info)
+        if observe is not None:
+            observe(item, rgb, gt, pred, rows[-1])
+    settings = {
+        "min_depth": min_depth,
+        "max_depth": max_depth,
+        "crop": crop,
+        "scaling": scaling,
+        "resize": "prediction depth resized to GT size, cv2 bilinear",
+    }
+    if scaling == "camera_height":
+        settings["camera_height"] = camera_height
+    result = _result("depth", method, dataset, settings, rows, errors)
+    result["ground_truth"] = ground_truth_summary(rows, crop, min_depth, max_depth)
+    if scaling == "camera_height":
+        result["ground_fit_failed"] = fit_failed
+    return result
+
+
+def ground_truth_summary(rows: list[dict], crop: str | None, min_depth: float, max_depth: float) -> dict:
+    """The depth ground truth the rows were scored on: frames, pixels inside the mask, depth range."""
+    return {
+        "frames": len(rows),
+        "pixels": sum(r["gt_pixels"] for r in rows),
+        "min_m": min(r["gt_min"] for r in rows),
+        "max_m": max(r["gt_max"] for r in rows),
+        "crop": crop,
+        "mask": f"{min_depth:g} < GT < {max_depth:g} m",
+    }
+
+
+def ground_truth_line(summary: dict) -> str:
+    """One line for people: ``ground truth: 3 frames, 45,310 pixels (garg crop, 0.001 < GT < 80 m), 4.3–79.9 m``."""
+    return (
+        f"ground truth: {summary['frames']} frame{'s' if summary['frames'] != 1 else ''}, {summary['pixels']:,} pixels "
+        f"({summary['crop'] or 'no'} crop, {summary['mask']}), depth {summary['min_m']:.2f}–{summary['max_m']:.2f} m"
+    )
+
+
+# ----------------------------------------------------------------------------- flow
+def evaluate_flow(
+    fn: Callable,
+    dataset: Dataset,
+    *,
+    method: str = "model",
+    intrinsics: np.ndarray | None = None,
+    observe: Callable | None = None,
+) -> dict:
+    """EPE on non-occluded (Noc) and all (All = KITTI "occ") GT pixels, and the Fl outlier rates.
+
+    ``intrinsics``: K at the frames' size for items without a calibration file (Middlebury).
+    ``observe(item, frames, gt_all, valid_all, pred, row)`` sees each scored pair.
+    """
+    keys = [k for _, k, _ in COLUMNS["flow"]]
+    rows, errors = [], []
+    for item in dataset.items:
+        frames = _read_frames(item.frames)
+        gt_noc, valid_noc = item.load_gt("noc")
+        gt_all, valid_all = item.load_gt("occ")
+        height, width = frames[-1].shape[:2]
+        for path, gt in ((item.gt_noc, gt_noc), (item.gt_occ, gt_all)):
+            if gt.shape[:2] != (height, width):
+                raise InputError(
+                    path,
+                    f"flow ground truth is {gt.shape[1]}x{gt.shape[0]}, the frames are {width}x{height}",
+                    "ground truth and frames must have the same size",
+                )
+        pred, info = _call(fn, frames, _intrinsics(item, fn, intrinsics))
+        if pred.ndim != 3 or pred.shape[2] != 2:
+            raise InputError(
+                item.frames[-2],
+                f"predicted flow has shape {pred.shape}, expected (H, W, 2)",
+                "the flow method must return (u, v) per pixel",
+            )
+        row = {"name": item.name, "snippet": item.snippet}
+        bad = _nonfinite(pred)
+        if bad:
+            errors.append({"item": item.name, "problem": f"prediction has {bad} NaN/inf values"})
+            rows.append(row | _nan_row(keys) | info)
+            continue
+        if pred.shape[:2] != (height, width):
+            pred = metrics.resize_flow_nearest(pred, (height, width))
+        scored: dict[str, dict] = {}
+        for which, gt, valid, path in (
+            ("noc", gt_noc, valid_noc, item.gt_noc),
+            ("all", gt_all, valid_all, item.gt_occ),
+        ):
+            if not valid.any():
+                raise InputError(path, "flow ground truth has no valid pixel", "check the GT's valid channel")
+            r = metrics.flow_epe(gt, valid, pred)
+            scored |= {f"epe_{which}": r["epe"], f"fl_{which}": r["fl"], f"n_valid_{which}": r["n_valid"]}
+        rows.append(row | scored | info)
+        if observe is not None:
+            observe(item, frames, gt_all, valid_all, pred, rows[-1])
+    settings = {
+        "resize": "nearest to GT size, u *= W/w, v *= H/h (official test)",
+        "fl": f"EPE > {metrics.FLOW_OUTLIER_PX:g} px and > {metrics.FLOW_OUTLIER_REL:.0%} of |gt|",
+    }
+    return _result("flow", method, dataset, settings, rows, errors)
+
+
+# ----------------------------------------------------------------------------- pose
+def gt_snippet(camera_to_world: np.ndarray) -> np.ndarray:
+    """GT camera-to-world poses -> poses in the snippet's first frame (official path: world->camera,
+    then :func:`~geonet_infer.eval.metrics.snippet_poses_to_global`)."""
+    return metrics.snippet_poses_to_global(metrics.rigid_inverse(camera_to_world))
+
+
+def ate_rows(gt_xyz: np.ndarray, pred_xyz: np.ndarray) -> dict:
+    """Paper ATE (÷N quirk) and true RMSE of one snippet. First positions are subtracted so they are
+    exactly 0 (``inv(C) @ C`` leaves ~1e-16, to which the alignment would fit a huge scale)."""
+    gt_xyz = gt_xyz - gt_xyz[0]
+    pred_xyz = pred_xyz - pred_xyz[0]
+    return {
+        "ate_snippet": metrics.ate_snippet(gt_xyz, pred_xyz),
+        "ate_rmse_true": metrics.ate_rmse_true(gt_xyz, pred_xyz),
+    }
+
+
+def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", observe: Callable | None = None) -> dict:
+    """Snippet ATE (paper's alignment and ÷N) and true RMSE, mean and std over snippets.
+
+    ``observe(item, gt_poses, pred_poses, row)`` sees each snippet (both in first-frame coordinates).
+    """
+    keys = [k for _, k, _ in COLUMNS["pose"]]
+    rows, errors = [], []
+    for item in dataset.items:
+        frames = _read_frames(item.frames)
+        K = item.intrinsics() if getattr(fn, "needs_intrinsics", False) else None
+        pred, info = _call(fn, frames, K)
+        if pred.shape != (SNIPPET, 4, 4):
+            raise InputError(
+                item.frames[0],
+                f"predicted snippet poses have shape {pred.shape}, expected ({SNIPPET}, 4, 4)",
+                "one pose per snippet frame",
+            )
+        row = {"name": item.name}
+        bad = _nonfinite(pred)
+        if bad:
+            errors.append({"item": item.name, "problem": f"prediction has {bad} NaN/inf values"})
+            rows.append(row | _nan_row(keys) | info)
+            continue
+        gt = gt_snippet(item.gt_c2w)
+        rows.append(row | ate_rows(gt[:, :3, 3], pred[:, :3, 3]) | info)
+        if observe is not None:
+            observe(item, gt, pred, rows[-1])
+    settings = {
+        "snippet": SNIPPET,
+        "alignment": "first positions matched, scale s = Σ(gt·pred)/Σ(pred²), no rotation",
+        "ate_snippet": "sqrt(Σ|e|²)/N: the paper's value (divides by N, not sqrt(N): NOT an RMSE)",
+        "ate_rmse_true": "sqrt(Σ|e|²/N) after the same alignment",
+    }
+    return _result("pose", method, dataset, settings, rows, errors, std=True)
+
+
+EVALUATORS = {"depth": evaluate_depth, "flow": evaluate_flow, "pose": evaluate_pose}
+
+
+# ----------------------------------------------------------------------------- model adapters
+def _needs_K(fn):
+    fn.needs_intrinsics = True
+    return fn
+
+
+def refuse_random_init(predictor) -> None:
+    if predictor.manifest.random_init:
+        raise InputError(
+            predictor.model_dir,
+            "this model directory holds random-init (timing-only) graphs",
+            "accuracy needs graphs exported from a trained --checkpoint",
+        )
+
+
+def model_depth_fn(predictor, allow_random_init: bool = False) -> Callable:
+    """Depth of a :class:`~geonet_infer.predictor.Predictor` at the input resolution.
+    ``allow_random_init`` (every adapter): score random weights (development cards only)."""
+    if not allow_random_init:
+        refuse_random_init(predictor)
+    return lambda rgb: predictor.depth(rgb).depth
+
+
+def model_flow_fn(predictor, allow_random_init: bool = False) -> Callable:
+    """Full flow t -> t+1; a 3-frame model gets [t-1, t, t+1] when the item has it, any other
+    case the pair [t, t+1] (the runtime pads it as at a video start)."""
+    if not allow_random_init:
+        refuse_random_init(predictor)
+
+    def predict(frames, K):
+        if len(frames) == predictor.seq_length:
+            return predictor.flow(list(frames), K).flow
+        return predictor.flow(list(frames[-2:]), K).flow
+
+    return _needs_K(predict)
+
+
+def snippet_from_pose_calls(pose_fn: Callable, frames: list, seq_length: int) -> np.ndarray:
+    """5-frame snippet poses (first-frame coordinates) from a PoseNet taking ``seq_length`` frames.
+
+    ``pose_fn(frames) -> (L-1, 4, 4)`` target->source transforms (target in the middle).
+    L = 5: one call, the paper's protocol. L = 3: the triplets [0, 1, 2] and [2, 3, 4], chained
+    through frame 2: G1 = T(1->0), G2 = G1 T(1->2)^-1, G3 = G2 T(3->2), G4 = G3 T(3->4)^-1.
+    """
+    if seq_length == SNIPPET:
+        return metrics.snippet_poses_to_global(pose_fn(frames), target_index=SNIPPET // 2)
+    if seq_length != 3:
+        raise InputError(
+            None,
+            f"pose snippets need a PoseNet of 3 or 5 frames, this one takes {seq_length}",
+            "export the model with --seq-length 3 or 5",
+        )
+    (T10, T12), (T32, T34) = pose_fn(frames[0:3]), pose_fn(frames[2:5])
+    G1 = np.asarray(T10, np.float64)
+    G2 = G1 @ metrics.rigid_inverse(T12)
+    G3 = G2 @ np.asarray(T32, np.float64)
+    return np.stack([np.eye(4), G1, G2, G3, G3 @ metrics.rigid_inverse(T34)])
+
+
+def model_pose_fn(predictor, allow_random_init: bool = False) -> Callable:
+    """Snippet poses from the runtime's PoseNet (:func:`snippet_from_pose_calls`)."""
+    if not allow_random_init:
+        refuse_random_init(predictor)
+    return lambda frames, K: snippet_from_pose_calls(
+        lambda f: predictor.pose(list(f)).matrices, frames, predictor.seq_length
+    )
+
+
+def model_fn(task: str, predictor, allow_random_init: bool = False) -> Callable:
+    adapter = {"depth": model_depth_fn, "flow": model_flow_fn, "pose": model_pose_fn}[task]
+    return adapter(predictor, allow_random_init)
+
+
+# ----------------------------------------------------------------------------- baselines
+def baseline_fns(task: str, method: str) -> dict[str, Callable]:
+    """{row label: fn} of a baseline ``method`` ("dis" gives both DIS presets)."""
+    from geonet_infer.eval import baselines as b
+
+    table = {
+        "depth": {"constant": {"constant depth": b.constant_depth}},
+        "flow": {
+            "zero": {"zero flow": b.zero_flow},
+            "dis": {"DIS medium": b.dis_flow("medium"), "DIS ultrafast": b.dis_flow("ultrafast")},
+            "dis-medium": {"DIS medium": b.dis_flow("medium")},
+            "dis-ultrafast": {"DIS ultrafast": b.dis_flow("ultrafast")},
+        },
+        "pose": {"identity": {"identity pose": b.identity_pose}, "orb-vo": {"ORB-VO": _needs_K(b.orb_vo)}},
+    }[task]
+    if method not in table:
+        raise InputError(None, f"no {task} method {method!r}", f"{task} methods: model, {', '.join(table)}")
+    return table[method]
+
+
+BASELINES = {
+    "depth": ("constant",),
+    "flow": ("dis", "dis-medium", "dis-ultrafast", "zero"),
+    "pose": ("orb-vo", "identity"),
+}
+
+
+# ----------------------------------------------------------------------------- output
+def _fmt(value, fmt: str) -> str:
+    if value is None:
+        return "–"
+    return "nan" if not math.isfinite(value) else fmt.format(value)
+
+
+def table_rows(result: dict, label: str, data_label: str | None = None) -> list[str]:
+    """One markdown row per result: label, data, the paper's columns (mean ± std for pose), count."""
+    task = result["task"]
+    cells = [label, data_label or result["data"]["description"]]
+    for _, key, fmt in COLUMNS[task]:
+        cell = _fmt(result["metrics"].get(key), fmt)
+        if "std" in result:
+            cell += " ± " + _fmt(result["std"].get(key), fmt)
+        cells.append(cell)
+    failed = len(result.get("ground_fit_failed", []))
+    cells.append(str(result["metrics"]["count"]) + (f" (+{failed} not scored: no ground plane)" if failed else ""))
+    return ["| " + " | ".join(cells) + " |"]
+
+
+def table_header(task: str) -> list[str]:
+    headers = ["method", "data"] + [h for h, _, _ in COLUMNS[task]] + [COUNT_LABEL[task]]
+    return ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+
+
+def format_table(labelled: list[tuple[str, dict]]) -> str:
+    """A markdown table of ``[(label, result), ...]`` of one task."""
+    task = labelled[0][1]["task"]
+    lines = table_header(task)
+    for label, result in labelled:
+        lines += table_rows(result, label)
+    return "\n".join(lines)
+
+
+def _json_safe(obj):
+    """NaN / inf -> None (strict JSON); the ``errors`` list of a result says which item was not finite."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return _json_safe(obj.item())
+    if isinstance(obj, np.ndarray):
+        return _json_safe(obj.tolist())
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json(path, payload) -> None:
+    text = json.dumps(_json_safe(payload), indent=2, allow_nan=False)
+    with atomic_write(Path(path)) as tmp:
+        tmp.write_text(text + "\n")
