@@ -27,12 +27,13 @@ import torch
 from export import manifest as mf
 from export import quantize as qz
 from export.int8_arith import int8_kernels
+from export.source import Source, check_graph_size
 from export.to_onnx import OPSET, ExportCheckError, export_graph
 from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_inputs, io_spec, photometric_alpha
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
-from geonet_infer.manifest import PRECISIONS, SIZE_MULTIPLE, load_manifest, write_manifest
+from geonet_infer.manifest import PRECISIONS, load_manifest, write_manifest
 from training.checkpoint import load_weights, model_from_checkpoint, trained_by
 from training.config import ARCHS
 
@@ -80,23 +81,6 @@ class ExportConfig:
             max_frames=self.calib_frames,
             op_types=self.int8_ops,
         )
-
-
-@dataclass
-class Source:
-    """The model to export and where it came from."""
-
-    model: object  # training.model.GeoNet, eval mode
-    arch: str
-    height: int
-    width: int
-    seq_length: int
-    random_init: bool
-    checkpoint: Path | None = None
-    ckpt: dict | None = None
-    graphs: list | None = None  # from_tf: the graphs its checkpoints can give (overrides cfg.graphs)
-    sources: list | None = None  # from_tf: provenance record of each TF checkpoint
-    official: dict | None = None  # from_tf: the official code's conventions (manifest conventions.official_tf)
 
 
 # ------------------------------------------------------------------------------ checks
@@ -239,17 +223,6 @@ def load_source(cfg: ExportConfig, graphs: list[str]) -> Source:
         src = _random_source(cfg, graphs) if cfg.random_init else _checkpoint_source(cfg, graphs)
     check_graph_size(src.height, src.width)
     return src
-
-
-def check_graph_size(height: int, width: int) -> None:
-    """GeoNetError unless both sides are positive multiples of ``SIZE_MULTIPLE`` (DepthNet and
-    ResFlowNet need them; the runtime refuses other manifests too)."""
-    if height % SIZE_MULTIPLE or width % SIZE_MULTIPLE or height <= 0 or width <= 0:
-        raise InputError(
-            None,
-            f"graph size {height}x{width} is not a positive multiple of {SIZE_MULTIPLE}",
-            f"pass --height/--width divisible by {SIZE_MULTIPLE} (GeoNet and its released models use 128x416)",
-        )
 
 
 # ------------------------------------------------------------------------------ directory

@@ -459,12 +459,12 @@ def official_conventions(chosen: dict, scale_normalize: bool) -> dict:
 
 
 def tf_source(cfg, requested: list[str], log=print):
-    """``export.build.Source`` for ``cfg.from_tf`` (called by :func:`export.build.export_model`).
+    """``export.source.Source`` for ``cfg.from_tf`` (called by :func:`export.build.export_model`).
 
     Graphs: those the checkpoints' nets give (depthnet, posenet, resflownet) plus the weightless
     rigidflow.onnx; ``--graphs`` narrows that set and must not ask for a net the checkpoints lack.
     """
-    from export.build import Source, check_graph_size
+    from export.source import Source, check_graph_size
     from export.wrappers import GRAPH_NAMES
     from training.model import GeoNet
 
