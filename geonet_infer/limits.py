@@ -1,7 +1,7 @@
 """The limits of every size or count a user sets, defined once and checked at every entrance.
 
 The CLI commands (predict, batch, bench), the Python API (:func:`geonet_infer.load`,
-:class:`~geonet_infer.predictor.Predictor`, :func:`~geonet_infer.pipeline.predict_to_dir`,
+:class:`~geonet_infer.predictor.Predictor`, :func:`~geonet_infer.output.predict.predict_to_dir`,
 :func:`~geonet_infer.batch.run_batch`), live sources and the colour scale all call the checks
 here, so a value refused at one door is refused at every other (issue 41). Pixel counts of
 frames are capped by :data:`geonet_infer.io.images.MAX_IMAGE_PIXELS` (checked by

@@ -7,6 +7,11 @@ Every path a run writes is checked after symlinks are resolved: it must not be o
 inputs, and must not be an existing file that no earlier run listed (a file the user made).
 A ``--video-out`` outside the folder is listed with its path and, once complete, its sha256: an
 identical re-run may replace that file while it is still the one the run wrote.
+
+One lock, too (:class:`PidLock`): a file created with O_EXCL that holds the writer's pid, removed at
+exit; a lock whose process is gone (killed) is taken over. ``predict`` locks its OUT, ``batch`` its
+job's OUT (each sequence's run inside it then writes under batch's lock: :class:`OwnedFolder`'s
+``claimed_by``).
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from geonet_infer.errors import InputError
-from geonet_infer.io.atomic import leftover_temps
+from geonet_infer.io.atomic import atomic_write, leftover_temps
 from geonet_infer.manifest import file_sha256
 
 
@@ -132,3 +137,141 @@ def not_written(path: Path) -> InputError:
         "exists, and predict does not overwrite files it did not write",
         "move it away or pick another name (or another --out)",
     )
+
+
+class PidLock:
+    """``path`` as the lock of one writer: created with O_EXCL and holding its pid, removed at exit.
+
+    A lock whose pid is alive refuses the second writer (InputError naming ``folder``: "``who`` is
+    writing into this folder"); one whose process is gone (killed) is taken over.
+    """
+
+    def __init__(self, path: Path, who: str, hint: str):
+        self.path, self.who, self.hint = Path(path), who, hint
+
+    def __enter__(self) -> PidLock:
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                pid = lock_pid(self.path)
+                if pid is None or alive(pid):
+                    who = f"{self.who} (pid {pid})" if pid else self.who
+                    raise InputError(
+                        self.path.parent,
+                        f"{who} is writing into this folder",
+                        f"{self.hint} (if none is running, delete {self.path})",
+                    ) from None
+                self.path.unlink(missing_ok=True)  # its process is gone (killed): a stale lock
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(f"{os.getpid()}\n")
+            return self
+        raise InputError(self.path.parent, f"{self.who} took this folder", self.hint)
+
+    def __exit__(self, *exc) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def lock_pid(lock: Path) -> int | None:
+    with contextlib.suppress(OSError, ValueError):
+        return int(lock.read_text().strip())
+    return None  # empty: its writer is between creating and filling it
+
+
+def alive(pid: int) -> bool:
+    if pid < 1:  # 0 and negative numbers name process groups, not a run
+        return False
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):  # Overflow: a number no pid reaches (an edited lock)
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+class OwnedFolder:
+    """OUT as the folder of one predict run: lock, ownership marker, removal of the previous run's files.
+
+    * Lock: ``lock`` (:class:`PidLock`) for the run's lifetime.
+    * Ownership: a non-empty OUT without ``marker`` is refused (its files are not ours).
+      With the marker, the files it lists (and temp files of an interrupted writer) are removed,
+      nothing else: files a user added to OUT stay. A file this run writes that exists and is not
+      listed, or that is an input, refuses the run before anything is removed.
+    * The marker is written before the first output and lists every file this run may write, so a
+      run that is killed still leaves a marker that covers all it wrote.
+    * ``claimed_by``: names of another owner's markers in OUT (batch's): that owner holds the lock and
+      vouches for OUT; its files are never touched.
+    """
+
+    def __init__(
+        self,
+        out_dir: Path,
+        files: set[str],
+        input_path,
+        *,
+        marker: str,
+        lock: str,
+        record: dict,
+        inputs: tuple[Path, ...] = (),
+        outside: Path | None = None,
+        claimed_by: tuple[str, ...] = (),
+    ):
+        self.out_dir, self.files, self.input = out_dir, set(files), str(input_path)
+        self.inputs, self.claimed_by, self.record = inputs, claimed_by, record
+        self.outside = None if outside is None else real(outside)  # the video, outside OUT
+        self.outside_sha256: str | None = None  # once it is complete
+        self.lock = PidLock(out_dir / lock, f"another {record['written_by']}", "wait for it or pick another --out")
+        self.marker = out_dir / marker
+
+    def __enter__(self) -> OwnedFolder:
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        if not self.claimed_by:
+            self.lock.__enter__()
+        try:
+            self._clear_previous_run()
+            self._write_marker()
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if not self.claimed_by:
+            self.lock.__exit__()
+
+    def add(self, files: set[str]) -> None:
+        """Record more files before writing them (a video that decodes more frames than it lists)."""
+        if not files <= self.files:
+            check_writes(self.out_dir, files - self.files, (), self.inputs)
+            self.files |= files
+            self._write_marker()
+
+    def video_written(self, path: Path) -> None:
+        """Record the digest of the finished video outside OUT: an identical re-run may replace it."""
+        if self.outside is not None and real(path) == self.outside:
+            self.outside_sha256 = file_sha256(path)
+            self._write_marker()
+
+    def _clear_previous_run(self) -> None:
+        others = [p for p in self.out_dir.iterdir() if p.name not in (self.lock.path.name, *self.claimed_by)]
+        previous: dict = {"files": [], "outside": []}
+        if self.marker.is_file():
+            previous = read_marker(self.marker)
+        elif others and not (set(self.claimed_by) & {p.name for p in self.out_dir.iterdir()}):
+            raise InputError(
+                self.out_dir,
+                f"this folder is not empty and was not written by {self.record['written_by']}",
+                "pick another --out (predict never overwrites files it did not write)",
+            )
+        check_writes(self.out_dir, self.files, previous["files"], self.inputs, self.outside, previous["outside"])
+        remove_listed(self.out_dir, previous["files"])
+        remove_outside_temps(previous["outside"])
+
+    def _write_marker(self) -> None:
+        marker: dict[str, object] = {**self.record, "input": self.input}
+        marker["files"] = sorted(self.files)
+        marker["outside"] = [] if self.outside is None else [{"path": str(self.outside), "sha256": self.outside_sha256}]
+        with atomic_write(self.marker) as tmp:
+            tmp.write_text(json.dumps(marker) + "\n")

@@ -24,7 +24,7 @@ import pytest
 import geonet_infer
 from geonet_infer.batch import FAILURES_NAME, MARKER_NAME, OWNER_NAME, plan_units, plan_workers
 from geonet_infer.cli import main
-from geonet_infer.pipeline import OUTPUT_MARKER
+from geonet_infer.output.layout import OUTPUT_MARKER
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 SAMPLE = PKG / "samples" / "synth_seq"

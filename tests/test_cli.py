@@ -22,7 +22,7 @@ import geonet_infer
 from geonet_infer import GeoNetError
 from geonet_infer.cli import main
 from geonet_infer.io import read_camera, read_flow_kitti, read_kitti_poses, read_tum_poses
-from geonet_infer.pipeline import OUTPUT_MARKER, output_path
+from geonet_infer.output.layout import OUTPUT_MARKER, output_path
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 SAMPLE = PKG / "samples" / "synth_seq"

@@ -105,7 +105,8 @@ def _no_graphs(*args, **kwargs):
 def test_api_doors_refuse_sizes_over_their_limits(tmp_path, monkeypatch, predictor):
     from geonet_infer.batch import run_batch
     from geonet_infer.io.frames import open_frames
-    from geonet_infer.pipeline import OutputOptions, predict_to_dir
+    from geonet_infer.output.options import OutputOptions
+    from geonet_infer.output.predict import predict_to_dir
 
     frame = np.zeros((32, 64, 3), np.uint8)
     with monkeypatch.context() as patch:  # 5000 threads took 100 s to load
@@ -137,7 +138,7 @@ def test_source_frames_over_the_pixel_cap_are_refused(tmp_path, capfd, monkeypat
 
 def test_first_n_of_huge_frames_fixes_the_scale_within_the_held_pixel_budget(tmp_path, capfd, monkeypatch):
     # The sample frames are 416x128 = 53,248 pixels: a budget of 2.5 frames fixes first:8 after 3.
-    monkeypatch.setattr("geonet_infer.pipeline.MAX_HELD_PIXELS", 133_000)
+    monkeypatch.setattr("geonet_infer.output.predict.MAX_HELD_PIXELS", 133_000)
     folder = sample_folder(tmp_path, 10)
     out = tmp_path / "out"
     rc, _, stderr = run_cli(capfd, "predict", folder, "--out", out, "--colour-scale", "first:8", *DEPTH)

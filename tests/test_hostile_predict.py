@@ -156,7 +156,7 @@ def test_video_over_the_pixel_cap_is_refused(tmp_path, monkeypatch):
 @pytest.mark.parametrize("flag", ["--threads", "--batch-size"])
 def test_threads_and_batch_size_have_limits(tmp_path, capsys, flag):
     from geonet_infer.engines import usable_cpus
-    from geonet_infer.pipeline import MAX_BATCH_SIZE
+    from geonet_infer.limits import MAX_BATCH_SIZE
 
     folder = sample_folder(tmp_path, 3)
     out = tmp_path / "out"

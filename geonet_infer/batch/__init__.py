@@ -1,7 +1,7 @@
 """Batch inference: many sequences, one output folder, a runner: a local process pool or Ray Data.
 
 ``geonet-infer batch`` is a thin CLI over :func:`run_batch`. Every sequence goes through
-:func:`geonet_infer.pipeline.predict_to_dir`, so ``OUT/<sequence>/`` has exactly the layout
+:func:`geonet_infer.output.predict.predict_to_dir`, so ``OUT/<sequence>/`` has exactly the layout
 of ``geonet-infer predict``; next to the sequences::
 
     OUT/.geonet-batch            ownership marker: batch made this folder (also in each OUT/<sequence>/)
@@ -11,7 +11,8 @@ of ``geonet-infer predict``; next to the sequences::
     OUT/failures.jsonl           one JSON object a line: {"sequence", "input", "frame" (or null), "reason"}
     OUT/summary.json             sequences done/failed/skipped, frames, frames/s, runner, workers, threads;
                                  per sequence its output check (summed up; per pair in its own summary.json)
-    OUT/.lock                    held while a job runs (a second job on the same OUT stops with exit 2)
+    OUT/.lock                    the running job's pid (a second job on the same OUT stops with exit 2; one
+                                 left by a killed job is taken over), removed when the job ends
 
 Nothing is lost: batch only writes into a folder it made (or an empty one), refuses an OUT
 that is, holds or is inside an input, and only ever deletes a sequence folder carrying its

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from geonet_infer import __version__
+from geonet_infer import __version__, ownership
 from geonet_infer.batch.local import LocalRunner
 from geonet_infer.batch.ray import RayRunner
 from geonet_infer.batch.units import (
@@ -42,7 +42,7 @@ from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
 from geonet_infer.limits import check_batch_size
-from geonet_infer.pipeline import SUMMARY_NAME
+from geonet_infer.output.layout import SUMMARY_NAME
 from geonet_infer.predictor import TASKS, describe_skipped, resolve_tasks
 
 # ----------------------------------------------------------------------------- the job
@@ -66,25 +66,11 @@ class _NoRunner:
         pass
 
 
-@contextlib.contextmanager
-def _job_lock(out_dir: Path):
-    """An exclusive lock on OUT/.lock for the job's lifetime (released by the OS if the job dies)."""
-    try:
-        import fcntl
-    except ImportError:  # Windows: no lock
-        yield
-        return
-    fd = os.open(out_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise InputError(
-                out_dir, "another batch job is writing to this folder", "wait for it to finish, or pass another --out"
-            ) from None
-        yield
-    finally:
-        os.close(fd)
+def _job_lock(out_dir: Path) -> ownership.PidLock:
+    """OUT/.lock for the job's lifetime: the lock predict takes on its OUT (one rule, :mod:`geonet_infer.ownership`)."""
+    return ownership.PidLock(
+        out_dir / LOCK_NAME, "another geonet-infer batch job", "wait for it to finish, or pass another --out"
+    )
 
 
 def _write_failures(path: Path, records: list[dict]) -> None:

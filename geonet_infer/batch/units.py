@@ -20,7 +20,9 @@ from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
 from geonet_infer.manifest import file_sha256
-from geonet_infer.pipeline import OUTPUT_MARKER, SUMMARY_NAME, TASKS, predict_to_dir
+from geonet_infer.output.layout import OUTPUT_MARKER, SUMMARY_NAME
+from geonet_infer.output.predict import predict_to_dir
+from geonet_infer.predictor import TASKS
 
 MARKER_NAME = ".done"
 OWNER_NAME = ".geonet-batch"

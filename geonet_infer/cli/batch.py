@@ -30,7 +30,9 @@ from geonet_infer.errors import InputError
 from geonet_infer.limits import MAX_BATCH_SIZE
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
-from geonet_infer.pipeline import SUMMARY_NAME, TASKS, parse_tasks
+from geonet_infer.output.layout import SUMMARY_NAME
+from geonet_infer.output.predict import parse_tasks
+from geonet_infer.predictor import TASKS
 
 HELP = f"""\
 Predict depth, optical flow and camera poses for many sequences.

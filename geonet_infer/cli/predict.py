@@ -29,19 +29,12 @@ from geonet_infer.limits import (
     MAX_WORLD_POINTS,
     check_batch_size,
 )
-from geonet_infer.pipeline import (
-    DEFAULT_COLOUR_SCALE,
-    FOLDER_FPS,
-    POINT_CLOUDS,
-    SUMMARY_NAME,
-    TASKS,
-    VIDEO_CODECS,
-    WORLD_CLOUD_NAME,
-    OutputOptions,
-    parse_tasks,
-    predict_to_dir,
-)
-from geonet_infer.predictor import describe_skipped
+from geonet_infer.output import layout
+from geonet_infer.output.layout import SUMMARY_NAME, WORLD_CLOUD_NAME
+from geonet_infer.output.options import DEFAULT_COLOUR_SCALE, POINT_CLOUDS, OutputOptions
+from geonet_infer.output.predict import parse_tasks, predict_to_dir
+from geonet_infer.output.video import FOLDER_FPS, VIDEO_CODECS
+from geonet_infer.predictor import TASKS, describe_skipped
 from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
 
 HELP = """\
@@ -56,17 +49,7 @@ Outputs in --out (written atomically; a bad frame is recorded in summary.json an
 run wrote are replaced (files you added stay, and a run that would write over one of them or
 over its own input is refused); any other folder is refused, and so is a folder another
 predict is writing into. Ctrl-C or SIGTERM stops with summary.json marked interrupted:
-  depth/<frame>.npy      float32 depth at the input resolution (relative scale; metres
-                         with --camera-height)
-  depth/<frame>.png      colour map (near = bright)
-  flow/<frame>.png       KITTI 16-bit flow PNG, frame -> next frame
-  flow_vis/<frame>.png   flow colour wheel
-  poses_kitti.txt        3x4 camera-to-world per frame (first frame = identity)
-  poses_tum.txt          time tx ty tz qx qy qz qw per frame
-  summary.json           counts, failures, per-stage timings, model, camera, the method behind
-                         each output (--flow-method, --pose-method), per-frame metric scales, and
-                         the output check: per pair of frames, does the flow (and the rigid flow
-                         from depth and pose) explain the next frame better than no motion at all?
+{layout}
 
 examples:
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti
@@ -83,7 +66,7 @@ def add_parser(sub) -> None:
     parser = sub.add_parser(
         "predict",
         help=COMMANDS["predict"],
-        description=HELP,
+        description=HELP.format(layout=layout.describe(width=96)),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(

@@ -1,0 +1,393 @@
+"""Run the predictor over one frame source and write the standard output layout.
+
+``geonet-infer predict`` is a thin CLI over :func:`predict_to_dir`; batch jobs reuse it so every
+sequence gets the same layout (:mod:`geonet_infer.output.layout`, one entry per file).
+
+Every file is written under a temporary name and renamed, so a reader never sees a
+half-written file. A frame that cannot be read, has another size than most of the first
+frames, or for which the model gives NaN/inf is recorded in the summary and skipped; the
+sequence goes on with the next frame. ``exclusive=True`` (the ``predict`` command) also makes
+OUT a folder of one run (:class:`geonet_infer.ownership.OwnedFolder`): a marker
+``OUT/.geonet-predict`` lists the files the run may write, a lock file keeps a second run out,
+and the next run removes exactly the listed files of the previous one before writing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+import os
+import platform
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from geonet_infer import __version__, ownership
+from geonet_infer.cascade import camera_at
+from geonet_infer.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
+from geonet_infer.classical import check_methods, classical_tasks
+from geonet_infer.classical import describe as describe_methods
+from geonet_infer.cpu import isa_line
+from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.io.atomic import atomic_write
+from geonet_infer.io.calib import Camera, write_kitti_camera
+from geonet_infer.io.frames import FrameSource
+from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
+from geonet_infer.limits import MAX_HELD_PIXELS, check_batch_size
+from geonet_infer.manifest import model_notice
+from geonet_infer.output.clouds import WorldCloud, as_predicted
+from geonet_infer.output.frames import GoodFrames, unusable
+from geonet_infer.output.layout import (
+    CAMERA_NAME,
+    OUTPUT_LOCK,
+    OUTPUT_MARKER,
+    POSE_FILES,
+    SUMMARY_NAME,
+    WORLD_CLOUD_NAME,
+    frame_files,
+    listed_outputs,
+    run_files,
+)
+from geonet_infer.output.options import OutputOptions
+from geonet_infer.output.video import FOLDER_FPS, VideoOut
+from geonet_infer.output.writer import FrameWriter, Written
+from geonet_infer.predictor import TASKS, Predictor
+from geonet_infer.results import FrameResult
+from geonet_infer.scale import SCALE_HALF_WINDOW, check_metric_request, metric_scale_summary
+from geonet_infer.viz import SteadyScale
+
+
+def parse_tasks(text: str) -> tuple[str, ...]:
+    tasks = tuple(t.strip() for t in text.split(",") if t.strip())
+    unknown = [t for t in tasks if t not in TASKS]
+    if unknown or not tasks:
+        raise InputError(None, f"unknown task(s) {unknown or text!r}", f"choose from {','.join(TASKS)}")
+    return tasks
+
+
+def predict_to_dir(
+    predictor: Predictor,
+    source: FrameSource,
+    out_dir: str | Path,
+    camera: Camera | None = None,
+    tasks: tuple[str, ...] | None = TASKS,
+    batch_size: int = 4,
+    progress: bool = True,
+    camera_height: float | None = None,
+    vis: bool = True,
+    exclusive: bool = False,
+    extra_outputs: tuple[str, ...] = (),
+    options: OutputOptions = OutputOptions(),
+    max_frames: int | None = None,
+    check: bool = True,
+    flow_method: str = "network",
+    pose_method: str = "network",
+    scale_smoothing: int = SCALE_HALF_WINDOW,
+    claimed_by: tuple[str, ...] = (),
+) -> dict:
+    """Predict every frame of ``source`` into ``out_dir`` (the files of :mod:`geonet_infer.output.layout`).
+
+    Args:
+        predictor: a loaded :class:`~geonet_infer.predictor.Predictor`.
+        source: frames from :func:`geonet_infer.io.frames.open_frames`.
+        camera: intrinsics (and distortion) of the frames; required for "flow".
+        tasks: any of "depth", "pose", "flow" (each needs its graphs, else GeoNetError before
+            anything is written); None: all the model can do, the others in ``skipped_tasks``.
+        camera_height: metres above a flat road: metric depth and pose translations
+            (:mod:`geonet_infer.scale`; needs ``camera``).
+        vis: also write the depth colour maps and flow colour wheels (PNG encoding of
+            pictures is most of the write time; fleets that only need the data skip it).
+        exclusive: own ``out_dir`` for this run (:class:`geonet_infer.ownership.OwnedFolder`): refuse a non-empty folder
+            predict did not write or one another predict is writing, remove the previous run's files.
+        extra_outputs: more files (relative to ``out_dir``) the caller writes there, recorded as
+            this run's (``exclusive`` only).
+        options: point clouds, the colour scale of the pictures, a result video (:class:`OutputOptions`).
+        max_frames: stop after this many good frames (live sources).
+        check: check each flow against the frames (``summary["check"]``, :mod:`geonet_infer.check`).
+        flow_method, pose_method: "network", or "dis" / "orbvo" (:mod:`geonet_infer.classical`).
+        scale_smoothing: frames each side over which the camera-height scale is smoothed (0: none).
+        claimed_by: (``exclusive``) the marker names of a caller that owns ``out_dir`` and locks it
+            (batch): then no pid lock, and those files are never touched.
+    Returns:
+        The summary (also written to ``out_dir/summary.json``); ``summary["failed"]`` counts bad
+        frames (unreadable, odd size, NaN/inf output, or missing from a truncated video).
+    Raises:
+        GeoNetError for unusable input (no intrinsics for flow, fewer than 2 good frames
+        for pose/flow, no readable frame at all, intrinsics that do not fit the frames' size).
+        KeyboardInterrupt (Ctrl-C, or SIGTERM where the caller maps it) after writing a summary
+        with ``"interrupted": true`` for the frames written so far; no temp file is left.
+    """
+    out_dir = Path(out_dir)
+    check_batch_size(batch_size)
+    check_methods(flow_method, pose_method)
+    tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
+        tasks, metric=camera_height is not None, classical=classical_tasks(tasks or TASKS, flow_method, pose_method)
+    )
+    if "flow" in tasks and flow_method == "network" and camera is None:
+        raise InputError(
+            source.path,
+            "flow needs camera intrinsics and none were found",
+            "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
+        )
+    if "pose" in tasks and pose_method == "orbvo" and camera is None:
+        raise InputError(
+            source.path, "ORB-VO poses need camera intrinsics and none were found", "pass --calib FILE or --intrinsics"
+        )
+    if camera_height is not None:
+        check_metric_request(camera_height, camera, source.path)
+    if options.point_cloud and ("depth" not in tasks or camera is None):
+        raise InputError(
+            source.path,
+            "point clouds need depth and the camera intrinsics",
+            "pass --calib FILE or --intrinsics FX,FY,CX,CY, and keep depth in --tasks",
+        )
+    if options.point_cloud == "world" and "pose" not in tasks:
+        raise InputError(
+            source.path, "a world point cloud needs poses", "keep pose in --tasks, or use --point-cloud camera"
+        )
+    video = None if options.video_out is None else Path(options.video_out)
+    video_in_out = video is not None and ownership.inside(video, out_dir)  # symlinks resolved
+    if video is not None and not exclusive and video.exists():
+        raise ownership.not_written(video)
+    run = functools.partial(
+        _predict,
+        predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis,
+        skipped_tasks=skipped_tasks, options=options, max_frames=max_frames, check=check,
+        methods=(flow_method, pose_method, scale_smoothing),
+    )  # fmt: skip
+    if not exclusive:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        return run(owned=None)
+    names = source.frame_names if source.frame_names is not None else [f"{i:06d}" for i in range(len(source))]
+    files = run_files(tasks, options.point_cloud, camera is not None) | set(extra_outputs)
+    if video is not None and video_in_out:
+        files.add(os.path.relpath(ownership.real(video), ownership.real(out_dir)))
+    files |= set().union(*(frame_files(name, tasks, vis, options.point_cloud) for name in names))
+    inputs = tuple(getattr(source, "files", None) or ([Path(source.path)] if source.kind == "video" else []))
+    outside = video if video is not None and not video_in_out else None
+    owned = ownership.OwnedFolder(
+        out_dir,
+        files,
+        source.location,
+        marker=OUTPUT_MARKER,
+        lock=OUTPUT_LOCK,
+        record={"written_by": "geonet-infer predict", "version": __version__},
+        inputs=inputs,
+        outside=outside,
+        claimed_by=claimed_by,
+    )
+    with owned:
+        return run(owned=owned)
+
+
+def _predict(
+    predictor: Predictor,
+    source: FrameSource,
+    out_dir: Path,
+    camera: Camera | None,
+    tasks: tuple[str, ...],
+    batch_size: int,
+    progress: bool,
+    camera_height: float | None,
+    vis: bool,
+    *,
+    owned: ownership.OwnedFolder | None,
+    skipped_tasks: dict[str, tuple[str, ...]],
+    options: OutputOptions,
+    max_frames: int | None,
+    check: bool,
+    methods: tuple[str, str, int],
+) -> dict:
+    from tqdm import tqdm
+
+    started = time.perf_counter()
+    totals: dict[str, float] = defaultdict(float)
+    poses: list[np.ndarray] = []
+    done = 0
+    scales: dict[str, list] = {"frames": [], "raw": [], "smoothed": []}
+    checks: list[tuple[str, FrameCheck]] = []
+    interrupted = False
+
+    def check_camera(width: int, height: int) -> None:
+        if camera is not None:
+            camera.scaled_to(width, height).check_image_size(width, height, camera.source or None)
+
+    bar = tqdm(total=len(source) or None, unit="frame", desc=source.name, disable=not progress, leave=False)
+    keep = None
+    if options.point_cloud or options.video_out is not None:  # the pictures are needed after prediction
+        keep = functools.partial(as_predicted, camera)
+    frames = GoodFrames(source, bar, check_camera, max_frames, keep)
+    colours = SteadyScale(options.colour_scale)
+    waiting: list[FrameResult] = []  # predicted, waiting for the colour scale ("first:N")
+    world = WorldCloud(options) if options.point_cloud == "world" else None
+    video = None
+    if options.video_out is not None:
+        video = VideoOut(Path(options.video_out), options.video_fps or getattr(source, "fps", None) or FOLDER_FPS)
+
+    def record(result: FrameResult, rgb: np.ndarray | None, written: Written) -> None:
+        nonlocal done
+        totals["write"] += written.ms
+        if video is not None and rgb is not None:
+            video.write(rgb, written.pictures)
+        if world is not None and rgb is not None and written.points is not None:
+            world.add(result, *written.points)
+        poses.append(result.camera_to_world)
+        if result.metric_scale is not None:
+            scales["frames"].append(result.name)
+            scales["raw"].append(result.metric_scale_raw)
+            scales["smoothed"].append(result.metric_scale)
+        for stage, ms in result.timings_ms.items():
+            totals[stage] += ms
+        done += 1
+        bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
+
+    writer = FrameWriter(out_dir, tasks, vis, record, options, camera_height, pictures=vis or video is not None)
+
+    def emit(ready: list[FrameResult]) -> None:
+        scale = colours.scales()
+        while ready:
+            result = ready.pop(0)  # before it is handed on: an interrupt here never submits it twice
+            rgb = frames.kept.pop(result.index, None)
+            if owned is not None:
+                owned.add(frame_files(result.name, tasks, vis, options.point_cloud))
+            writer.submit(result, scale, rgb)
+
+    try:
+        results = predictor.iter_sequence(
+            frames,
+            camera,
+            batch_size=batch_size,
+            names=frames.names,
+            tasks=tasks,
+            camera_height=camera_height,
+            check=check,
+            flow_method=methods[0],
+            pose_method=methods[1],
+            scale_smoothing=methods[2],
+        )
+        for result in results:
+            bad = unusable(result, tasks)
+            if bad is not None:
+                frames.failures.append({"frame": result.name, "reason": f"model produced {bad}"})
+                frames.kept.pop(result.index, None)
+                continue
+            if result.check is not None:
+                checks.append((result.name, result.check))
+            colours.observe(result.depth if "depth" in tasks else None, result.flow if "flow" in tasks else None)
+            waiting.append(result)
+            if not colours.ready and len(waiting) * np.prod(frames.size or (0,)) > MAX_HELD_PIXELS:
+                colours.finish()  # "first:N" of huge frames: the scale from the frames memory holds
+            if colours.ready:
+                emit(waiting)
+        colours.finish()
+        emit(waiting)
+        writer.drain()
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: a summary of what was written, then stop
+        interrupted = True
+        with contextlib.suppress(KeyboardInterrupt):  # frames already predicted are finished
+            colours.finish()
+            emit(waiting)
+            writer.drain()
+    except GeoNetError as exc:
+        if done == 0 and frames.size is None:
+            raise InputError(
+                source.path, "no readable frame", "; ".join(f["reason"] for f in frames.failures[:3]) or str(exc)
+            ) from None
+        raise
+    finally:
+        writer.close()
+        bar.close()
+        if video is not None:
+            video.close(keep=done > 0 and sys.exc_info()[0] is None)
+    if owned is not None and video is not None and video.frames:
+        owned.video_written(video.path)
+    if world is not None:
+        world.write(out_dir / WORLD_CLOUD_NAME, camera_height)
+    if camera is not None and frames.size is not None:
+        height, width = frames.size
+        write_kitti_camera(out_dir / CAMERA_NAME, camera_at(camera, frames.size).K, width, height)
+    truncated = None if interrupted else getattr(source, "truncated", None)
+    if truncated:
+        reason = f"{source.location}: truncated: {truncated}"
+        frames.failures += [{"frame": name, "reason": reason} for name in getattr(source, "missing", ())]
+    totals["total"] += totals["write"]
+    if "pose" in tasks and poses:
+        fps = getattr(source, "fps", None)
+        stamps = np.arange(len(poses)) / fps if fps else np.arange(len(poses), dtype=np.float64)
+        write_kitti_poses(out_dir / POSE_FILES[0], np.stack(poses))
+        write_tum_poses(out_dir / POSE_FILES[1], stamps, np.stack(poses))
+    elapsed = time.perf_counter() - started
+    summary = {
+        "input": {
+            "path": source.location,
+            "kind": source.kind,
+            "name": source.name,
+            "fps": getattr(source, "fps", None),
+        },
+        "frames": done,
+        "failed": len(frames.failures),
+        "failures": frames.failures,
+        "gaps": [{"frame": k, "skipped_before": v} for k, v in frames.skipped_before.items()],
+        "interrupted": interrupted,
+        "truncated": truncated,
+        "tasks": list(tasks),
+        "skipped_tasks": {task: list(graphs) for task, graphs in skipped_tasks.items()},  # tasks=None only
+        "outputs": listed_outputs(tasks, vis, options.point_cloud, camera is not None),
+        "colour_scale": colours.describe() if vis or video is not None else None,
+        "point_cloud": None
+        if not options.point_cloud
+        else {
+            "mode": options.point_cloud,
+            "stride": options.point_stride,
+            "max_depth": options.max_depth,
+            "units": "metres" if camera_height is not None else "relative scale",
+        },
+        "video": None if video is None else {"path": str(options.video_out), "frames": video.frames, "fps": video.fps},
+        "model": {
+            "dir": str(predictor.model_dir),
+            "arch": predictor.manifest.arch,
+            "precision": predictor.precision,
+            "graphs": predictor.graph_set.runs,  # per graph: engine, precision and why
+            "isa": isa_line(),
+            "threads": predictor.threads,
+            "graph_size": [predictor.spec.height, predictor.spec.width],
+            "random_init": predictor.manifest.random_init,
+        },
+        "model_notice": model_notice(predictor.manifest),  # synthetic-only model: how it does on real video
+        "camera": None
+        if camera is None
+        else {
+            "K_input_resolution": (camera_at(camera, frames.size).K.tolist() if frames.size else camera.K.tolist()),
+            "dist": None if camera.dist is None else camera.dist.tolist(),
+            "source": camera.source,
+            "undistorted": camera.has_distortion,
+        },
+        "image_size": None if frames.size is None else [frames.size[1], frames.size[0]],
+        "methods": describe_methods(tasks, methods[0], methods[1]),
+        "metric_scale": None if camera_height is None else metric_scale_summary(camera_height, methods[2], scales),
+        "check": check_summary(checks, predictor) if check and "flow" in tasks else None,
+        "timings_ms_per_frame": {k: v / max(done, 1) for k, v in totals.items()},
+        "wall_s": elapsed,
+        "frames_per_s": done / elapsed if elapsed > 0 else None,
+        "versions": {"geonet_infer": __version__, "python": platform.python_version()},
+    }
+    with atomic_write(out_dir / SUMMARY_NAME) as tmp:
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+    if interrupted:
+        raise KeyboardInterrupt
+    return summary
+
+
+def check_summary(checks: list[tuple[str, FrameCheck]], predictor: Predictor) -> dict:
+    """summary.json's "check": the pairs summed up (:class:`SequenceCheck`), then each pair."""
+    return {
+        "method": METHOD,
+        "size": [predictor.spec.height, predictor.spec.width],
+        "agree_px": AGREE_PX,
+        **SequenceCheck.from_checks(c for _, c in checks).as_dict(),
+        "per_pair": [{"frame": name, **c.as_dict()} for name, c in checks],
+    }
