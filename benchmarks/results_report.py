@@ -510,7 +510,7 @@ def write_doc(path: Path, paper, results, synth_how, ckpt_note, seconds, worst, 
         *[f"- {n}" for n in notes_flow],
         "- No KITTI 2012/2015 flow ground truth is available in `../shared`: the KITTI-layout reader and "
         "`geonet-infer eval flow --method dis` are tested on Middlebury Grove3 written in the KITTI 2012 "
-        "layout (`tests/test_eval.py`), not on real KITTI pairs.",
+        "layout (`tests/runtime/eval/test_eval.py`), not on real KITTI pairs.",
         "",
         "Worst synthetic pair of the fp32 model (highest EPE All):",
         "",

@@ -71,7 +71,7 @@ PLANS = {
     ),
 }
 # Where the plan was measured: the fp32 input layer helped the small arch's trained ResFlowNet, and
-# made a random-weight resnet50 ResFlowNet drift far from the official forward (tests/test_from_tf.py);
+# made a random-weight resnet50 ResFlowNet drift far from the official forward (tests/export/test_from_tf.py);
 # no trained resnet50 weights are here to judge, so that arch keeps its input layer quantised.
 INPUT_LAYER_ARCHS = ("small",)
 

@@ -6,7 +6,7 @@ functions on one snippet at a time (shapes in each docstring); :class:`RigidFlow
 with the graph's inputs and outputs, so the cascade calls it exactly like the graph.
 Conventions: :mod:`geonet_infer.conventions` (pose ``R = Rx @ Ry @ Rz`` target -> source, pixel
 grid at pixel centres, corner-aligned bilinear sampling with zero padding). Agreement with the
-graph is tested to 1e-4 px (tests/test_rigid_op.py); the graph stays the reference
+graph is tested to 1e-4 px (tests/runtime/core/test_rigid_op.py); the graph stays the reference
 (``rigid_op="graph"``, the default).
 """
 

@@ -18,11 +18,13 @@ PY=${PYTHON:-python3}
 # three times, each at a different, unrelated test late in the run (a native thread left by an earlier test,
 # we think; cause not found), while each file passes on its own. Any failing file fails the run.
 if [ $# -eq 0 ]; then
+    shopt -s globstar  # tests/ mirrors the package: tests/runtime/<layer>/, tests/training/, tests/export/ ...
     failed=()
-    for f in tests/test_*.py; do
+    files=(tests/**/test_*.py)
+    for f in "${files[@]}"; do
         .venv/bin/python -m pytest -q -p no:cacheprovider "$f" || failed+=("$f")
     done
-    n=$(ls tests/test_*.py | wc -l)
+    n=${#files[@]}
     echo "scripts/test.sh: $((n - ${#failed[@]})) of $n test files passed${failed[*]:+; failed: ${failed[*]}}"
     [ ${#failed[@]} -eq 0 ]
     exit

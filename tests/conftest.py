@@ -9,9 +9,19 @@ there the data is expected, and a silent skip would hide that nothing was tested
 from __future__ import annotations
 
 import os
+import sys
+import types
 from pathlib import Path
 
 import pytest
+
+# Test files share helpers as `from tests.runtime.batch.test_batch import ...`. The development run
+# has the repository root on sys.path; the runtime-only run (scripts/test_runtime.sh) must not (it
+# tests the installed package), so `tests` is made importable here by its folder alone.
+if "tests" not in sys.modules:
+    _tests = types.ModuleType("tests")
+    _tests.__path__ = [str(Path(__file__).resolve().parent)]
+    sys.modules["tests"] = _tests
 
 REALDATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"  # one KITTI raw drive: image_02, Velodyne scans, calibration

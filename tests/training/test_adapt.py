@@ -19,7 +19,7 @@ import geonet_infer
 from geonet_infer.io import list_images, read_camera
 from training.checkpoint import load_checkpoint, load_weights
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.slow

@@ -16,7 +16,7 @@ import geonet_infer
 from geonet_infer.models import DEFAULT_MODEL, bundled_models
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.skipif(
     os.environ.get("GEONET_RUNTIME_ONLY") != "1", reason="runs in the runtime-only venv of scripts/test_runtime.sh"
 )

@@ -14,7 +14,7 @@ from geonet_infer.eval.velodyne import (
     velodyne_to_image_matrix,
 )
 
-DATA = (Path(__file__).resolve().parent / ".." / ".." / "shared" / "realdata" / "kitti_raw_2011_09_26_sfnd").resolve()
+DATA = (Path(__file__).resolve().parents[4] / "shared" / "realdata" / "kitti_raw_2011_09_26_sfnd").resolve()
 VELO0 = DATA / "velodyne_points" / "data" / "0000000000.bin"
 IMAGE0 = DATA / "image_02" / "data" / "0000000000.png"
 

@@ -25,7 +25,7 @@ from geonet_infer.io.flow import read_flow_kitti
 from geonet_infer.io.images import list_images, read_image
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 
-DOCS = Path(__file__).resolve().parents[1] / "docs"
+DOCS = Path(__file__).resolve().parents[3] / "docs"
 
 
 def test_dis_flow_in_predict_scores_the_evals_dis_epe_on_kitti_2015(kitti2015_flow, tmp_path, capsys):

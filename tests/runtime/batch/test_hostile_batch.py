@@ -23,7 +23,7 @@ from geonet_infer.batch import MARKER_NAME
 from geonet_infer.batch import local as batch_local
 from geonet_infer.batch import run as batch_run
 from geonet_infer.manifest import load_manifest
-from tests.test_batch import CLI, FRAMES, SAMPLE_CALIB, _wait_for, cli, make_sequences, require_ray
+from tests.runtime.batch.test_batch import CLI, FRAMES, SAMPLE_CALIB, _wait_for, cli, make_sequences, require_ray
 
 DEPTH = ["--tasks", "depth", "--no-progress", "--no-vis"]
 OWNER_NAME = ".geonet-batch"  # the ownership marker batch writes in each folder it makes

@@ -22,7 +22,7 @@ from geonet_infer.io import read_flow_kitti, write_calib_K, write_depth_kitti, w
 from training import prepare as P
 from training import synth
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def calib_values(path: Path, key: str) -> np.ndarray:

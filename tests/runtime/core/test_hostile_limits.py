@@ -25,8 +25,8 @@ import geonet_infer
 from geonet_infer import GeoNetError
 from geonet_infer.cli import main
 from geonet_infer.predictor import Predictor
-from tests.test_hostile_model import _synth_pose_sequence, edit_manifest, model_copy
-from tests.test_hostile_predict import (
+from tests.runtime.core.test_hostile_model import _synth_pose_sequence, edit_manifest, model_copy
+from tests.runtime.output.test_hostile_predict import (
     REPO,
     SAMPLE_CALIB,
     SAMPLE_FRAMES,

@@ -21,8 +21,8 @@ from pathlib import Path
 import cv2
 import pytest
 
-from tests.test_batch import CLI, make_sequences
-from tests.test_hostile_predict import REPO, error_lines, run_cli, sample_folder, summary_of, write_video
+from tests.runtime.batch.test_batch import CLI, make_sequences
+from tests.runtime.output.test_hostile_predict import REPO, error_lines, run_cli, sample_folder, summary_of, write_video
 
 DEPTH = ["--tasks", "depth", "--no-progress", "--quiet"]
 
@@ -134,7 +134,7 @@ def test_a_run_never_writes_or_removes_its_own_input(tmp_path, capsys, case):
 def test_batch_keeps_files_it_did_not_make_in_its_sequence_folders(tmp_path, capfd, how):
     """Case 4: files and folders the user put into batch's sequence folders survive a re-run, and a resume
     that redoes the sequence; batch removes exactly the files it listed."""
-    from tests.test_batch import cli
+    from tests.runtime.batch.test_batch import cli
 
     seqs = make_sequences(tmp_path / "in", ["seqA", "seqB"], 3)
     out = tmp_path / "out"

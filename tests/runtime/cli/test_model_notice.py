@@ -22,9 +22,9 @@ import geonet_infer
 from geonet_infer.cli import demo as demo_cli
 from geonet_infer.cli import main
 from geonet_infer.manifest import MANIFEST_NAME, file_sha256
-from tests.test_cli import sample_folder
+from tests.runtime.cli.test_cli import sample_folder
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 PKG = Path(geonet_infer.__file__).resolve().parent
 MODEL_DIR = PKG / "models" / "small_synth"
 CARD_JSON = ROOT / "docs" / "models.json"

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 MISSING = "no_such_input"  # a path under tmp_path that is never created
 
 # (module, argv with {missing} / {out} / {file} placeholders, the item the message must name)

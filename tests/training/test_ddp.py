@@ -27,7 +27,7 @@ from training.checkpoint import build_model, load_checkpoint
 from training.config import TrainConfig
 from training.train import seed_everything, train
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 H, W = 32, 96
 COMMON = dict(
     arch="small", height=H, width=W, num_workers=0, log_every=1, val_every=1000, val_batches=1, save_every=1000, seed=3

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import geonet_infer
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RUNTIME = ROOT / "geonet_infer"
 FORBIDDEN = ("torch", "training", "export")
 TOP_LEVEL = {"geonet_infer", "training", "export", "benchmarks", "tests", "scripts"}  # the repository's packages

@@ -42,7 +42,7 @@ from geonet_infer.manifest import (
 )
 from geonet_infer.predictor import Predictor
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 H, W = 32, 96  # graph size of the stand-in models
 OPSET = 18
 STEP = 0.1  # forward motion per frame of the stand-in pose network (relative units)
@@ -172,7 +172,7 @@ def make_model_dir(
                 precision=precision,
                 inputs=tuple(TensorSpec(n, tuple(s)) for n, s in spec.inputs),
                 outputs=tuple(TensorSpec(n, tuple(s)) for n, s in spec.outputs),
-                exporter="tests/test_model_card.py onnx.helper stand-in",
+                exporter="tests/benchmarks/test_model_card.py onnx.helper stand-in",
             )
 
         graphs["fp32"][name] = entry(f"{name}.onnx", "fp32", extra)

@@ -36,7 +36,7 @@ from tests.conftest import KITTI_RAW, REALDATA
 from training.evaluate import onnx_depth_fn
 from training.losses import LossWeights
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 H, W = 128, 416
 
 # Tolerances of the acceptance criteria.
