@@ -47,7 +47,7 @@ import numpy as np
 
 from geonet_infer import conventions
 from geonet_infer.check import GREY_WEIGHTS, check_pair
-from geonet_infer.conventions import rigid_inverse
+from geonet_infer.conventions import next_camera_to_world
 from geonet_infer.engines import AUTO, ENGINES, Engine, make_engine, pick_fastest
 from geonet_infer.errors import GeoNetError, InputError, ModelError
 from geonet_infer.int8_safety import int8_unsafe_reason
@@ -57,6 +57,7 @@ from geonet_infer.limits import check_batch_size
 from geonet_infer.manifest import MANIFEST_NAME, Manifest, check_graph_io
 from geonet_infer.results import FrameResult
 from geonet_infer.rigid import RigidFlowOp
+from geonet_infer.tasks import API_K_HINT, no_intrinsics
 
 # What each graph of a model directory must accept and return for this runtime to drive it.
 GRAPH_IO = {
@@ -92,8 +93,8 @@ class InputSpec:
         where = manifest.root / MANIFEST_NAME if manifest.root else None
         conv = manifest.conventions
 
-        def refuse(problem: str) -> GeoNetError:
-            return InputError(
+        def refuse(problem: str) -> GeoNetError:  # a model this runtime cannot use: ModelError (errors.py)
+            return ModelError(
                 where,
                 f"unsupported convention: {problem}",
                 "this version of geonet-infer cannot run this model; re-export it with "
@@ -130,7 +131,7 @@ class InputSpec:
             # Any subset runs (a converted depth or pose release); the tasks needing a missing graph
             # are refused by the Predictor when asked for.
             if not any(g in GRAPH_IO for g in names):
-                raise InputError(
+                raise ModelError(
                     where,
                     f"the {precision} set holds none of the graphs {', '.join(GRAPH_IO)}",
                     "export at least one of them with `python -m export --graphs`",
@@ -273,8 +274,15 @@ def snippet_indices(t: int, num_frames: int, seq_length: int) -> list[int]:
             None, f"a sequence needs at least 2 frames, got {num_frames}", "pass consecutive frames of one video"
         )
     k = seq_length // 2
-    window = [min(max(i, 0), num_frames - 1) for i in range(t - k, t + k + 1)]
+    window = snippet_window(t, num_frames, seq_length)
     return [window[k]] + window[:k] + window[k + 1 :]
+
+
+def snippet_window(t: int, num_frames: int, seq_length: int) -> list[int]:
+    """The frames t - k .. t + k (k = seq_length // 2) in temporal order, each clipped to
+    [0, num_frames - 1]: the one rule for a snippet at the ends of a sequence (see :func:`snippet_indices`)."""
+    k = seq_length // 2
+    return [min(max(i, 0), num_frames - 1) for i in range(t - k, t + k + 1)]
 
 
 def next_source_position(seq_length: int) -> int:
@@ -557,7 +565,7 @@ def run_cascade(
     if not with_flow:
         return out
     if K is None or disparity is None:  # DepthNet ran above unless disparity was given
-        raise InputError(None, "flow needs the camera intrinsics K", "pass K (3x3) or a Camera")
+        raise no_intrinsics(["flow"], None, API_K_HINT, "none were given")
     K_graph = np.repeat(graph_intrinsics(K, size, spec)[None], B, axis=0)
     with timer.stage("rigidflow"):
         rigid = call(
@@ -671,7 +679,7 @@ def iter_frames(
                 size = rgb.shape[:2]
                 cam = camera_at(camera, size)
                 if cam is None and with_flow:
-                    raise InputError(None, "a sequence needs the camera intrinsics K", "pass K (3x3) or a Camera")
+                    raise no_intrinsics(["flow"], None, API_K_HINT, "none were given")
             elif rgb.shape[:2] != size:
                 raise InputError(
                     label,
@@ -704,7 +712,7 @@ def iter_frames(
                 disparity = graphs.run("depthnet", image=images)["disparity"][:, 0]
         parts: dict[str, np.ndarray] = {}
         if paired:
-            windows = [[min(max(i, 0), n_read - 1) for i in range(t - k, t + k + 1)] for t in paired]
+            windows = [snippet_window(t, n_read, spec.seq_length) for t in paired]
             snippets = np.stack([np.stack([prepared[i] for i in w]) for w in windows])
             parts = run_cascade(
                 graphs,
@@ -757,7 +765,7 @@ def iter_frames(
                 check=checks.get(t),
             )
             if pose_next is not None:
-                pose_world = pose_world @ rigid_inverse(pose_next)
+                pose_world = next_camera_to_world(pose_world, pose_next)
         t0 = batch[-1] + 1
         for i in [i for i in prepared if i < t0 - k]:
             del prepared[i]

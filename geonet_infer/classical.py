@@ -31,7 +31,7 @@ import numpy as np
 
 from geonet_infer.cascade import Intrinsics, StageTimer, camera_at, read_frame
 from geonet_infer.check import check_pair
-from geonet_infer.conventions import rigid_inverse
+from geonet_infer.conventions import next_camera_to_world
 from geonet_infer.errors import InputError
 from geonet_infer.results import FrameResult
 
@@ -241,7 +241,7 @@ def classical_frames(
             changes |= {"pose_to_next": pose_next, "pose_vector_to_next": vector}
             changes["camera_to_world"] = pose_world.copy()
             if pose_next is not None:
-                pose_world = pose_world @ rigid_inverse(pose_next)
+                pose_world = next_camera_to_world(pose_world, pose_next)
             timings["orbvo"] = (time.perf_counter() - t0) * 1e3
         timings["total"] = timings.get("total", 0.0) + sum(timings.get(k, 0.0) for k in CLASSICAL_STAGES)
         yield replace(result, timings_ms=timings, **changes)

@@ -12,9 +12,24 @@ import numpy as np
 
 from geonet_infer.io.atomic import atomic_write
 
-__all__ = ["backproject", "write_ply", "PLY_DTYPE"]
+__all__ = ["backproject", "camera_points", "pixels_to_camera", "write_ply", "PLY_DTYPE"]
 
 PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+
+
+def pixels_to_camera(u: np.ndarray, v: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """The one back-projection: pixels (u, v) at ``depth`` -> camera points ``d * K^-1 [u, v, 1]``,
+    float64, shape (..., 3) of the inputs' shape (K without skew, as every calibration here)."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    z = np.asarray(depth, np.float64)
+    return np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1)
+
+
+def camera_points(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W) depth -> (H, W, 3) camera points of every pixel (:func:`pixels_to_camera`)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    return pixels_to_camera(u, v, depth, K)
 
 
 def backproject(
@@ -40,8 +55,9 @@ def backproject(
     if max_depth is not None:
         keep &= d <= max_depth
     v, u, d = v[keep], u[keep], d[keep]
-    rays = np.linalg.inv(K) @ np.stack([u, v, np.ones_like(u)]).astype(np.float64)
-    return (rays * d).T.astype(np.float32), np.stack([v, u], axis=1)
+    return pixels_to_camera(u.astype(np.float64), v.astype(np.float64), d, K).astype(np.float32), np.stack(
+        [v, u], axis=1
+    )
 
 
 def write_ply(

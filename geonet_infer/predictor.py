@@ -55,6 +55,7 @@ from geonet_infer.scale import (
     fit_ground_plane,
     metric_frames,
 )
+from geonet_infer.tasks import API_K_HINT, TASKS, needs_intrinsics, no_intrinsics
 
 __all__ = [
     "STAGES",
@@ -72,7 +73,6 @@ __all__ = [
     "resolve_tasks",
 ]
 
-TASKS = ("depth", "pose", "flow")
 # The graphs each task needs. A model directory may hold only some (a converted depth or pose
 # release, `python -m export --graphs`). "flow" is GeoNet's full flow; the API's flow methods
 # also run on RIGID_FLOW_GRAPHS alone and then return the rigid flow (residual None).
@@ -378,8 +378,8 @@ class Predictor:
         require_graphs("flow", RIGID_FLOW_GRAPHS, self.graphs, self.model_dir)
         timer = StageTimer()
         x, cam, size = load_snippet(self.spec, frames, camera, timer)
-        if cam is None:
-            raise InputError(None, "flow needs the camera intrinsics K", "pass K (3x3) or a Camera")
+        if cam is None:  # before the graphs run
+            raise no_intrinsics(needs_intrinsics(["flow"]), None, API_K_HINT, "none were given")
         parts = run_cascade(self.graph_set, self.spec, x[None], [len(x) // 2], cam.K, size, timer=timer)
         with timer.stage("postprocess"):
             depth, _ = disparity_to_input(parts["disparity"][0], size)
@@ -452,7 +452,7 @@ class Predictor:
         if "pose" in classical:
             require_graphs("pose", CLASSICAL_GRAPHS["pose"], self.graphs, self.model_dir)
             if camera is None:
-                raise InputError(None, "ORB-VO poses need the camera intrinsics", "pass K (3x3) or a Camera")
+                raise no_intrinsics(["ORB-VO poses"], None, API_K_HINT, "none were given")
         if camera_height is not None:
             require_graphs(METRIC_TASK, TASK_GRAPHS["depth"], self.graphs, self.model_dir)
             check_metric_request(camera_height, camera)

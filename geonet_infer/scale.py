@@ -21,8 +21,9 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from geonet_infer.conventions import rigid_inverse
+from geonet_infer.conventions import next_camera_to_world
 from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.points import camera_points
 from geonet_infer.results import FrameResult
 
 MAX_CAMERA_HEIGHT_M = 100.0  # above a road; more is a unit mix-up (mm, cm) and gives depth in kilometres
@@ -42,15 +43,6 @@ class GroundFit:
     def scale_for(self, camera_height_m: float) -> float:
         """The factor that makes the depth map metric."""
         return camera_height_m / self.height
-
-
-def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(H, W) depth -> (H, W, 3) camera points ``depth * K^-1 [u, v, 1]`` (pixel centres at integers)."""
-    h, w = depth.shape
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    z = depth.astype(np.float64)
-    return np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1)
 
 
 def _plane_through(p: np.ndarray) -> tuple[np.ndarray, float] | None:
@@ -100,7 +92,7 @@ def fit_ground_plane(
         raise InputError(None, f"depth must be (H, W), got shape {depth.shape}")
     h, _ = depth.shape
     start = int(np.clip((K[1, 2] / h + 0.05) if rows_from is None else rows_from, 0.0, 0.95) * h)
-    points = backproject(depth, K)[start:].reshape(-1, 3)
+    points = camera_points(depth, K)[start:].reshape(-1, 3)
     smooth_z = cv2.medianBlur(np.nan_to_num(depth, nan=0.0, posinf=0.0).astype(np.float32), 5)[start:].reshape(-1)
     valid = np.isfinite(points).all(axis=1) & (points[:, 2] > 0)
     points, smooth_z = points[valid], smooth_z[valid]
@@ -340,7 +332,7 @@ def metric_frames(
                 metric_scale_raw=raw,
             )
             if pose_next is not None:
-                pose_world = pose_world @ rigid_inverse(pose_next)
+                pose_world = next_camera_to_world(pose_world, pose_next)
 
     for result in results:
         depth = _depth_of(result)

@@ -19,7 +19,7 @@ from geonet_infer.predictor import Predictor
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 from geonet_infer.timing import Case
 
-TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
+BENCH_TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
 MODES = ("graph", "e2e")
 DEFAULT_INPUT_SIZE = (1242, 375)  # (W, H) of KITTI raw frames
 # Graphs each task needs; flow and sequence also use resflownet when the model has it.

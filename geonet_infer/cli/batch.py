@@ -31,8 +31,7 @@ from geonet_infer.limits import MAX_BATCH_SIZE
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.output.layout import SUMMARY_NAME
-from geonet_infer.output.predict import parse_tasks
-from geonet_infer.predictor import TASKS
+from geonet_infer.tasks import TASKS, needs_intrinsics, no_intrinsics, parse_tasks
 
 HELP = f"""\
 Predict depth, optical flow and camera poses for many sequences.
@@ -170,22 +169,18 @@ def run_command(args: argparse.Namespace) -> int:
     if args.ray_address and runner != "ray":
         raise InputError(None, "--ray-address needs --runner ray")
     camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own
-    needing = [
-        what
-        for what, needs in (("flow", args.flow_method == "network"), ("ORB-VO poses", args.pose_method == "orbvo"))
-        if needs and ("flow" if what == "flow" else "pose") in tasks
-    ]
+    needing = needs_intrinsics(tasks, args.flow_method, args.pose_method)
     if needing and camera is None:
         from geonet_infer.batch import expand_inputs
 
         lacking = [p for p in expand_inputs(args.inputs) if needs_own_calib(p)]
         if lacking:
             more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
-            raise InputError(
+            raise no_intrinsics(
+                needing,
                 lacking[0],
-                f"{' and '.join(needing)} need{'s' if len(needing) == 1 else ''} camera intrinsics and this "
-                f"input has none{more}",
                 "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose, or --flow-method dis)",
+                f"this input has none{more}",
             )
     with sigterm_as_interrupt():  # SIGTERM is handled like Ctrl-C: workers stopped, summary written
         summary = run_batch(

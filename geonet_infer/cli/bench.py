@@ -39,7 +39,7 @@ import sys
 import time
 from pathlib import Path
 
-from geonet_infer.bench.cases import DEFAULT_INPUT_SIZE, MODES, TASK_GRAPHS, TASKS, bench_frames, build_cases
+from geonet_infer.bench.cases import BENCH_TASKS, DEFAULT_INPUT_SIZE, MODES, TASK_GRAPHS, bench_frames, build_cases
 from geonet_infer.bench.environment import Environment, cpu_flags, model_summary, thread_env
 from geonet_infer.bench.report import format_table, paper_line, result_row
 from geonet_infer.cli import COMMANDS
@@ -88,7 +88,7 @@ def add_parser(sub) -> None:
         "--tasks",
         default=None,
         metavar="LIST",
-        help=f"comma list of {', '.join(TASKS)} (default: all the model's graphs allow)",
+        help=f"comma list of {', '.join(BENCH_TASKS)} (default: all the model's graphs allow)",
     )
     group.add_argument(
         "--modes",
@@ -204,8 +204,8 @@ def _check_args(args) -> dict:
                     f"precisions present: {', '.join(manifest.graphs)}; export with --precision fp32,int8",
                 )
     explicit_tasks = args.tasks is not None
-    tasks = _parse_list(args.tasks, TASKS, "task") if explicit_tasks else list(TASKS)
-    tasks = [t for t in TASKS if t in tasks]  # canonical order
+    tasks = _parse_list(args.tasks, BENCH_TASKS, "task") if explicit_tasks else list(BENCH_TASKS)
+    tasks = [t for t in BENCH_TASKS if t in tasks]  # canonical order
     skipped = []
     for task in list(tasks):
         for p in precisions:

@@ -135,20 +135,21 @@ def add_camera_args(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def parse_intrinsics(text: str) -> Camera:
+    """``--intrinsics FX,FY,CX,CY`` (every subcommand that takes it) as a checked pinhole Camera."""
+    try:
+        fx, fy, cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(
+            None, f"--intrinsics {text!r} is not four numbers", "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9"
+        ) from None
+    return Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None, None, "--intrinsics").validate("--intrinsics")
+
+
 def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None) -> Camera | None:
     """The Camera from --calib / --intrinsics / a default calibration file, or None."""
     if args.intrinsics is not None:
-        try:
-            fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
-        except ValueError:
-            raise InputError(
-                None,
-                f"--intrinsics {args.intrinsics!r} is not four numbers",
-                "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9",
-            ) from None
-        return Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None, None, "--intrinsics").validate(
-            "--intrinsics"
-        )
+        return parse_intrinsics(args.intrinsics)
     path = args.calib if args.calib is not None else default_calib
     if path is None:
         return None

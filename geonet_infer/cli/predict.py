@@ -32,10 +32,11 @@ from geonet_infer.limits import (
 from geonet_infer.output import layout
 from geonet_infer.output.layout import SUMMARY_NAME, WORLD_CLOUD_NAME
 from geonet_infer.output.options import DEFAULT_COLOUR_SCALE, POINT_CLOUDS, OutputOptions
-from geonet_infer.output.predict import parse_tasks, predict_to_dir
+from geonet_infer.output.predict import predict_to_dir
 from geonet_infer.output.video import FOLDER_FPS, VIDEO_CODECS
 from geonet_infer.predictor import TASKS, describe_skipped
 from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
+from geonet_infer.tasks import parse_tasks
 
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.

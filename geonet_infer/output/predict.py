@@ -55,18 +55,11 @@ from geonet_infer.output.layout import (
 from geonet_infer.output.options import OutputOptions
 from geonet_infer.output.video import FOLDER_FPS, VideoOut
 from geonet_infer.output.writer import FrameWriter, Written
-from geonet_infer.predictor import TASKS, Predictor
+from geonet_infer.predictor import Predictor
 from geonet_infer.results import FrameResult
 from geonet_infer.scale import SCALE_HALF_WINDOW, check_metric_request, metric_scale_summary
+from geonet_infer.tasks import TASKS, needs_intrinsics, no_intrinsics
 from geonet_infer.viz import SteadyScale
-
-
-def parse_tasks(text: str) -> tuple[str, ...]:
-    tasks = tuple(t.strip() for t in text.split(",") if t.strip())
-    unknown = [t for t in tasks if t not in TASKS]
-    if unknown or not tasks:
-        raise InputError(None, f"unknown task(s) {unknown or text!r}", f"choose from {','.join(TASKS)}")
-    return tasks
 
 
 def predict_to_dir(
@@ -127,15 +120,10 @@ def predict_to_dir(
     tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
         tasks, metric=camera_height is not None, classical=classical_tasks(tasks or TASKS, flow_method, pose_method)
     )
-    if "flow" in tasks and flow_method == "network" and camera is None:
-        raise InputError(
-            source.path,
-            "flow needs camera intrinsics and none were found",
-            "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
-        )
-    if "pose" in tasks and pose_method == "orbvo" and camera is None:
-        raise InputError(
-            source.path, "ORB-VO poses need camera intrinsics and none were found", "pass --calib FILE or --intrinsics"
+    needing = needs_intrinsics(tasks, flow_method, pose_method)
+    if needing and camera is None:
+        raise no_intrinsics(
+            needing, source.path, "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)"
         )
     if camera_height is not None:
         check_metric_request(camera_height, camera, source.path)
