@@ -54,7 +54,7 @@ from geonet_infer.int8_safety import int8_unsafe_reason
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.images import read_image
 from geonet_infer.limits import check_batch_size
-from geonet_infer.manifest import MANIFEST_NAME, Manifest, check_graph_io
+from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, Manifest, check_graph_io
 from geonet_infer.results import FrameResult
 from geonet_infer.rigid import RigidFlowOp
 from geonet_infer.tasks import API_K_HINT, no_intrinsics
@@ -424,8 +424,11 @@ RIGID_OPS = ("graph", "numpy")  # how the rigid-flow op runs: geonet_infer.rigid
 
 
 class GraphSet:
-    """One engine per graph of a model directory at one precision (sessions made once).
+    """One engine per graph of a model directory (sessions made once).
 
+    ``precision``: "fp32", "int8", or "auto": per graph, the fastest of the model's precisions that is
+    exact on this CPU (:func:`geonet_infer.int8_safety.int8_unsafe_reason`), timed at load; FP32 is
+    always a candidate, so auto is never slower than FP32 beyond timing noise.
     ``backend``: a name of :data:`geonet_infer.engines.ENGINES`, or "auto" (the faster engine per
     graph, timed here). Every graph's inputs and outputs are checked against the manifest.
     ``rigid_op``: "graph" runs ``rigidflow.onnx`` on ``backend`` like the other graphs; "numpy" runs
@@ -438,45 +441,74 @@ class GraphSet:
             raise InputError(None, f"unknown rigid_op {rigid_op!r}", f"choose one of {', '.join(RIGID_OPS)}")
         self.manifest = manifest
         self.precision = precision
-        self.backend_choice: dict[str, dict] = {}  # backend="auto": per graph, the timings behind the choice
+        self.backend_choice: dict[str, dict] = {}  # an "auto": per graph, the timings behind the choice
         self.runs: dict[str, dict] = {}  # per graph: engine, precision and why (summary.json, bench)
         self._engines: dict[str, Engine | RigidFlowOp] = {}
         for name in manifest.graph_names(precision):
-            path = manifest.path(name, precision)
-            unsafe = self._int8_unsafe(name, backend)
+            files = self._files(name)
             if name == "rigidflow" and rigid_op == "numpy" and RigidFlowOp.supports(manifest.conventions):
+                path = next(iter(files.values()))
                 graph = make_engine(path, "onnxruntime", 1)  # read once: its declared io is the op's
-                check_graph_io(manifest.graph(name, precision), path, *graph.io())
+                check_graph_io(manifest.graph(name, next(iter(files))), path, *graph.io())
                 alpha = manifest.photometric_alpha
                 self._engines[name] = RigidFlowOp(
                     conventions.UNRECORDED_PHOTOMETRIC_ALPHA if alpha is None else alpha, graph.io()
                 )
                 self.runs[name] = {"engine": "numpy", "precision": "fp32", "why": "rigid_op numpy (geometry)"}
                 continue
-            if backend == AUTO:
-                self._engines[name], self.backend_choice[name] = pick_fastest(path, threads, unsafe)
-                why = "auto: fastest installed engine at load"
+            engines = list(ENGINES) if backend == AUTO else [backend]  # pick_fastest skips what is not installed
+            unsafe = self._int8_unsafe(name, files, engines, warn=backend != AUTO and precision != AUTO)
+            if backend == AUTO or len(files) > 1:
+                engine, self.backend_choice[name] = pick_fastest(
+                    files if precision == AUTO else files[precision], threads, unsafe, engines
+                )
+                chosen_precision = self.backend_choice[name].get("precision", precision)
+                why = "auto: fastest " + ("exact engine and precision" if len(files) > 1 else "installed engine")
+                why += " at load"
             else:
-                self._engines[name] = make_engine(path, backend, threads)
+                (chosen_precision, path), *_ = files.items()
+                engine = make_engine(path, backend, threads)
                 why = f"backend {backend}"
-            check_graph_io(manifest.graph(name, precision), path, *self._engines[name].io())
-            chosen = self._engines[name].name
-            why += "".join(f"; {'' if e == chosen else 'skipped '}{r}" for e, r in unsafe.items())
-            fp32 = precision == "fp32" or (manifest.quantization and name in manifest.quantization.fp32_graphs)
-            self.runs[name] = {"engine": chosen, "precision": "fp32" if fp32 else precision, "why": why}
+                if precision == AUTO:
+                    why += f"; precision auto: {chosen_precision} is the model's only {name}"
+            self._engines[name] = engine
+            check_graph_io(manifest.graph(name, chosen_precision), files[chosen_precision], *engine.io())
+            for label, reason in unsafe.items():  # an engine named with --precision int8 runs anyway (warned)
+                why += f"; {'' if label == engine.name else 'skipped '}{label}: {reason}"
+            self.runs[name] = {"engine": engine.name, "precision": self._runs_as(name, chosen_precision), "why": why}
 
-    def _int8_unsafe(self, name: str, backend: str) -> dict[str, str]:
-        """{engine: why its INT8 of graph ``name`` is not exact on this CPU} (geonet_infer.int8_safety).
-        Auto skips those engines (onnxruntime is always exact: its sessions set the remedy); an engine
-        named by ``backend`` runs the graph anyway, after one line on stderr."""
+    def _files(self, name: str) -> dict[str, Path]:
+        """{precision: file} of graph ``name``: one precision, or under "auto" each of the model's whose
+        graph differs from FP32's (an INT8 set keeps some graphs in FP32: the same file)."""
+        if self.precision != AUTO:
+            return {self.precision: self.manifest.path(name, self.precision)}
+        files: dict[str, Path] = {}
+        for p in PRECISIONS:
+            if p in self.manifest.graphs and name in self.manifest.graphs[p]:
+                path = self.manifest.path(name, p)
+                if path not in files.values():
+                    files[p] = path
+        return files
+
+    def _runs_as(self, name: str, precision: str) -> str:
+        """The arithmetic graph ``name`` of the ``precision`` set runs in (an INT8 set's FP32 graphs)."""
         q = self.manifest.quantization
-        if self.precision != "int8" or q is None or name in q.fp32_graphs:
+        return "fp32" if precision == "fp32" or (q and name in q.fp32_graphs) else precision
+
+    def _int8_unsafe(self, name: str, files: dict[str, Path], engines: list[str], warn: bool) -> dict[str, str]:
+        """{candidate label: why that engine's INT8 of graph ``name`` is not exact on this CPU}
+        (geonet_infer.int8_safety); labels as :func:`pick_fastest` makes them. Auto skips those
+        candidates (onnxruntime is always exact: its sessions set the remedy); an engine and INT8
+        named explicitly run the graph anyway, after one line on stderr."""
+        q = self.manifest.quantization
+        if "int8" not in files or q is None or self._runs_as(name, "int8") != "int8":
             return {}
-        names = [e.name for e in ENGINES.values() if e.available()] if backend == AUTO else [backend]
-        unsafe = {e: r for e in names if (r := int8_unsafe_reason(e, q.int8_kernels.get(name)))}
-        if backend in unsafe:
-            print(f"geonet-infer: warning: {name} INT8 may be inexact: {unsafe[backend]}", file=sys.stderr)
-        return unsafe
+        installed = [e for e in engines if ENGINES[e].available()]
+        unsafe = {e: r for e in installed if (r := int8_unsafe_reason(e, q.int8_kernels.get(name)))}
+        if warn:
+            for reason in unsafe.values():
+                print(f"geonet-infer: warning: {name} INT8 may be inexact: {reason}", file=sys.stderr)
+        return {e if len(files) == 1 else f"{e} int8": r for e, r in unsafe.items()}
 
     @property
     def names(self) -> tuple[str, ...]:

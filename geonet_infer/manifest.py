@@ -35,6 +35,9 @@ MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = "geonet-onnx-models"
 SCHEMA_VERSION = conventions.SCHEMA_VERSION
 PRECISIONS = ("fp32", "int8")
+# --backend auto / --precision auto: chosen per graph at load by timing (geonet_infer.engines.pick_fastest)
+AUTO = "auto"
+PRECISION_CHOICES = (*PRECISIONS, AUTO)  # what load(precision=) and --precision accept
 BATCH_AXIS = "B"  # symbolic batch dimension in shapes
 REEXPORT_HINT = "re-export the model directory with `python -m export`"
 # Limits on what a manifest may ask for: frames are resized to height x width and snippets of
@@ -287,10 +290,17 @@ class Manifest:
 
     def files_mib(self, precision: str = "fp32") -> float:
         """Size of the graph files of one precision set on disk (a file shared by two graphs counts once)."""
-        files = {self.path(name, precision) for name in self._set(precision)}
+        sets = [p for p in self.graphs if p in PRECISIONS] if precision == AUTO else [precision]  # auto loads all
+        files = {self.path(name, p) for p in sets for name in self._set(p)}
         return sum(f.stat().st_size for f in files) / 2**20
 
     def _set(self, precision: str) -> dict:
+        if precision == AUTO and self.graphs:  # any graph of any set: each is chosen at load
+            merged: dict = {}
+            for p in sorted(self.graphs, key=lambda p: PRECISIONS.index(p) if p in PRECISIONS else len(PRECISIONS)):
+                for name, entry in self.graphs[p].items():
+                    merged.setdefault(name, entry)
+            return merged
         if precision not in self.graphs:
             where = self.root / MANIFEST_NAME if self.root else None
             raise ModelError(

@@ -45,7 +45,7 @@ from geonet_infer.classical import (
 from geonet_infer.engines import BACKENDS, usable_cpus
 from geonet_infer.errors import GeoNetError, InputError, ModelError
 from geonet_infer.limits import MAX_BATCH_SIZE, check_batch_size, check_threads
-from geonet_infer.manifest import PRECISIONS, Manifest, load_manifest
+from geonet_infer.manifest import PRECISION_CHOICES, Manifest, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
 from geonet_infer.scale import (
@@ -184,7 +184,9 @@ def load(
 
     Args:
         model: see above (``geonet_infer.models.bundled_models()`` lists the names).
-        precision: "fp32" or "int8" (quantised ConvNets; the rigid-flow op stays fp32).
+        precision: "fp32", "int8" (quantised ConvNets; the rigid-flow op stays fp32), or "auto": per
+            graph, the fastest of the model's precisions that is exact on this CPU, timed at load with
+            the engines ``backend`` allows (``Predictor.graph_set.runs`` says what each graph runs).
         threads: intra-op threads per graph; None = the CPUs this process may use.
         backend: "onnxruntime", "openvino" (extra ``geonet-infer[openvino]``) or "auto"
             (times both on each graph at load, keeps the faster; see :mod:`geonet_infer.engines`).
@@ -212,8 +214,8 @@ class Predictor:
         backend: str = "onnxruntime",
         rigid_op: str = "graph",
     ):
-        if precision not in PRECISIONS:
-            raise InputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISIONS)}")
+        if precision not in PRECISION_CHOICES:
+            raise InputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISION_CHOICES)}")
         if backend not in BACKENDS:
             raise InputError(None, f"unknown backend {backend!r}", f"choose one of {', '.join(BACKENDS)}")
         self.manifest = manifest or load_manifest(model_dir)

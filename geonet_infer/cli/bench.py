@@ -49,7 +49,7 @@ from geonet_infer.errors import BackendUnavailableError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.images import check_pixels
 from geonet_infer.limits import MAX_BATCH_SIZE, MAX_SEQUENCE_FRAMES, check_batch_size, check_count, check_threads
-from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, git_commit, load_manifest
+from geonet_infer.manifest import AUTO, MANIFEST_NAME, PRECISION_CHOICES, PRECISIONS, git_commit, load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.predictor import load
 from geonet_infer.samples import SAMPLE_FRAMES
@@ -76,7 +76,8 @@ def add_parser(sub) -> None:
         "--precision",
         default=None,
         metavar="LIST",
-        help=f"comma list of {', '.join(PRECISIONS)} (default: every precision the model has)",
+        help=f"comma list of {', '.join(PRECISION_CHOICES)} ({AUTO}: per graph, the fastest exact precision, "
+        "chosen at load) (default: every precision the model has)",
     )
     group.add_argument(
         "--batch",
@@ -195,9 +196,9 @@ def _check_args(args) -> dict:
     if args.precision is None:
         precisions = [p for p in PRECISIONS if p in manifest.graphs]
     else:
-        precisions = _parse_list(args.precision, PRECISIONS, "precision")
+        precisions = _parse_list(args.precision, PRECISION_CHOICES, "precision")
         for p in precisions:
-            if p not in manifest.graphs:
+            if p not in manifest.graphs and p != AUTO:
                 raise InputError(
                     where,
                     f"no {p} graphs in this model directory",
@@ -209,14 +210,14 @@ def _check_args(args) -> dict:
     skipped = []
     for task in list(tasks):
         for p in precisions:
-            missing = [g for g in TASK_GRAPHS[task] if g not in manifest.graphs[p]]
+            missing = [g for g in TASK_GRAPHS[task] if g not in manifest.graph_names(p)]
             if not missing:
                 continue
             if explicit_tasks:
                 hint = (
                     "resflownet needs a stage 'flow' checkpoint at export time"
                     if "resflownet" in missing
-                    else f"graphs present: {', '.join(manifest.graphs[p])}"
+                    else f"graphs present: {', '.join(manifest.graph_names(p))}"
                 )
                 raise InputError(
                     where,

@@ -17,7 +17,7 @@ from geonet_infer.engines import AUTO, BACKENDS, ENGINES
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.limits import check_threads
-from geonet_infer.manifest import PRECISIONS
+from geonet_infer.manifest import PRECISION_CHOICES
 from geonet_infer.models import DEFAULT_MODEL
 from geonet_infer.predictor import STAGES, Predictor, load
 
@@ -55,8 +55,9 @@ def add_model_args(parser: argparse.ArgumentParser, threads: bool = True, rigid_
     group.add_argument(
         "--precision",
         default="fp32",
-        choices=PRECISIONS,
-        help="fp32, or int8 (quantised ConvNets, faster on CPUs with VNNI) (default: fp32)",
+        choices=PRECISION_CHOICES,
+        help="fp32; int8 (quantised ConvNets, faster on CPUs with VNNI); or auto: per graph, the fastest "
+        "precision that is exact on this CPU, timed at load with the engines --backend allows (default: fp32)",
     )
     group.add_argument(
         "--backend",

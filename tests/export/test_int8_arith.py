@@ -132,7 +132,7 @@ def test_auto_skips_an_engine_inexact_on_an_avx2_cpu(monkeypatch, capsys):
     assert {run["engine"] for name, run in graphs.runs.items()} == {"onnxruntime"}
     if not OpenVinoEngine.available():
         return
-    assert "skipped openvino INT8 without VNNI" in graphs.runs["depthnet"]["why"]
+    assert "skipped openvino: openvino INT8 without VNNI" in graphs.runs["depthnet"]["why"]
     capsys.readouterr()
     GraphSet(manifest, "int8", "openvino", 1)
     err = capsys.readouterr().err.splitlines()
