@@ -20,7 +20,7 @@ import sys
 from functools import partial
 
 import geonet_infer
-from geonet_infer.benchmark import DEFAULT_INPUT_SIZE, bench_frames
+from geonet_infer.bench.cases import DEFAULT_INPUT_SIZE, bench_frames
 from geonet_infer.cpu import cpu_info, isa_line
 from geonet_infer.engines import ENGINES
 from geonet_infer.int8_safety import int8_unsafe_reason
