@@ -36,6 +36,7 @@ from geonet_infer.batch.units import (
     stale,
 )
 from geonet_infer.classical import check_methods, classical_tasks
+from geonet_infer.core.predictor import TASKS, describe_skipped, resolve_tasks
 from geonet_infer.cpu import isa_line
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
@@ -43,7 +44,6 @@ from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
 from geonet_infer.limits import check_batch_size
 from geonet_infer.output.layout import SUMMARY_NAME
-from geonet_infer.predictor import TASKS, describe_skipped, resolve_tasks
 
 # ----------------------------------------------------------------------------- the job
 # name -> runner class. A runner has ``start(config, options, n_units, workers, threads, *, manifest,
@@ -169,7 +169,7 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
 
 
 def model_tasks(model_dir, graphs, tasks: Iterable[str] | None, log, classical: Iterable[str] = ()) -> tuple[str, ...]:
-    """The tasks to run, resolved as ``predict`` does (:func:`geonet_infer.predictor.resolve_tasks`):
+    """The tasks to run, resolved as ``predict`` does (:func:`geonet_infer.core.predictor.resolve_tasks`):
     given tasks the model cannot do are refused before any work; with ``None`` every task it can do,
     the others named in one line. ``classical``: tasks a classical method makes (DIS, ORB-VO)."""
     tasks, skipped = resolve_tasks(graphs, tasks, model_dir, classical=classical)
@@ -215,7 +215,7 @@ def run_batch(
     (``"interrupted": true``) when interrupted (Ctrl-C, or SIGTERM turned into it by the CLI);
     a later ``resume=True`` finishes.
     """
-    from geonet_infer.manifest import load_manifest, model_notice
+    from geonet_infer.core.manifest import load_manifest, model_notice
     from geonet_infer.models import resolve_model
 
     log = log or (lambda msg: print(msg, file=sys.stderr))

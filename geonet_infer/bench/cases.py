@@ -11,11 +11,11 @@ import collections
 import cv2
 import numpy as np
 
-from geonet_infer.cascade import flow_to_input, graph_intrinsics, run_cascade
 from geonet_infer.conventions import scale_intrinsics
+from geonet_infer.core.cascade import flow_to_input, graph_intrinsics, run_cascade
+from geonet_infer.core.predictor import Predictor
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.images import list_images, read_image
-from geonet_infer.predictor import Predictor
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 from geonet_infer.timing import Case
 

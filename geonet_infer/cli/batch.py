@@ -25,10 +25,10 @@ from geonet_infer.cli.common import (
     positive_int,
     sigterm_as_interrupt,
 )
+from geonet_infer.core.manifest import load_manifest
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.limits import MAX_BATCH_SIZE
-from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.output.layout import SUMMARY_NAME
 from geonet_infer.tasks import TASKS, needs_intrinsics, no_intrinsics, parse_tasks

@@ -40,18 +40,18 @@ import time
 from pathlib import Path
 
 from geonet_infer.bench.cases import BENCH_TASKS, DEFAULT_INPUT_SIZE, MODES, TASK_GRAPHS, bench_frames, build_cases
-from geonet_infer.bench.environment import Environment, cpu_flags, model_summary, thread_env
+from geonet_infer.bench.environment import Environment, cpu_flags, git_commit, model_summary, thread_env
 from geonet_infer.bench.report import format_table, paper_line, result_row
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import add_model_args, backend_help
+from geonet_infer.core.manifest import AUTO, MANIFEST_NAME, PRECISION_CHOICES, PRECISIONS, load_manifest
+from geonet_infer.core.predictor import load
 from geonet_infer.engines import BACKENDS, ENGINES, OrtEngine
 from geonet_infer.errors import BackendUnavailableError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.images import check_pixels
 from geonet_infer.limits import MAX_BATCH_SIZE, MAX_SEQUENCE_FRAMES, check_batch_size, check_count, check_threads
-from geonet_infer.manifest import AUTO, MANIFEST_NAME, PRECISION_CHOICES, PRECISIONS, git_commit, load_manifest
 from geonet_infer.models import resolve_model
-from geonet_infer.predictor import load
 from geonet_infer.samples import SAMPLE_FRAMES
 from geonet_infer.timing import current_rss_mib, load_average, peak_rss_mib, time_interleaved
 

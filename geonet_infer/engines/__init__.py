@@ -57,10 +57,10 @@ from typing import Protocol
 
 import numpy as np
 
+from geonet_infer.core.manifest import AUTO, IoSpec, Manifest, check_graph_io
 from geonet_infer.engines.onnxruntime import OrtEngine, make_session, make_session_options, ort_io
 from geonet_infer.engines.openvino import OpenVinoEngine, openvino_available, openvino_version
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.manifest import AUTO, IoSpec, Manifest, check_graph_io
 from geonet_infer.timing import Case, time_interleaved
 
 __all__ = [

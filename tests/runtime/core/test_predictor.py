@@ -20,7 +20,7 @@ import pytest
 
 import geonet_infer
 from geonet_infer import GeoNetError
-from geonet_infer.cascade import calibration_input
+from geonet_infer.core.cascade import calibration_input
 from geonet_infer.engines import ENGINES, openvino_available
 from geonet_infer.io import Camera, read_camera
 
