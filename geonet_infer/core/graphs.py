@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -110,9 +111,18 @@ class GraphSet:
         return tuple(self._engines)
 
     @property
-    def backends(self) -> dict[str, str]:
-        """Graph name -> the engine running it ("onnxruntime", "openvino")."""
+    def engines(self) -> dict[str, str]:
+        """Graph name -> the engine running it ("onnxruntime", "openvino", "numpy" for the rigid op).
+
+        Names (issue 42): the *backend* is what a user asks for (``--backend onnxruntime|openvino|auto``),
+        the *engine* what runs a graph, a *runner* what runs batch's workers (local, ray)."""
         return {name: engine.name for name, engine in self._engines.items()}
+
+    @property
+    def backends(self) -> dict[str, str]:
+        """Deprecated name of :attr:`engines` (it names engines, not the backend asked for); one release."""
+        warnings.warn("GraphSet.backends is now GraphSet.engines", DeprecationWarning, stacklevel=2)
+        return self.engines
 
     def __contains__(self, name: object) -> bool:
         return name in self._engines

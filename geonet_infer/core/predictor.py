@@ -166,7 +166,7 @@ class Predictor:
     @property
     def engines(self) -> dict[str, str]:
         """Graph name -> the engine running it ("onnxruntime" or "openvino")."""
-        return self.graph_set.backends
+        return self.graph_set.engines
 
     def __repr__(self) -> str:
         return (
