@@ -28,6 +28,7 @@ from geonet_infer.batch.units import (
     claim,
     expand_inputs,
     is_empty,
+    needs_own_calib,
     not_ours,
     owned,
     plan_units,
@@ -44,6 +45,7 @@ from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
 from geonet_infer.limits import check_batch_size
 from geonet_infer.output.layout import SUMMARY_NAME
+from geonet_infer.tasks import needs_intrinsics, no_intrinsics
 
 # ----------------------------------------------------------------------------- the job
 # name -> runner class. A runner has ``start(config, options, n_units, workers, threads, *, manifest,
@@ -233,6 +235,16 @@ def run_batch(
     graphs = manifest.graph_names(precision)  # bad --model / --precision: exit 2 before any work
     check_methods(flow_method, pose_method)
     tasks = model_tasks(model_dir, graphs, tasks, log, classical_tasks(tasks or TASKS, flow_method, pose_method))
+    needing = needs_intrinsics(tasks, flow_method, pose_method)  # inputs without a calibration of their own
+    lacking = [u.path for u in units if needs_own_calib(u.path)] if needing and camera is None else []
+    if lacking:
+        more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
+        raise no_intrinsics(
+            needing,
+            lacking[0],
+            "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose, or --flow-method dis)",
+            f"this input has none{more}",
+        )
     out_dir = Path(os.path.abspath(out_dir))
     check_out(out_dir, units)
     claim(out_dir)
