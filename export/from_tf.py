@@ -2,10 +2,10 @@
 
 ``python -m export --from-tf CKPT [--from-tf KIND=CKPT ...] --out DIR`` (docs/official_models.md).
 
-The reader is TensorFlow itself (``tf.train.load_checkpoint``, the optional ``[tf]`` extra): it
-reads every checkpoint format TensorFlow ever wrote, including the TF 1.x files of the release,
-and a hand-written reader of the tensor-bundle format would be one more thing to keep correct.
-TensorFlow is imported only here, only when converting; the runtime never needs it.
+The reader is :mod:`export.tf_checkpoint` (numpy only: the ``.index`` table and memory-mapped
+``.data-*`` shards, each tensor's crc32c checked), so converting needs the ``[train]`` extra alone.
+TensorFlow (``[tf]``) is used only by ``--verify`` when installed (the official forward pass) and
+by the equality tests; the runtime never needs either.
 
 Naming (``export/official_variables.json``, derived from the official code): slim names unnamed
 layers ``<scope>/Conv``, ``Conv_1``, ... in creation order; each layer holds ``weights`` (HWIO) and
@@ -17,7 +17,6 @@ the official creation order, so layer i of ours is ``Conv_i`` of theirs.
 from __future__ import annotations
 
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from export.tf_checkpoint import BundleReader
 from geonet_infer import conventions
 from geonet_infer.errors import InputError
 from geonet_infer.manifest import file_sha256
@@ -35,7 +35,6 @@ SCOPES = {"depth": "depth_net", "pose": "pose_net", "flow": "flow_net"}
 GRAPH_OF_KIND = {"depth": "depthnet", "pose": "posenet", "flow": "resflownet"}
 OFFICIAL_VARIABLES = Path(__file__).with_name("official_variables.json")
 OFFICIAL_CODE = "https://github.com/yzcjtr/GeoNet @ 5b17602"
-INSTALL_HINT = "install the converter's extra: pip install '.[train,tf]'"
 PREFIX_HINT = (
     "pass the checkpoint prefix, e.g. .../geonet_depthnet/model-250000 (the files are PREFIX.index and PREFIX.data-*)"
 )
@@ -116,16 +115,6 @@ def official_variables() -> dict:
 
 
 # ------------------------------------------------------------------------------ reading
-def _tf():
-    # TensorFlow's C++ start-up notices (CPU features, oneDNN, no CUDA) are not the user's business here.
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
-    try:
-        import tensorflow as tf
-    except ImportError:
-        raise InputError(None, "--from-tf needs TensorFlow to read the checkpoint", INSTALL_HINT) from None
-    return tf
-
-
 def resolve_prefix(path: str | Path) -> Path:
     """The checkpoint prefix for what the user passed.
 
@@ -166,42 +155,22 @@ class TFCheckpoint:
     prefix: Path
     shapes: dict
     dtypes: dict
-    reader: object = field(repr=False)
+    reader: BundleReader = field(repr=False)
 
     @classmethod
     def open(cls, path: str | Path) -> TFCheckpoint:
-        prefix = resolve_prefix(path)
-        if any(c in str(prefix) for c in "[]*?"):  # TensorFlow globs the prefix: it would find nothing
-            raise InputError(
-                prefix,
-                "TensorFlow reads checkpoint paths as glob patterns and cannot open one holding [ ] * or ?",
-                "rename the folder, or link the checkpoint files from a path without those characters",
-            )
-        tf = _tf()
-        try:
-            reader = tf.train.load_checkpoint(str(prefix))
-            shapes = reader.get_variable_to_shape_map()
-            dtypes = {k: v.name for k, v in reader.get_variable_to_dtype_map().items()}
-        except (tf.errors.OpError, ValueError, OSError) as exc:
-            raise InputError(
-                f"{prefix}.index", f"unreadable TensorFlow checkpoint ({_first_line(exc)})", PREFIX_HINT
-            ) from None
-        return cls(prefix, {k: list(v) for k, v in shapes.items()}, dtypes, reader)
+        reader = BundleReader(resolve_prefix(path))
+        shapes = {n: list(e.shape) for n, e in reader.entries.items()}
+        return cls(reader.prefix, shapes, {n: e.dtype.name for n, e in reader.entries.items()}, reader)
 
     def files(self) -> dict[str, str]:
-        """File name -> sha256 of the .index and .data-* files."""
-        names = [Path(f"{self.prefix}.index"), *sorted(self.prefix.parent.glob(f"{self.prefix.name}.data-*"))]
-        return {f.name: file_sha256(f) for f in names}
+        """File name -> sha256 of the .index and .data-* files (a missing shard whose variables were not
+        read is left out, as it was not needed)."""
+        files = [self.reader.index_path, *(f for f in self.reader.shard_paths() if f.is_file())]
+        return {f.name: file_sha256(f) for f in files}
 
     def tensor(self, name: str) -> np.ndarray:
-        try:
-            value = np.asarray(self.reader.get_tensor(name))
-        except Exception as exc:  # TF raises DataLossError / OpError subclasses from C++; all mean unreadable
-            raise InputError(
-                self.prefix,
-                f"cannot read variable {name} ({_first_line(exc)}): the checkpoint is truncated or corrupt",
-                "download it again",
-            ) from None
+        value = self.reader.tensor(name)
         if np.issubdtype(value.dtype, np.floating) and not np.isfinite(value).all():  # every frame would fail
             raise InputError(
                 self.prefix,
@@ -218,10 +187,6 @@ class TFCheckpoint:
 
     def step(self) -> int | None:
         return int(self.tensor("global_step")) if "global_step" in self.shapes else None
-
-
-def _first_line(exc: BaseException) -> str:
-    return (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
 
 
 # ------------------------------------------------------------------------------ detection + mapping
@@ -274,14 +239,14 @@ def detect(ckpt: TFCheckpoint, kind: str) -> NetSpec:
     return NetSpec(kind, arch="resnet50")
 
 
-def convert_network(ckpt: TFCheckpoint, spec: NetSpec) -> nn.Module:
-    """Our network with every parameter and BN statistic set from ``ckpt``.
+def convert_network(ckpt: TFCheckpoint, spec: NetSpec, net: nn.Module | None = None) -> nn.Module:
+    """Our network (``net``, or a new one for ``spec``) with every parameter and BN statistic set from ``ckpt``.
 
     Every ``<scope>/`` variable is consumed exactly once; a missing, left-over or misshapen
     variable is a GeoNetError naming it. HWIO weights become OIHW. (``num_batches_tracked``,
     a PyTorch training counter unused in eval mode, stays 0.)
     """
-    net = build_network(spec.kind, spec.arch, spec.num_source)
+    net = net.eval() if net is not None else build_network(spec.kind, spec.arch, spec.num_source)
     expected = expected_variables(spec.kind, net)
     present = ckpt.scope_variables(spec.kind)
     what = f"{spec.describe()}; the official one has {len(expected)} variables"
@@ -347,11 +312,12 @@ class Conversion:
     notes: list  # human-readable remarks (also in the manifest)
 
 
-def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print) -> Conversion:
+def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print, targets=None) -> Conversion:
     """Open every ``--from-tf`` checkpoint, decide which net comes from which, and convert them.
 
     Explicit ``kind=PFX`` assignments win; a plain ``PFX`` gives every net it holds that no
-    explicit assignment names. A net given twice is an error.
+    explicit assignment names. A net given twice is an error. ``targets(chosen)``, if given, returns
+    the nets (kind -> module) to fill for the chosen NetSpecs; else new ones are built.
     """
     parsed = [parse_spec(s) for s in specs]
     ckpts = [TFCheckpoint.open(path) for _, path in parsed]
@@ -380,12 +346,10 @@ def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print) -> Conver
                     f"choose one with --from-tf {kind}=PREFIX",
                 )
             owner[kind] = i
-    nets, chosen, sources, notes = {}, {}, [], []
-    for kind in KINDS:
-        if kind in owner:
-            ckpt = ckpts[owner[kind]]
-            chosen[kind] = detect(ckpt, kind)
-            nets[kind] = convert_network(ckpt, chosen[kind])
+    chosen = {kind: detect(ckpts[owner[kind]], kind) for kind in KINDS if kind in owner}
+    into = targets(chosen) if targets is not None else {}
+    nets = {kind: convert_network(ckpts[owner[kind]], spec, into.get(kind)) for kind, spec in chosen.items()}
+    sources, notes = [], []
     for i, ckpt in enumerate(ckpts):
         used = [k for k in KINDS if owner.get(k) == i]
         unused = [f"{SCOPES[k]} ({len(ckpt.scope_variables(k))} variables)" for k in ckpt.kinds() if k not in used]
@@ -471,39 +435,47 @@ def tf_source(cfg, requested: list[str], log=print):
     height = cfg.height or conventions.REFERENCE_HEIGHT
     width = cfg.width or conventions.REFERENCE_WIDTH
     check_graph_size(height, width)  # before minutes of reading checkpoints
-    conv = convert_checkpoints(cfg.from_tf, log)
-    available = {GRAPH_OF_KIND[k] for k in conv.nets} | {"rigidflow"}
-    if tuple(requested) == GRAPH_NAMES:  # the default: everything the checkpoints give
-        graphs = [g for g in GRAPH_NAMES if g in available]
-    else:
-        lacking = [g for g in requested if g not in available]
-        if lacking:
+    built: dict = {}
+
+    def geonet_for(chosen: dict) -> dict:
+        """Check the request against the chosen nets, then build the GeoNet whose nets are filled:
+        converting into new nets and swapping them in would hold a third resnet50 (0.2 GB) at the peak."""
+        available = {GRAPH_OF_KIND[k] for k in chosen} | {"rigidflow"}
+        if tuple(requested) == GRAPH_NAMES:  # the default: everything the checkpoints give
+            built["graphs"] = [g for g in GRAPH_NAMES if g in available]
+        else:
+            lacking = [g for g in requested if g not in available]
+            if lacking:
+                raise InputError(
+                    None,
+                    f"--graphs {','.join(lacking)}: the --from-tf checkpoints hold no network for it",
+                    f"they give {', '.join(g for g in GRAPH_NAMES if g in available)}",
+                )
+            built["graphs"] = list(requested)
+        if "resflownet" in built["graphs"] and not {"depthnet", "posenet"} <= set(built["graphs"]):
             raise InputError(
                 None,
-                f"--graphs {','.join(lacking)}: the --from-tf checkpoints hold no network for it",
-                f"they give {', '.join(g for g in GRAPH_NAMES if g in available)}",
+                "resflownet.onnx needs depthnet and posenet too (its input is their rigid flow)",
+                "the released flow checkpoint holds all three: --from-tf PREFIX converts them together",
             )
-        graphs = list(requested)
-    if "resflownet" in graphs and not {"depthnet", "posenet"} <= set(graphs):
-        raise InputError(
-            None,
-            "resflownet.onnx needs depthnet and posenet too (its input is their rigid flow)",
-            "the released flow checkpoint holds all three: --from-tf PREFIX converts them together",
-        )
-    if cfg.scale_normalize and "depth" not in conv.nets:
-        raise InputError(None, "--scale-normalize applies to a depth_net, and none is converted")
-    arch = conv.specs["depth"].arch if "depth" in conv.specs else "resnet50"
-    if cfg.arch and cfg.arch != arch:
-        raise InputError(None, f"the checkpoint's depth_net is {arch}, --arch says {cfg.arch}", "drop --arch")
-    seq_length = conv.specs["pose"].num_source + 1 if "pose" in conv.specs else (cfg.seq_length or 3)
-    if cfg.seq_length and cfg.seq_length != seq_length:
-        raise InputError(
-            None, f"the checkpoint's pose_net takes {seq_length}-frame snippets, --seq-length says {cfg.seq_length}"
-        )
-    model = GeoNet(arch, seq_length - 1, with_flow="flow" in conv.nets, scale_normalize=cfg.scale_normalize)
-    for kind, attr in (("depth", "depth_net"), ("pose", "pose_net"), ("flow", "flow_net")):
-        if kind in conv.nets:
-            setattr(model, attr, conv.nets[kind])
+        if cfg.scale_normalize and "depth" not in chosen:
+            raise InputError(None, "--scale-normalize applies to a depth_net, and none is converted")
+        arch = chosen["depth"].arch if "depth" in chosen else "resnet50"
+        if cfg.arch and cfg.arch != arch:
+            raise InputError(None, f"the checkpoint's depth_net is {arch}, --arch says {cfg.arch}", "drop --arch")
+        seq_length = chosen["pose"].num_source + 1 if "pose" in chosen else (cfg.seq_length or 3)
+        if cfg.seq_length and cfg.seq_length != seq_length:
+            raise InputError(
+                None,
+                f"the checkpoint's pose_net takes {seq_length}-frame snippets, --seq-length says {cfg.seq_length}",
+            )
+        built.update(arch=arch, seq_length=seq_length)
+        built["model"] = GeoNet(arch, seq_length - 1, with_flow="flow" in chosen, scale_normalize=cfg.scale_normalize)
+        attrs = {"depth": "depth_net", "pose": "pose_net", "flow": "flow_net"}
+        return {kind: getattr(built["model"], attrs[kind]) for kind in chosen}
+
+    conv = convert_checkpoints(cfg.from_tf, log, targets=geonet_for)
+    model, arch, seq_length, graphs = built["model"], built["arch"], built["seq_length"], built["graphs"]
     official = official_conventions(conv.specs, cfg.scale_normalize)
     if conv.notes:
         official["notes"] = conv.notes

@@ -410,14 +410,16 @@ def test_export_calib_frames_negative_is_a_count_error_not_a_folder_mixup(tmp_pa
     assert "positive number of frames" in err and "different folders" not in err
 
 
-def test_export_from_tf_path_with_glob_characters_says_why(tmp_path):
+def test_export_from_tf_path_with_glob_characters_reads(tmp_path):
+    """TensorFlow's reader took the prefix as a glob pattern; ours opens such a path as it is."""
     pytest.importorskip("torch")
     from export.from_tf import TFCheckpoint
+    from export.tf_checkpoint import write_checkpoint
 
-    folder = tmp_path / "ckpt [1]"
-    folder.mkdir()
-    (folder / "model-1.index").write_bytes(b"")
-    refused(lambda: TFCheckpoint.open(folder / "model-1"), "glob", "[ ]")
+    prefix = write_checkpoint(tmp_path / "ckpt [1]*?" / "model-1", {"pose_net/Conv/weights": np.ones((1, 1, 3, 2))})
+    ckpt = TFCheckpoint.open(prefix)
+    assert ckpt.shapes == {"pose_net/Conv/weights": [1, 1, 3, 2]} and ckpt.dtypes["pose_net/Conv/weights"] == "float64"
+    assert ckpt.tensor("pose_net/Conv/weights").sum() == 6
 
 
 def _constant_graph(path: Path, value: float) -> Path:
