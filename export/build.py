@@ -17,6 +17,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,6 +53,7 @@ class ExportConfig:
     checkpoint: Path | None = None  # last.pt / best.pt of training.train
     from_tf: tuple[str, ...] = ()  # official TF checkpoints, "PREFIX" or "depth=PREFIX" (export/from_tf.py)
     scale_normalize: bool = False  # from_tf: the model_sn release (each disparity map / its mean, in the graph)
+    verify: Path | None = None  # from_tf: frames folder; its first frame through the ONNX vs the checkpoint's forward
     arch: str | None = None  # random_init: one of training.config.ARCHS
     random_init: bool = False  # timing-only graphs; accuracy commands refuse them
     seed: int = 0  # torch seed of random_init weights
@@ -97,6 +99,7 @@ class Source:
     graphs: list | None = None  # from_tf: the graphs its checkpoints can give (overrides cfg.graphs)
     sources: list | None = None  # from_tf: provenance record of each TF checkpoint
     official: dict | None = None  # from_tf: the official code's conventions (manifest conventions.official_tf)
+    verify: Callable[[Path], str] | None = None  # from_tf --verify: model dir -> one line (export/from_tf.py)
 
 
 # ------------------------------------------------------------------------------ checks
@@ -132,6 +135,10 @@ def _check(cfg: ExportConfig) -> tuple[list[str], list[str]]:
         )
     if sum((bool(cfg.checkpoint), bool(cfg.random_init), bool(cfg.from_tf))) != 1:
         raise InputError(None, "pass exactly one of --checkpoint, --random-init or --from-tf")
+    if cfg.verify and not cfg.from_tf:
+        raise InputError(None, "--verify applies to --from-tf", "it compares the graphs with the TF checkpoint")
+    if cfg.verify:
+        list_images(cfg.verify)  # a missing or empty frames folder, before minutes of converting
     if cfg.scale_normalize and not cfg.from_tf:
         raise InputError(
             None, "--scale-normalize only applies to --from-tf", "our checkpoints record it in their config"
@@ -494,6 +501,8 @@ def export_model(cfg: ExportConfig) -> Path:
             f"({'random init' if src.random_init else src.checkpoint or 'TensorFlow checkpoints'}) -> {out}",
         )
         _write_graphs(cfg, src, graphs, precisions, tmp)
+        if src.verify is not None:
+            print(src.verify(tmp), flush=True)  # asked for: printed even with --quiet
         _publish(tmp, out, cfg.force)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -310,6 +310,7 @@ class Conversion:
     specs: dict  # kind -> NetSpec
     sources: list  # manifest provenance records, one per checkpoint
     notes: list  # human-readable remarks (also in the manifest)
+    checkpoints: dict = field(default_factory=dict)  # kind -> the TFCheckpoint it came from (for --verify)
 
 
 def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print, targets=None) -> Conversion:
@@ -378,7 +379,7 @@ def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print, targets=N
         )
     for note in notes:
         log(f"  note: {note}")
-    return Conversion(nets, chosen, sources, notes)
+    return Conversion(nets, chosen, sources, notes, {kind: ckpts[owner[kind]] for kind in chosen})
 
 
 def official_conventions(chosen: dict, scale_normalize: bool) -> dict:
@@ -479,6 +480,8 @@ def tf_source(cfg, requested: list[str], log=print):
     official = official_conventions(conv.specs, cfg.scale_normalize)
     if conv.notes:
         official["notes"] = conv.notes
+    for ckpt in conv.checkpoints.values():
+        ckpt.reader.close()  # unmap the shards for the export; --verify maps them again
     return Source(
         model.eval(),
         arch,
@@ -489,4 +492,110 @@ def tf_source(cfg, requested: list[str], log=print):
         graphs=graphs,
         sources=conv.sources,
         official=official,
+        verify=(lambda model_dir: verify_conversion(conv, model, height, width, seq_length, cfg, model_dir))
+        if cfg.verify
+        else None,
     )
+
+
+# ------------------------------------------------------------------------------ --verify
+VERIFY_TOLERANCE = 1e-3  # of the output's range: a swapped or untransposed tensor is off by the whole range
+VERIFY_OUTPUTS = {
+    "depthnet": ("depth", "disparity"),
+    "posenet": ("pose", "pose"),
+    "resflownet": ("flow", "residual_flow"),
+}
+
+
+def _verify_feeds(frames: list, spec, seq_length: int) -> dict:
+    """One input per converted graph: the first frame; the first snippet; frame 0 -> 1 for the flow net
+    (its 12 channels: target, source, the source as its own warp, zero rigid flow and error)."""
+    from export.quantize import depth_feeds, pose_feeds
+
+    feeds = {"depthnet": depth_feeds(frames[:1], spec)[0]}
+    if len(frames) >= seq_length:
+        feeds["posenet"] = pose_feeds(frames[:seq_length], spec)[0]
+    if len(frames) >= 2:
+        tgt, src = (spec.to_network(f) for f in frames[:2])
+        zeros = np.zeros((3, *tgt.shape[1:]), np.float32)
+        feeds["resflownet"] = {"flow_input": np.concatenate([tgt, src, src, zeros])[None]}
+    return feeds
+
+
+def _official_outputs(conv: Conversion, graph: str, feed: np.ndarray, scale_normalize: bool):
+    """The official TensorFlow forward pass from the checkpoint's own tensors; None where
+    TensorFlow is missing or the net has no TF re-statement here (vgg DepthNet)."""
+    kind = VERIFY_OUTPUTS[graph][0]
+    spec = conv.specs[kind]
+    if kind != "pose" and spec.arch != "resnet50":
+        return None
+    from export.official_tf import OfficialNet
+
+    try:
+        net = OfficialNet(SCOPES[kind])  # imports TensorFlow
+    except ImportError:
+        return None
+    ckpt = conv.checkpoints[kind]
+    net.values = {name: ckpt.tensor(name) for name in ckpt.scope_variables(kind)}
+    x = np.ascontiguousarray(np.transpose(feed, (0, 2, 3, 1)))
+    if kind == "depth":
+        disp = net.disp_resnet50(x)[0].numpy()
+        if scale_normalize:  # the official spatial_normalize: each map over its mean
+            disp = disp / disp.mean(axis=(1, 2, 3), keepdims=True)
+        return np.transpose(disp, (0, 3, 1, 2))
+    if kind == "pose":
+        return net.pose(x, spec.num_source).numpy()
+    h, w = x.shape[1:3]
+    return np.transpose(net.flow(x)[0].numpy() * np.array([w, h], np.float32), (0, 3, 1, 2))  # pixels
+
+
+def verify_conversion(conv: Conversion, model, height: int, width: int, seq_length: int, cfg, model_dir) -> str:
+    """``--verify``: the converted fp32 graphs in ``model_dir`` on one frame (snippet, frame pair) of
+    ``cfg.verify`` against the checkpoint's own forward pass, as one line.
+
+    The reference is the official graph in TensorFlow from the checkpoint's tensors when TensorFlow
+    is installed (independent of our mapping), else our PyTorch nets holding the converted tensors
+    (checks the ONNX export, not the mapping). ExportCheckError beyond VERIFY_TOLERANCE of the range.
+    """
+    from export.quantize import load_frames
+    from export.to_onnx import ExportCheckError
+    from export.verify import ort_outputs, torch_outputs
+    from export.wrappers import build_wrapper
+    from geonet_infer.cascade import InputSpec
+    from geonet_infer.engines.onnxruntime import make_session
+
+    frames, _ = load_frames(cfg.verify, height, width, max_frames=max(seq_length, 2))
+    feeds = _verify_feeds(frames, InputSpec.from_conventions(height, width, seq_length), seq_length)
+    parts, failed, references = [], [], set()
+    for graph, (kind, output) in VERIFY_OUTPUTS.items():
+        if kind not in conv.nets or graph not in feeds or not (Path(model_dir) / f"{graph}.onnx").is_file():
+            continue
+        ((_, value),) = feeds[graph].items()
+        session = make_session(Path(model_dir) / f"{graph}.onnx")
+        names = [o.name for o in session.get_outputs()]
+        got = dict(zip(names, ort_outputs(session, [value])))[output]
+        ref = _official_outputs(conv, graph, value, cfg.scale_normalize)
+        references.add(
+            "the official TensorFlow graph with the checkpoint's tensors"
+            if ref is not None
+            else "our PyTorch nets with the checkpoint's tensors (checks the export, not the mapping)"
+        )
+        if ref is None:
+            ref = dict(zip(names, torch_outputs(build_wrapper(graph, model), [value])))[output]
+        err = np.abs(got.astype(np.float64) - ref)
+        span = float(ref.max() - ref.min()) or 1.0
+        parts.append(f"{graph} {output} max {err.max():.2e} mean {err.mean():.2e} (range {span:.3g})")
+        if err.max() > VERIFY_TOLERANCE * span:
+            failed.append(graph)
+    if not parts:
+        raise InputError(
+            cfg.verify,
+            f"{len(frames)} frame(s): too few to verify the converted graphs",
+            f"pass a folder of at least {seq_length} consecutive frames",
+        )
+    what = " and ".join(sorted(references))
+    errors = "; ".join(parts)
+    line = f"verify: first frames of {cfg.verify} at {height}x{width}, converted ONNX vs {what}, |error|: {errors}"
+    if failed:
+        raise ExportCheckError(f"{line}: {', '.join(failed)} beyond {VERIFY_TOLERANCE:g} of the range")
+    return line

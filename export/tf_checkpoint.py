@@ -311,6 +311,10 @@ class BundleReader:
                 ) from None
         return self._maps[shard]
 
+    def close(self) -> None:
+        """Unmap the shards (they are mapped again if a tensor is read after)."""
+        self._maps.clear()
+
     def tensor(self, name: str) -> np.ndarray:
         """A copy of variable ``name``, after checking its bytes against the index's crc32c."""
         entry = self.entries[name]

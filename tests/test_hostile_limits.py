@@ -448,7 +448,6 @@ def test_export_refuses_a_graph_whose_output_is_nan_or_degenerate(tmp_path, weig
 
 def test_export_from_tf_refuses_a_checkpoint_with_nan_weights(tmp_path, capsys):
     pytest.importorskip("torch")
-    tf = pytest.importorskip("tensorflow")
     sys.path.insert(0, str(REPO / "scripts"))
     try:
         from random_official_checkpoint import random_values
@@ -456,19 +455,12 @@ def test_export_from_tf_refuses_a_checkpoint_with_nan_weights(tmp_path, capsys):
         sys.path.pop(0)
     from export.__main__ import main as export_main
     from export.from_tf import official_variables
+    from export.tf_checkpoint import write_checkpoint
 
     values = random_values(official_variables()["pose_seq3"], np.random.default_rng(0))
     name = next(n for n in sorted(values) if n.endswith("/weights"))
     values[name][...] = np.nan
-    prefix = tmp_path / "ckpt" / "model-1"
-    prefix.parent.mkdir()
-    names = sorted(values)
-    tf.raw_ops.SaveV2(
-        prefix=str(prefix),
-        tensor_names=names,
-        shape_and_slices=[""] * len(names),
-        tensors=[tf.constant(values[n]) for n in names],
-    )
+    prefix = write_checkpoint(tmp_path / "ckpt" / "model-1", values)
     out = tmp_path / "model"
     rc = export_main(["--from-tf", f"pose={prefix}", "--out", str(out), "--height", "64", "--width", "224", "--quiet"])
     assert rc == 2
