@@ -50,6 +50,10 @@ DTYPES = {
 _DTYPE_ENUM = {dt: code for code, dt in DTYPES.items()}
 
 
+class Unsupported(ValueError):
+    """A valid checkpoint using a feature this reader leaves out (slices, bfloat16, big-endian...)."""
+
+
 # ------------------------------------------------------------------------------ crc32c
 _POLY = 0x82F63B78  # Castagnoli, reflected
 _ROW = 256  # bytes per row of the vectorised crc: rows are run side by side, then combined
@@ -201,9 +205,9 @@ def _entry(name: str, value: bytes) -> Entry:
     f = _fields(value)
     code = f.get(1, [0])[0]
     if f.get(7):
-        raise ValueError(f"variable {name} is stored in slices (a partitioned variable), which is not supported")
+        raise Unsupported(f"variable {name} is stored in slices (a partitioned variable)")
     if code not in DTYPES:
-        raise ValueError(f"variable {name} has TensorFlow dtype {code}, which this reader does not support")
+        raise Unsupported(f"variable {name} has TensorFlow dtype {code} (bfloat16, string, complex or resource)")
     shape_fields = _fields(f[2][0]) if 2 in f else {}
     shape = tuple(_fields(d).get(1, [0])[0] for d in shape_fields.get(2, []))
     dtype = DTYPES[code]
@@ -222,7 +226,7 @@ def _block(index: bytes, offset: int, size: int) -> list[tuple[bytes, bytes]]:
     if mask(crc32c(index[offset : end + 1])) != stored:
         raise ValueError(f"block at byte {offset} fails its crc32c checksum")
     if kind != 0:
-        raise ValueError(f"block at byte {offset} is compressed (type {kind}); TensorFlow writes bundles uncompressed")
+        raise Unsupported(f"block at byte {offset} is compressed (type {kind}); TensorFlow writes bundles uncompressed")
     block = index[offset:end]
     restarts = struct.unpack_from("<I", block, len(block) - 4)[0]
     limit = len(block) - 4 * (restarts + 1)
@@ -260,7 +264,7 @@ def _parse_index(index: bytes) -> tuple[int, dict[str, Entry]]:
                 header = _fields(value)
                 shards = header.get(1, [0])[0]
                 if header.get(2, [0])[0] != 0:
-                    raise ValueError("big-endian checkpoint, which this reader does not support")
+                    raise Unsupported("a big-endian checkpoint")
                 continue
             name = key.decode("utf-8", "replace")
             entries[name] = _entry(name, value)
@@ -281,6 +285,12 @@ class BundleReader:
             raise InputError(self.index_path, f"cannot read ({exc.strerror or exc})") from None
         try:
             self.num_shards, self.entries = _parse_index(index)
+        except Unsupported as exc:
+            raise InputError(
+                self.index_path,
+                f"unsupported TensorFlow checkpoint: {exc}",
+                "this reader reads the unpartitioned numeric tensors of the official GeoNet checkpoints",
+            ) from None
         except (ValueError, IndexError, struct.error) as exc:
             problem = str(exc) if isinstance(exc, ValueError) else "the table ends inside an entry"
             raise InputError(

@@ -169,3 +169,19 @@ def test_size_that_does_not_fit_the_shape_is_refused():
     bad = tc._enc_field(1, 1) + tc._enc_field(2, tc._enc_field(2, tc._enc_field(1, 3))) + tc._enc_field(5, 8)
     with pytest.raises(ValueError, match="8 bytes do not hold shape \\[3\\] float32"):
         tc._entry("v", bad)
+
+
+def test_partitioned_variable_is_named_as_unsupported(tmp_path, monkeypatch):
+    """A slices field (a partitioned variable) is a valid checkpoint this reader leaves out: said so,
+    not called corrupt."""
+    from export import tf_checkpoint as tc
+
+    sliced = tc._enc_field(1, 1) + tc._enc_field(2, tc._enc_field(2, tc._enc_field(1, 3))) + tc._enc_field(7, b"")
+    with pytest.raises(tc.Unsupported, match="variable v is stored in slices"):
+        tc._entry("v", sliced + tc._enc_field(5, 12))
+    prefix = write_checkpoint(tmp_path / "model-1", {"v": np.zeros(3, np.float32)})
+    original = tc._entry
+    monkeypatch.setattr(tc, "_entry", lambda name, value: original(name, sliced))  # every entry written sliced
+    err = _one_line_error(lambda: BundleReader(prefix))
+    assert err.startswith(f"{prefix}.index: unsupported TensorFlow checkpoint: variable v is stored in slices")
+    assert "corrupt" not in err
