@@ -7,10 +7,12 @@ shape, shard, byte offset and size, masked crc32c); the key ``""`` holds the ``B
 to back. Formats: tensorflow/core/util/tensor_bundle/tensor_bundle.proto and
 third_party/leveldb table_format.txt; TensorFlow writes the index uncompressed.
 
-Why not TensorFlow (``tf.train.load_checkpoint``): a 600 MB install for reading a few hundred
-arrays, and it held 2.8 GB converting the resnet50 release. No light, maintained PyPI package
-reads this format without TensorFlow. Here each shard is memory-mapped and a tensor is copied out
-only when asked for, after its crc32c is checked as TensorFlow's reader does.
+Why not TensorFlow (``tf.train.load_checkpoint``): 1.3 GB installed (tensorflow-cpu 2.21) to read a
+few hundred arrays, and converting a resnet50 release with it peaked at 2.88 GB RSS (1.39 GB now,
+docs/official_models.md). Searching the PyPI package list and documentation found no light,
+maintained Python package that reads the format without TensorFlow (only crc32c libraries). Here
+each shard is memory-mapped and a tensor is copied out only when asked for, after its crc32c is
+checked as TensorFlow's reader does.
 
 The writer (:func:`write_checkpoint`) exists for tests and ``scripts/random_official_checkpoint.py``:
 one shard, one data block; TensorFlow reads its files (tests/test_tf_checkpoint.py).
