@@ -6,9 +6,9 @@ depthnet/posenet/rigidflow)::
     python -m export --checkpoint runs/flow/last.pt --out models/geonet \\
         [--precision fp32,int8 --calib-data DIR] [--eval-synth-dir DIR --eval-prepared-dir DIR]
 
-The authors' released TensorFlow checkpoints (docs/official_models.md; needs the ``[tf]`` extra)::
+The authors' released TensorFlow checkpoints (docs/official_models.md; no TensorFlow needed)::
 
-    python -m export --from-tf geonet_depthnet/model-250000 --out models/official_depth \\
+    python -m export --from-tf geonet_depthnet/model-250000 --out models/official_depth [--verify] \\
         [--from-tf pose=PREFIX --from-tf flow=PREFIX ...] [--precision fp32,int8 --calib-frames DIR]
 
 Timing-only models with random weights (marked ``"random_init": true``)::
@@ -33,6 +33,7 @@ from export.quantize import CALIBRATION_METHODS
 from export.to_onnx import ExportCheckError
 from export.wrappers import GRAPH_NAMES
 from geonet_infer.errors import GeoNetError
+from geonet_infer.samples import SAMPLE_FRAMES
 from training.config import ARCHS
 
 D = ExportConfig  # argparse defaults are the config's defaults
@@ -75,6 +76,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--scale-normalize",
         action="store_true",
         help="with --from-tf: the model_sn depth release (each disparity map divided by its mean, in the graph)",
+    )
+    src.add_argument(
+        "--verify",
+        nargs="?",
+        type=Path,
+        const=SAMPLE_FRAMES,
+        metavar="DIR",
+        help="with --from-tf: run the first frame of DIR (default: the bundled sample sequence) through the "
+        "converted fp32 graphs and against the checkpoint's own forward pass (the official graph in TensorFlow "
+        "if installed, else our PyTorch nets with its tensors); prints one line of max/mean errors, exit 1 "
+        "(nothing written) beyond 1e-3 of the output's range",
     )
     src.add_argument("--arch", help=f"with --random-init: one of {', '.join(ARCHS)}")
     src.add_argument(

@@ -2,10 +2,10 @@
 
 ``python -m export --from-tf CKPT [--from-tf KIND=CKPT ...] --out DIR`` (docs/official_models.md).
 
-The reader is TensorFlow itself (``tf.train.load_checkpoint``, the optional ``[tf]`` extra): it
-reads every checkpoint format TensorFlow ever wrote, including the TF 1.x files of the release,
-and a hand-written reader of the tensor-bundle format would be one more thing to keep correct.
-TensorFlow is imported only here, only when converting; the runtime never needs it.
+The reader is :mod:`export.tf_checkpoint` (numpy only: the ``.index`` table and memory-mapped
+``.data-*`` shards, each tensor's crc32c checked), so converting needs the ``[train]`` extra alone.
+TensorFlow (``[tf]``) is used only by ``--verify`` when installed (the official forward pass) and
+by the equality tests; the runtime never needs either.
 
 Naming (``export/official_variables.json``, derived from the official code): slim names unnamed
 layers ``<scope>/Conv``, ``Conv_1``, ... in creation order; each layer holds ``weights`` (HWIO) and
@@ -17,7 +17,6 @@ the official creation order, so layer i of ours is ``Conv_i`` of theirs.
 from __future__ import annotations
 
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +25,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from export.official_tf import OfficialNet, layer_name
+from export.tf_checkpoint import BundleReader
 from geonet_infer import conventions
 from geonet_infer.core.manifest import file_sha256
 from geonet_infer.errors import InputError
@@ -35,7 +36,6 @@ SCOPES = {"depth": "depth_net", "pose": "pose_net", "flow": "flow_net"}
 GRAPH_OF_KIND = {"depth": "depthnet", "pose": "posenet", "flow": "resflownet"}
 OFFICIAL_VARIABLES = Path(__file__).with_name("official_variables.json")
 OFFICIAL_CODE = "https://github.com/yzcjtr/GeoNet @ 5b17602"
-INSTALL_HINT = "install the converter's extra: pip install '.[train,tf]'"
 PREFIX_HINT = (
     "pass the checkpoint prefix, e.g. .../geonet_depthnet/model-250000 (the files are PREFIX.index and PREFIX.data-*)"
 )
@@ -80,11 +80,6 @@ def torch_layers(net: nn.Module) -> list[tuple[nn.Conv2d, nn.Module | None]]:
     return layers
 
 
-def layer_name(index: int) -> str:
-    """slim's auto-name of the ``index``-th unnamed conv of a scope."""
-    return "Conv" if index == 0 else f"Conv_{index}"
-
-
 def expected_variables(kind: str, net: nn.Module) -> list[tuple[str, list[int], str]]:
     """(name, TF shape, dtype) of every checkpoint variable ``net`` needs, in creation order."""
     scope = SCOPES[kind]
@@ -116,16 +111,6 @@ def official_variables() -> dict:
 
 
 # ------------------------------------------------------------------------------ reading
-def _tf():
-    # TensorFlow's C++ start-up notices (CPU features, oneDNN, no CUDA) are not the user's business here.
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
-    try:
-        import tensorflow as tf
-    except ImportError:
-        raise InputError(None, "--from-tf needs TensorFlow to read the checkpoint", INSTALL_HINT) from None
-    return tf
-
-
 def resolve_prefix(path: str | Path) -> Path:
     """The checkpoint prefix for what the user passed.
 
@@ -166,42 +151,22 @@ class TFCheckpoint:
     prefix: Path
     shapes: dict
     dtypes: dict
-    reader: object = field(repr=False)
+    reader: BundleReader = field(repr=False)
 
     @classmethod
     def open(cls, path: str | Path) -> TFCheckpoint:
-        prefix = resolve_prefix(path)
-        if any(c in str(prefix) for c in "[]*?"):  # TensorFlow globs the prefix: it would find nothing
-            raise InputError(
-                prefix,
-                "TensorFlow reads checkpoint paths as glob patterns and cannot open one holding [ ] * or ?",
-                "rename the folder, or link the checkpoint files from a path without those characters",
-            )
-        tf = _tf()
-        try:
-            reader = tf.train.load_checkpoint(str(prefix))
-            shapes = reader.get_variable_to_shape_map()
-            dtypes = {k: v.name for k, v in reader.get_variable_to_dtype_map().items()}
-        except (tf.errors.OpError, ValueError, OSError) as exc:
-            raise InputError(
-                f"{prefix}.index", f"unreadable TensorFlow checkpoint ({_first_line(exc)})", PREFIX_HINT
-            ) from None
-        return cls(prefix, {k: list(v) for k, v in shapes.items()}, dtypes, reader)
+        reader = BundleReader(resolve_prefix(path))
+        shapes = {n: list(e.shape) for n, e in reader.entries.items()}
+        return cls(reader.prefix, shapes, {n: e.dtype.name for n, e in reader.entries.items()}, reader)
 
     def files(self) -> dict[str, str]:
-        """File name -> sha256 of the .index and .data-* files."""
-        names = [Path(f"{self.prefix}.index"), *sorted(self.prefix.parent.glob(f"{self.prefix.name}.data-*"))]
-        return {f.name: file_sha256(f) for f in names}
+        """File name -> sha256 of the .index and .data-* files (a missing shard whose variables were not
+        read is left out, as it was not needed)."""
+        files = [self.reader.index_path, *(f for f in self.reader.shard_paths() if f.is_file())]
+        return {f.name: file_sha256(f) for f in files}
 
     def tensor(self, name: str) -> np.ndarray:
-        try:
-            value = np.asarray(self.reader.get_tensor(name))
-        except Exception as exc:  # TF raises DataLossError / OpError subclasses from C++; all mean unreadable
-            raise InputError(
-                self.prefix,
-                f"cannot read variable {name} ({_first_line(exc)}): the checkpoint is truncated or corrupt",
-                "download it again",
-            ) from None
+        value = self.reader.tensor(name)
         if np.issubdtype(value.dtype, np.floating) and not np.isfinite(value).all():  # every frame would fail
             raise InputError(
                 self.prefix,
@@ -218,10 +183,6 @@ class TFCheckpoint:
 
     def step(self) -> int | None:
         return int(self.tensor("global_step")) if "global_step" in self.shapes else None
-
-
-def _first_line(exc: BaseException) -> str:
-    return (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
 
 
 # ------------------------------------------------------------------------------ detection + mapping
@@ -274,14 +235,14 @@ def detect(ckpt: TFCheckpoint, kind: str) -> NetSpec:
     return NetSpec(kind, arch="resnet50")
 
 
-def convert_network(ckpt: TFCheckpoint, spec: NetSpec) -> nn.Module:
-    """Our network with every parameter and BN statistic set from ``ckpt``.
+def convert_network(ckpt: TFCheckpoint, spec: NetSpec, net: nn.Module | None = None) -> nn.Module:
+    """Our network (``net``, or a new one for ``spec``) with every parameter and BN statistic set from ``ckpt``.
 
     Every ``<scope>/`` variable is consumed exactly once; a missing, left-over or misshapen
     variable is a GeoNetError naming it. HWIO weights become OIHW. (``num_batches_tracked``,
     a PyTorch training counter unused in eval mode, stays 0.)
     """
-    net = build_network(spec.kind, spec.arch, spec.num_source)
+    net = net.eval() if net is not None else build_network(spec.kind, spec.arch, spec.num_source)
     expected = expected_variables(spec.kind, net)
     present = ckpt.scope_variables(spec.kind)
     what = f"{spec.describe()}; the official one has {len(expected)} variables"
@@ -345,13 +306,15 @@ class Conversion:
     specs: dict  # kind -> NetSpec
     sources: list  # manifest provenance records, one per checkpoint
     notes: list  # human-readable remarks (also in the manifest)
+    checkpoints: dict = field(default_factory=dict)  # kind -> the TFCheckpoint it came from (for --verify)
 
 
-def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print) -> Conversion:
+def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print, targets=None) -> Conversion:
     """Open every ``--from-tf`` checkpoint, decide which net comes from which, and convert them.
 
     Explicit ``kind=PFX`` assignments win; a plain ``PFX`` gives every net it holds that no
-    explicit assignment names. A net given twice is an error.
+    explicit assignment names. A net given twice is an error. ``targets(chosen)``, if given, returns
+    the nets (kind -> module) to fill for the chosen NetSpecs; else new ones are built.
     """
     parsed = [parse_spec(s) for s in specs]
     ckpts = [TFCheckpoint.open(path) for _, path in parsed]
@@ -380,12 +343,10 @@ def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print) -> Conver
                     f"choose one with --from-tf {kind}=PREFIX",
                 )
             owner[kind] = i
-    nets, chosen, sources, notes = {}, {}, [], []
-    for kind in KINDS:
-        if kind in owner:
-            ckpt = ckpts[owner[kind]]
-            chosen[kind] = detect(ckpt, kind)
-            nets[kind] = convert_network(ckpt, chosen[kind])
+    chosen = {kind: detect(ckpts[owner[kind]], kind) for kind in KINDS if kind in owner}
+    into = targets(chosen) if targets is not None else {}
+    nets = {kind: convert_network(ckpts[owner[kind]], spec, into.get(kind)) for kind, spec in chosen.items()}
+    sources, notes = [], []
     for i, ckpt in enumerate(ckpts):
         used = [k for k in KINDS if owner.get(k) == i]
         unused = [f"{SCOPES[k]} ({len(ckpt.scope_variables(k))} variables)" for k in ckpt.kinds() if k not in used]
@@ -414,7 +375,7 @@ def convert_checkpoints(specs: tuple[str, ...] | list[str], log=print) -> Conver
         )
     for note in notes:
         log(f"  note: {note}")
-    return Conversion(nets, chosen, sources, notes)
+    return Conversion(nets, chosen, sources, notes, {kind: ckpts[owner[kind]] for kind in chosen})
 
 
 def official_conventions(chosen: dict, scale_normalize: bool) -> dict:
@@ -471,42 +432,52 @@ def tf_source(cfg, requested: list[str], log=print):
     height = cfg.height or conventions.REFERENCE_HEIGHT
     width = cfg.width or conventions.REFERENCE_WIDTH
     check_graph_size(height, width)  # before minutes of reading checkpoints
-    conv = convert_checkpoints(cfg.from_tf, log)
-    available = {GRAPH_OF_KIND[k] for k in conv.nets} | {"rigidflow"}
-    if tuple(requested) == GRAPH_NAMES:  # the default: everything the checkpoints give
-        graphs = [g for g in GRAPH_NAMES if g in available]
-    else:
-        lacking = [g for g in requested if g not in available]
-        if lacking:
+    built: dict = {}
+
+    def geonet_for(chosen: dict) -> dict:
+        """Check the request against the chosen nets, then build the GeoNet whose nets are filled:
+        converting into new nets and swapping them in would hold a third resnet50 (0.2 GB) at the peak."""
+        available = {GRAPH_OF_KIND[k] for k in chosen} | {"rigidflow"}
+        if tuple(requested) == GRAPH_NAMES:  # the default: everything the checkpoints give
+            built["graphs"] = [g for g in GRAPH_NAMES if g in available]
+        else:
+            lacking = [g for g in requested if g not in available]
+            if lacking:
+                raise InputError(
+                    None,
+                    f"--graphs {','.join(lacking)}: the --from-tf checkpoints hold no network for it",
+                    f"they give {', '.join(g for g in GRAPH_NAMES if g in available)}",
+                )
+            built["graphs"] = list(requested)
+        if "resflownet" in built["graphs"] and not {"depthnet", "posenet"} <= set(built["graphs"]):
             raise InputError(
                 None,
-                f"--graphs {','.join(lacking)}: the --from-tf checkpoints hold no network for it",
-                f"they give {', '.join(g for g in GRAPH_NAMES if g in available)}",
+                "resflownet.onnx needs depthnet and posenet too (its input is their rigid flow)",
+                "the released flow checkpoint holds all three: --from-tf PREFIX converts them together",
             )
-        graphs = list(requested)
-    if "resflownet" in graphs and not {"depthnet", "posenet"} <= set(graphs):
-        raise InputError(
-            None,
-            "resflownet.onnx needs depthnet and posenet too (its input is their rigid flow)",
-            "the released flow checkpoint holds all three: --from-tf PREFIX converts them together",
-        )
-    if cfg.scale_normalize and "depth" not in conv.nets:
-        raise InputError(None, "--scale-normalize applies to a depth_net, and none is converted")
-    arch = conv.specs["depth"].arch if "depth" in conv.specs else "resnet50"
-    if cfg.arch and cfg.arch != arch:
-        raise InputError(None, f"the checkpoint's depth_net is {arch}, --arch says {cfg.arch}", "drop --arch")
-    seq_length = conv.specs["pose"].num_source + 1 if "pose" in conv.specs else (cfg.seq_length or 3)
-    if cfg.seq_length and cfg.seq_length != seq_length:
-        raise InputError(
-            None, f"the checkpoint's pose_net takes {seq_length}-frame snippets, --seq-length says {cfg.seq_length}"
-        )
-    model = GeoNet(arch, seq_length - 1, with_flow="flow" in conv.nets, scale_normalize=cfg.scale_normalize)
-    for kind, attr in (("depth", "depth_net"), ("pose", "pose_net"), ("flow", "flow_net")):
-        if kind in conv.nets:
-            setattr(model, attr, conv.nets[kind])
+        if cfg.scale_normalize and "depth" not in chosen:
+            raise InputError(None, "--scale-normalize applies to a depth_net, and none is converted")
+        arch = chosen["depth"].arch if "depth" in chosen else "resnet50"
+        if cfg.arch and cfg.arch != arch:
+            raise InputError(None, f"the checkpoint's depth_net is {arch}, --arch says {cfg.arch}", "drop --arch")
+        seq_length = chosen["pose"].num_source + 1 if "pose" in chosen else (cfg.seq_length or 3)
+        if cfg.seq_length and cfg.seq_length != seq_length:
+            raise InputError(
+                None,
+                f"the checkpoint's pose_net takes {seq_length}-frame snippets, --seq-length says {cfg.seq_length}",
+            )
+        built.update(arch=arch, seq_length=seq_length)
+        built["model"] = GeoNet(arch, seq_length - 1, with_flow="flow" in chosen, scale_normalize=cfg.scale_normalize)
+        attrs = {"depth": "depth_net", "pose": "pose_net", "flow": "flow_net"}
+        return {kind: getattr(built["model"], attrs[kind]) for kind in chosen}
+
+    conv = convert_checkpoints(cfg.from_tf, log, targets=geonet_for)
+    model, arch, seq_length, graphs = built["model"], built["arch"], built["seq_length"], built["graphs"]
     official = official_conventions(conv.specs, cfg.scale_normalize)
     if conv.notes:
         official["notes"] = conv.notes
+    for ckpt in conv.checkpoints.values():
+        ckpt.reader.close()  # unmap the shards for the export; --verify maps them again
     return Source(
         model.eval(),
         arch,
@@ -517,4 +488,109 @@ def tf_source(cfg, requested: list[str], log=print):
         graphs=graphs,
         sources=conv.sources,
         official=official,
+        verify=(lambda model_dir: verify_conversion(conv, model, height, width, seq_length, cfg, model_dir))
+        if cfg.verify
+        else None,
     )
+
+
+# ------------------------------------------------------------------------------ --verify
+VERIFY_TOLERANCE = 1e-3  # of the output's range: a swapped or untransposed tensor is off by the whole range
+VERIFY_OUTPUTS = {
+    "depthnet": ("depth", "disparity"),
+    "posenet": ("pose", "pose"),
+    "resflownet": ("flow", "residual_flow"),
+}
+
+
+def _verify_feeds(frames: list, spec, seq_length: int) -> dict:
+    """One input per converted graph: the first frame; the first snippet; frame 0 -> 1 for the flow net
+    (its 12 channels: target, source, the source as its own warp, zero rigid flow and error)."""
+    from export.quantize import depth_feeds, pose_feeds
+
+    feeds = {"depthnet": depth_feeds(frames[:1], spec)[0]}
+    if len(frames) >= seq_length:
+        feeds["posenet"] = pose_feeds(frames[:seq_length], spec)[0]
+    if len(frames) >= 2:
+        tgt, src = (spec.to_network(f) for f in frames[:2])
+        zeros = np.zeros((3, *tgt.shape[1:]), np.float32)
+        feeds["resflownet"] = {"flow_input": np.concatenate([tgt, src, src, zeros])[None]}
+    return feeds
+
+
+def _official_outputs(conv: Conversion, graph: str, feed: np.ndarray, scale_normalize: bool):
+    """The official TensorFlow forward pass from the checkpoint's own tensors; None where
+    TensorFlow is missing or the net has no TF re-statement here (vgg DepthNet)."""
+    kind = VERIFY_OUTPUTS[graph][0]
+    spec = conv.specs[kind]
+    if kind != "pose" and spec.arch != "resnet50":
+        return None
+
+    try:
+        net = OfficialNet(SCOPES[kind])  # imports TensorFlow
+    except ImportError:
+        return None
+    ckpt = conv.checkpoints[kind]
+    net.values = {name: ckpt.tensor(name) for name in ckpt.scope_variables(kind)}
+    x = np.ascontiguousarray(np.transpose(feed, (0, 2, 3, 1)))
+    if kind == "depth":
+        disp = net.disp_resnet50(x)[0].numpy()
+        if scale_normalize:  # the official spatial_normalize: each map over its mean
+            disp = disp / disp.mean(axis=(1, 2, 3), keepdims=True)
+        return np.transpose(disp, (0, 3, 1, 2))
+    if kind == "pose":
+        return net.pose(x, spec.num_source).numpy()
+    h, w = x.shape[1:3]
+    return np.transpose(net.flow(x)[0].numpy() * np.array([w, h], np.float32), (0, 3, 1, 2))  # pixels
+
+
+def verify_conversion(conv: Conversion, model, height: int, width: int, seq_length: int, cfg, model_dir) -> str:
+    """``--verify``: the converted fp32 graphs in ``model_dir`` on one frame (snippet, frame pair) of
+    ``cfg.verify`` against the checkpoint's own forward pass, as one line.
+
+    The reference is the official graph in TensorFlow from the checkpoint's tensors when TensorFlow
+    is installed (independent of our mapping), else our PyTorch nets holding the converted tensors
+    (checks the ONNX export, not the mapping). ExportCheckError beyond VERIFY_TOLERANCE of the range.
+    """
+    from export.quantize import load_frames
+    from export.to_onnx import ExportCheckError
+    from export.verify import ort_outputs, torch_outputs
+    from export.wrappers import build_wrapper
+    from geonet_infer.cascade import InputSpec
+    from geonet_infer.engines.onnxruntime import make_session
+
+    frames, _ = load_frames(cfg.verify, height, width, max_frames=max(seq_length, 2))
+    feeds = _verify_feeds(frames, InputSpec.from_conventions(height, width, seq_length), seq_length)
+    parts, failed, references = [], [], set()
+    for graph, (kind, output) in VERIFY_OUTPUTS.items():
+        if kind not in conv.nets or graph not in feeds or not (Path(model_dir) / f"{graph}.onnx").is_file():
+            continue
+        ((_, value),) = feeds[graph].items()
+        session = make_session(Path(model_dir) / f"{graph}.onnx")
+        names = [o.name for o in session.get_outputs()]
+        got = dict(zip(names, ort_outputs(session, [value])))[output]
+        ref = _official_outputs(conv, graph, value, cfg.scale_normalize)
+        references.add(
+            "the official TensorFlow graph with the checkpoint's tensors"
+            if ref is not None
+            else "our PyTorch nets with the checkpoint's tensors (checks the export, not the mapping)"
+        )
+        if ref is None:
+            ref = dict(zip(names, torch_outputs(build_wrapper(graph, model), [value])))[output]
+        err = np.abs(got.astype(np.float64) - ref)
+        span = float(ref.max() - ref.min()) or 1.0
+        parts.append(f"{graph} {output} max {err.max():.2e} mean {err.mean():.2e} (range {span:.3g})")
+        if err.max() > VERIFY_TOLERANCE * span:
+            failed.append(graph)
+    if not parts:
+        raise InputError(
+            cfg.verify,
+            f"{len(frames)} frame(s): too few to verify the converted graphs",
+            f"pass a folder of at least {seq_length} consecutive frames",
+        )
+    what = " and ".join(sorted(references))
+    errors = "; ".join(parts)
+    line = f"verify: first frames of {cfg.verify} at {height}x{width}, converted ONNX vs {what}, |error|: {errors}"
+    if failed:
+        raise ExportCheckError(f"{line}: {', '.join(failed)} beyond {VERIFY_TOLERANCE:g} of the range")
+    return line

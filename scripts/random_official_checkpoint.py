@@ -3,7 +3,8 @@
 The released files cannot be downloaded on this project's machines; this stands in for them so that
 every command of docs/official_models.md can be run as written (the values are random: the depth,
 poses and flow it gives mean nothing). Names, shapes and dtypes come from
-export/official_variables.json (derived from the official code); needs the ``[tf]`` extra::
+export/official_variables.json (derived from the official code); the files are written by
+export/tf_checkpoint.py (no TensorFlow needed; TensorFlow reads them, tests/export/test_tf_checkpoint.py)::
 
     python scripts/random_official_checkpoint.py /tmp/geonet_depthnet/model-250000 depth_resnet50 pose_seq3
     python scripts/random_official_checkpoint.py /tmp/geonet_posenet/model-206000 depth_resnet50 pose_seq5
@@ -17,7 +18,6 @@ A ``train_rigid`` release holds depth_net and pose_net, a ``train_flow`` release
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import sys
 from pathlib import Path
@@ -26,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from export.from_tf import official_variables  # noqa: E402
+from export.tf_checkpoint import write_checkpoint  # noqa: E402
 
 
 def random_values(variables: list, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -56,24 +57,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("networks", nargs="+", choices=list(networks), help="networks the checkpoint holds")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")  # no C++ start-up notices
-    import tensorflow as tf
-
     rng = np.random.default_rng(args.seed)
     values = {}
     for key in args.networks:
         values.update(random_values(networks[key], rng))
     step = int(m.group(1)) if (m := re.search(r"model-(\d+)$", args.prefix.name)) else 0
-    args.prefix.parent.mkdir(parents=True, exist_ok=True)
-    names = sorted(values)
-    tensors = [tf.constant(values[n]) for n in names] + [tf.constant(np.int64(step))]
-    tf.raw_ops.SaveV2(
-        prefix=str(args.prefix),
-        tensor_names=names + ["global_step"],
-        shape_and_slices=[""] * (len(names) + 1),
-        tensors=tensors,
-    )
-    print(f"{args.prefix}: {len(names)} variables of {', '.join(args.networks)} (random values), global_step {step}")
+    write_checkpoint(args.prefix, {**values, "global_step": np.int64(step)})
+    print(f"{args.prefix}: {len(values)} variables of {', '.join(args.networks)} (random values), global_step {step}")
     return 0
 
 

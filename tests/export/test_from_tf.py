@@ -4,20 +4,34 @@ The released files cannot be downloaded here, so the tests write checkpoints wit
 official variable names and shapes (``export/official_variables.json``, derived from the official
 code) and random values, run the official forward pass in TensorFlow (``OfficialNet`` below: our own
 re-statement of ``geonet_nets.py``, NHWC, its padding and resizing ops) and compare with the
-converted ONNX graphs. Needs the ``[tf]`` extra (CI installs it); the variable-list test does not.
+converted ONNX graphs. Those need the ``[tf]`` extra (CI installs it); the files they convert are
+written by TensorFlow, so the reader (export/tf_checkpoint.py) is checked on TensorFlow's own files.
+The conversion without TensorFlow, the refusals and the variable-list test need no TensorFlow: their
+checkpoints come from the project's writer (``tf_checkpoint.write_checkpoint``), whose files
+TensorFlow reads (tests/export/test_tf_checkpoint.py).
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import re
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from export.from_tf import build_network, expected_variables, layer_name, official_variables
+from export import official_tf, tf_checkpoint
+from export.from_tf import build_network, expected_variables, official_variables
 from tests.conftest import require_realdata
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+from random_official_checkpoint import random_values  # noqa: E402
+
+sys.path.pop(0)
 
 H, W = 64, 224  # multiples of 64/32 where the official resize_like is NOT a no-op (W/64 = 3.5 -> 4 -> 7)
 # Real road frames: the parity inputs, and the INT8 calibration set of this random-valued, throwaway
@@ -44,108 +58,42 @@ def test_mapping_matches_official_variable_list(key):
 
 
 # ------------------------------------------------------------------------------ the official layers in TF
-class OfficialNet:
-    """``geonet_nets.py`` re-stated with TF2 ops (NHWC). Each layer call takes the next slim name
-    (Conv, Conv_1, ...); on first use it creates that layer's variables: He-scaled weights, small
-    biases/betas, and moving statistics near the batch's own (so activations stay in range through
-    50 layers). BN then runs in inference mode with those statistics, eps 1e-3, no gamma."""
+class OfficialNet(official_tf.OfficialNet):
+    """``export/official_tf.py``'s official forward pass, creating each layer's variables on first use:
+    He-scaled weights, small biases/betas, and moving statistics near the batch's own (so activations
+    stay in range through 50 layers). BN then runs in inference mode with those statistics, eps 1e-3,
+    no gamma."""
 
     def __init__(self, scope: str, rng: np.random.Generator):
-        import tensorflow as tf
+        super().__init__(scope)
+        self.rng = rng
 
-        self.tf, self.scope, self.rng = tf, scope, rng
-        self.values: dict[str, np.ndarray] = {}
-        self.index = 0
-
-    def layer(self, x, out, k, stride, padding, bn=True, act="relu", var_scale=1.0):
-        tf = self.tf
-        name = f"{self.scope}/{layer_name(self.index)}"
-        self.index += 1
-        c = int(x.shape[-1])
-        w = self.rng.normal(0, np.sqrt(2.0 / (k * k * c)), (k, k, c, out)).astype(np.float32)
+    def weights(self, name, shape):
+        k, _, c, _ = shape
+        w = self.rng.normal(0, np.sqrt(2.0 / (k * k * c)), shape).astype(np.float32)
         self.values[f"{name}/weights"] = w
-        if padding == "symmetric":  # the official `conv` helper: tf.pad p = floor((k-1)/2), then VALID
-            p = (k - 1) // 2
-            x = tf.pad(x, [[0, 0], [p, p], [p, p], [0, 0]])
-            padding = "VALID"
-        y = tf.nn.conv2d(x, w, stride, padding)
-        if bn:
-            mean, var = (t.numpy() for t in tf.nn.moments(y, [0, 1, 2]))
-            stats = {
-                "beta": self.rng.normal(0, 0.1, out),
-                "moving_mean": mean + 0.1 * np.sqrt(var) * self.rng.normal(size=out),
-                "moving_variance": var * var_scale * self.rng.uniform(0.7, 1.4, out),
-            }
-            stats = {tail: v.astype(np.float32) for tail, v in stats.items()}
-            for tail, v in stats.items():
-                self.values[f"{name}/BatchNorm/{tail}"] = v
-            y = (y - stats["moving_mean"]) / np.sqrt(stats["moving_variance"] + np.float32(1e-3)) + stats["beta"]
-        else:
-            b = self.rng.normal(0, 0.1, out).astype(np.float32)
-            self.values[f"{name}/biases"] = b
-            y = y + b
-        if act == "relu":
-            return tf.nn.relu(y)
-        return tf.sigmoid(y) if act == "sigmoid" else y
+        return w
 
-    # official helpers
-    def conv(self, x, out, k, stride, bn=True, act="relu", var_scale=1.0):
-        return self.layer(x, out, k, stride, "symmetric", bn, act, var_scale)
+    def batch_norm(self, name, y, out, var_scale):
+        mean, var = (t.numpy() for t in self.tf.nn.moments(y, [0, 1, 2]))
+        stats = {
+            "beta": self.rng.normal(0, 0.1, out),
+            "moving_mean": mean + 0.1 * np.sqrt(var) * self.rng.normal(size=out),
+            "moving_variance": var * var_scale * self.rng.uniform(0.7, 1.4, out),
+        }
+        stats = {tail: v.astype(np.float32) for tail, v in stats.items()}
+        for tail, v in stats.items():
+            self.values[f"{name}/BatchNorm/{tail}"] = v
+        return stats
 
-    def upconv(self, x, out):
-        return self.conv(self.upsample_nn(x), out, 3, 1)
-
-    def upsample_nn(self, x):
-        return self.tf.compat.v1.image.resize_nearest_neighbor(x, [int(x.shape[1]) * 2, int(x.shape[2]) * 2])
-
-    def resize_like(self, x, ref):
-        if x.shape[1:3] == ref.shape[1:3]:
-            return x
-        return self.tf.compat.v1.image.resize_nearest_neighbor(x, [int(ref.shape[1]), int(ref.shape[2])])
-
-    def resconv(self, x, n, stride):
-        # The residual branch at 1/8 of the shortcut (its BN variance x64), as in trained ResNets: with
-        # both at unit variance, 16 random blocks amplify float32 rounding to ~1e-3 of the range.
-        out = self.conv(self.conv(self.conv(x, n, 1, 1), n, 3, stride), 4 * n, 1, 1, act=None, var_scale=64.0)
-        return self.tf.nn.relu(out + self.conv(x, 4 * n, 1, stride, act=None))  # the always-taken projection
-
-    def resnet50(self, x, get_pred):
-        tf = self.tf
-        conv1 = self.conv(x, 64, 7, 2)
-        pool1 = tf.nn.max_pool2d(tf.pad(conv1, [[0, 0], [1, 1], [1, 1], [0, 0]]), 3, 2, "VALID")
-        skips, out = [conv1, pool1], pool1
-        for n, blocks in ((64, 3), (128, 4), (256, 6), (512, 3)):
-            for _ in range(blocks - 1):
-                out = self.resconv(out, n, 1)
-            out = self.resconv(out, n, 2)
-            skips.append(out)
-        x, (skip1, skip2, skip3, skip4, skip5) = skips[-1], skips[:5]
-        for n, skip in ((512, skip5), (256, skip4), (128, skip3)):
-            up = self.resize_like(self.upconv(x, n), skip)
-            x = self.conv(tf.concat([up, skip], 3), n, 3, 1)
-        preds = [get_pred(x)]
-        for n, skip in ((64, skip2), (32, skip1), (16, None)):
-            parts = [self.upconv(x, n)] + ([skip] if skip is not None else []) + [self.upsample_nn(preds[-1])]
-            x = self.conv(tf.concat(parts, 3), n, 3, 1)
-            preds.append(get_pred(x))
-        return preds[::-1]
-
-    def disp_resnet50(self, image):
-        return self.resnet50(image, lambda x: 5 * self.conv(x, 1, 3, 1, bn=False, act="sigmoid") + 0.01)
-
-    def flow(self, flow_input):
-        return self.resnet50(flow_input, lambda x: 0.1 * self.layer(x, 2, 3, 1, "SAME", bn=False, act=None))
-
-    def pose(self, snippet, num_source):
-        x = snippet
-        for out, k in ((16, 7), (32, 5), (64, 3), (128, 3), (256, 3), (256, 3), (256, 3)):
-            x = self.layer(x, out, k, 2, "SAME")
-        pred = self.layer(x, 6 * num_source, 1, 1, "SAME", bn=False, act=None)
-        return 0.01 * self.tf.reshape(self.tf.reduce_mean(pred, [1, 2]), [-1, num_source, 6])
+    def biases(self, name, out):
+        b = self.rng.normal(0, 0.1, out).astype(np.float32)
+        self.values[f"{name}/biases"] = b
+        return b
 
 
-def write_checkpoint(prefix: Path, values: dict, step: int = 250000) -> Path:
-    """A TF V2 checkpoint (PREFIX.index + PREFIX.data-00000-of-00001) holding ``values`` under their names."""
+def write_checkpoint_tf(prefix: Path, values: dict, step: int = 250000) -> Path:
+    """A checkpoint TensorFlow writes (SaveV2: PREFIX.index + PREFIX.data-00000-of-00001)."""
     import tensorflow as tf
 
     prefix.parent.mkdir(parents=True, exist_ok=True)
@@ -153,6 +101,11 @@ def write_checkpoint(prefix: Path, values: dict, step: int = 250000) -> Path:
     tensors = [tf.constant(values[n]) for n in names[:-1]] + [tf.constant(np.int64(step))]
     tf.raw_ops.SaveV2(prefix=str(prefix), tensor_names=names, shape_and_slices=[""] * len(names), tensors=tensors)
     return prefix
+
+
+def write_checkpoint(prefix: Path, values: dict, step: int = 250000) -> Path:
+    """The same files from the project's numpy writer (no TensorFlow)."""
+    return tf_checkpoint.write_checkpoint(prefix, {**values, "global_step": np.int64(step)})
 
 
 def _nhwc(x):
@@ -173,11 +126,9 @@ def _frames(n: int) -> np.ndarray:
 
 
 def _pose_values(num_source: int, seed: int) -> dict:
-    """Official pose_net variables (He-scaled random values) for a snippet of 1 + num_source frames."""
-    rng = np.random.default_rng(seed)
-    net = OfficialNet("pose_net", rng)
-    net.pose(_nhwc(rng.uniform(-1, 1, (1, 3 * (1 + num_source), H, W)).astype(np.float32)), num_source)
-    return net.values
+    """Official pose_net variables (scripts/random_official_checkpoint.py's random values) for
+    snippets of 1 + num_source frames."""
+    return random_values(official_variables()[f"pose_seq{num_source + 1}"], np.random.default_rng(seed))
 
 
 # ------------------------------------------------------------------------------ the converted model
@@ -211,8 +162,8 @@ def converted(tmp_path_factory):
     residual = flow_b.flow(_nhwc(flow_input))[0] * np.array([W, H], np.float32)  # official: pred * (W, H)
     ref["residual_flow"] = _nchw(residual)
     ref["flow"] = ref["residual_flow"] + rigid
-    a = write_checkpoint(root / "geonet_posenet" / "model-206000", {**depth_a.values, **pose_a.values}, 206000)
-    b = write_checkpoint(
+    a = write_checkpoint_tf(root / "geonet_posenet" / "model-206000", {**depth_a.values, **pose_a.values}, 206000)
+    b = write_checkpoint_tf(
         root / "geonet_resflownet" / "model-400000", {**depth_b.values, **pose_b_values, **flow_b.values}, 400000
     )
     for var in (official_variables()["depth_resnet50"], official_variables()["flow_resnet50"]):
@@ -221,10 +172,11 @@ def converted(tmp_path_factory):
         assert [[n, list(written[n].shape), str(written[n].dtype)] for n, _, _ in var] == var, scope
     out = root / "model"
     argv = ["--from-tf", str(a), "--from-tf", f"flow={b}", "--out", str(out), "--height", str(H), "--width", str(W)]
-    argv += ["--precision", "fp32,int8", "--calib-frames", str(require_realdata(CALIB)), "--quiet"]
-    assert main(argv) == 0
+    argv += ["--precision", "fp32,int8", "--calib-frames", str(require_realdata(CALIB)), "--quiet", "--verify"]
+    with contextlib.redirect_stdout(io.StringIO()) as stdout:
+        assert main(argv) == 0
     inputs = {"image": image, "snippet": snippet, "flow_input": flow_input}
-    yield {"dir": out, "a": a, "b": b, "ref": ref, "inputs": inputs}
+    yield {"dir": out, "a": a, "b": b, "ref": ref, "inputs": inputs, "stdout": stdout.getvalue()}
     shutil.rmtree(root, ignore_errors=True)  # ~1.5 GB of checkpoints and graphs
 
 
@@ -313,10 +265,97 @@ def test_manifest_records_sources_and_official_conventions(converted):
     assert raw["provenance"]["sources"] == [a, b]
 
 
+@pytest.mark.slow
+def test_verify_line_compares_with_the_official_graph(converted):
+    """--verify with TensorFlow installed: the official TF graph from the checkpoint's tensors is the
+    reference; depth and pose from A, the flow net from B, errors in float32 rounding range."""
+    line = converted["stdout"].strip().splitlines()[-1]
+    assert line.startswith("verify: ") and "vs the official TensorFlow graph with the checkpoint's tensors" in line
+    errors = {g: (float(e), float(r)) for g, e, r in re.findall(r"(\w+) \w+ max (\S+) mean \S+ \(range (\S+)\)", line)}
+    assert set(errors) == {"depthnet", "posenet", "resflownet"}, line
+    assert all(0 < e <= 1e-4 * r for e, r in errors.values()), line  # the bound of the fp32 tests above
+
+
+# ------------------------------------------------------------------------------ without TensorFlow
+def _release_values(rng: np.random.Generator, *keys: str) -> dict:
+    """Random official variables with BatchNorm statistics that are not the identity (a BN of the
+    wrong layer then changes the folded weights the test compares)."""
+    values = {}
+    for key in keys:
+        values.update(random_values(official_variables()[key], rng))
+    for name in values:
+        if name.endswith("moving_mean"):
+            values[name] = rng.normal(0, 0.1, values[name].shape).astype(np.float32)
+        elif name.endswith("moving_variance"):
+            values[name] = rng.uniform(0.5, 2.0, values[name].shape).astype(np.float32)
+    return values
+
+
+@pytest.fixture
+def no_tensorflow(monkeypatch):
+    """TensorFlow not installed, as far as this process can tell (an import raises ImportError)."""
+    monkeypatch.setitem(sys.modules, "tensorflow", None)
+
+
+@pytest.mark.slow  # a resnet50 depth release at 64x224: ~40 s
+def test_conversion_without_tensorflow(tmp_path, capsys, no_tensorflow):
+    """The depth release converts with TensorFlow absent, from files of the numpy writer; every conv of
+    the checkpoint is in depthnet.onnx / posenet.onnx, transposed to OIHW with its own BatchNorm folded
+    in as the exporter does (w / sqrt(var + 1e-3)), computed here from the values the test made; --verify
+    says it compared with our PyTorch nets."""
+    from onnx import load, numpy_helper
+
+    from export.__main__ import main
+
+    values = _release_values(np.random.default_rng(43), "depth_resnet50", "pose_seq3")
+    prefix = write_checkpoint(tmp_path / "geonet_depthnet" / "model-250000", values)
+    out = tmp_path / "model"
+    argv = ["--from-tf", str(prefix), "--out", str(out), "--height", str(H), "--width", str(W), "--verify"]
+    assert main([*argv, "--quiet"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "vs our PyTorch nets with the checkpoint's tensors" in line and "depthnet disparity max" in line
+    assert "posenet pose max" in line
+    for graph, scope in (("depthnet", "depth_net"), ("posenet", "pose_net")):
+        inits: dict = {}
+        for init in load(str(out / f"{graph}.onnx")).graph.initializer:
+            array = numpy_helper.to_array(init)
+            inits.setdefault(array.shape, []).append(array)
+        layers = sorted(n.rsplit("/", 1)[0] for n in values if n.startswith(scope + "/") and n.endswith("/weights"))
+        for layer in layers:
+            w = values[f"{layer}/weights"].transpose(3, 2, 0, 1)
+            if f"{layer}/BatchNorm/moving_variance" in values:
+                w = w / np.sqrt(values[f"{layer}/BatchNorm/moving_variance"] + np.float32(1e-3))[:, None, None, None]
+            found = [a for a in inits.get(w.shape, []) if np.allclose(a, w, rtol=1e-5, atol=1e-7)]
+            assert len(found) == 1, (graph, layer)
+
+
+def test_verify_beyond_tolerance_fails_and_writes_nothing(tmp_path, capsys, pose_values, no_tensorflow, monkeypatch):
+    """--verify's bound: with a bound of 0, float32 rounding already exceeds it: exit 1, the line
+    names the graph, no model directory."""
+    import export.from_tf
+    from export.__main__ import main
+
+    monkeypatch.setattr(export.from_tf, "VERIFY_TOLERANCE", 0.0)
+    prefix = write_checkpoint(tmp_path / "model-1", pose_values)
+    out = tmp_path / "model"
+    argv = ["--from-tf", str(prefix), "--out", str(out), "--height", str(H), "--width", str(W), "--verify"]
+    assert main([*argv, "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: export check failed: verify: ") and "posenet beyond 0 of the range" in err, err
+    assert "\n" not in err and not out.exists()
+
+
+def test_verify_needs_from_tf(tmp_path, capsys):
+    from export.__main__ import main
+
+    assert main(["--random-init", "--arch", "small", "--out", str(tmp_path / "m"), "--verify", "--quiet"]) == 2
+    assert "--verify applies to --from-tf" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
+
+
 # ------------------------------------------------------------------------------ refusals (small pose checkpoints)
 @pytest.fixture(scope="module")
 def pose_values():
-    pytest.importorskip("tensorflow")
     return _pose_values(2, seed=1)
 
 
@@ -353,7 +392,6 @@ def test_extra_variable_is_refused(tmp_path, capsys, pose_values):
 
 
 def test_non_geonet_checkpoint_is_refused(tmp_path, capsys):
-    pytest.importorskip("tensorflow")
     ckpt = write_checkpoint(tmp_path / "model-1", {"dense/kernel": np.ones((4, 2), np.float32)})
     err = _refused(capsys, "--from-tf", str(ckpt), "--out", str(tmp_path / "out"))
     assert f"{ckpt}.index: not a GeoNet checkpoint" in err

@@ -411,14 +411,16 @@ def test_export_calib_frames_negative_is_a_count_error_not_a_folder_mixup(tmp_pa
     assert "positive number of frames" in err and "different folders" not in err
 
 
-def test_export_from_tf_path_with_glob_characters_says_why(tmp_path):
+def test_export_from_tf_path_with_glob_characters_reads(tmp_path):
+    """TensorFlow's reader took the prefix as a glob pattern; ours opens such a path as it is."""
     pytest.importorskip("torch")
     from export.from_tf import TFCheckpoint
+    from export.tf_checkpoint import write_checkpoint
 
-    folder = tmp_path / "ckpt [1]"
-    folder.mkdir()
-    (folder / "model-1.index").write_bytes(b"")
-    refused(lambda: TFCheckpoint.open(folder / "model-1"), "glob", "[ ]")
+    prefix = write_checkpoint(tmp_path / "ckpt [1]*?" / "model-1", {"pose_net/Conv/weights": np.ones((1, 1, 3, 2))})
+    ckpt = TFCheckpoint.open(prefix)
+    assert ckpt.shapes == {"pose_net/Conv/weights": [1, 1, 3, 2]} and ckpt.dtypes["pose_net/Conv/weights"] == "float64"
+    assert ckpt.tensor("pose_net/Conv/weights").sum() == 6
 
 
 def _constant_graph(path: Path, value: float) -> Path:
@@ -447,7 +449,6 @@ def test_export_refuses_a_graph_whose_output_is_nan_or_degenerate(tmp_path, weig
 
 def test_export_from_tf_refuses_a_checkpoint_with_nan_weights(tmp_path, capsys):
     pytest.importorskip("torch")
-    tf = pytest.importorskip("tensorflow")
     sys.path.insert(0, str(REPO / "scripts"))
     try:
         from random_official_checkpoint import random_values
@@ -455,19 +456,12 @@ def test_export_from_tf_refuses_a_checkpoint_with_nan_weights(tmp_path, capsys):
         sys.path.pop(0)
     from export.__main__ import main as export_main
     from export.from_tf import official_variables
+    from export.tf_checkpoint import write_checkpoint
 
     values = random_values(official_variables()["pose_seq3"], np.random.default_rng(0))
     name = next(n for n in sorted(values) if n.endswith("/weights"))
     values[name][...] = np.nan
-    prefix = tmp_path / "ckpt" / "model-1"
-    prefix.parent.mkdir()
-    names = sorted(values)
-    tf.raw_ops.SaveV2(
-        prefix=str(prefix),
-        tensor_names=names,
-        shape_and_slices=[""] * len(names),
-        tensors=[tf.constant(values[n]) for n in names],
-    )
+    prefix = write_checkpoint(tmp_path / "ckpt" / "model-1", values)
     out = tmp_path / "model"
     rc = export_main(["--from-tf", f"pose={prefix}", "--out", str(out), "--height", "64", "--width", "224", "--quiet"])
     assert rc == 2
