@@ -257,6 +257,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"failed: {failure['frame']}: {failure['reason']}", file=sys.stderr)
     if missing:  # one line for the frames a truncated video lacks (each is in summary.json)
         print(f"warning: {source.location}: truncated: {summary['truncated']}", file=sys.stderr)
+    for note in [] if args.quiet else summary["notes"]:  # a clean end before the header's frame count: not a failure
+        print(f"geonet-infer predict: note: {source.location}: {note}", file=sys.stderr)
     return 1 if summary["failed"] else 0
 
 

@@ -6,7 +6,6 @@ lazily (one decoded frame in memory at a time), in temporal order.
 
 from __future__ import annotations
 
-import logging
 import os
 import re
 import sys
@@ -25,7 +24,6 @@ from geonet_infer.limits import MAX_CAMERA_INDEX
 
 __all__ = ["VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames", "open_stream", "open_stdin"]
 
-log = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")  # compared lower-case
 # FFmpeg (inside OpenCV) prints its own errors on stderr for a broken video ("moov atom not found"),
@@ -34,6 +32,8 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")  # compared lower-cas
 # first opens a video in the process, hence at import; cv2.utils.logging.setLogLevel does not reach it.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 KITTI_CALIB_NAME = "calib_cam_to_cam.txt"
+CLEAN_END_SHORTFALL_S = 1.0  # a video that stops at most this much before its header's count ended cleanly
+FALLBACK_FPS = 25.0  # for that rule when the container gives no frame rate
 _KITTI_IMAGES = Path("image_02") / "data"  # KITTI raw: left colour camera, rectified
 
 
@@ -77,9 +77,12 @@ class FrameSource:
         truncated: for a video read to the end that decoded fewer frames than its container
             lists, ``"decoded N of M frames"``; else None.
         missing: names of the frames the container lists but that did not decode (with ``truncated``).
+        ended_early: for a video that ended cleanly a little before its container's frame count (a
+            note, not a failure: such counts are often approximate), what happened; else None.
     """
 
     truncated: str | None = None
+    ended_early: str | None = None
     missing: tuple[str, ...] = ()
 
     def __init__(
@@ -185,10 +188,31 @@ class _VideoSource(FrameSource):
                 self.path, "cannot open this video (OpenCV decoded no frame)", "the file changed since it was opened?"
             )
         if len(names) < self._count:
-            self.truncated = f"decoded {len(names)} of {self._count} frames"
-            self.missing = tuple(f"{i:06d}" for i in range(len(names), self._count))
-            log.warning("%s: truncated or partly unreadable: %s the container lists", self.path, self.truncated)
+            self._short_end(cap, len(names))
         self.frame_names = names
+
+    def _short_end(self, cap: cv2.VideoCapture, decoded: int) -> None:
+        """The video stopped before its header's frame count: a clean end or a decode error?
+
+        OpenCV tells neither apart directly (FFmpeg's errors only reach its log). Container counts are
+        often approximate (an edit list cutting the last frames: project_video_clip_a.mp4 lists 210 frames,
+        FFmpeg itself decodes 201 without an error), so a stop within :data:`CLEAN_END_SHORTFALL_S` of
+        the count, after which not one more frame can be grabbed, is a clean end (``ended_early``, a
+        note); a bigger shortfall, or frames that still come after the stop, is a decode error
+        (``truncated``, the frames missing are failures)."""
+        cap.open(str(self.path))  # the released capture: grab past the stop from a fresh one
+        cap.set(cv2.CAP_PROP_POS_FRAMES, decoded)
+        more = sum(1 for _ in range(4) if cap.grab())
+        cap.release()
+        shortfall = self._count - decoded
+        if not more and shortfall <= CLEAN_END_SHORTFALL_S * (self.fps or FALLBACK_FPS):
+            self.ended_early = (
+                f"the video ended after {decoded} frames, {shortfall} before its header's count of "
+                f"{self._count} (container counts are often approximate)"
+            )
+            return
+        self.truncated = f"decoded {decoded} of {self._count} frames"
+        self.missing = tuple(f"{i:06d}" for i in range(decoded, self._count))
 
     def __len__(self) -> int:
         """Frame count: exact once read to the end, before that the container's (may be inexact)."""

@@ -334,6 +334,7 @@ def _predict(
         "gaps": [{"frame": k, "skipped_before": v} for k, v in frames.skipped_before.items()],
         "interrupted": interrupted,
         "truncated": truncated,
+        "notes": [] if interrupted or not getattr(source, "ended_early", None) else [source.ended_early],
         "tasks": list(tasks),
         "skipped_tasks": {task: list(graphs) for task, graphs in skipped_tasks.items()},  # tasks=None only
         "outputs": listed_outputs(tasks, vis, options.point_cloud, camera is not None),
