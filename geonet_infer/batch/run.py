@@ -11,7 +11,7 @@ import sys
 import threading
 import time
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -192,6 +192,7 @@ def run_batch(
     batch_size: int = 4,
     camera: Camera | None = None,
     vis: bool = True,
+    outputs: Collection[str] | None = None,
     flow_method: str = "network",
     pose_method: str = "network",
     resume: bool = False,
@@ -203,8 +204,9 @@ def run_batch(
     """Run a batch job (see the package docstring); returns the summary (also OUT/summary.json).
 
     ``runner``: a name of :data:`RUNNERS` ("local" process pool, "ray" Ray Data); ``engine=`` is
-    its deprecated 0.x name. ``flow_method`` / ``pose_method``: "network", or "dis" / "orbvo"
-    (:mod:`geonet_infer.classical`), for every sequence.
+    its deprecated 0.x name. ``outputs``: the --outputs names each sequence writes
+    (:mod:`geonet_infer.output.layout`; None: the default set). ``flow_method`` / ``pose_method``:
+    "network", or "dis" / "orbvo" (:mod:`geonet_infer.classical`), for every sequence.
 
     ``summary["exit_code"]``: 0 all good, 1 something failed (see failures.jsonl), 3 the
     operating system refused a write into OUT, 130 interrupted.
@@ -246,6 +248,7 @@ def run_batch(
         batch_size=batch_size,
         camera=camera,
         vis=vis,
+        outputs=None if outputs is None else tuple(sorted(outputs)),
         flow_method=flow_method,
         pose_method=pose_method,
     )

@@ -66,6 +66,7 @@ class BatchConfig:
     batch_size: int = 4
     camera: Camera | None = None
     vis: bool = True  # depth colour maps and flow colour wheels
+    outputs: tuple[str, ...] | None = None  # --outputs names (geonet_infer.output.layout); None: the default
     flow_method: str = "network"  # or "dis" (geonet_infer.classical)
     pose_method: str = "network"  # or "orbvo"
 
@@ -93,7 +94,8 @@ class BatchConfig:
         }
         # only when not the networks: a .done written before these options existed stays resumable
         methods = {"flow_method": self.flow_method, "pose_method": self.pose_method}
-        return options | {k: v for k, v in methods.items() if v != "network"}
+        chosen = {} if self.outputs is None else {"outputs": sorted(self.outputs)}  # likewise
+        return options | {k: v for k, v in methods.items() if v != "network"} | chosen
 
 
 def read_input_list(path: Path) -> list[Path]:
@@ -409,6 +411,7 @@ def run_sequence(
             batch_size=config.batch_size,
             progress=False,
             vis=config.vis,
+            outputs=config.outputs,
             flow_method=config.flow_method,
             pose_method=config.pose_method,
             exclusive=True,  # lists its files before writing them: what discard removes

@@ -25,13 +25,13 @@ from geonet_infer.cli.common import (
     positive_int,
     sigterm_as_interrupt,
 )
+from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.limits import MAX_BATCH_SIZE
 from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.output.layout import SUMMARY_NAME
-from geonet_infer.output.predict import parse_tasks
 from geonet_infer.predictor import TASKS
 
 HELP = f"""\
@@ -137,6 +137,7 @@ def add_parser(sub) -> None:
         default=4,
         help=f"frames per DepthNet/PoseNet/ResFlowNet batch, at most {MAX_BATCH_SIZE} (default: 4)",
     )
+    add_outputs_arg(parser)
     parser.add_argument(
         "--no-vis",
         action="store_true",
@@ -155,10 +156,11 @@ def add_parser(sub) -> None:
 def run_command(args: argparse.Namespace) -> int:
     model_dir = resolve_model(args.model)
     graphs = load_manifest(model_dir, verify_files=False).graph_names(args.precision)  # run_batch verifies
+    asked, outputs = tasks_and_outputs(args)
     tasks = model_tasks(
         model_dir,
         graphs,
-        None if args.tasks is None else parse_tasks(args.tasks),
+        asked,
         (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
         classical_tasks(TASKS, args.flow_method, args.pose_method),
     )
@@ -201,6 +203,7 @@ def run_command(args: argparse.Namespace) -> int:
             batch_size=args.batch_size,
             camera=camera,
             vis=not args.no_vis,
+            outputs=outputs,
             flow_method=args.flow_method,
             pose_method=args.pose_method,
             resume=args.resume,

@@ -20,6 +20,7 @@ from geonet_infer.cli.common import (
     sigterm_as_interrupt,
     stage_table,
 )
+from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
 from geonet_infer.errors import InputError
 from geonet_infer.io.frames import FrameSource, open_frames, open_stdin, open_stream
 from geonet_infer.limits import (
@@ -32,7 +33,7 @@ from geonet_infer.limits import (
 from geonet_infer.output import layout
 from geonet_infer.output.layout import SUMMARY_NAME, WORLD_CLOUD_NAME
 from geonet_infer.output.options import DEFAULT_COLOUR_SCALE, POINT_CLOUDS, OutputOptions
-from geonet_infer.output.predict import parse_tasks, predict_to_dir
+from geonet_infer.output.predict import predict_to_dir
 from geonet_infer.output.video import FOLDER_FPS, VIDEO_CODECS
 from geonet_infer.predictor import TASKS, describe_skipped
 from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
@@ -57,6 +58,8 @@ examples:
       --calib ../shared/realdata/udacity_dashcam/calib_advanced_lane_lines.txt
   geonet-infer predict frames/ --out out/frames --intrinsics 721.5,721.5,609.6,172.9 --precision int8
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_m --camera-height 1.65
+  geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_small \
+      --outputs depth-png16,flow-png,poses
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_dis --flow-method dis \
       --pose-method orbvo
 """
@@ -114,6 +117,7 @@ def add_parser(sub) -> None:
         f"written this many frames late; 0 = each frame's own fit; summary.json keeps both (default: "
         f"{SCALE_HALF_WINDOW})",
     )
+    add_outputs_arg(parser)
     parser.add_argument(
         "--no-vis",
         action="store_true",
@@ -196,7 +200,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    tasks = None if args.tasks is None else parse_tasks(args.tasks)
+    tasks, outputs = tasks_and_outputs(args)
     check_batch_size(args.batch_size, "--batch-size")
     if args.scale_smoothing is not None and args.camera_height is None:
         raise InputError(None, "--scale-smoothing smooths the metric scale", "pass --camera-height METRES with it")
@@ -231,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             camera_height=args.camera_height,
             vis=not args.no_vis,
+            outputs=outputs,
             exclusive=True,
             options=options,
             max_frames=args.max_frames,

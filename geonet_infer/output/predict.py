@@ -22,6 +22,7 @@ import platform
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -47,10 +48,13 @@ from geonet_infer.output.layout import (
     OUTPUT_MARKER,
     POSE_FILES,
     SUMMARY_NAME,
+    VIS_OUTPUTS,
     WORLD_CLOUD_NAME,
+    chosen_outputs,
     frame_files,
     listed_outputs,
     run_files,
+    written_summary,
 )
 from geonet_infer.output.options import OutputOptions
 from geonet_infer.output.video import FOLDER_FPS, VideoOut
@@ -80,6 +84,7 @@ def predict_to_dir(
     camera_height: float | None = None,
     vis: bool = True,
     exclusive: bool = False,
+    outputs: Collection[str] | None = None,
     extra_outputs: tuple[str, ...] = (),
     options: OutputOptions = OutputOptions(),
     max_frames: int | None = None,
@@ -101,6 +106,9 @@ def predict_to_dir(
             (:mod:`geonet_infer.scale`; needs ``camera``).
         vis: also write the depth colour maps and flow colour wheels (PNG encoding of
             pictures is most of the write time; fleets that only need the data skip it).
+        outputs: the --outputs names to write (:data:`geonet_infer.output.layout.OUTPUT_NAMES`); None:
+            the default set (:data:`~geonet_infer.output.layout.DEFAULT_OUTPUTS`); ``vis=False`` drops
+            the colour maps from either. An output of a task that does not run is not written.
         exclusive: own ``out_dir`` for this run (:class:`geonet_infer.ownership.OwnedFolder`): refuse a non-empty folder
             predict did not write or one another predict is writing, remove the previous run's files.
         extra_outputs: more files (relative to ``out_dir``) the caller writes there, recorded as
@@ -122,6 +130,7 @@ def predict_to_dir(
         with ``"interrupted": true`` for the frames written so far; no temp file is left.
     """
     out_dir = Path(out_dir)
+    chosen = chosen_outputs(outputs, vis)
     check_batch_size(batch_size)
     check_methods(flow_method, pose_method)
     tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
@@ -155,7 +164,7 @@ def predict_to_dir(
         raise ownership.not_written(video)
     run = functools.partial(
         _predict,
-        predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis,
+        predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, chosen,
         skipped_tasks=skipped_tasks, options=options, max_frames=max_frames, check=check,
         methods=(flow_method, pose_method, scale_smoothing),
     )  # fmt: skip
@@ -163,10 +172,10 @@ def predict_to_dir(
         out_dir.mkdir(parents=True, exist_ok=True)
         return run(owned=None)
     names = source.frame_names if source.frame_names is not None else [f"{i:06d}" for i in range(len(source))]
-    files = run_files(tasks, options.point_cloud, camera is not None) | set(extra_outputs)
+    files = run_files(tasks, options.point_cloud, camera is not None, chosen) | set(extra_outputs)
     if video is not None and video_in_out:
         files.add(os.path.relpath(ownership.real(video), ownership.real(out_dir)))
-    files |= set().union(*(frame_files(name, tasks, vis, options.point_cloud) for name in names))
+    files |= set().union(*(frame_files(name, tasks, chosen, options.point_cloud) for name in names))
     inputs = tuple(getattr(source, "files", None) or ([Path(source.path)] if source.kind == "video" else []))
     outside = video if video is not None and not video_in_out else None
     owned = ownership.OwnedFolder(
@@ -193,7 +202,7 @@ def _predict(
     batch_size: int,
     progress: bool,
     camera_height: float | None,
-    vis: bool,
+    outputs: frozenset[str],
     *,
     owned: ownership.OwnedFolder | None,
     skipped_tasks: dict[str, tuple[str, ...]],
@@ -206,6 +215,7 @@ def _predict(
 
     started = time.perf_counter()
     totals: dict[str, float] = defaultdict(float)
+    sizes: dict[str, int] = defaultdict(int)  # bytes written per layout pattern
     poses: list[np.ndarray] = []
     done = 0
     scales: dict[str, list] = {"frames": [], "raw": [], "smoothed": []}
@@ -231,6 +241,9 @@ def _predict(
     def record(result: FrameResult, rgb: np.ndarray | None, written: Written) -> None:
         nonlocal done
         totals["write"] += written.ms
+        totals["write_cpu"] += written.cpu_ms
+        for name, size in written.sizes.items():
+            sizes[name] += size
         if video is not None and rgb is not None:
             video.write(rgb, written.pictures)
         if world is not None and rgb is not None and written.points is not None:
@@ -245,7 +258,8 @@ def _predict(
         done += 1
         bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
 
-    writer = FrameWriter(out_dir, tasks, vis, record, options, camera_height, pictures=vis or video is not None)
+    vis = bool(outputs & set(VIS_OUTPUTS))
+    writer = FrameWriter(out_dir, tasks, outputs, record, options, camera_height, pictures=vis or video is not None)
 
     def emit(ready: list[FrameResult]) -> None:
         scale = colours.scales()
@@ -253,7 +267,7 @@ def _predict(
             result = ready.pop(0)  # before it is handed on: an interrupt here never submits it twice
             rgb = frames.kept.pop(result.index, None)
             if owned is not None:
-                owned.add(frame_files(result.name, tasks, vis, options.point_cloud))
+                owned.add(frame_files(result.name, tasks, outputs, options.point_cloud))
             writer.submit(result, scale, rgb)
 
     try:
@@ -315,7 +329,7 @@ def _predict(
         reason = f"{source.location}: truncated: {truncated}"
         frames.failures += [{"frame": name, "reason": reason} for name in getattr(source, "missing", ())]
     totals["total"] += totals["write"]
-    if "pose" in tasks and poses:
+    if "pose" in tasks and "poses" in outputs and poses:
         fps = getattr(source, "fps", None)
         stamps = np.arange(len(poses)) / fps if fps else np.arange(len(poses), dtype=np.float64)
         write_kitti_poses(out_dir / POSE_FILES[0], np.stack(poses))
@@ -337,7 +351,8 @@ def _predict(
         "notes": [] if interrupted or not getattr(source, "ended_early", None) else [source.ended_early],
         "tasks": list(tasks),
         "skipped_tasks": {task: list(graphs) for task, graphs in skipped_tasks.items()},  # tasks=None only
-        "outputs": listed_outputs(tasks, vis, options.point_cloud, camera is not None),
+        "outputs": listed_outputs(tasks, outputs, options.point_cloud, camera is not None),
+        "written": written_summary(out_dir, sizes, run_files(tasks, options.point_cloud, True, outputs), done),
         "colour_scale": colours.describe() if vis or video is not None else None,
         "point_cloud": None
         if not options.point_cloud
