@@ -42,8 +42,10 @@ HELP = """\
 Predict depth, optical flow and camera poses for one sequence.
 
 INPUT is a video file (.mp4 .avi .mov .mkv .webm), a folder of frames (in name
-order, numbers as numbers: f3 before f10), or a KITTI raw drive folder (frames from image_02/data; calibration
-calib_cam_to_cam.txt found in the folder or up to two levels up).
+order, numbers as numbers: f3 before f10), a KITTI raw drive folder (frames from image_02/data; calibration
+calib_cam_to_cam.txt found in the folder or up to two levels up), or one image (.png .jpg .jpeg .bmp .ppm:
+its depth). With --tasks depth (or one image), the frames may have any sizes, each gets its depth at
+its own size; pose and flow need frames of one size (a frame of another size fails, named).
 
 Outputs in --out (written atomically; a bad frame is recorded in summary.json and skipped).
 --out must be new, empty, or an earlier predict's output folder: then exactly the files that
@@ -57,6 +59,8 @@ examples:
   geonet-infer predict ../shared/realdata/udacity_dashcam/test_video.mp4 --out out/dashcam \\
       --calib ../shared/realdata/udacity_dashcam/calib_advanced_lane_lines.txt
   geonet-infer predict frames/ --out out/frames --intrinsics 721.5,721.5,609.6,172.9 --precision int8
+  geonet-infer predict photo.jpg --out out/photo
+  geonet-infer predict photos/ --out out/photos --tasks depth
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_m --camera-height 1.65
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_small \
       --outputs depth-png16,flow-png,poses
@@ -77,7 +81,7 @@ def add_parser(sub) -> None:
         type=Path,
         nargs="?",
         metavar="INPUT",
-        help="video file, folder of frames or KITTI drive; '-' = raw frames on stdin (with --stdin-frames)",
+        help="video file, folder of frames, KITTI drive or one image; '-' = raw frames on stdin (with --stdin-frames)",
     )
     parser.add_argument(
         "--out", type=Path, required=True, help="output folder: new, empty, or an earlier predict's (created)"
@@ -205,6 +209,12 @@ def run(args: argparse.Namespace) -> int:
     if args.scale_smoothing is not None and args.camera_height is None:
         raise InputError(None, "--scale-smoothing smooths the metric scale", "pass --camera-height METRES with it")
     source = _open_source(args)
+    if source.kind == "image":  # one photo: depth, the task that needs no sequence
+        tasks = tasks or ("depth",)
+        if set(tasks) & {"pose", "flow"}:
+            raise InputError(
+                source.path, "one image has no next frame for pose or flow", "pass --tasks depth, or a folder or video"
+            )
     options = OutputOptions(
         point_cloud=args.point_cloud,
         point_stride=args.point_stride,

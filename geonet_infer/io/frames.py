@@ -115,8 +115,16 @@ class FrameSource:
 class _ImageFolderSource(FrameSource):
     """A folder of image files (also a KITTI drive's ``image_02/data``), in file-name order."""
 
-    def __init__(self, path: Path, folder: Path, name: str, kind: str, default_calib: Path | None = None):
-        self.files = list_images(folder)
+    def __init__(
+        self,
+        path: Path,
+        folder: Path,
+        name: str,
+        kind: str,
+        default_calib: Path | None = None,
+        files: list[Path] | None = None,
+    ):
+        self.files = list_images(folder) if files is None else files
         stems = [p.stem for p in self.files]
         if len(set(stems)) != len(stems):
             dup = sorted({s for s in stems if stems.count(s) > 1})
@@ -357,6 +365,8 @@ def open_frames(path) -> FrameSource:
     """Open a video file, a KITTI raw drive or a folder of images as a :class:`FrameSource`.
 
     * A file with suffix .mp4 .avi .mov .mkv .webm: a video (OpenCV; BGR converted to RGB).
+    * An image file (:data:`~geonet_infer.io.images.IMAGE_SUFFIXES`): a one-frame ``"image"``
+      source (depth; pose and flow need a sequence).
     * A folder holding ``image_02/data`` (a KITTI raw drive, e.g.
       ``2011_09_26/2011_09_26_drive_0001_sync``) or a folder that *is* ``.../image_02/data``
       (or ``.../image_02``):
@@ -378,11 +388,13 @@ def open_frames(path) -> FrameSource:
     if p.is_file():
         if p.suffix.lower() in VIDEO_SUFFIXES:
             return _VideoSource(given)
-        what = "a single image" if p.suffix.lower() in IMAGE_SUFFIXES else "not a video"
+        if p.suffix.lower() in IMAGE_SUFFIXES:  # one photo: depth (pose and flow need a sequence)
+            return _ImageFolderSource(given, given.parent, given.stem, "image", files=[given])
         raise InputError(
             given,
-            f"{what}: expected a video ({' '.join(VIDEO_SUFFIXES)}) or a folder of frames",
-            "put the frames in a folder and pass the folder",
+            f"not a video or an image: expected a video ({' '.join(VIDEO_SUFFIXES)}), an image "
+            f"({' '.join(IMAGE_SUFFIXES)}) or a folder of frames",
+            "pass a video, an image or a folder of frames",
         )
     if (p / _KITTI_IMAGES).is_dir():
         drive = p

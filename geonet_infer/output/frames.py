@@ -20,6 +20,9 @@ class GoodFrames:
     The sequence's size is the one most of the first :data:`SIZE_VOTE_FRAMES` readable frames
     have (ties: the earliest), so one odd frame at the start does not reject all the others.
     ``on_size(width, height)`` is called once the size is known, before any frame is yielded.
+    ``one_size=False`` (depth alone: no snippets) keeps frames of any size; ``on_size`` is then
+    called for each new size, before its first frame, and ``size`` stays the sequence's most common
+    size among the first frames.
     """
 
     def __init__(
@@ -29,7 +32,9 @@ class GoodFrames:
         on_size: Callable[[int, int], None] | None = None,
         max_frames: int | None = None,
         keep: Callable[[np.ndarray], np.ndarray] | None = None,
+        one_size: bool = True,
     ):
+        self.one_size = one_size
         self.source, self.progress, self.on_size = source, progress, on_size
         self.max_frames = max_frames
         self.keep = keep  # the frames' pictures are needed after prediction (points' colours, video)
@@ -60,7 +65,10 @@ class GoodFrames:
                 self.size = rgb.shape[:2]
                 if self.on_size is not None:
                     self.on_size(self.size[1], self.size[0])
-            if rgb.shape[:2] != self.size:
+            if rgb.shape[:2] != self.size and not self.one_size:
+                if self.on_size is not None:
+                    self.on_size(rgb.shape[1], rgb.shape[0])
+            elif rgb.shape[:2] != self.size:
                 h, w = rgb.shape[:2]
                 self.failures.append(
                     {"frame": frame.name, "reason": f"frame is {w}x{h}, the sequence is {self.size[1]}x{self.size[0]}"}

@@ -230,7 +230,8 @@ def _predict(
     keep = None
     if options.point_cloud or options.video_out is not None:  # the pictures are needed after prediction
         keep = functools.partial(as_predicted, camera)
-    frames = GoodFrames(source, bar, check_camera, max_frames, keep)
+    one_size = bool({"pose", "flow"} & set(tasks))  # depth alone needs no snippets: photos of any size
+    frames = GoodFrames(source, bar, check_camera, max_frames, keep, one_size)
     colours = SteadyScale(options.colour_scale)
     waiting: list[FrameResult] = []  # predicted, waiting for the colour scale ("first:N")
     world = WorldCloud(options) if options.point_cloud == "world" else None
