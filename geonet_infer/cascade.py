@@ -641,7 +641,8 @@ def iter_frames(
     it is the target of; pose and flow of frame t come from the snippet centred on t (ends
     replicated, :func:`snippet_indices`) towards t + 1. Frames are read lazily, at most
     ``batch_size + seq_length // 2`` ahead. With pose or flow a sequence needs 2 frames of one size;
-    depth alone runs on any number, each frame at its own size. ``need_depth``: depth is needed though not asked for (metric scale).
+    depth alone runs on any number, each frame at its own size. ``need_depth``: depth is needed
+    though not asked for (metric scale).
     ``check``: each flow is checked against the frames (:mod:`geonet_infer.check`, at the graph size).
     """
     check_batch_size(batch_size)
@@ -744,6 +745,7 @@ def iter_frames(
                     )
         share = timer.result(1.0 / len(batch))
         for t, depth, disp, pose_next, vector, flows in results:
+            at_cam = sizes[t][1]
             yield FrameResult(
                 index=t,
                 name=frame_names.pop(t),
@@ -752,11 +754,11 @@ def iter_frames(
                 camera_to_world=pose_world.copy(),
                 pose_to_next=pose_next,
                 pose_vector_to_next=vector,
-                undistorted=bool(sizes[t][1] and sizes[t][1].has_distortion),
+                undistorted=bool(at_cam and at_cam.has_distortion),
                 timings_ms=dict(share),
                 flow=flows[0],
                 rigid_flow_at_input=flows[1],
-                intrinsics=None if sizes[t][1] is None else sizes[t][1].K,
+                intrinsics=None if at_cam is None else at_cam.K,
                 check=checks.get(t),
             )
             if pose_next is not None:
