@@ -568,7 +568,8 @@ def run_cascade(
             target=target,
             source=source,
         )
-    flow_input = resflow_input({"target": target, "source": source, **rigid})
+    with timer.stage("resflownet"):  # its input: part of its cost (the latency table adds up)
+        flow_input = resflow_input({"target": target, "source": source, **rigid})
     out.update(rigid_flow=rigid["rigid_flow"], flow_input=flow_input)
     if run_resflow and "resflownet" in graphs:
         with timer.stage("resflownet"):
@@ -708,7 +709,8 @@ def iter_frames(
         parts: dict[str, np.ndarray] = {}
         if paired:
             windows = [[min(max(i, 0), n_read - 1) for i in range(t - k, t + k + 1)] for t in paired]
-            snippets = np.stack([np.stack([prepared[i] for i in w]) for w in windows])
+            with timer.stage("preprocess"):  # the snippets: timed, so the latency table adds up
+                snippets = np.stack([np.stack([prepared[i] for i in w]) for w in windows])
             parts = run_cascade(
                 graphs,
                 spec,

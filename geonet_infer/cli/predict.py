@@ -258,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
         f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}"
     )
-    print(stage_table(summary["timings_ms_per_frame"], summary["frames"]))
+    print(stage_table(summary["timings_ms_per_frame"], summary["frames"], summary["overlapped_ms_per_frame"]))
     check = None if summary["check"] is None else SequenceCheck.from_dict(summary["check"])
     if check is not None:
         print(f"check: {check.line()}")

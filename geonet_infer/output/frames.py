@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import itertools
+import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from geonet_infer.io.frames import FrameSource
+from geonet_infer.io.frames import Frame, FrameSource
 from geonet_infer.results import FrameResult
 
 SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
@@ -43,9 +44,24 @@ class GoodFrames:
         self.failures: list[dict] = []
         self.size: tuple[int, int] | None = None
         self.skipped_before: dict[str, list[str]] = {}  # good frame -> bad frames right before it
+        self.read_ms = 0.0  # time spent reading and decoding the source's frames
+
+    def _timed(self, frames: Iterator[Frame]) -> Iterator[Frame]:
+        """``frames``, the time each takes to come (read and decoded) added to ``read_ms``."""
+        try:
+            while True:
+                t0 = time.perf_counter()
+                frame = next(frames, None)
+                self.read_ms += (time.perf_counter() - t0) * 1e3
+                if frame is None:
+                    return
+                yield frame
+        finally:
+            if hasattr(frames, "close"):
+                frames.close()  # a camera or stream is released now
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        frames = iter(self.source)
+        frames = self._timed(iter(self.source))
         head = list(itertools.islice(frames, SIZE_VOTE_FRAMES))
         sizes = Counter(frame.rgb.shape[:2] for frame in head if frame.ok and frame.rgb is not None)
         if sizes:

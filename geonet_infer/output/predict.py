@@ -42,6 +42,7 @@ from geonet_infer.limits import MAX_HELD_PIXELS, check_batch_size
 from geonet_infer.manifest import model_notice
 from geonet_infer.output.clouds import WorldCloud, as_predicted
 from geonet_infer.output.frames import GoodFrames, unusable
+from geonet_infer.output.latency import latency_table, timed
 from geonet_infer.output.layout import (
     CAMERA_NAME,
     OUTPUT_LOCK,
@@ -246,16 +247,19 @@ def _predict(
         for name, size in written.sizes.items():
             sizes[name] += size
         if video is not None and rgb is not None:
-            video.write(rgb, written.pictures)
+            with timed(totals, "video"):
+                video.write(rgb, written.pictures)
         if world is not None and rgb is not None and written.points is not None:
-            world.add(result, *written.points)
+            with timed(totals, "world_cloud"):
+                world.add(result, *written.points)
         poses.append(result.camera_to_world)
         if result.metric_scale is not None:
             scales["frames"].append(result.name)
             scales["raw"].append(result.metric_scale_raw)
             scales["smoothed"].append(result.metric_scale)
         for stage, ms in result.timings_ms.items():
-            totals[stage] += ms
+            if stage != "total":  # the table's total is the wall time (latency_table)
+                totals[stage] += ms
         done += 1
         bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
 
@@ -316,12 +320,17 @@ def _predict(
     finally:
         writer.close()
         bar.close()
+        totals["read"] += frames.read_ms
+        totals["write_wait"] += writer.waited_ms
         if video is not None:
-            video.close(keep=done > 0 and sys.exc_info()[0] is None)
+            with timed(totals, "video"):
+                video.close(keep=done > 0 and sys.exc_info()[0] is None)
     if owned is not None and video is not None and video.frames:
         owned.video_written(video.path)
     if world is not None:
-        world.write(out_dir / WORLD_CLOUD_NAME, camera_height)
+        with timed(totals, "world_cloud"):
+            world.write(out_dir / WORLD_CLOUD_NAME, camera_height)
+    finish = time.perf_counter()
     if camera is not None and frames.size is not None:
         height, width = frames.size
         write_kitti_camera(out_dir / CAMERA_NAME, camera_at(camera, frames.size).K, width, height)
@@ -329,13 +338,14 @@ def _predict(
     if truncated:
         reason = f"{source.location}: truncated: {truncated}"
         frames.failures += [{"frame": name, "reason": reason} for name in getattr(source, "missing", ())]
-    totals["total"] += totals["write"]
     if "pose" in tasks and "poses" in outputs and poses:
         fps = getattr(source, "fps", None)
         stamps = np.arange(len(poses)) / fps if fps else np.arange(len(poses), dtype=np.float64)
         write_kitti_poses(out_dir / POSE_FILES[0], np.stack(poses))
         write_tum_poses(out_dir / POSE_FILES[1], stamps, np.stack(poses))
+    totals["finish"] += (time.perf_counter() - finish) * 1e3
     elapsed = time.perf_counter() - started
+    sequential, overlapped = latency_table(totals, done, elapsed)
     summary = {
         "input": {
             "path": source.location,
@@ -387,7 +397,8 @@ def _predict(
         "methods": describe_methods(tasks, methods[0], methods[1]),
         "metric_scale": None if camera_height is None else metric_scale_summary(camera_height, methods[2], scales),
         "check": check_summary(checks, predictor) if check and "flow" in tasks else None,
-        "timings_ms_per_frame": {k: v / max(done, 1) for k, v in totals.items()},
+        "timings_ms_per_frame": sequential,  # the main thread's stages: they add up to "total", the wall time
+        "overlapped_ms_per_frame": overlapped,  # the writer threads, alongside them
         "wall_s": elapsed,
         "frames_per_s": done / elapsed if elapsed > 0 else None,
         "versions": {"geonet_infer": __version__, "python": platform.python_version()},

@@ -65,6 +65,7 @@ class FrameWriter:
         self.in_flight = 2 * workers
         self.pool = ThreadPoolExecutor(workers, thread_name_prefix="geonet-write")
         self.pending: deque[tuple[FrameResult, np.ndarray | None, Future[Written]]] = deque()
+        self.waited_ms = 0.0  # the caller's time blocked on unfinished writes
 
     def _write(self, result: FrameResult, scale: tuple[float | None, float | None], rgb: np.ndarray | None) -> Written:
         t0, cpu0 = time.perf_counter(), time.thread_time()
@@ -98,7 +99,9 @@ class FrameWriter:
         # SIGTERM) between two frames can neither drop a written frame nor count one twice.
         while self.pending and (len(self.pending) > keep or self.pending[0][2].done()):
             result, rgb, future = self.pending[0]
+            t0 = time.perf_counter()
             written = future.result()
+            self.waited_ms += (time.perf_counter() - t0) * 1e3
             self.pending.popleft()
             self.on_written(result, rgb, written)
 
