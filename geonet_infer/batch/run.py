@@ -26,7 +26,7 @@ from geonet_infer.batch.units import (
     WorkUnit,
     check_counts,
     claim,
-    expand_inputs,
+    expand_input_pairs,
     is_empty,
     not_ours,
     owned,
@@ -229,7 +229,8 @@ def run_batch(
         raise InputError(None, f"unknown runner {runner_name!r}", f"choose one of {', '.join(RUNNERS)}")
     check_batch_size(batch_size, "--batch-size")
     check_counts(workers, threads)
-    units = plan_units(expand_inputs(inputs))
+    pairs = expand_input_pairs(inputs)
+    units = plan_units([p for p, _ in pairs], [c for _, c in pairs])
     model_dir = resolve_model(model)
     manifest = load_manifest(model_dir)
     graphs = manifest.graph_names(precision)  # bad --model / --precision: exit 2 before any work
@@ -381,6 +382,7 @@ def _result_of_marker(unit: WorkUnit, marker: dict, status: str) -> dict:
         "frames": marker.get("frames", 0),
         "failures": marker.get("failures", []),
         "check": marker.get("check"),
+        "camera": marker.get("camera"),
         "wall_s": 0.0,
     }
 
@@ -394,6 +396,7 @@ def _sequence_row(result: dict) -> dict:
         "frames": result["frames"],
         "failures": len(result["failures"]),
         "check": result.get("check"),  # does the flow explain the next frame? (geonet_infer.check)
+        "camera": result.get("camera"),  # K at the input resolution and its source file (None: no camera)
         "wall_s": round(result["wall_s"], 3),
     }
 

@@ -43,6 +43,12 @@ relative paths are relative to the list file's folder). Each sequence gets
 `geonet-infer predict`'s layout in OUT/<sequence>/ (sequence = folder name, video
 stem or drive name; inputs sharing a name become <name>__<parent folder>).
 
+Calibration, per input, the first found: the file its list line pairs it with
+("INPUT | CALIB", e.g. "clips/a.mp4 | cams/a.txt"); --calib or --intrinsics (every
+input); a "<name>.calib.txt" beside it (clip.mp4 + clip.calib.txt, frames/ +
+frames.calib.txt); a KITTI drive's calib_cam_to_cam.txt. Inputs from different
+cameras run in one job; each sequence's K is in summary.json (per_sequence camera).
+
 OUT must be new, empty, or made by an earlier batch (marked by OUT/{OWNER_NAME}),
 and must not be, hold or be inside an input; batch only ever deletes or replaces
 sequence folders it made. Next to the sequences:
@@ -71,6 +77,7 @@ Engines:
 examples:
   geonet-infer batch runs/a runs/b runs/c --out out/batch --calib calib.txt
   geonet-infer batch sequences.txt --out out/batch --workers 2 --threads-per-worker 1
+  geonet-infer batch cameras.txt --out out/batch   # lines "clip.mp4 | clip_camera.txt"
   geonet-infer batch ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/batch --resume
   geonet-infer batch videos.txt --out out/batch --runner ray --ray-address auto --tasks depth
 """
@@ -178,9 +185,9 @@ def run_command(args: argparse.Namespace) -> int:
         if needs and ("flow" if what == "flow" else "pose") in tasks
     ]
     if needing and camera is None:
-        from geonet_infer.batch import expand_inputs
+        from geonet_infer.batch import expand_input_pairs
 
-        lacking = [p for p in expand_inputs(args.inputs) if needs_own_calib(p)]
+        lacking = [p for p, calib in expand_input_pairs(args.inputs) if calib is None and needs_own_calib(p)]
         if lacking:
             more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
             raise InputError(

@@ -32,6 +32,7 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")  # compared lower-cas
 # first opens a video in the process, hence at import; cv2.utils.logging.setLogLevel does not reach it.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 KITTI_CALIB_NAME = "calib_cam_to_cam.txt"
+SIDE_CALIB_SUFFIX = ".calib.txt"  # clip.mp4 + clip.calib.txt: a video's (or folder's) own calibration
 CLEAN_END_SHORTFALL_S = 1.0  # a video that stops at most this much before its header's count ended cleanly
 FALLBACK_FPS = 25.0  # for that rule when the container gives no frame rate
 _KITTI_IMAGES = Path("image_02") / "data"  # KITTI raw: left colour camera, rectified
@@ -355,6 +356,14 @@ def find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | Non
     return None
 
 
+def find_side_calib(path: Path) -> Path | None:
+    """The calibration file beside a video, image or folder of frames: ``<name>.calib.txt`` next to
+    it (``clip.mp4`` -> ``clip.calib.txt``, ``frames/`` -> ``frames.calib.txt``), or None."""
+    p = Path(os.path.abspath(path))
+    side = p.parent / f"{p.stem if p.is_file() else p.name}{SIDE_CALIB_SUFFIX}"
+    return side if side.is_file() else None
+
+
 def find_kitti_calib(drive: Path) -> Path | None:
     """``calib_cam_to_cam.txt`` in the drive folder or up to two levels up (KITTI: ``<date>/``)."""
     folder = find_up(drive, (KITTI_CALIB_NAME,))
@@ -373,6 +382,8 @@ def open_frames(path) -> FrameSource:
       a ``"kitti_drive"``; frames from ``image_02/data``; ``default_calib`` is the
       ``calib_cam_to_cam.txt`` in the drive folder or up to two levels above it.
     * Any other folder: its images (:func:`~geonet_infer.io.images.list_images`), in natural order.
+    * A video, an image or a folder of frames with a ``<name>.calib.txt`` beside it
+      (:func:`find_side_calib`): that file is its ``default_calib``, as a KITTI drive's is.
 
     Iterating yields :class:`Frame`; a frame that cannot be decoded is yielded with its
     ``error`` set (naming the file), so callers can report it and go on.
@@ -387,9 +398,11 @@ def open_frames(path) -> FrameSource:
     p = Path(os.path.abspath(given))  # lexical: keeps a symlinked image_02/data inside its drive layout
     if p.is_file():
         if p.suffix.lower() in VIDEO_SUFFIXES:
-            return _VideoSource(given)
+            video = _VideoSource(given)
+            video.default_calib = find_side_calib(given)
+            return video
         if p.suffix.lower() in IMAGE_SUFFIXES:  # one photo: depth (pose and flow need a sequence)
-            return _ImageFolderSource(given, given.parent, given.stem, "image", files=[given])
+            return _ImageFolderSource(given, given.parent, given.stem, "image", find_side_calib(given), [given])
         raise InputError(
             given,
             f"not a video or an image: expected a video ({' '.join(VIDEO_SUFFIXES)}), an image "
@@ -403,6 +416,6 @@ def open_frames(path) -> FrameSource:
     elif p.name == _KITTI_IMAGES.parent.name and (p / _KITTI_IMAGES.name).is_dir():
         drive = p.parent
     else:
-        return _ImageFolderSource(given, given, p.name, "folder")
+        return _ImageFolderSource(given, given, p.name, "folder", find_side_calib(given))
     images = drive / _KITTI_IMAGES
     return _ImageFolderSource(given, images, drive.name, "kitti_drive", find_kitti_calib(drive))
