@@ -4,7 +4,7 @@
         [--precision fp32] [--max-seen-through 1.0]
 
 For each synthetic folder (``python -m training.synth``; the camera rides 1.65 m above the
-road, ``training.synth.scene.CAM_HEIGHT``) it runs :func:`geonet_infer.scale.fit_ground_plane`
+road, ``training.synth.scene.CAM_HEIGHT``) it runs :func:`geonet_infer.core.scale.fit_ground_plane`
 twice per frame: on the ground-truth depth (does the fitter find the road when the depth is
 right?) and on the bundled model's prediction (the scale a user gets). Printed per folder:
 
@@ -27,12 +27,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import geonet_infer  # noqa: E402
+from geonet_infer.core.scale import fit_ground_plane  # noqa: E402
 from geonet_infer.errors import GeoNetError  # noqa: E402
 from geonet_infer.eval import metrics  # noqa: E402
 from geonet_infer.eval.datasets import load_dataset  # noqa: E402
 from geonet_infer.eval.evaluation import MAX_DEPTH, MIN_DEPTH, depth_intrinsics  # noqa: E402
 from geonet_infer.io import read_image  # noqa: E402
-from geonet_infer.scale import fit_ground_plane  # noqa: E402
 from training.synth.scene import CAM_HEIGHT  # noqa: E402
 
 

@@ -21,7 +21,7 @@ CHILD = r"""
 import json, sys
 import numpy as np
 from geonet_infer import load
-from geonet_infer.manifest import load_manifest
+from geonet_infer.core.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.timing import current_rss_mib, peak_rss_mib
 

@@ -5,7 +5,7 @@
 --out docs/models.md [--json OUT.json] [--before DIR] [--stride N] [--kitti-frames N]``
 
 Every number in the card comes from this run: the ONNX graphs are run through the
-runtime (:class:`geonet_infer.predictor.Predictor`), in fp32 and, when the manifest
+runtime (:class:`geonet_infer.core.predictor.Predictor`), in fp32 and, when the manifest
 has them, INT8, and scored by the code ``geonet-infer eval`` uses (data from
 :mod:`geonet_infer.eval.datasets`, scores from :mod:`geonet_infer.eval.evaluation`, baselines
 from :mod:`geonet_infer.eval.baselines`); this module only picks the data and renders:
@@ -60,12 +60,13 @@ from typing import NamedTuple
 import numpy as np
 
 from benchmarks import teacher_experiment
+from geonet_infer.bench.environment import git_commit
+from geonet_infer.core.manifest import MANIFEST_NAME, Manifest, load_manifest
+from geonet_infer.core.predictor import Predictor
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.eval import eval_all, evaluation, metrics
 from geonet_infer.eval.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.io.atomic import atomic_write
-from geonet_infer.manifest import MANIFEST_NAME, Manifest, git_commit, load_manifest
-from geonet_infer.predictor import Predictor
 
 KITTI_CROP = "garg"
 KITTI_CAMERA_HEIGHT = 1.65  # metres: KITTI's colour cameras above the road (Geiger et al., IJRR 2013)
@@ -559,7 +560,7 @@ def _camera_height_text(block: dict) -> list[str]:
     h = block["camera_height"]
     out = [
         f"Scaled by camera height: per frame, a ground plane is fitted to the predicted depth "
-        "(`geonet_infer.scale.fit_ground_plane`: RANSAC on the image below the horizon, normal within 20° of "
+        "(`geonet_infer.core.scale.fit_ground_plane`: RANSAC on the image below the horizon, normal within 20° of "
         "the camera's down axis, at least 10 % of the points within 2 % of the plane's distance; a plane with "
         "over 3 % of the points more than 30 % beyond it along their rays is skipped, as a car top the road is "
         f"seen beside) and the depth is multiplied so that the plane lies {h['camera_height_m']:g} m below the "
@@ -965,7 +966,7 @@ def _header_section(result: dict) -> list[str]:
         "",
         f"Generated {result['generated_utc']} at git commit `{(result['git_commit'] or 'unknown')[:12]}` "
         "by `benchmarks/model_card.py`. All models run through the pip runtime "
-        "(`geonet_infer.predictor.Predictor` on onnxruntime), exactly as users run them.",
+        "(`geonet_infer.core.predictor.Predictor` on onnxruntime), exactly as users run them.",
         "",
     ]
     if result.get("real"):

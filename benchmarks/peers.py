@@ -58,10 +58,10 @@ import torch  # noqa: E402
 
 from geonet_infer.bench.cases import bench_frames, cascade_feeds  # noqa: E402
 from geonet_infer.bench.environment import cpu_flags, cpu_model  # noqa: E402
+from geonet_infer.core.manifest import load_manifest  # noqa: E402
+from geonet_infer.core.predictor import Predictor  # noqa: E402
 from geonet_infer.engines import usable_cpus  # noqa: E402
 from geonet_infer.engines.onnxruntime import make_session, make_session_options  # noqa: E402
-from geonet_infer.manifest import load_manifest  # noqa: E402
-from geonet_infer.predictor import Predictor  # noqa: E402
 from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mib, time_interleaved, wait_quiet  # noqa: E402
 
 NETS = ("depthnet", "posenet", "resflownet", "rigidflow")

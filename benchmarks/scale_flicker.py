@@ -13,8 +13,8 @@ height, as ``geonet-infer predict --camera-height`` does:
 
 "before" is the factor each frame got before smoothing (its own ground fit; a frame without one
 keeps the previous frame's: ``--scale-smoothing 0``), "after" the smoothed factor predict applies
-now (``geonet_infer.scale.SCALE_HALF_WINDOW`` frames each side). Flicker = the p95 over consecutive
-frames of max(r, 1/r), r = the ratio of their factors (:func:`geonet_infer.scale.scale_flicker`).
+now (``geonet_infer.core.scale.SCALE_HALF_WINDOW`` frames each side). Flicker = the p95 over consecutive
+frames of max(r, 1/r), r = the ratio of their factors (:func:`geonet_infer.core.scale.scale_flicker`).
 Depth: AbsRel (and the other Eigen metrics) of the *metric* depth, no per-image median scaling,
 on the drive's Velodyne frames 0-9, scored by :func:`geonet_infer.eval.evaluation.evaluate_depth`
 (``scaling="none"``, Garg crop, 80 m), each frame with the factor the whole-drive run gave it.
@@ -31,11 +31,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import geonet_infer  # noqa: E402
+from geonet_infer.core.scale import SCALE_HALF_WINDOW, scale_flicker, smooth_scales  # noqa: E402
 from geonet_infer.eval import evaluation  # noqa: E402
 from geonet_infer.eval.datasets import load_dataset  # noqa: E402
 from geonet_infer.io.calib import read_camera  # noqa: E402
 from geonet_infer.io.frames import open_frames  # noqa: E402
-from geonet_infer.scale import SCALE_HALF_WINDOW, scale_flicker, smooth_scales  # noqa: E402
 
 KITTI_HEIGHT_M = 1.65
 DRIVE = "kitti_raw_2011_09_26_sfnd"

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.manifest import load_manifest
+from geonet_infer.core.manifest import load_manifest
 from geonet_infer.models import resolve_model
 
 SMALL = "small_synth"
@@ -97,7 +97,7 @@ def pre_post_ms(frame: Path) -> dict[str, float]:
     the input to the network (resize, normalise) and the outputs back to the input size."""
     import cv2
 
-    from geonet_infer.cascade import InputSpec, disparity_to_input, flow_to_input
+    from geonet_infer.core.cascade import InputSpec, disparity_to_input, flow_to_input
     from geonet_infer.io.images import read_image
 
     cv2.setNumThreads(1)
@@ -119,7 +119,7 @@ def rigid_op_parts_ms() -> dict[str, float]:
     away, the camera moving 0.3 m forward and turning slightly)."""
     import cv2
 
-    from geonet_infer import rigid
+    from geonet_infer.core import rigid
 
     cv2.setNumThreads(1)
     manifest = load_manifest(resolve_model(SMALL))
@@ -187,7 +187,7 @@ def int8_flow_sensitivity(repo: Path) -> dict | None:
     prepared = synth.with_name(synth.name + "_prepared")
     if not delta or not (prepared / "heldout.txt").is_file():
         return None
-    from geonet_infer.predictor import Predictor
+    from geonet_infer.core.predictor import Predictor
 
     if str(repo) not in sys.path:  # run as a script, only benchmarks/ is on the path
         sys.path.insert(0, str(repo))

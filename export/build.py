@@ -31,9 +31,9 @@ from export.source import Source, check_graph_size
 from export.to_onnx import OPSET, ExportCheckError, export_graph
 from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_inputs, io_spec, photometric_alpha
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
+from geonet_infer.core.manifest import PRECISIONS, load_manifest, write_manifest
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
-from geonet_infer.manifest import PRECISIONS, load_manifest, write_manifest
 from training.checkpoint import load_weights, model_from_checkpoint, trained_by
 from training.config import ARCHS
 
@@ -319,8 +319,8 @@ def _check_outputs(path: Path, example) -> None:
 
 
 def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):
-    from geonet_infer.cascade import InputSpec
-    from geonet_infer.predictor import Predictor
+    from geonet_infer.core.cascade import InputSpec
+    from geonet_infer.core.predictor import Predictor
 
     settings = cfg.quant_settings()
     frames, original = qz.load_frames(
@@ -378,7 +378,7 @@ def _delta(results: dict, group: str, key: str) -> dict:
 def _accuracy_delta(cfg: ExportConfig, src: Source, graphs: dict, tmp: Path) -> tuple[dict | None, str | None]:
     if not cfg.eval_synth_dir:
         return None, "not measured: pass --eval-synth-dir and --eval-prepared-dir (held-out synthetic set)"
-    from geonet_infer.predictor import Predictor
+    from geonet_infer.core.predictor import Predictor
     from training.evaluate import evaluate_depth, evaluate_flow, heldout_sequences, onnx_depth_fn, onnx_flow_fn
 
     _interim_manifest(src, graphs, tmp)

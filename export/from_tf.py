@@ -27,8 +27,8 @@ import torch
 import torch.nn as nn
 
 from geonet_infer import conventions
+from geonet_infer.core.manifest import file_sha256
 from geonet_infer.errors import InputError
-from geonet_infer.manifest import file_sha256
 
 KINDS = ("depth", "pose", "flow")
 SCOPES = {"depth": "depth_net", "pose": "pose_net", "flow": "flow_net"}

@@ -1,4 +1,4 @@
-"""Build the manifest of an exported model directory (schema: ``geonet_infer.manifest``).
+"""Build the manifest of an exported model directory (schema: ``geonet_infer.core.manifest``).
 
 Also the per-graph ``metadata_props`` written into every ONNX file, so a single
 graph carries its key conventions even without the manifest.
@@ -13,7 +13,8 @@ from pathlib import Path
 
 from export.wrappers import io_spec
 from geonet_infer import conventions
-from geonet_infer.manifest import (
+from geonet_infer.bench.environment import git_commit
+from geonet_infer.core.manifest import (
     SCHEMA_VERSION,
     GraphEntry,
     Manifest,
@@ -21,7 +22,6 @@ from geonet_infer.manifest import (
     Quantization,
     TensorSpec,
     file_sha256,
-    git_commit,
 )
 from training.losses import LossWeights
 

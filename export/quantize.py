@@ -38,8 +38,8 @@ import cv2
 import numpy as np
 import onnx
 
-from geonet_infer.cascade import InputSpec, calibration_input, check_image, posenet_order
 from geonet_infer.conventions import kitti_like_K, scale_intrinsics
+from geonet_infer.core.cascade import InputSpec, calibration_input, check_image, posenet_order
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import list_images, read_calib_K, read_image
 

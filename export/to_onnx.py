@@ -40,7 +40,7 @@ import onnx
 import torch
 
 from export.wrappers import IOSpec
-from geonet_infer.manifest import BATCH_AXIS
+from geonet_infer.core.manifest import BATCH_AXIS
 
 OPSET = 18
 TRACE_BATCH = 2

@@ -1,6 +1,6 @@
 """torch vs onnxruntime parity helpers (export smoke checks and tests).
 
-The ORT-side GeoNet cascade is the runtime's :class:`geonet_infer.predictor.Predictor`;
+The ORT-side GeoNet cascade is the runtime's :class:`geonet_infer.core.predictor.Predictor`;
 export uses it for INT8 calibration inputs and accuracy deltas, so there is one cascade.
 onnxruntime sessions always come from :func:`geonet_infer.engines.onnxruntime.make_session`.
 """

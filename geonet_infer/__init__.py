@@ -5,9 +5,9 @@ predictor = geonet_infer.load()              # the bundled default model
 result = predictor.depth("frame.png")        # DepthResult: depth (H, W), timings_ms
 """
 
+from geonet_infer.core.predictor import Predictor, load
+from geonet_infer.core.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
 from geonet_infer.errors import BackendUnavailableError, GeoNetError, GeoNetInputError, InputError, ModelError
-from geonet_infer.predictor import Predictor, load
-from geonet_infer.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
 
 
 def __getattr__(name: str) -> str:

@@ -11,21 +11,23 @@ import warnings
 from collections.abc import Callable
 
 
-def forward(old: str, *new: str) -> Callable[[str], object]:
-    """A module ``__getattr__`` for ``old`` that finds each name in the first of ``new`` that has it."""
+def forward(old: str, *new: str, renamed: dict[str, str] | None = None) -> Callable[[str], object]:
+    """A module ``__getattr__`` for ``old`` that finds each name in the first of ``new`` that has it
+    (``renamed``: old name -> its new name there)."""
 
     def __getattr__(name: str) -> object:
         if name.startswith("__"):  # dunder look-ups (__path__, __file__ ...) are Python's, not users'
             raise AttributeError(name)
+        now = (renamed or {}).get(name, name)
         for target in new:
             module = importlib.import_module(target)
-            if hasattr(module, name):
+            if hasattr(module, now):
                 warnings.warn(
-                    f"{old}.{name} moved to {target}.{name}; the old name goes in the next release",
+                    f"{old}.{name} moved to {target}.{now}; the old name goes in the next release",
                     DeprecationWarning,
                     stacklevel=2,
                 )
-                return getattr(module, name)
+                return getattr(module, now)
         raise AttributeError(f"module {old!r} has no attribute {name!r}")
 
     return __getattr__

@@ -8,5 +8,9 @@ project's speed targets (``SPEED_TARGETS``, ``speed_targets``) left the runtime 
 from geonet_infer._moved import forward
 
 __getattr__ = forward(
-    __name__, "geonet_infer.bench.cases", "geonet_infer.bench.report", "geonet_infer.bench.environment"
+    __name__,
+    "geonet_infer.bench.cases",
+    "geonet_infer.bench.report",
+    "geonet_infer.bench.environment",
+    renamed={"TASKS": "BENCH_TASKS"},
 )

@@ -1,7 +1,7 @@
 """The classical methods as choices beside the networks: DIS flow and ORB-VO poses for a sequence.
 
 The eval scores them as baselines (:mod:`geonet_infer.eval.baselines`, ``geonet-infer eval all``);
-here the same code fills a sequence's :class:`~geonet_infer.results.FrameResult` flow or poses,
+here the same code fills a sequence's :class:`~geonet_infer.core.results.FrameResult` flow or poses,
 so ``predict``, ``batch`` and :meth:`Predictor.iter_sequence` write them in the usual layout.
 
 * ``flow_method="dis"``: OpenCV DIS optical flow, preset medium (:func:`dis_flow`, the
@@ -29,11 +29,11 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from geonet_infer.cascade import Intrinsics, StageTimer, camera_at, read_frame
 from geonet_infer.check import check_pair
-from geonet_infer.conventions import rigid_inverse
+from geonet_infer.conventions import next_camera_to_world
+from geonet_infer.core.cascade import Intrinsics, StageTimer, camera_at, read_frame
+from geonet_infer.core.results import FrameResult
 from geonet_infer.errors import InputError
-from geonet_infer.results import FrameResult
 
 FLOW_METHODS = ("network", "dis")
 POSE_METHODS = ("network", "orbvo")
@@ -241,7 +241,7 @@ def classical_frames(
             changes |= {"pose_to_next": pose_next, "pose_vector_to_next": vector}
             changes["camera_to_world"] = pose_world.copy()
             if pose_next is not None:
-                pose_world = pose_world @ rigid_inverse(pose_next)
+                pose_world = next_camera_to_world(pose_world, pose_next)
             timings["orbvo"] = (time.perf_counter() - t0) * 1e3
         timings["total"] = timings.get("total", 0.0) + sum(timings.get(k, 0.0) for k in CLASSICAL_STAGES)
         yield replace(result, timings_ms=timings, **changes)

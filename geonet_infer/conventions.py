@@ -105,6 +105,13 @@ def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return K
 
 
+def next_camera_to_world(camera_to_world: np.ndarray, pose_to_next: np.ndarray) -> np.ndarray:
+    """The trajectory's one chaining rule: frame t+1's camera-to-world from frame t's and the pose
+    t -> t+1 (``POSE``: it maps frame t's points into frame t+1): ``c2w[t] @ inv(T_t->t+1)``. The
+    first frame of a sequence is the identity."""
+    return camera_to_world @ rigid_inverse(pose_to_next)
+
+
 def rigid_inverse(T):
     """Closed-form inverse of rigid 4x4 transforms (``POSE``'s matrices): [R | t]^-1 = [R^T | -R^T t].
 

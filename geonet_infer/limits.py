@@ -1,11 +1,11 @@
 """The limits of every size or count a user sets, defined once and checked at every entrance.
 
 The CLI commands (predict, batch, bench), the Python API (:func:`geonet_infer.load`,
-:class:`~geonet_infer.predictor.Predictor`, :func:`~geonet_infer.output.predict.predict_to_dir`,
+:class:`~geonet_infer.core.predictor.Predictor`, :func:`~geonet_infer.output.predict.predict_to_dir`,
 :func:`~geonet_infer.batch.run_batch`), live sources and the colour scale all call the checks
 here, so a value refused at one door is refused at every other (issue 41). Pixel counts of
 frames are capped by :data:`geonet_infer.io.images.MAX_IMAGE_PIXELS` (checked by
-:func:`geonet_infer.io.images.check_pixels`), camera heights in :mod:`geonet_infer.scale`.
+:func:`geonet_infer.io.images.check_pixels`), camera heights in :mod:`geonet_infer.core.scale`.
 """
 
 from __future__ import annotations

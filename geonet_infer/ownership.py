@@ -22,9 +22,9 @@ import os
 from collections.abc import Iterable
 from pathlib import Path
 
+from geonet_infer.core.manifest import file_sha256
 from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write, leftover_temps
-from geonet_infer.manifest import file_sha256
 
 
 def real(path) -> Path:

@@ -15,5 +15,6 @@ __getattr__ = forward(
     "geonet_infer.output.video",
     "geonet_infer.output.writer",
     "geonet_infer.output.frames",
+    "geonet_infer.tasks",
     "geonet_infer.limits",
 )

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from geonet_infer.cascade import snippet_indices
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH, scale_intrinsics
+from geonet_infer.core.cascade import snippet_indices
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.eval.metrics import resize_flow_gt
 from geonet_infer.io import read_cam_txt, read_depth_kitti, read_flow_kitti, read_image, read_kitti_poses

@@ -6,7 +6,7 @@
 This module only turns a checkpoint into the numpy callables that
 :mod:`geonet_infer.eval.evaluation` scores (so a checkpoint, its ONNX fp32 export and the
 INT8 twin are measured by one code path). Frames go through the runtime's own pre- and
-post-processing (:mod:`geonet_infer.cascade`: area resize to the training size,
+post-processing (:mod:`geonet_infer.core.cascade`: area resize to the training size,
 normalisation, outputs mapped back to the input size), so any layout works, KITTI included.
 
 ``evaluate_depth`` / ``evaluate_flow`` keep the summary format that ``export`` reads
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geonet_infer.cascade import InputSpec, disparity_to_input, flow_to_input, graph_intrinsics
+from geonet_infer.core.cascade import InputSpec, disparity_to_input, flow_to_input, graph_intrinsics
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.eval import baselines, evaluation, metrics
 from geonet_infer.eval.datasets import LAYOUTS, depth_dataset, flow_dataset, load_dataset, read_heldout
@@ -168,7 +168,7 @@ def torch_pose_predictor(model: GeoNet, height: int, width: int) -> Callable:
 
 # -------------------------------------------------------------- ONNX predictors (export's accuracy delta)
 def onnx_depth_fn(predictor) -> DepthFn:
-    """``predict_depth`` of a :class:`geonet_infer.predictor.Predictor` (refuses random-init models)."""
+    """``predict_depth`` of a :class:`geonet_infer.core.predictor.Predictor` (refuses random-init models)."""
     return evaluation.model_depth_fn(predictor)
 
 

@@ -13,8 +13,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from geonet_infer.cascade import RESFLOW_INPUT
 from geonet_infer.conventions import IMAGE_NORM, NUM_SCALES
+from geonet_infer.core.cascade import RESFLOW_INPUT
 from training.geometry import (
     flow_consistency,
     flow_warp,
@@ -85,7 +85,7 @@ def normalize_disparity_scale(disp: torch.Tensor) -> torch.Tensor:
 
 def flownet_input(frame_from, frame_to, warped, flow, error) -> torch.Tensor:
     """The 12 ResFlowNet channels, in the official order, which the runtime reads from the same
-    :data:`geonet_infer.cascade.RESFLOW_INPUT`.
+    :data:`geonet_infer.core.cascade.RESFLOW_INPUT`.
 
     ``[I_from (3), I_to (3), I_to rigidly warped to I_from (3), rigid flow (2),
     L2 norm of the rigid photometric error (1)]`` -> (B, 12, H, W).

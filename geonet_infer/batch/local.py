@@ -87,7 +87,7 @@ def _init_worker(config: BatchConfig, options: dict, frames, started, parent_pid
     # predict_to_dir makes a (disabled) tqdm; by default tqdm then creates a multiprocessing lock,
     # which a worker stopped by SIGTERM (os._exit) would leave registered: "leaked semaphore" warnings.
     tqdm.set_lock(threading.RLock())
-    from geonet_infer.predictor import load
+    from geonet_infer.core.predictor import load
 
     _WORKER.update(config=config, options=options, frames=frames, started=started, busy=None)
     try:

@@ -69,7 +69,7 @@ class _SequenceActor:
     options: dict
 
     def __init__(self):
-        from geonet_infer.predictor import load
+        from geonet_infer.core.predictor import load
 
         config = self.config
         self.predictor, self.error = None, None

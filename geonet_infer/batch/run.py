@@ -28,6 +28,7 @@ from geonet_infer.batch.units import (
     claim,
     expand_input_pairs,
     is_empty,
+    needs_own_calib,
     not_ours,
     owned,
     plan_units,
@@ -36,6 +37,7 @@ from geonet_infer.batch.units import (
     stale,
 )
 from geonet_infer.classical import check_methods, classical_tasks
+from geonet_infer.core.predictor import TASKS, describe_skipped, resolve_tasks
 from geonet_infer.cpu import isa_line
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
@@ -43,7 +45,7 @@ from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
 from geonet_infer.limits import check_batch_size
 from geonet_infer.output.layout import SUMMARY_NAME
-from geonet_infer.predictor import TASKS, describe_skipped, resolve_tasks
+from geonet_infer.tasks import needs_intrinsics, no_intrinsics
 
 # ----------------------------------------------------------------------------- the job
 # name -> runner class. A runner has ``start(config, options, n_units, workers, threads, *, manifest,
@@ -169,7 +171,7 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
 
 
 def model_tasks(model_dir, graphs, tasks: Iterable[str] | None, log, classical: Iterable[str] = ()) -> tuple[str, ...]:
-    """The tasks to run, resolved as ``predict`` does (:func:`geonet_infer.predictor.resolve_tasks`):
+    """The tasks to run, resolved as ``predict`` does (:func:`geonet_infer.core.predictor.resolve_tasks`):
     given tasks the model cannot do are refused before any work; with ``None`` every task it can do,
     the others named in one line. ``classical``: tasks a classical method makes (DIS, ORB-VO)."""
     tasks, skipped = resolve_tasks(graphs, tasks, model_dir, classical=classical)
@@ -217,7 +219,7 @@ def run_batch(
     (``"interrupted": true``) when interrupted (Ctrl-C, or SIGTERM turned into it by the CLI);
     a later ``resume=True`` finishes.
     """
-    from geonet_infer.manifest import load_manifest, model_notice
+    from geonet_infer.core.manifest import load_manifest, model_notice
     from geonet_infer.models import resolve_model
 
     log = log or (lambda msg: print(msg, file=sys.stderr))
@@ -236,6 +238,16 @@ def run_batch(
     graphs = manifest.graph_names(precision)  # bad --model / --precision: exit 2 before any work
     check_methods(flow_method, pose_method)
     tasks = model_tasks(model_dir, graphs, tasks, log, classical_tasks(tasks or TASKS, flow_method, pose_method))
+    needing = needs_intrinsics(tasks, flow_method, pose_method)  # inputs without a calibration of their own
+    lacking = [u.path for u in units if not u.calib and needs_own_calib(u.path)] if needing and camera is None else []
+    if lacking:
+        more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
+        raise no_intrinsics(
+            needing,
+            lacking[0],
+            "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose, or --flow-method dis)",
+            f"this input has none{more}",
+        )
     out_dir = Path(os.path.abspath(out_dir))
     check_out(out_dir, units)
     claim(out_dir)

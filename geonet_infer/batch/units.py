@@ -14,41 +14,44 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from geonet_infer import __version__, ownership
-from geonet_infer.engines import usable_cpus
+from geonet_infer.batch.inputs import (  # noqa: F401  (re-exported: this module's names before the split)
+    _KITTI,
+    _RESERVED,
+    CALIB_SEPARATOR,
+    FAILURES_NAME,
+    LIST_SUFFIX,
+    LOCK_NAME,
+    MARKER_NAME,
+    OWNER_NAME,
+    WorkUnit,
+    _safe_name,
+    expand_input_pairs,
+    expand_inputs,
+    needs_own_calib,
+    plan_units,
+    read_input_list,
+    read_input_pairs,
+    sequence_name,
+    sequence_root,
+)
+from geonet_infer.batch.sizing import (  # noqa: F401  (re-exported: this module's names before the split)
+    MAX_WORKERS,
+    WORKER_BASE_BYTES,
+    WORKER_GRAPH_FACTOR,
+    cap_workers,
+    check_counts,
+    memory_available,
+    plan_workers,
+    worker_memory_bytes,
+)
+from geonet_infer.core.manifest import file_sha256
+from geonet_infer.core.predictor import TASKS
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
-from geonet_infer.manifest import file_sha256
-from geonet_infer.output.layout import OUTPUT_MARKER, SUMMARY_NAME
+from geonet_infer.output.layout import OUTPUT_MARKER
 from geonet_infer.output.predict import predict_to_dir
-from geonet_infer.predictor import TASKS
-
-MARKER_NAME = ".done"
-OWNER_NAME = ".geonet-batch"
-FAILURES_NAME = "failures.jsonl"
-LOCK_NAME = ".lock"
-LIST_SUFFIX = ".txt"
-CALIB_SEPARATOR = "|"  # in an input list: INPUT | ITS CALIBRATION
-_RESERVED = {SUMMARY_NAME, FAILURES_NAME, LOCK_NAME, MARKER_NAME, OWNER_NAME}
-MAX_WORKERS = 1024  # workers or threads per worker above this are a typo, not a machine
-# Peak memory of one local worker, estimated as a base plus a multiple of the model's graph files
-# (weights, onnxruntime's copies and arenas). Measured: 447 MB for the bundled small_synth model
-# (20 MB of fp32 graphs), 128x416 frames, batch size 4, all tasks; the estimate gives 461 MB.
-WORKER_BASE_BYTES = 256 * 1024**2
-WORKER_GRAPH_FACTOR = 10
-_KITTI = ("image_02", "data")
-
-
-# ----------------------------------------------------------------------------- work units
-@dataclass(frozen=True)
-class WorkUnit:
-    """One sequence: ``index`` = position in the input order, ``name`` = its folder under OUT."""
-
-    index: int
-    name: str
-    path: str  # absolute
-    calib: str = ""  # absolute: its calibration from the input list ("": none given there)
 
 
 @dataclass(frozen=True)
@@ -98,148 +101,6 @@ class BatchConfig:
         methods = {"flow_method": self.flow_method, "pose_method": self.pose_method}
         chosen = {} if self.outputs is None else {"outputs": sorted(self.outputs)}  # likewise
         return options | {k: v for k, v in methods.items() if v != "network"} | chosen
-
-
-def read_input_list(path: Path) -> list[Path]:
-    """The inputs listed in a text file (:func:`read_input_pairs`, without their calibrations)."""
-    return [p for p, _ in read_input_pairs(path)]
-
-
-def read_input_pairs(path: Path) -> list[tuple[Path, Path | None]]:
-    """(input, its calibration or None) listed in a text file, one input a line, optionally followed
-    by ``|`` and its calibration file (``clip_a.mp4 | camera_a.txt``); blank lines and ``#`` comments
-    skipped; relative paths are relative to the list file's folder."""
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(
-            path,
-            f"cannot read this input list ({exc.__class__.__name__})",
-            "pass a text file with one input path a line",
-        ) from None
-
-    def located(text: str) -> Path:
-        p = Path(text.strip()).expanduser()
-        return p if p.is_absolute() else path.parent / p
-
-    out: list[tuple[Path, Path | None]] = []
-    for number, line in enumerate(text.splitlines(), 1):
-        line = line.strip()
-        if line and not line.startswith("#"):
-            item, bar, calib = line.partition(CALIB_SEPARATOR)
-            if bar and not (item.strip() and calib.strip()):
-                raise InputError(path, f"line {number}: {line!r}", f"write INPUT {CALIB_SEPARATOR} CALIBRATION")
-            out.append((located(item), located(calib) if bar else None))
-    return out
-
-
-def expand_inputs(inputs) -> list[Path]:
-    """INPUTS as given: ``.txt`` files replaced by the paths they list (:func:`expand_input_pairs`)."""
-    return [p for p, _ in expand_input_pairs(inputs)]
-
-
-def expand_input_pairs(inputs) -> list[tuple[Path, Path | None]]:
-    """INPUTS as given, each with the calibration its list pairs it with (or None): ``.txt`` files
-    replaced by what they list (:func:`read_input_pairs`); every path must exist.
-
-    Raises GeoNetError naming the first missing path (and how many are missing).
-    """
-    pairs: list[tuple[Path, Path | None]] = []
-    for given in map(Path, inputs):
-        if given.suffix.lower() == LIST_SUFFIX and given.is_file():
-            listed = read_input_pairs(given)
-            bad = [p for p, _ in listed if p.suffix.lower() == LIST_SUFFIX and p.is_file()]
-            if bad:
-                raise InputError(
-                    bad[0], f"listed in {given}, but input lists do not nest", "list the sequences themselves"
-                )
-            pairs += listed
-        else:
-            pairs.append((given, None))
-    paths = [p for p, _ in pairs] + [c for _, c in pairs if c is not None]
-    missing = [p for p in paths if not p.exists()]
-    if missing:
-        more = f" (and {len(missing) - 1} more missing)" if len(missing) > 1 else ""
-        raise InputError(
-            missing[0], f"not found{more}", "pass sequence folders, videos, KITTI drives or a .txt file listing them"
-        )
-    if not pairs:
-        raise InputError(None, "no inputs", "pass sequence folders, videos, KITTI drives or a .txt list")
-    return pairs
-
-
-def sequence_name(path) -> str:
-    """The sequence's name as ``open_frames`` gives it (video stem, KITTI drive or folder name),
-    worked out from the path alone (a broken video still gets its name)."""
-    p = Path(os.path.abspath(path))
-    if p.is_file():
-        return p.stem
-    if (p / _KITTI[0] / _KITTI[1]).is_dir():
-        return p.name
-    if p.name == _KITTI[1] and p.parent.name == _KITTI[0]:
-        return p.parent.parent.name
-    if p.name == _KITTI[0] and (p / _KITTI[1]).is_dir():
-        return p.parent.name
-    return p.name
-
-
-def _safe_name(name: str) -> str:
-    """A folder name under OUT that cannot be a reserved or hidden file."""
-    if not name or name.startswith(".") or name in _RESERVED or "/" in name or "\\" in name:
-        return f"seq_{name.lstrip('.')}" if name.strip(".") else "seq"
-    return name
-
-
-def sequence_root(path: Path) -> Path:
-    """The folder or file a sequence is named after (a KITTI drive for ``.../image_02/data``)."""
-    p = Path(os.path.abspath(path))
-    if p.is_dir() and p.name == _KITTI[1] and p.parent.name == _KITTI[0]:
-        return p.parent.parent
-    if p.is_dir() and p.name == _KITTI[0] and (p / _KITTI[1]).is_dir():
-        return p.parent
-    return p
-
-
-def plan_units(paths, calibs=None) -> list[WorkUnit]:
-    """One unit per distinct input (the same real path twice = once), in input order; ``calibs``:
-    each input's calibration from its list, or None (:func:`expand_input_pairs`).
-
-    Names are the sequences' names. Inputs that share a name are each called
-    ``<name>__<folder it is in>``; if that still collides, the later ones get ``__2``,
-    ``__3``, ... in input order. So the names depend only on the inputs and their order.
-    """
-    seen, distinct, calib_of = set(), [], []
-    for p, calib in zip(paths, calibs or [None] * len(paths)):
-        real = os.path.realpath(p)
-        if real not in seen:
-            seen.add(real)
-            distinct.append(Path(os.path.abspath(p)))
-            calib_of.append("" if calib is None else os.path.abspath(calib))
-    base = [_safe_name(sequence_name(p)) for p in distinct]
-    names = [
-        f"{n}__{sequence_root(p).parent.name or 'root'}" if base.count(n) > 1 else n for p, n in zip(distinct, base)
-    ]
-    final: list[str] = []
-    for n in names:
-        candidate, k = n, 1
-        while candidate in final or (candidate != n and candidate in names):
-            k += 1
-            candidate = f"{n}__{k}"
-        final.append(candidate)
-    return [WorkUnit(i, n, str(p), c) for i, (n, p, c) in enumerate(zip(final, distinct, calib_of))]
-
-
-def needs_own_calib(path) -> bool:
-    """Whether the input has no calibration of its own: no ``<name>.calib.txt`` beside it
-    (:func:`~geonet_infer.io.frames.find_side_calib`) and not a KITTI drive with its file."""
-    from geonet_infer.io.frames import find_kitti_calib, find_side_calib
-
-    root = sequence_root(path)
-    if find_side_calib(root) is not None:
-        return False
-    if not (root.is_dir() and (root / _KITTI[0] / _KITTI[1]).is_dir()):
-        return True
-    return find_kitti_calib(root) is None
 
 
 # ----------------------------------------------------------------------------- one sequence
@@ -486,91 +347,6 @@ def read_marker(folder: Path) -> dict | None:
         return marker if isinstance(marker, dict) else None
     except (OSError, ValueError, RecursionError):  # RecursionError: JSON nested too deep
         return None
-
-
-# ----------------------------------------------------------------------------- workers x threads
-def plan_workers(n_units: int, workers: int | None, threads: int | None, cpus: int | None = None) -> tuple[int, int]:
-    """(workers, threads per worker): by default workers x threads <= the usable CPUs.
-
-    Neither given: one worker per CPU (at most one per sequence), the CPUs split among them.
-    One given: the other fills the CPUs. Both given: as given (may oversubscribe; the
-    caller warns). Never more workers than sequences.
-    """
-    cpus = usable_cpus() if cpus is None else cpus
-    n = max(1, n_units)
-    if workers is None and threads is None:
-        workers = min(cpus, n)
-        threads = max(1, cpus // workers)
-    elif workers is None:
-        assert threads is not None
-        workers = min(max(1, cpus // threads), n)
-    elif threads is None:
-        threads = max(1, cpus // min(workers, n))
-    return min(workers, n), threads
-
-
-def check_counts(workers: int | None, threads: int | None) -> None:
-    """GeoNetError (exit 2) for a worker or thread count no machine has (a typo)."""
-    for flag, value in (("--workers", workers), ("--threads-per-worker", threads)):
-        if value is not None and not 1 <= value <= MAX_WORKERS:
-            raise InputError(None, f"{flag} {value} is out of range", f"pass 1 to {MAX_WORKERS}")
-
-
-def worker_memory_bytes(manifest, precision: str) -> int:
-    """Estimated peak memory of one local worker: :data:`WORKER_BASE_BYTES` plus
-    :data:`WORKER_GRAPH_FACTOR` times the size of the graph files of ``manifest`` it loads."""
-    return WORKER_BASE_BYTES + int(WORKER_GRAPH_FACTOR * manifest.files_mib(precision) * 2**20)
-
-
-def memory_available() -> int | None:
-    """Bytes this job may still use: MemAvailable of /proc/meminfo, capped by a cgroup v2 limit;
-    None where neither can be read (then workers are not capped by memory)."""
-    avail = None
-    with contextlib.suppress(OSError, ValueError, IndexError):
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                avail = int(line.split()[1]) * 1024
-    with contextlib.suppress(OSError, ValueError):
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        if limit != "max":
-            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
-            free = max(0, int(limit) - used)
-            avail = free if avail is None else min(avail, free)
-    return avail
-
-
-def cap_workers(
-    workers: int | None,
-    threads: int | None,
-    *,
-    cpus: int,
-    mem_available: int | None,
-    per_worker: int,
-    n_units: int | None = None,
-) -> tuple[int | None, int | None, list[str]]:
-    """(workers, threads, notes): requests capped at the usable CPUs, and workers at what the
-    available memory holds (``per_worker`` bytes each). None stays None (the default)
-    unless memory holds fewer workers than the default would start. One note per cap."""
-    notes = []
-    if threads is not None and threads > cpus:
-        notes.append(f"--threads-per-worker {threads}: more than the {cpus} usable CPUs; using {cpus}")
-        threads = cpus
-    if workers is not None and workers > cpus:
-        notes.append(f"--workers {workers}: more than the {cpus} usable CPUs; using {cpus}")
-        workers = cpus
-    if mem_available is not None and per_worker > 0:
-        fit = max(1, mem_available // per_worker)
-        want = workers if workers is not None else cpus
-        if n_units is not None:
-            want = min(want, max(1, n_units))
-        if want > fit:
-            what = f"--workers {workers}" if workers is not None else f"{want} workers"
-            notes.append(
-                f"{what} would need about {want * per_worker / 1024**3:.1f} GiB of memory, "
-                f"{mem_available / 1024**3:.1f} GiB is available; using {fit}"
-            )
-            workers = fit
-    return workers, threads, notes
 
 
 # ----------------------------------------------------------------------------- local engine

@@ -11,15 +11,15 @@ import collections
 import cv2
 import numpy as np
 
-from geonet_infer.cascade import flow_to_input, graph_intrinsics, run_cascade
 from geonet_infer.conventions import scale_intrinsics
+from geonet_infer.core.cascade import flow_to_input, graph_intrinsics, run_cascade
+from geonet_infer.core.predictor import Predictor
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.images import list_images, read_image
-from geonet_infer.predictor import Predictor
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 from geonet_infer.timing import Case
 
-TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
+BENCH_TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
 MODES = ("graph", "e2e")
 DEFAULT_INPUT_SIZE = (1242, 375)  # (W, H) of KITTI raw frames
 # Graphs each task needs; flow and sequence also use resflownet when the model has it.

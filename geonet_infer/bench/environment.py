@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -11,12 +12,12 @@ import cv2
 import numpy as np
 
 from geonet_infer import __version__
+from geonet_infer.core.manifest import ModelCard, load_manifest
+from geonet_infer.core.predictor import TASK_GRAPHS as MODEL_TASK_GRAPHS  # depth, pose, flow
+from geonet_infer.core.predictor import missing_graphs
 from geonet_infer.cpu import cpu_info, isa_line
 from geonet_infer.engines import ENGINES, check_graphs, usable_cpus
-from geonet_infer.manifest import ModelCard, load_manifest
 from geonet_infer.models import bundled_models, resolve_model
-from geonet_infer.predictor import TASK_GRAPHS as MODEL_TASK_GRAPHS  # depth, pose, flow
-from geonet_infer.predictor import missing_graphs
 
 CPU_FLAGS = (
     "avx2",
@@ -167,3 +168,24 @@ def card_summary(card: ModelCard | None) -> dict:
         **scores,
         "measured_in": card.measured_in,
     }
+
+
+# ----------------------------------------------------------------------------- provenance
+SOURCE_ROOT = Path(__file__).resolve().parents[2]  # the checkout holding this package, when run from one
+
+
+def git_commit(root: Path | None = None, short: bool = False) -> str | None:
+    """``git rev-parse [--short] HEAD`` in ``root`` (default: the checkout holding this package),
+    or None where there is no git or no checkout (an installed wheel). Provenance of manifests,
+    bench reports, the model card and the results report."""
+    root = SOURCE_ROOT if root is None else Path(root)
+    if not (root / ".git").exists():
+        return None
+    cmd = ["git", "-C", str(root), "rev-parse", *(["--short"] if short else []), "HEAD"]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=10, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if out.returncode != 0:
+        return None
+    return out.stdout.strip() or None

@@ -11,11 +11,8 @@ from geonet_infer.batch import (
     MARKER_NAME,
     OWNER_NAME,
     RUNNERS,
-    model_tasks,
-    needs_own_calib,
     run_batch,
 )
-from geonet_infer.classical import classical_tasks
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import (
     add_camera_args,
@@ -29,10 +26,7 @@ from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.limits import MAX_BATCH_SIZE
-from geonet_infer.manifest import load_manifest
-from geonet_infer.models import resolve_model
 from geonet_infer.output.layout import SUMMARY_NAME
-from geonet_infer.predictor import TASKS
 
 HELP = f"""\
 Predict depth, optical flow and camera poses for many sequences.
@@ -161,16 +155,7 @@ def add_parser(sub) -> None:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    model_dir = resolve_model(args.model)
-    graphs = load_manifest(model_dir, verify_files=False).graph_names(args.precision)  # run_batch verifies
-    asked, outputs = tasks_and_outputs(args)
-    tasks = model_tasks(
-        model_dir,
-        graphs,
-        asked,
-        (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
-        classical_tasks(TASKS, args.flow_method, args.pose_method),
-    )
+    tasks, outputs = tasks_and_outputs(args)  # resolved against the model by run_batch
     if args.engine is not None:
         print("geonet-infer batch: note: --engine is deprecated, use --runner", file=sys.stderr)
         if args.runner not in (None, args.engine):
@@ -179,23 +164,6 @@ def run_command(args: argparse.Namespace) -> int:
     if args.ray_address and runner != "ray":
         raise InputError(None, "--ray-address needs --runner ray")
     camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own
-    needing = [
-        what
-        for what, needs in (("flow", args.flow_method == "network"), ("ORB-VO poses", args.pose_method == "orbvo"))
-        if needs and ("flow" if what == "flow" else "pose") in tasks
-    ]
-    if needing and camera is None:
-        from geonet_infer.batch import expand_input_pairs
-
-        lacking = [p for p, calib in expand_input_pairs(args.inputs) if calib is None and needs_own_calib(p)]
-        if lacking:
-            more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
-            raise InputError(
-                lacking[0],
-                f"{' and '.join(needing)} need{'s' if len(needing) == 1 else ''} camera intrinsics and this "
-                f"input has none{more}",
-                "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose, or --flow-method dis)",
-            )
     with sigterm_as_interrupt():  # SIGTERM is handled like Ctrl-C: workers stopped, summary written
         summary = run_batch(
             args.inputs,
@@ -216,6 +184,7 @@ def run_command(args: argparse.Namespace) -> int:
             resume=args.resume,
             ray_address=args.ray_address,
             progress=not args.no_progress,
+            log=(lambda msg: None) if args.quiet else None,  # --quiet: no notes
         )
     seqs = summary["sequences"]
     redone = f", {len(summary['redone'])} redone (changed since their run)" if summary["resume"] else ""
@@ -227,7 +196,7 @@ def run_command(args: argparse.Namespace) -> int:
         f"-> {args.out}; details in {args.out / SUMMARY_NAME}"
     )
     if summary["model_notice"] and not args.quiet:
-        print(f"geonet-infer batch: note: {model_dir.name}: {summary['model_notice']}", file=sys.stderr)
+        print(f"geonet-infer batch: note: {Path(summary['model']).name}: {summary['model_notice']}", file=sys.stderr)
     if summary["failures"]:
         print(
             f"{summary['failures']} failures (sequences or frames) listed in {args.out / FAILURES_NAME}",

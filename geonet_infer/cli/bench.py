@@ -39,19 +39,19 @@ import sys
 import time
 from pathlib import Path
 
-from geonet_infer.bench.cases import DEFAULT_INPUT_SIZE, MODES, TASK_GRAPHS, TASKS, bench_frames, build_cases
-from geonet_infer.bench.environment import Environment, cpu_flags, model_summary, thread_env
+from geonet_infer.bench.cases import BENCH_TASKS, DEFAULT_INPUT_SIZE, MODES, TASK_GRAPHS, bench_frames, build_cases
+from geonet_infer.bench.environment import Environment, cpu_flags, git_commit, model_summary, thread_env
 from geonet_infer.bench.report import format_table, paper_line, result_row
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import add_model_args, backend_help
+from geonet_infer.core.manifest import AUTO, MANIFEST_NAME, PRECISION_CHOICES, PRECISIONS, load_manifest
+from geonet_infer.core.predictor import load
 from geonet_infer.engines import BACKENDS, ENGINES, OrtEngine
 from geonet_infer.errors import BackendUnavailableError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.images import check_pixels
 from geonet_infer.limits import MAX_BATCH_SIZE, MAX_SEQUENCE_FRAMES, check_batch_size, check_count, check_threads
-from geonet_infer.manifest import MANIFEST_NAME, PRECISIONS, git_commit, load_manifest
 from geonet_infer.models import resolve_model
-from geonet_infer.predictor import load
 from geonet_infer.samples import SAMPLE_FRAMES
 from geonet_infer.timing import current_rss_mib, load_average, peak_rss_mib, time_interleaved
 
@@ -76,7 +76,8 @@ def add_parser(sub) -> None:
         "--precision",
         default=None,
         metavar="LIST",
-        help=f"comma list of {', '.join(PRECISIONS)} (default: every precision the model has)",
+        help=f"comma list of {', '.join(PRECISION_CHOICES)} ({AUTO}: per graph, the fastest exact precision, "
+        "chosen at load) (default: every precision the model has)",
     )
     group.add_argument(
         "--batch",
@@ -88,7 +89,7 @@ def add_parser(sub) -> None:
         "--tasks",
         default=None,
         metavar="LIST",
-        help=f"comma list of {', '.join(TASKS)} (default: all the model's graphs allow)",
+        help=f"comma list of {', '.join(BENCH_TASKS)} (default: all the model's graphs allow)",
     )
     group.add_argument(
         "--modes",
@@ -195,28 +196,28 @@ def _check_args(args) -> dict:
     if args.precision is None:
         precisions = [p for p in PRECISIONS if p in manifest.graphs]
     else:
-        precisions = _parse_list(args.precision, PRECISIONS, "precision")
+        precisions = _parse_list(args.precision, PRECISION_CHOICES, "precision")
         for p in precisions:
-            if p not in manifest.graphs:
+            if p not in manifest.graphs and p != AUTO:
                 raise InputError(
                     where,
                     f"no {p} graphs in this model directory",
                     f"precisions present: {', '.join(manifest.graphs)}; export with --precision fp32,int8",
                 )
     explicit_tasks = args.tasks is not None
-    tasks = _parse_list(args.tasks, TASKS, "task") if explicit_tasks else list(TASKS)
-    tasks = [t for t in TASKS if t in tasks]  # canonical order
+    tasks = _parse_list(args.tasks, BENCH_TASKS, "task") if explicit_tasks else list(BENCH_TASKS)
+    tasks = [t for t in BENCH_TASKS if t in tasks]  # canonical order
     skipped = []
     for task in list(tasks):
         for p in precisions:
-            missing = [g for g in TASK_GRAPHS[task] if g not in manifest.graphs[p]]
+            missing = [g for g in TASK_GRAPHS[task] if g not in manifest.graph_names(p)]
             if not missing:
                 continue
             if explicit_tasks:
                 hint = (
                     "resflownet needs a stage 'flow' checkpoint at export time"
                     if "resflownet" in missing
-                    else f"graphs present: {', '.join(manifest.graphs[p])}"
+                    else f"graphs present: {', '.join(manifest.graph_names(p))}"
                 )
                 raise InputError(
                     where,

@@ -11,15 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.cascade import RIGID_OPS
 from geonet_infer.classical import DIS_PRESET, FLOW_METHODS, POSE_METHODS
+from geonet_infer.core.cascade import RIGID_OPS
+from geonet_infer.core.manifest import PRECISION_CHOICES
+from geonet_infer.core.predictor import Predictor, load
 from geonet_infer.engines import AUTO, BACKENDS, ENGINES
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.limits import check_threads
-from geonet_infer.manifest import PRECISIONS
 from geonet_infer.models import DEFAULT_MODEL
-from geonet_infer.predictor import Predictor, load
 
 
 def positive_int(text: str) -> int:
@@ -55,8 +55,9 @@ def add_model_args(parser: argparse.ArgumentParser, threads: bool = True, rigid_
     group.add_argument(
         "--precision",
         default="fp32",
-        choices=PRECISIONS,
-        help="fp32, or int8 (quantised ConvNets, faster on CPUs with VNNI) (default: fp32)",
+        choices=PRECISION_CHOICES,
+        help="fp32; int8 (quantised ConvNets, faster on CPUs with VNNI); or auto: per graph, the fastest "
+        "precision that is exact on this CPU, timed at load with the engines --backend allows (default: fp32)",
     )
     group.add_argument(
         "--backend",
@@ -135,20 +136,21 @@ def add_camera_args(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def parse_intrinsics(text: str) -> Camera:
+    """``--intrinsics FX,FY,CX,CY`` (every subcommand that takes it) as a checked pinhole Camera."""
+    try:
+        fx, fy, cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(
+            None, f"--intrinsics {text!r} is not four numbers", "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9"
+        ) from None
+    return Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None, None, "--intrinsics").validate("--intrinsics")
+
+
 def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None) -> Camera | None:
     """The Camera from --calib / --intrinsics / a default calibration file, or None."""
     if args.intrinsics is not None:
-        try:
-            fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
-        except ValueError:
-            raise InputError(
-                None,
-                f"--intrinsics {args.intrinsics!r} is not four numbers",
-                "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9",
-            ) from None
-        return Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None, None, "--intrinsics").validate(
-            "--intrinsics"
-        )
+        return parse_intrinsics(args.intrinsics)
     path = args.calib if args.calib is not None else default_calib
     if path is None:
         return None

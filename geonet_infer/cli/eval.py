@@ -8,14 +8,12 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
 from geonet_infer.cli import COMMANDS
-from geonet_infer.cli.common import add_model_args, load_predictor, positive_int
+from geonet_infer.cli.common import add_model_args, load_predictor, parse_intrinsics, positive_int
 from geonet_infer.engines import BACKENDS
 from geonet_infer.errors import InputError
 from geonet_infer.eval import eval_all, evaluation
-from geonet_infer.eval.datasets import LAYOUTS, REGISTRY, TASKS, load_dataset, read_heldout
+from geonet_infer.eval.datasets import EVAL_TASKS, LAYOUTS, REGISTRY, load_dataset, read_heldout
 from geonet_infer.io.atomic import atomic_write
 
 HELP_TEMPLATE = """\
@@ -81,7 +79,7 @@ def layouts_help() -> str:
     """The layouts block of ``--help``, from the registry (a new layout describes itself)."""
     out = ["Layouts (--layout, default auto):"]
     width = max(len(name) for name in REGISTRY) + 1  # the descriptions start in one column
-    for task in TASKS:
+    for task in EVAL_TASKS:
         for n, name in enumerate(LAYOUTS[task]):
             first, *more = REGISTRY[name].help[task]
             label = f"{task:<6}" if n == 0 else " " * 6
@@ -100,7 +98,7 @@ def add_parser(sub) -> None:
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("task", choices=[*TASKS, "all"], help="what to score (all: every real set, see above)")
+    parser.add_argument("task", choices=[*EVAL_TASKS, "all"], help="what to score (all: every real set, see above)")
     parser.add_argument(
         "--data", type=Path, required=True, help="dataset folder (see layouts above); all: the real-data folder"
     )
@@ -181,18 +179,6 @@ def add_parser(sub) -> None:
     parser.add_argument("--json", type=Path, default=None, help="also write every result and item here")
     parser.add_argument("--markdown", type=Path, default=None, help="also write the printed tables here")
     parser.set_defaults(run=run)
-
-
-def parse_intrinsics(text: str | None) -> np.ndarray | None:
-    if text is None:
-        return None
-    try:
-        fx, fy, cx, cy = (float(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(None, f"--intrinsics {text!r} is not four numbers", "write FX,FY,CX,CY") from None
-    if not (fx > 0 and fy > 0):
-        raise InputError(None, f"--intrinsics {text!r}: focal lengths must be positive")
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
 
 
 def methods_for(task: str, text: str, args) -> list[tuple[str, Callable]]:
@@ -280,7 +266,7 @@ def run(args: argparse.Namespace) -> int:
         options["multiview"] = args.multiview
     layout_options = {"fx": args.fx, "baseline": args.baseline}
     dataset = load_dataset(args.task, args.data, args.layout, options=layout_options, **options)
-    K = parse_intrinsics(args.intrinsics)
+    K = None if args.intrinsics is None else parse_intrinsics(args.intrinsics).K
     results = []
     for label, fn in methods_for(args.task, args.method, args):
         if args.task == "depth":

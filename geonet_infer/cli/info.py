@@ -7,9 +7,9 @@ import json
 
 from geonet_infer.bench.environment import NOT_MEASURED, Environment, model_summary
 from geonet_infer.cli import COMMANDS
+from geonet_infer.core.predictor import RIGID_FLOW_GRAPHS
 from geonet_infer.engines import ENGINES
 from geonet_infer.models import DEFAULT_MODEL
-from geonet_infer.predictor import RIGID_FLOW_GRAPHS
 
 
 def add_parser(sub) -> None:

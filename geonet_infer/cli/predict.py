@@ -21,6 +21,8 @@ from geonet_infer.cli.common import (
     stage_table,
 )
 from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
+from geonet_infer.core.predictor import TASKS, describe_skipped
+from geonet_infer.core.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
 from geonet_infer.errors import InputError
 from geonet_infer.io.frames import FrameSource, open_frames, open_stdin, open_stream
 from geonet_infer.limits import (
@@ -35,8 +37,6 @@ from geonet_infer.output.layout import SUMMARY_NAME, WORLD_CLOUD_NAME
 from geonet_infer.output.options import DEFAULT_COLOUR_SCALE, POINT_CLOUDS, OutputOptions
 from geonet_infer.output.predict import predict_to_dir
 from geonet_infer.output.video import FOLDER_FPS, VIDEO_CODECS
-from geonet_infer.predictor import TASKS, describe_skipped
-from geonet_infer.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
 
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.

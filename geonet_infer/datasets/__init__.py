@@ -5,4 +5,4 @@ This alias goes in the next release; each use of an old name warns (DeprecationW
 
 from geonet_infer._moved import forward
 
-__getattr__ = forward(__name__, "geonet_infer.eval.datasets")
+__getattr__ = forward(__name__, "geonet_infer.eval.datasets", renamed={"TASKS": "EVAL_TASKS"})

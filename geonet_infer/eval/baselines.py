@@ -22,7 +22,7 @@ from geonet_infer.classical import (  # noqa: F401  (the OpenCV methods are part
     orb_matcher,
     relative_pose,
 )
-from geonet_infer.conventions import rigid_inverse
+from geonet_infer.conventions import next_camera_to_world
 
 
 def constant_depth(rgb: np.ndarray) -> np.ndarray:
@@ -62,5 +62,5 @@ def orb_vo(frames: list, K: np.ndarray) -> tuple[np.ndarray, dict]:
             failed += 1
         else:
             step = T
-        poses.append(poses[-1] @ rigid_inverse(step))
+        poses.append(next_camera_to_world(poses[-1], step))
     return np.stack(poses), {"failed_pairs": failed, "inliers": inliers}

@@ -30,12 +30,23 @@ from pathlib import Path
 
 import numpy as np
 
+from geonet_infer.core.scale import check_camera_height, fit_ground_plane
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.eval import metrics
+from geonet_infer.eval.adapters import (  # noqa: F401  (re-exported: this module's names before the split)
+    BASELINES,
+    _needs_K,
+    baseline_fns,
+    model_depth_fn,
+    model_flow_fn,
+    model_fn,
+    model_pose_fn,
+    refuse_random_init,
+    snippet_from_pose_calls,
+)
 from geonet_infer.eval.datasets import SNIPPET, Dataset, layout_class
 from geonet_infer.io import read_image
 from geonet_infer.io.atomic import atomic_write
-from geonet_infer.scale import check_camera_height, fit_ground_plane
 
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
 SCALINGS = ("median", "camera_height", "none")
@@ -150,7 +161,7 @@ def evaluate_depth(
     no bonnet or empty sky band to crop).
     scaling: "median" (per image, median GT / median prediction: the paper's protocol), "none"
     (raw depths: metric or stereo-scaled models), or "camera_height": per image, the factor that
-    puts the ground plane fitted to the prediction (:func:`geonet_infer.scale.fit_ground_plane`)
+    puts the ground plane fitted to the prediction (:func:`geonet_infer.core.scale.fit_ground_plane`)
     ``camera_height`` metres below the camera, no ground truth used. ``intrinsics``: K at the
     image size for that fit; default the item's calibration (:func:`depth_intrinsics`). A frame
     without a plausible ground plane is not scored: named in ``errors`` and ``ground_fit_failed``.
@@ -371,106 +382,6 @@ def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", obse
 
 
 EVALUATORS = {"depth": evaluate_depth, "flow": evaluate_flow, "pose": evaluate_pose}
-
-
-# ----------------------------------------------------------------------------- model adapters
-def _needs_K(fn):
-    fn.needs_intrinsics = True
-    return fn
-
-
-def refuse_random_init(predictor) -> None:
-    if predictor.manifest.random_init:
-        raise InputError(
-            predictor.model_dir,
-            "this model directory holds random-init (timing-only) graphs",
-            "accuracy needs graphs exported from a trained --checkpoint",
-        )
-
-
-def model_depth_fn(predictor, allow_random_init: bool = False) -> Callable:
-    """Depth of a :class:`~geonet_infer.predictor.Predictor` at the input resolution.
-    ``allow_random_init`` (every adapter): score random weights (development cards only)."""
-    if not allow_random_init:
-        refuse_random_init(predictor)
-    return lambda rgb: predictor.depth(rgb).depth
-
-
-def model_flow_fn(predictor, allow_random_init: bool = False) -> Callable:
-    """Full flow t -> t+1; a 3-frame model gets [t-1, t, t+1] when the item has it, any other
-    case the pair [t, t+1] (the runtime pads it as at a video start)."""
-    if not allow_random_init:
-        refuse_random_init(predictor)
-
-    def predict(frames, K):
-        if len(frames) == predictor.seq_length:
-            return predictor.flow(list(frames), K).flow
-        return predictor.flow(list(frames[-2:]), K).flow
-
-    return _needs_K(predict)
-
-
-def snippet_from_pose_calls(pose_fn: Callable, frames: list, seq_length: int) -> np.ndarray:
-    """5-frame snippet poses (first-frame coordinates) from a PoseNet taking ``seq_length`` frames.
-
-    ``pose_fn(frames) -> (L-1, 4, 4)`` target->source transforms (target in the middle).
-    L = 5: one call, the paper's protocol. L = 3: the triplets [0, 1, 2] and [2, 3, 4], chained
-    through frame 2: G1 = T(1->0), G2 = G1 T(1->2)^-1, G3 = G2 T(3->2), G4 = G3 T(3->4)^-1.
-    """
-    if seq_length == SNIPPET:
-        return metrics.snippet_poses_to_global(pose_fn(frames), target_index=SNIPPET // 2)
-    if seq_length != 3:
-        raise InputError(
-            None,
-            f"pose snippets need a PoseNet of 3 or 5 frames, this one takes {seq_length}",
-            "export the model with --seq-length 3 or 5",
-        )
-    (T10, T12), (T32, T34) = pose_fn(frames[0:3]), pose_fn(frames[2:5])
-    G1 = np.asarray(T10, np.float64)
-    G2 = G1 @ metrics.rigid_inverse(T12)
-    G3 = G2 @ np.asarray(T32, np.float64)
-    return np.stack([np.eye(4), G1, G2, G3, G3 @ metrics.rigid_inverse(T34)])
-
-
-def model_pose_fn(predictor, allow_random_init: bool = False) -> Callable:
-    """Snippet poses from the runtime's PoseNet (:func:`snippet_from_pose_calls`)."""
-    if not allow_random_init:
-        refuse_random_init(predictor)
-    return lambda frames, K: snippet_from_pose_calls(
-        lambda f: predictor.pose(list(f)).matrices, frames, predictor.seq_length
-    )
-
-
-def model_fn(task: str, predictor, allow_random_init: bool = False) -> Callable:
-    adapter = {"depth": model_depth_fn, "flow": model_flow_fn, "pose": model_pose_fn}[task]
-    return adapter(predictor, allow_random_init)
-
-
-# ----------------------------------------------------------------------------- baselines
-def baseline_fns(task: str, method: str) -> dict[str, Callable]:
-    """{row label: fn} of a baseline ``method`` ("dis" gives both DIS presets)."""
-    from geonet_infer.eval import baselines as b
-
-    table = {
-        "depth": {"constant": {"constant depth": b.constant_depth}},
-        "flow": {
-            "zero": {"zero flow": b.zero_flow},
-            "dis": {"DIS medium": b.dis_flow("medium"), "DIS ultrafast": b.dis_flow("ultrafast")},
-            "dis-medium": {"DIS medium": b.dis_flow("medium")},
-            "dis-ultrafast": {"DIS ultrafast": b.dis_flow("ultrafast")},
-        },
-        "pose": {"identity": {"identity pose": b.identity_pose}, "orb-vo": {"ORB-VO": _needs_K(b.orb_vo)}},
-    }[task]
-    if method not in table:
-        raise InputError(None, f"no {task} method {method!r}", f"{task} methods: model, {', '.join(table)}")
-    return table[method]
-
-
-BASELINES = {
-    "depth": ("constant",),
-    "flow": ("dis", "dis-medium", "dis-ultrafast", "zero"),
-    "pose": ("orb-vo", "identity"),
-}
 
 
 # ----------------------------------------------------------------------------- output

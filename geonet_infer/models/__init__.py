@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from geonet_infer.core.manifest import MANIFEST_NAME
 from geonet_infer.errors import ModelError
-from geonet_infer.manifest import MANIFEST_NAME
 
 MODELS_DIR = Path(__file__).resolve().parent
 DEFAULT_MODEL = "small_synth"

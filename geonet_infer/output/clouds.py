@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from geonet_infer.core.points import write_ply
+from geonet_infer.core.results import FrameResult
 from geonet_infer.io.calib import Camera
 from geonet_infer.output.options import OutputOptions
-from geonet_infer.points import write_ply
-from geonet_infer.results import FrameResult
 
 
 def ply_comments(where: str, camera_height: float | None) -> tuple[str, ...]:

@@ -9,8 +9,8 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
+from geonet_infer.core.results import FrameResult
 from geonet_infer.io.frames import Frame, FrameSource
-from geonet_infer.results import FrameResult
 
 SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
 

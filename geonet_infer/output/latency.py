@@ -13,8 +13,8 @@ import contextlib
 import time
 from collections.abc import Iterator
 
-from geonet_infer.cascade import STAGES
 from geonet_infer.classical import CLASSICAL_STAGES
+from geonet_infer.core.spec import STAGES
 
 # the main thread's stages, in table order
 SEQUENTIAL = (

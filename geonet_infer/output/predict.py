@@ -28,10 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer import __version__, ownership
-from geonet_infer.cascade import camera_at
 from geonet_infer.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
 from geonet_infer.classical import check_methods, classical_tasks
 from geonet_infer.classical import describe as describe_methods
+from geonet_infer.core.cascade import camera_at
+from geonet_infer.core.manifest import model_notice
+from geonet_infer.core.predictor import Predictor
+from geonet_infer.core.results import FrameResult
+from geonet_infer.core.scale import SCALE_HALF_WINDOW, check_metric_request, metric_scale_summary
 from geonet_infer.cpu import isa_line
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
@@ -39,7 +43,6 @@ from geonet_infer.io.calib import Camera, write_kitti_camera
 from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.limits import MAX_HELD_PIXELS, check_batch_size
-from geonet_infer.manifest import model_notice
 from geonet_infer.output.clouds import WorldCloud, as_predicted
 from geonet_infer.output.frames import GoodFrames, unusable
 from geonet_infer.output.latency import latency_table, timed
@@ -60,18 +63,8 @@ from geonet_infer.output.layout import (
 from geonet_infer.output.options import OutputOptions
 from geonet_infer.output.video import FOLDER_FPS, VideoOut
 from geonet_infer.output.writer import FrameWriter, Written
-from geonet_infer.predictor import TASKS, Predictor
-from geonet_infer.results import FrameResult
-from geonet_infer.scale import SCALE_HALF_WINDOW, check_metric_request, metric_scale_summary
+from geonet_infer.tasks import TASKS, needs_intrinsics, no_intrinsics
 from geonet_infer.viz import SteadyScale
-
-
-def parse_tasks(text: str) -> tuple[str, ...]:
-    tasks = tuple(t.strip() for t in text.split(",") if t.strip())
-    unknown = [t for t in tasks if t not in TASKS]
-    if unknown or not tasks:
-        raise InputError(None, f"unknown task(s) {unknown or text!r}", f"choose from {','.join(TASKS)}")
-    return tasks
 
 
 def predict_to_dir(
@@ -98,13 +91,13 @@ def predict_to_dir(
     """Predict every frame of ``source`` into ``out_dir`` (the files of :mod:`geonet_infer.output.layout`).
 
     Args:
-        predictor: a loaded :class:`~geonet_infer.predictor.Predictor`.
+        predictor: a loaded :class:`~geonet_infer.core.predictor.Predictor`.
         source: frames from :func:`geonet_infer.io.frames.open_frames`.
         camera: intrinsics (and distortion) of the frames; required for "flow".
         tasks: any of "depth", "pose", "flow" (each needs its graphs, else GeoNetError before
             anything is written); None: all the model can do, the others in ``skipped_tasks``.
         camera_height: metres above a flat road: metric depth and pose translations
-            (:mod:`geonet_infer.scale`; needs ``camera``).
+            (:mod:`geonet_infer.core.scale`; needs ``camera``).
         vis: also write the depth colour maps and flow colour wheels (PNG encoding of
             pictures is most of the write time; fleets that only need the data skip it).
         outputs: the --outputs names to write (:data:`geonet_infer.output.layout.OUTPUT_NAMES`); None:
@@ -137,15 +130,10 @@ def predict_to_dir(
     tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
         tasks, metric=camera_height is not None, classical=classical_tasks(tasks or TASKS, flow_method, pose_method)
     )
-    if "flow" in tasks and flow_method == "network" and camera is None:
-        raise InputError(
-            source.path,
-            "flow needs camera intrinsics and none were found",
-            "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)",
-        )
-    if "pose" in tasks and pose_method == "orbvo" and camera is None:
-        raise InputError(
-            source.path, "ORB-VO poses need camera intrinsics and none were found", "pass --calib FILE or --intrinsics"
+    needing = needs_intrinsics(tasks, flow_method, pose_method)
+    if needing and camera is None:
+        raise no_intrinsics(
+            needing, source.path, "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)"
         )
     if camera_height is not None:
         check_metric_request(camera_height, camera, source.path)

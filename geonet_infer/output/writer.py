@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from geonet_infer.core.points import write_ply
+from geonet_infer.core.results import FrameResult
 from geonet_infer.io.atomic import save_npy_atomic
 from geonet_infer.io.depth import write_depth_kitti
 from geonet_infer.io.flow import write_flow_kitti
@@ -18,8 +20,6 @@ from geonet_infer.io.images import write_image
 from geonet_infer.output.clouds import ply_comments
 from geonet_infer.output.layout import DEFAULT_OUTPUTS, POINTS, frame_outputs, frame_path, pattern
 from geonet_infer.output.options import OutputOptions
-from geonet_infer.points import write_ply
-from geonet_infer.results import FrameResult
 from geonet_infer.viz import depth_to_color, flow_to_color
 
 WRITE_THREADS = 2  # frames written while the next are predicted; colour maps and PNGs are most of the cost

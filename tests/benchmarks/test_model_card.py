@@ -27,10 +27,7 @@ from onnx import TensorProto, helper, numpy_helper
 from benchmarks.model_card import main, render_card, sig3
 from export.wrappers import io_spec
 from geonet_infer import conventions
-from geonet_infer.eval.metrics import depth_floor_share
-from geonet_infer.eval.velodyne import velodyne_to_depth_map
-from geonet_infer.io import read_image
-from geonet_infer.manifest import (
+from geonet_infer.core.manifest import (
     GraphEntry,
     Manifest,
     Provenance,
@@ -40,7 +37,10 @@ from geonet_infer.manifest import (
     load_manifest,
     write_manifest,
 )
-from geonet_infer.predictor import Predictor
+from geonet_infer.core.predictor import Predictor
+from geonet_infer.eval.metrics import depth_floor_share
+from geonet_infer.eval.velodyne import velodyne_to_depth_map
+from geonet_infer.io import read_image
 
 ROOT = Path(__file__).resolve().parents[2]
 H, W = 32, 96  # graph size of the stand-in models

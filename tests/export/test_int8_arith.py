@@ -19,10 +19,10 @@ from export.int8_arith import (
     dot_exact,
     int8_kernels,
 )
+from geonet_infer.core.manifest import load_manifest
 from geonet_infer.cpu import cpu_info
 from geonet_infer.engines.onnxruntime import X64_QUANT_PRECISION, make_session_options
 from geonet_infer.io import list_images, read_image
-from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.samples import SAMPLE_FRAMES
 
@@ -123,7 +123,7 @@ def test_auto_skips_an_engine_inexact_on_an_avx2_cpu(monkeypatch, capsys):
     weights pass +-64; OpenVINO's INT8 under qemu Haswell: DepthNet correlation 0.70 -> 0.47) and says
     why in summary.json's per-graph record; --backend openvino runs them after one warning line."""
     from geonet_infer import int8_safety
-    from geonet_infer.cascade import GraphSet
+    from geonet_infer.core.cascade import GraphSet
     from geonet_infer.engines import OpenVinoEngine
 
     monkeypatch.setattr(int8_safety, "cpu_info", lambda: {"int8_kernel": "avx2"})
@@ -132,7 +132,7 @@ def test_auto_skips_an_engine_inexact_on_an_avx2_cpu(monkeypatch, capsys):
     assert {run["engine"] for name, run in graphs.runs.items()} == {"onnxruntime"}
     if not OpenVinoEngine.available():
         return
-    assert "skipped openvino INT8 without VNNI" in graphs.runs["depthnet"]["why"]
+    assert "skipped openvino: openvino INT8 without VNNI" in graphs.runs["depthnet"]["why"]
     capsys.readouterr()
     GraphSet(manifest, "int8", "openvino", 1)
     err = capsys.readouterr().err.splitlines()

@@ -22,7 +22,7 @@ from export.to_onnx import OPSET, check_graph, export_graph, op_types
 from export.verify import compare_graph
 from export.wrappers import RigidFlowExport, example_inputs, io_spec
 from geonet_infer import conventions
-from geonet_infer.cascade import InputSpec
+from geonet_infer.core.cascade import InputSpec
 from geonet_infer.engines.onnxruntime import make_session
 from geonet_infer.io import list_images, read_calib_K, read_image
 

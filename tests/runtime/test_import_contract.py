@@ -54,7 +54,7 @@ def test_importing_every_runtime_module_loads_none_of_them():
     modules = [
         m.name for m in pkgutil.walk_packages(geonet_infer.__path__, "geonet_infer.") if not m.name.endswith("__main__")
     ]
-    assert {"geonet_infer.predictor", "geonet_infer.cli", "geonet_infer.io.frames"} <= set(modules)
+    assert {"geonet_infer.core.predictor", "geonet_infer.cli", "geonet_infer.io.frames"} <= set(modules)
     code = (
         "import sys\n"
         "import geonet_infer\n"
@@ -145,7 +145,7 @@ def test_the_cycle_finder_finds_a_cycle_and_accepts_a_tree():
 
 def test_the_import_graph_sees_this_package():
     graph = runtime_import_graph()
-    assert "geonet_infer.errors" in graph["geonet_infer.predictor"]
+    assert "geonet_infer.errors" in graph["geonet_infer.core.predictor"]
     assert "geonet_infer.cli" in graph["geonet_infer.cli.predict"]  # `from geonet_infer.cli import COMMANDS`
     assert (
         "geonet_infer.eval.metrics" in graph["geonet_infer.eval.evaluation"]
@@ -173,7 +173,7 @@ OFF_THE_RUNTIME_PATH = ("geonet_infer.eval", "geonet_infer.bench", "geonet_infer
 
 def test_import_geonet_infer_loads_no_eval_bench_batch_or_output_module():
     loaded = modules_loaded_by("import geonet_infer")
-    assert "geonet_infer.predictor" in loaded  # the check can fail: it sees what the import loads
+    assert "geonet_infer.core.predictor" in loaded  # the check can fail: it sees what the import loads
     off = [m for m in loaded if m.startswith(OFF_THE_RUNTIME_PATH) or m == "geonet_infer.pipeline"]
     assert not off, off
 
@@ -226,6 +226,18 @@ def test_the_core_never_imports_output_batch_eval_or_bench():
     ``__init__`` reaches, statically, through imports anywhere in a module (not only those executed)."""
     graph = runtime_import_graph()
     core = reachable(graph, "geonet_infer")
-    assert {"geonet_infer.predictor", "geonet_infer.engines", "geonet_infer.io.frames"} <= core
+    assert {"geonet_infer.core.predictor", "geonet_infer.engines", "geonet_infer.io.frames"} <= core
     bad = sorted(m for m in core if m.startswith((*OFF_THE_RUNTIME_PATH, "geonet_infer.cli", "geonet_infer.pipeline")))
     assert not bad, bad
+
+
+def test_no_module_of_core_reaches_output_batch_eval_or_bench():
+    """geonet_infer/core/ (what load() runs), each module and all it imports, statically."""
+    graph = runtime_import_graph()
+    core = [m for m in graph if m.startswith("geonet_infer.core.")]
+    assert {"geonet_infer.core.predictor", "geonet_infer.core.cascade", "geonet_infer.core.manifest"} <= set(core)
+    bad = {
+        m: sorted(r for r in reachable(graph, m) if r.startswith((*OFF_THE_RUNTIME_PATH, "geonet_infer.cli")))
+        for m in core
+    }
+    assert not {m: r for m, r in bad.items() if r}, bad

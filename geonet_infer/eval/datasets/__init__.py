@@ -78,10 +78,10 @@ from pathlib import Path
 
 from geonet_infer.errors import InputError
 from geonet_infer.eval.datasets.base import (
+    EVAL_TASKS,
     FLO_UNKNOWN,
     KITTI_CALIB,
     SNIPPET,
-    TASKS,
     Dataset,
     DepthItem,
     FlowItem,
@@ -106,7 +106,7 @@ __all__ = [
     "LAYOUTS",
     "REGISTRY",
     "SNIPPET",
-    "TASKS",
+    "EVAL_TASKS",
     "Dataset",
     "DepthItem",
     "FlowItem",
@@ -127,7 +127,7 @@ __all__ = [
 REGISTRY: dict[str, type[Layout]] = {
     cls.name: cls for cls in (Synth, KittiRaw, KittiObject, KittiDisparity, KittiFlow, Middlebury, KittiOdometry)
 }
-LAYOUTS = {task: tuple(name for name, cls in REGISTRY.items() if task in cls.tasks) for task in TASKS}
+LAYOUTS = {task: tuple(name for name, cls in REGISTRY.items() if task in cls.tasks) for task in EVAL_TASKS}
 
 
 def layout_class(name: str, task: str | None = None) -> type[Layout]:
@@ -171,8 +171,8 @@ def load_dataset(
     ``options``: layout options (``--fx``, ``--baseline`` of ``kitti-disparity``); those set (not
     None) go to a layout that lists them in :attr:`Layout.options`, any other layout refuses them.
     """
-    if task not in TASKS:
-        raise InputError(None, f"unknown task {task!r}", f"choose one of {', '.join(TASKS)}")
+    if task not in EVAL_TASKS:
+        raise InputError(None, f"unknown task {task!r}", f"choose one of {', '.join(EVAL_TASKS)}")
     root = Path(root)
     name = detect_layout(task, root) if layout == "auto" else layout
     cls = layout_class(name, task)

@@ -24,7 +24,7 @@ from geonet_infer.io import (
     read_kitti_poses,
 )
 
-TASKS = ("depth", "flow", "pose")
+EVAL_TASKS = ("depth", "flow", "pose")
 SNIPPET = 5  # frames per pose snippet (the paper's ATE protocol)
 FLO_UNKNOWN = 1e9  # Middlebury: |u| or |v| above this = no ground truth
 KITTI_CALIB = ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt")

@@ -488,3 +488,21 @@ def test_engine_is_the_deprecated_name_of_runner(tmp_path, capfd):
     assert rc == 0, stderr
     assert "--engine is deprecated, use --runner" in stderr
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["engine"] == "local"
+
+
+def test_run_batch_refuses_flow_for_an_input_without_intrinsics_before_any_work(tmp_path):
+    """The needs-K rule (geonet_infer.tasks) is applied once, by run_batch, after the tasks are resolved
+    against the model: the API and the CLI get the same one-line error, and OUT is never made."""
+    from geonet_infer.batch import run_batch
+    from geonet_infer.errors import InputError
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for f in FRAMES[:3]:
+        shutil.copy(f, frames / f.name)
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="flow needs camera intrinsics and this input has none") as err:
+        run_batch([frames], out, tasks=("flow",), progress=False, log=lambda msg: None)
+    assert err.value.path == frames or str(frames) in str(err.value)
+    assert not out.exists()
+    run_batch([frames], tmp_path / "dis", tasks=("flow",), flow_method="dis", progress=False, log=lambda m: None)

@@ -19,7 +19,7 @@ import pytest
 
 import geonet_infer
 from geonet_infer import timing
-from geonet_infer.bench.cases import MODES, TASKS
+from geonet_infer.bench.cases import BENCH_TASKS, MODES
 from geonet_infer.cli import main
 
 PKG = Path(geonet_infer.__file__).resolve().parent
@@ -129,8 +129,8 @@ def test_json_holds_every_task_and_mode_for_fp32(bundled_run):
     assert rc == 0
     assert set(data) >= {"environment", "results"}
     rows = data["results"]
-    assert {(r["task"], r["mode"]) for r in rows} == {(t, m) for t in TASKS for m in MODES}
-    assert len(rows) == len(TASKS) * len(MODES)
+    assert {(r["task"], r["mode"]) for r in rows} == {(t, m) for t in BENCH_TASKS for m in MODES}
+    assert len(rows) == len(BENCH_TASKS) * len(MODES)
     for row in rows:
         check_row(row)
         assert row["precision"] == "fp32" and row["batch"] == 1 and row["n"] == 2
@@ -153,71 +153,6 @@ def test_environment_block(bundled_run):
     assert "INT8 kernel" in env["isa"]["line"] and env["isa"]["int8_kernel"]
     runs = {name: e["run"] for name, e in env["engines"]["onnxruntime/fp32"].items()}
     assert runs["depthnet"] == {"engine": "onnxruntime", "precision": "fp32", "why": "backend onnxruntime"}
-
-
-def test_the_speed_milestones_are_read_off_a_bench_json(bundled_run):
-    """The project's speed milestones live in benchmarks/ (not in the wheel's JSON): read off the rows of
-    the bundled (small) model's bench JSON, fp32 only, at 1242x375: targets 1a, 1b, 2 and 3 (checked by
-    hand against the rows here), 4 needs INT8 (not run), 7 is resnet50's."""
-    from benchmarks.speed_milestones import speed_targets
-
-    _, data = bundled_run
-    assert "speed_targets" not in data
-    rows = {(r["task"], r["mode"]): r["p50_ms"] for r in data["results"]}
-    targets = speed_targets(data["results"], "small")
-    assert set(targets) == {"1a_best_engine_ms", "1b_onnxruntime_ms", "2_pre_post_ms", "3_rigid_op_ms"}
-    assert targets["1a_best_engine_ms"]["value"] == targets["1b_onnxruntime_ms"]["value"] == rows[("sequence", "e2e")]
-    assert targets["2_pre_post_ms"]["value"] == pytest.approx(rows[("sequence", "e2e")] - rows[("sequence", "graph")])
-    assert targets["3_rigid_op_ms"]["value"] == rows[("rigid_flow", "graph")]
-    one = targets["1a_best_engine_ms"]
-    assert (one["goal"], one["sense"]) == (8, "max") and one["distance"] == pytest.approx(one["value"] / 8)
-
-
-def _row(task, mode, precision, backend, p50, per_pair=None):
-    return {
-        "task": task,
-        "mode": mode,
-        "precision": precision,
-        "backend": backend,
-        "batch": 1,
-        "p50_ms": p50,
-        "per_pair_p50_ms": per_pair,
-    }
-
-
-def test_speed_target_values_from_hand_made_rows():
-    from benchmarks.speed_milestones import speed_target_values, speed_targets
-
-    rows = [
-        _row("sequence", "e2e", "fp32", "onnxruntime", 30.0),
-        _row("sequence", "graph", "fp32", "onnxruntime", 26.0),
-        _row("sequence", "e2e", "int8", "onnxruntime", 24.0),
-        _row("sequence", "graph", "int8", "onnxruntime", 21.0),
-        _row("sequence", "e2e", "int8", "openvino", 16.0),
-        _row("sequence", "graph", "int8", "openvino", 12.5),
-        _row("rigid_flow", "graph", "fp32", "onnxruntime", 3.0),
-        _row("rigid_flow", "graph", "fp32", "openvino", 2.0),  # not onnxruntime's: not target 3
-        {**_row("sequence", "e2e", "fp32", "onnxruntime", 1.0), "batch": 2},  # batch 2: ignored
-    ]
-    assert speed_target_values(rows, "small") == {
-        "1a_best_engine_ms": 16.0,
-        "1b_onnxruntime_ms": 24.0,
-        "2_pre_post_ms": 3.0,  # min over (30-26, 24-21, 16-12.5)
-        "3_rigid_op_ms": 3.0,
-        "4_int8_speedup_onnxruntime": 1.25,
-    }
-    assert speed_target_values(rows, "small", kitti_size=False) == {"3_rigid_op_ms": 3.0}
-    assert speed_targets(rows, "small")["4_int8_speedup_onnxruntime"]["distance"] == pytest.approx(1.5 / 1.25)
-    r50 = [
-        _row("depth", "graph", "int8", "onnxruntime", 40.0),
-        _row("depth", "graph", "int8", "openvino", 23.0),
-        _row("depth", "graph", "fp32", "openvino", 20.0),  # fp32: not target 7
-        _row("sequence", "e2e", "int8", "openvino", 60.0, per_pair=68.0),
-    ]
-    assert speed_target_values(r50, "resnet50") == {
-        "7a_resnet50_int8_depth_ms": 23.0,
-        "7b_resnet50_int8_flow_pair_ms": 68.0,
-    }
 
 
 def test_table_is_printed(capsys, tmp_path):
@@ -291,7 +226,7 @@ def test_model_without_resflownet(capsys, tmp_path):
     )
     assert rc == 0, err
     data = json.loads(out.read_text())
-    assert {r["task"] for r in data["results"]} == set(TASKS) - {"resflow"}
+    assert {r["task"] for r in data["results"]} == set(BENCH_TASKS) - {"resflow"}
     assert any(s["task"] == "resflow" for s in data["skipped"])
     flow = next(r for r in data["results"] if r["task"] == "flow")
     assert flow["graphs"] == ["depthnet", "posenet", "rigidflow"]

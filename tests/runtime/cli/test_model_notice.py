@@ -21,7 +21,7 @@ import pytest
 import geonet_infer
 from geonet_infer.cli import demo as demo_cli
 from geonet_infer.cli import main
-from geonet_infer.manifest import MANIFEST_NAME, file_sha256
+from geonet_infer.core.manifest import MANIFEST_NAME, file_sha256
 from tests.runtime.cli.test_cli import sample_folder
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -205,7 +205,7 @@ def test_a_malformed_model_card_is_one_line_exit_2(tmp_path, capsys, unscored):
 
 
 def test_the_notice_is_for_synthetic_only_models_and_models_no_better_than_their_real_baseline():
-    from geonet_infer.manifest import ModelCard
+    from geonet_infer.core.manifest import ModelCard
 
     def card(synthetic_only: bool, value: float) -> ModelCard:
         real = {"task": "depth", "metric": "AbsRel", "data": "KITTI", "value": value, "baseline": "constant depth",

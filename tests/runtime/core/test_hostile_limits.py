@@ -24,7 +24,7 @@ import pytest
 import geonet_infer
 from geonet_infer import GeoNetError
 from geonet_infer.cli import main
-from geonet_infer.predictor import Predictor
+from geonet_infer.core.predictor import Predictor
 from tests.runtime.core.test_hostile_model import _synth_pose_sequence, edit_manifest, model_copy
 from tests.runtime.output.test_hostile_predict import (
     REPO,
@@ -110,7 +110,7 @@ def test_api_doors_refuse_sizes_over_their_limits(tmp_path, monkeypatch, predict
 
     frame = np.zeros((32, 64, 3), np.uint8)
     with monkeypatch.context() as patch:  # 5000 threads took 100 s to load
-        patch.setattr("geonet_infer.predictor.GraphSet", _no_graphs)
+        patch.setattr("geonet_infer.core.predictor.GraphSet", _no_graphs)
         refused(lambda: geonet_infer.load(threads=5000), "5000", "CPUs")
     refused(lambda: predictor.depth([frame] * 65), "65", "64")  # before any of them runs
     refused(lambda: predictor.iter_sequence([frame] * 3, batch_size=10**6), "1000000")  # before the first frame

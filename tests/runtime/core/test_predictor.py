@@ -20,7 +20,7 @@ import pytest
 
 import geonet_infer
 from geonet_infer import GeoNetError
-from geonet_infer.cascade import calibration_input
+from geonet_infer.core.cascade import calibration_input
 from geonet_infer.engines import ENGINES, openvino_available
 from geonet_infer.io import Camera, read_camera
 
@@ -413,3 +413,16 @@ def test_camera_of_another_resolution_is_rescaled(predictor, frames):
     assert undist.undistorted is True
     np.testing.assert_allclose(undist.flow, by_hand.flow, **TOL)
     np.testing.assert_allclose(undist.depth, by_hand.depth, **TOL)
+
+
+def test_a_manifest_with_conventions_this_runtime_lacks_is_a_model_error(tmp_path):
+    """errors.py gives manifests to ModelError: a convention the runtime does not implement is one."""
+    from geonet_infer.errors import InputError, ModelError
+
+    model = _model_copy(tmp_path)
+    manifest = json.loads((model / "manifest.json").read_text())
+    manifest["conventions"].update(channel_order="XYZ")
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ModelError, match="unsupported convention") as caught:
+        geonet_infer.load(model)
+    assert not isinstance(caught.value, InputError)

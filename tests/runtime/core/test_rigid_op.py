@@ -1,4 +1,4 @@
-"""The rigid-flow op in numpy (geonet_infer.rigid) against closed-form geometry, scalar
+"""The rigid-flow op in numpy (geonet_infer.core.rigid) against closed-form geometry, scalar
 re-implementations written here, and the exported rigidflow.onnx graph."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer.cascade import StageTimer, load_snippet, run_cascade
-from geonet_infer.rigid import RigidFlowOp, photometric_error_map, pose_to_matrix, rigid_flow, warp_bilinear
+from geonet_infer.core.cascade import StageTimer, load_snippet, run_cascade
+from geonet_infer.core.rigid import RigidFlowOp, photometric_error_map, pose_to_matrix, rigid_flow, warp_bilinear
 
 K = np.array([[200.0, 0.0, 100.5], [0.0, 190.0, 40.25], [0.0, 0.0, 1.0]])
 

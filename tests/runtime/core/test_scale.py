@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from geonet_infer import GeoNetError
+from geonet_infer.core.scale import fit_ground_plane, metric_depth
 from geonet_infer.eval.velodyne import velodyne_to_depth_map
 from geonet_infer.io.calib import read_camera
-from geonet_infer.scale import fit_ground_plane, metric_depth
 
 H, W = 128, 416
 K = np.array([[0.58 * W, 0, 0.5 * W], [0, 1.92 * H, 0.5 * H], [0, 0, 1.0]])
@@ -108,7 +108,7 @@ def test_kitti_velodyne_ground_is_1_65_m_below_the_camera(realdata):
 # ----------------------------------------------------------------------------- along a video
 def _frame(index: int, depth: np.ndarray, forward_m: float | None):
     """A FrameResult in relative units whose pose to the next frame moves ``forward_m`` along z."""
-    from geonet_infer.results import FrameResult
+    from geonet_infer.core.results import FrameResult
 
     pose = None
     if forward_m is not None:
@@ -132,7 +132,7 @@ def test_frames_before_the_first_road_take_its_scale_and_later_ones_the_previous
     """Frames 0-1 and 3 show a wall (no road); 2 and 4 a road in units of 1/0.25 and 1/0.5 of a
     metre. Expected factors by hand: 0.25 -> 4 for frames 0-3, 0.5 -> 2 for frame 4; each
     pair's 1-unit translation becomes that many metres, chained into the trajectory."""
-    from geonet_infer.scale import metric_frames
+    from geonet_infer.core.scale import metric_frames
 
     wall, road = np.full((H, W), 5.0), road_scene(1.65, 0.0)
     units = [(wall, None), (wall, None), (road, 0.25), (wall, None), (road, 0.5)]
@@ -156,7 +156,7 @@ def test_a_smoothed_sequence_takes_one_factor_for_every_frame_of_the_window():
     """The same five frames, smoothed over 7 frames each side (the default): every window holds
     both fits, 4 and 2; they lie within 2.5 robust sigmas of their median (MAD = log(2) / 2), so
     each frame gets their geometric mean sqrt(8), by hand; the raw fits stay beside it."""
-    from geonet_infer.scale import metric_frames
+    from geonet_infer.core.scale import metric_frames
 
     wall, road = np.full((H, W), 5.0), road_scene(1.65, 0.0)
     units = [(wall, None), (wall, None), (road, 0.25), (wall, None), (road, 0.5)]
@@ -187,13 +187,13 @@ def test_a_smoothed_sequence_takes_one_factor_for_every_frame_of_the_window():
     ],
 )
 def test_smoother_golden_values(raw, half_window, expected):
-    from geonet_infer.scale import smooth_scales
+    from geonet_infer.core.scale import smooth_scales
 
     _assert_scales(smooth_scales(raw, half_window), expected, rel=1e-9)
 
 
 def test_smoother_decides_each_frame_half_a_window_late():
-    from geonet_infer.scale import ScaleSmoother
+    from geonet_infer.core.scale import ScaleSmoother
 
     smoother = ScaleSmoother(2)
     decided = [len(smoother.push(v)) for v in [2.0, 2.0, 2.0, 2.0, 2.0]]
@@ -204,7 +204,7 @@ def test_smoother_decides_each_frame_half_a_window_late():
 
 
 def test_flicker_is_the_p95_of_frame_to_frame_ratios():
-    from geonet_infer.scale import scale_flicker
+    from geonet_infer.core.scale import scale_flicker
 
     # ratios 2, 1/2, 1 -> max(r, 1/r) = 2, 2, 1; numpy's linear p95 of [1, 2, 2] is 2
     assert scale_flicker([1.0, 2.0, 1.0, 1.0]) == pytest.approx(2.0)
@@ -213,7 +213,7 @@ def test_flicker_is_the_p95_of_frame_to_frame_ratios():
 
 
 def test_a_video_without_a_road_names_its_first_frame(monkeypatch):
-    from geonet_infer import scale as scale_module
+    from geonet_infer.core import scale as scale_module
 
     wall = np.full((H, W), 5.0)
     with pytest.raises(GeoNetError, match="no ground plane in any of the 3 frames") as err:

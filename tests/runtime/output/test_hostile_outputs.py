@@ -307,7 +307,7 @@ def test_the_summary_counts_a_sequence_finished_after_the_stop_with_its_frames(t
     counts it as done, with its frames and its row (it said done 1, frames 0, per_sequence [])."""
     from geonet_infer.batch import run as batch_run
     from geonet_infer.batch import run_sequence
-    from geonet_infer.predictor import load
+    from geonet_infer.core.predictor import load
 
     class LateRunner:  # the job is stopped right after the sequence finished, before its result came back
         name, workers, threads, limits, address = "late", 1, 1, [], None

@@ -28,7 +28,7 @@ import pytest
 
 import geonet_infer
 from geonet_infer.cli import main
-from geonet_infer.predictor import Predictor
+from geonet_infer.core.predictor import Predictor
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 SAMPLE = PKG / "samples" / "synth_seq"

@@ -20,8 +20,8 @@ import pytest
 
 import geonet_infer
 from geonet_infer.cli import main
+from geonet_infer.core.points import backproject, write_ply
 from geonet_infer.io import read_camera
-from geonet_infer.points import backproject, write_ply
 from geonet_infer.viz import SteadyScale, depth_to_color
 
 DASHCAM_VIDEO = "test_video.mp4"
