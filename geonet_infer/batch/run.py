@@ -153,7 +153,7 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
             what = (
                 "input"
                 if marker.get("input") != unit.path
-                else "set of options (model, precision, tasks, batch size, camera, flow or pose method)"
+                else "set of options (model, precision, tasks, batch size, camera, flow or pose method, outputs)"
             )
             raise InputError(
                 folder,

@@ -60,3 +60,15 @@ def test_a_list_line_with_a_bar_but_no_calibration_is_a_one_line_error(tmp_path,
     rc = main(["batch", str(listing), "--out", str(tmp_path / "out"), "--no-progress"])
     lines = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
     assert rc == 2 and len(lines) == 1 and "inputs.txt" in lines[0] and "line 1" in lines[0], lines
+
+
+def test_batch_outputs_writes_only_what_is_asked_in_every_sequence(tmp_path, capfd):
+    seqs = [sequence(tmp_path / "in", name) for name in ("a", "b")]
+    out = tmp_path / "out"
+    argv = ["batch", *map(str, seqs), "--out", str(out), "--outputs", "depth-png16", "--no-progress", "--quiet"]
+    assert main(argv) == 0, capfd.readouterr().err  # depth only: no calibration needed
+    for name in ("a", "b"):
+        files = {p.relative_to(out / name).as_posix() for p in (out / name).rglob("*") if p.is_file()}
+        assert {f.split("/")[0] for f in files if not f.startswith(".")} == {"depth16", "summary.json"}
+        assert len([f for f in files if f.startswith("depth16/")]) == len(FRAMES)
+        assert json.loads((out / name / "summary.json").read_text())["tasks"] == ["depth"]
