@@ -21,6 +21,8 @@ SEQUENTIAL = (
     *[s for s in STAGES if s != "write"],
     "ground_fit",  # --camera-height: the ground-plane fit of each frame and the scaling by it
     *CLASSICAL_STAGES,
+    "finite_check",  # every output checked finite (and depth not degenerate) before it is written
+    "colour_scale",  # the pictures' steady colour scale, from the first frames (--colour-scale)
     "write_wait",  # blocked on the writer threads (their queue is full)
     "video",  # encoding the --video-out frames
     "world_cloud",  # placing the points of --point-cloud world and writing points_world.ply

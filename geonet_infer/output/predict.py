@@ -222,6 +222,9 @@ def _predict(
     one_size = bool({"pose", "flow"} & set(tasks))  # depth alone needs no snippets: photos of any size
     frames = GoodFrames(source, bar, check_camera, max_frames, keep, one_size)
     colours = SteadyScale(options.colour_scale)
+    pictures = bool(outputs & set(VIS_OUTPUTS)) or options.video_out is not None
+    if not pictures:
+        colours.finish()  # no pictures to scale: no frame waits for the scale, none is observed for it
     waiting: list[FrameResult] = []  # predicted, waiting for the colour scale ("first:N")
     world = WorldCloud(options) if options.point_cloud == "world" else None
     video = None
@@ -251,8 +254,7 @@ def _predict(
         done += 1
         bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
 
-    vis = bool(outputs & set(VIS_OUTPUTS))
-    writer = FrameWriter(out_dir, tasks, outputs, record, options, camera_height, pictures=vis or video is not None)
+    writer = FrameWriter(out_dir, tasks, outputs, record, options, camera_height, pictures=pictures)
 
     def emit(ready: list[FrameResult]) -> None:
         scale = colours.scales()
@@ -277,14 +279,19 @@ def _predict(
             scale_smoothing=methods[2],
         )
         for result in results:
-            bad = unusable(result, tasks)
+            with timed(totals, "finite_check"):
+                bad = unusable(result, tasks)
             if bad is not None:
                 frames.failures.append({"frame": result.name, "reason": f"model produced {bad}"})
                 frames.kept.pop(result.index, None)
                 continue
             if result.check is not None:
                 checks.append((result.name, result.check))
-            colours.observe(result.depth if "depth" in tasks else None, result.flow if "flow" in tasks else None)
+            if pictures:
+                with timed(totals, "colour_scale"):
+                    colours.observe(
+                        result.depth if "depth" in tasks else None, result.flow if "flow" in tasks else None
+                    )
             waiting.append(result)
             if not colours.ready and len(waiting) * np.prod(frames.size or (0,)) > MAX_HELD_PIXELS:
                 colours.finish()  # "first:N" of huge frames: the scale from the frames memory holds
@@ -352,7 +359,7 @@ def _predict(
         "skipped_tasks": {task: list(graphs) for task, graphs in skipped_tasks.items()},  # tasks=None only
         "outputs": listed_outputs(tasks, outputs, options.point_cloud, camera is not None),
         "written": written_summary(out_dir, sizes, run_files(tasks, options.point_cloud, True, outputs), done),
-        "colour_scale": colours.describe() if vis or video is not None else None,
+        "colour_scale": colours.describe() if pictures else None,
         "point_cloud": None
         if not options.point_cloud
         else {

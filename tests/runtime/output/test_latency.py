@@ -22,7 +22,18 @@ def test_the_stage_table_adds_up_to_the_wall_time_and_states_the_overlap(tmp_pat
     assert table["total"] == pytest.approx(wall, rel=1e-9)  # the total is the wall time per frame ...
     assert sum(ms for stage, ms in table.items() if stage != "total") == pytest.approx(wall, rel=1e-9)  # ... summed
     assert table["untimed"] >= 0  # the stages are the main thread's, one after another: never more than the wall
-    for stage in ("read", "depthnet", "posenet", "ground_fit", "write_wait", "video", "world_cloud", "finish"):
+    stages = (
+        "read",
+        "depthnet",
+        "posenet",
+        "ground_fit",
+        "finite_check",
+        "colour_scale",
+        "video",
+        "world_cloud",
+        "finish",
+    )
+    for stage in stages:
         assert table[stage] > 0, stage  # every stage that costs time is in the table
     assert "write" not in table and overlapped["write"] > 0 and overlapped["write_cpu"] > 0
     lines = {line.split()[0]: line for line in printed.splitlines() if line.startswith("  ")}
