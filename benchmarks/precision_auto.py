@@ -78,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
 
     rows = []
     for job in JOBS:
-        ms = {label: cases[label, job].stats().p50_ms for label in predictors}
+        frames_per_call = len(frames) if job == "sequence" else 1
+        ms = {label: cases[label, job].stats().p50_ms / frames_per_call for label in predictors}
         fixed = {lb: v for lb, v in ms.items() if "auto" not in lb.split()}
         best_accurate = min((lb for lb in fixed if accurate(predictors[lb])), key=lambda lb: fixed[lb])
         for label, value in ms.items():

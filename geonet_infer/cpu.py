@@ -7,8 +7,9 @@
 
 Without VNNI or AMX, INT8 kernels add pairs of products in int16 with saturation
 (:func:`int8_kernel` returns "avx2"; ``export/int8_arith.py`` emulates the arithmetic).
-Read from ``/proc/cpuinfo`` on Linux; elsewhere numpy's runtime CPU detection, which knows
-avx2, avx512f and avx512_vnni (the other flags are then None: unknown).
+Read from ``/proc/cpuinfo`` on Linux, checked against numpy's runtime CPU detection (CPUID),
+which knows avx2, avx512f and avx512_vnni; where the two disagree (user-mode emulation) and
+off Linux, numpy's answer holds and the other flags are None: unknown.
 """
 
 from __future__ import annotations
@@ -58,9 +59,25 @@ def cpu_info() -> dict:
     if parsed is not None:
         model, isa = parsed
         source = "/proc/cpuinfo"
+        isa, disagree = reconcile(isa, _from_numpy())
+        if disagree:
+            source = f"CPUID (numpy), as /proc/cpuinfo describes another CPU ({', '.join(disagree)})"
     else:
         model, isa, source = platform.processor() or None, _from_numpy(), "numpy CPU detection"
     return {"model": model, "isa": isa, "int8_kernel": int8_kernel(isa), "source": source}
+
+
+def reconcile(proc: dict[str, bool | None], cpuid: dict[str, bool | None]) -> tuple[dict[str, bool | None], list[str]]:
+    """/proc/cpuinfo's flags checked against the CPUID bits numpy read in this process.
+
+    They differ where the kernel describes another CPU than the one running this code (QEMU's
+    user-mode emulation shows the host's flags). Then the CPUID bits hold, the flags numpy cannot
+    read become unknown (None), and the flags that differ are returned.
+    """
+    disagree = [f for f in ISA_FLAGS if cpuid.get(f) is not None and proc.get(f) is not None and cpuid[f] != proc[f]]
+    if not disagree:
+        return proc, []
+    return {f: cpuid.get(f) for f in ISA_FLAGS}, disagree
 
 
 def int8_kernel(isa: dict[str, bool | None]) -> str:

@@ -157,3 +157,17 @@ def test_isa_from_proc_cpuinfo():
     assert [f for f, present in isa.items() if present] == ["avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8"]
     assert int8_kernel(isa) == "amx_int8"
     assert _from_proc("processor\t: 0\nBogoMIPS\t: 50.00\n") is None  # no flags line (not x86): numpy's detection
+
+
+def test_isa_follows_cpuid_where_proc_cpuinfo_describes_another_cpu():
+    """Under QEMU's user-mode emulation of a Haswell, /proc/cpuinfo is the host's (AMX, VNNI) while
+    CPUID says AVX2 only: the INT8 kernel is then the saturating one, and the source says why."""
+    from geonet_infer.cpu import _from_proc, int8_kernel, reconcile
+
+    _, host = _from_proc(SPR)
+    haswell = {"avx2": True, "avx512f": False, "avx512_vnni": False, "avx_vnni": None, "amx_int8": None}
+    isa, disagree = reconcile(host, haswell)
+    assert disagree == ["avx512f", "avx512_vnni"] and int8_kernel(isa) == "avx2"
+    assert isa["amx_int8"] is None and isa["avx_vnni"] is None  # CPUID bits numpy cannot read: unknown
+    same = {"avx2": True, "avx512f": True, "avx512_vnni": True, "avx_vnni": None, "amx_int8": None}
+    assert reconcile(host, same) == (host, [])  # agreeing: /proc/cpuinfo's fuller list holds
