@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 # written by batch_throughput.py, speed_targets.py, and by hand (issue 45)
-KEPT_SECTIONS = ("## Batch throughput", "## Speed targets", "## AVX2-only CPUs")
+KEPT_SECTIONS = ("## Batch throughput", "## Speed targets", "## AVX2-only CPUs", "## Output size and writing time")
 TASK_LABELS = {
     "depth": "depth",
     "pose": "pose",

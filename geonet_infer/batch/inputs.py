@@ -18,6 +18,7 @@ _RESERVED = {SUMMARY_NAME, FAILURES_NAME, LOCK_NAME, MARKER_NAME, OWNER_NAME}
 
 
 LIST_SUFFIX = ".txt"
+CALIB_SEPARATOR = "|"  # in an input list: INPUT | ITS CALIBRATION
 _KITTI = ("image_02", "data")
 
 
@@ -29,11 +30,18 @@ class WorkUnit:
     index: int
     name: str
     path: str  # absolute
+    calib: str = ""  # absolute: its calibration from the input list ("": none given there)
 
 
 def read_input_list(path: Path) -> list[Path]:
-    """Paths listed in a text file, one a line; blank lines and ``#`` comments skipped;
-    relative paths are relative to the list file's folder."""
+    """The inputs listed in a text file (:func:`read_input_pairs`, without their calibrations)."""
+    return [p for p, _ in read_input_pairs(path)]
+
+
+def read_input_pairs(path: Path) -> list[tuple[Path, Path | None]]:
+    """(input, its calibration or None) listed in a text file, one input a line, optionally followed
+    by ``|`` and its calibration file (``clip_a.mp4 | camera_a.txt``); blank lines and ``#`` comments
+    skipped; relative paths are relative to the list file's folder."""
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
@@ -42,41 +50,55 @@ def read_input_list(path: Path) -> list[Path]:
             f"cannot read this input list ({exc.__class__.__name__})",
             "pass a text file with one input path a line",
         ) from None
-    out = []
-    for line in text.splitlines():
+
+    def located(text: str) -> Path:
+        p = Path(text.strip()).expanduser()
+        return p if p.is_absolute() else path.parent / p
+
+    out: list[tuple[Path, Path | None]] = []
+    for number, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if line and not line.startswith("#"):
-            p = Path(line).expanduser()
-            out.append(p if p.is_absolute() else path.parent / p)
+            item, bar, calib = line.partition(CALIB_SEPARATOR)
+            if bar and not (item.strip() and calib.strip()):
+                raise InputError(path, f"line {number}: {line!r}", f"write INPUT {CALIB_SEPARATOR} CALIBRATION")
+            out.append((located(item), located(calib) if bar else None))
     return out
 
 
 def expand_inputs(inputs) -> list[Path]:
-    """INPUTS as given: ``.txt`` files replaced by the paths they list; every path must exist.
+    """INPUTS as given: ``.txt`` files replaced by the paths they list (:func:`expand_input_pairs`)."""
+    return [p for p, _ in expand_input_pairs(inputs)]
+
+
+def expand_input_pairs(inputs) -> list[tuple[Path, Path | None]]:
+    """INPUTS as given, each with the calibration its list pairs it with (or None): ``.txt`` files
+    replaced by what they list (:func:`read_input_pairs`); every path must exist.
 
     Raises GeoNetError naming the first missing path (and how many are missing).
     """
-    paths: list[Path] = []
+    pairs: list[tuple[Path, Path | None]] = []
     for given in map(Path, inputs):
         if given.suffix.lower() == LIST_SUFFIX and given.is_file():
-            listed = read_input_list(given)
-            bad = [p for p in listed if p.suffix.lower() == LIST_SUFFIX and p.is_file()]
+            listed = read_input_pairs(given)
+            bad = [p for p, _ in listed if p.suffix.lower() == LIST_SUFFIX and p.is_file()]
             if bad:
                 raise InputError(
                     bad[0], f"listed in {given}, but input lists do not nest", "list the sequences themselves"
                 )
-            paths += listed
+            pairs += listed
         else:
-            paths.append(given)
+            pairs.append((given, None))
+    paths = [p for p, _ in pairs] + [c for _, c in pairs if c is not None]
     missing = [p for p in paths if not p.exists()]
     if missing:
         more = f" (and {len(missing) - 1} more missing)" if len(missing) > 1 else ""
         raise InputError(
             missing[0], f"not found{more}", "pass sequence folders, videos, KITTI drives or a .txt file listing them"
         )
-    if not paths:
+    if not pairs:
         raise InputError(None, "no inputs", "pass sequence folders, videos, KITTI drives or a .txt list")
-    return paths
+    return pairs
 
 
 def sequence_name(path) -> str:
@@ -111,19 +133,21 @@ def sequence_root(path: Path) -> Path:
     return p
 
 
-def plan_units(paths) -> list[WorkUnit]:
-    """One unit per distinct input (the same real path twice = once), in input order.
+def plan_units(paths, calibs=None) -> list[WorkUnit]:
+    """One unit per distinct input (the same real path twice = once), in input order; ``calibs``:
+    each input's calibration from its list, or None (:func:`expand_input_pairs`).
 
     Names are the sequences' names. Inputs that share a name are each called
     ``<name>__<folder it is in>``; if that still collides, the later ones get ``__2``,
     ``__3``, ... in input order. So the names depend only on the inputs and their order.
     """
-    seen, distinct = set(), []
-    for p in paths:
+    seen, distinct, calib_of = set(), [], []
+    for p, calib in zip(paths, calibs or [None] * len(paths)):
         real = os.path.realpath(p)
         if real not in seen:
             seen.add(real)
             distinct.append(Path(os.path.abspath(p)))
+            calib_of.append("" if calib is None else os.path.abspath(calib))
     base = [_safe_name(sequence_name(p)) for p in distinct]
     names = [
         f"{n}__{sequence_root(p).parent.name or 'root'}" if base.count(n) > 1 else n for p, n in zip(distinct, base)
@@ -135,14 +159,17 @@ def plan_units(paths) -> list[WorkUnit]:
             k += 1
             candidate = f"{n}__{k}"
         final.append(candidate)
-    return [WorkUnit(i, n, str(p)) for i, (n, p) in enumerate(zip(final, distinct))]
+    return [WorkUnit(i, n, str(p), c) for i, (n, p, c) in enumerate(zip(final, distinct, calib_of))]
 
 
 def needs_own_calib(path) -> bool:
-    """Whether the input has no calibration of its own (anything but a KITTI drive with its file)."""
-    from geonet_infer.io.frames import find_kitti_calib
+    """Whether the input has no calibration of its own: no ``<name>.calib.txt`` beside it
+    (:func:`~geonet_infer.io.frames.find_side_calib`) and not a KITTI drive with its file."""
+    from geonet_infer.io.frames import find_kitti_calib, find_side_calib
 
     root = sequence_root(path)
+    if find_side_calib(root) is not None:
+        return False
     if not (root.is_dir() and (root / _KITTI[0] / _KITTI[1]).is_dir()):
         return True
     return find_kitti_calib(root) is None

@@ -82,8 +82,8 @@ class _SequenceActor:
 
     def __call__(self, batch: dict) -> dict:
         out = []
-        for index, name, path in zip(batch["index"], batch["name"], batch["path"]):
-            unit = WorkUnit(int(index), str(name), str(path))
+        for index, name, path, calib in zip(batch["index"], batch["name"], batch["path"], batch["calib"]):
+            unit = WorkUnit(int(index), str(name), str(path), str(calib))
             if self.predictor is None:
                 result = failed_result(unit, f"the actor could not load the model: {describe_error(self.error)}")
             else:

@@ -11,7 +11,7 @@ import sys
 import threading
 import time
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,7 +26,7 @@ from geonet_infer.batch.units import (
     WorkUnit,
     check_counts,
     claim,
-    expand_inputs,
+    expand_input_pairs,
     is_empty,
     needs_own_calib,
     not_ours,
@@ -153,7 +153,7 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
             what = (
                 "input"
                 if marker.get("input") != unit.path
-                else "set of options (model, precision, tasks, batch size, camera, flow or pose method)"
+                else "set of options (model, precision, tasks, batch size, camera, flow or pose method, outputs)"
             )
             raise InputError(
                 folder,
@@ -194,6 +194,7 @@ def run_batch(
     batch_size: int = 4,
     camera: Camera | None = None,
     vis: bool = True,
+    outputs: Collection[str] | None = None,
     flow_method: str = "network",
     pose_method: str = "network",
     resume: bool = False,
@@ -205,8 +206,9 @@ def run_batch(
     """Run a batch job (see the package docstring); returns the summary (also OUT/summary.json).
 
     ``runner``: a name of :data:`RUNNERS` ("local" process pool, "ray" Ray Data); ``engine=`` is
-    its deprecated 0.x name. ``flow_method`` / ``pose_method``: "network", or "dis" / "orbvo"
-    (:mod:`geonet_infer.classical`), for every sequence.
+    its deprecated 0.x name. ``outputs``: the --outputs names each sequence writes
+    (:mod:`geonet_infer.output.layout`; None: the default set). ``flow_method`` / ``pose_method``:
+    "network", or "dis" / "orbvo" (:mod:`geonet_infer.classical`), for every sequence.
 
     ``summary["exit_code"]``: 0 all good, 1 something failed (see failures.jsonl), 3 the
     operating system refused a write into OUT, 130 interrupted.
@@ -229,14 +231,15 @@ def run_batch(
         raise InputError(None, f"unknown runner {runner_name!r}", f"choose one of {', '.join(RUNNERS)}")
     check_batch_size(batch_size, "--batch-size")
     check_counts(workers, threads)
-    units = plan_units(expand_inputs(inputs))
+    pairs = expand_input_pairs(inputs)
+    units = plan_units([p for p, _ in pairs], [c for _, c in pairs])
     model_dir = resolve_model(model)
     manifest = load_manifest(model_dir)
     graphs = manifest.graph_names(precision)  # bad --model / --precision: exit 2 before any work
     check_methods(flow_method, pose_method)
     tasks = model_tasks(model_dir, graphs, tasks, log, classical_tasks(tasks or TASKS, flow_method, pose_method))
     needing = needs_intrinsics(tasks, flow_method, pose_method)  # inputs without a calibration of their own
-    lacking = [u.path for u in units if needs_own_calib(u.path)] if needing and camera is None else []
+    lacking = [u.path for u in units if not u.calib and needs_own_calib(u.path)] if needing and camera is None else []
     if lacking:
         more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
         raise no_intrinsics(
@@ -258,6 +261,7 @@ def run_batch(
         batch_size=batch_size,
         camera=camera,
         vis=vis,
+        outputs=None if outputs is None else tuple(sorted(outputs)),
         flow_method=flow_method,
         pose_method=pose_method,
     )
@@ -390,6 +394,7 @@ def _result_of_marker(unit: WorkUnit, marker: dict, status: str) -> dict:
         "frames": marker.get("frames", 0),
         "failures": marker.get("failures", []),
         "check": marker.get("check"),
+        "camera": marker.get("camera"),
         "wall_s": 0.0,
     }
 
@@ -403,6 +408,7 @@ def _sequence_row(result: dict) -> dict:
         "frames": result["frames"],
         "failures": len(result["failures"]),
         "check": result.get("check"),  # does the flow explain the next frame? (geonet_infer.check)
+        "camera": result.get("camera"),  # K at the input resolution and its source file (None: no camera)
         "wall_s": round(result["wall_s"], 3),
     }
 

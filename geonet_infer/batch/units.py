@@ -17,6 +17,7 @@ from geonet_infer import __version__, ownership
 from geonet_infer.batch.inputs import (  # noqa: F401  (re-exported: this module's names before the split)
     _KITTI,
     _RESERVED,
+    CALIB_SEPARATOR,
     FAILURES_NAME,
     LIST_SUFFIX,
     LOCK_NAME,
@@ -24,10 +25,12 @@ from geonet_infer.batch.inputs import (  # noqa: F401  (re-exported: this module
     OWNER_NAME,
     WorkUnit,
     _safe_name,
+    expand_input_pairs,
     expand_inputs,
     needs_own_calib,
     plan_units,
     read_input_list,
+    read_input_pairs,
     sequence_name,
     sequence_root,
 )
@@ -68,6 +71,7 @@ class BatchConfig:
     batch_size: int = 4
     camera: Camera | None = None
     vis: bool = True  # depth colour maps and flow colour wheels
+    outputs: tuple[str, ...] | None = None  # --outputs names (geonet_infer.output.layout); None: the default
     flow_method: str = "network"  # or "dis" (geonet_infer.classical)
     pose_method: str = "network"  # or "orbvo"
 
@@ -95,7 +99,8 @@ class BatchConfig:
         }
         # only when not the networks: a .done written before these options existed stays resumable
         methods = {"flow_method": self.flow_method, "pose_method": self.pose_method}
-        return options | {k: v for k, v in methods.items() if v != "network"}
+        chosen = {} if self.outputs is None else {"outputs": sorted(self.outputs)}  # likewise
+        return options | {k: v for k, v in methods.items() if v != "network"} | chosen
 
 
 # ----------------------------------------------------------------------------- one sequence
@@ -170,10 +175,13 @@ def _listed(folder: Path) -> list[str]:
     return ownership.read_marker(folder / OUTPUT_MARKER)["files"]
 
 
-def _input_files(source: FrameSource, own_calib: bool) -> list[Path]:
-    """The files a sequence's outputs are made from: its frames (or video), and its own calibration."""
+def _input_files(source: FrameSource, unit: WorkUnit, own_calib: bool) -> list[Path]:
+    """The files a sequence's outputs are made from: its frames (or video), and the calibration used:
+    the one its list pairs it with, else (``own_calib``: no --calib for all) its own."""
     files = list(getattr(source, "files", None) or [Path(source.path)])
-    if own_calib and source.default_calib is not None:
+    if unit.calib:
+        files.append(Path(unit.calib))
+    elif own_calib and source.default_calib is not None:
         files.append(Path(source.default_calib))
     return files
 
@@ -214,7 +222,7 @@ def stale(marker: dict, unit: WorkUnit, folder: Path, own_calib: bool) -> str | 
         if p.stat().st_size != size or file_sha256(p) != digest:
             return f"{rel} changed since it was written"
     try:
-        now = _fingerprint(unit.path, _input_files(open_frames(unit.path), own_calib))
+        now = _fingerprint(unit.path, _input_files(open_frames(unit.path), unit, own_calib))
     except (GeoNetError, OSError) as exc:
         return f"its input cannot be read now ({describe_error(exc)})"
     after = {name: (size, mtime) for name, size, mtime in now}
@@ -276,10 +284,10 @@ def run_sequence(
     try:
         discard(out)  # the files of an interrupted run, or of an earlier job
         source = open_frames(unit.path)
-        camera = config.camera
+        camera = read_camera(unit.calib).validate(unit.calib) if unit.calib else config.camera
         if camera is None and source.default_calib is not None:
             camera = read_camera(source.default_calib).validate(source.default_calib)
-        inputs = _fingerprint(unit.path, _input_files(source, config.camera is None))
+        inputs = _fingerprint(unit.path, _input_files(source, unit, config.camera is None))
         if on_frame is not None:
             source = _CountingSource(source, on_frame)  # type: ignore[assignment]  # a FrameSource proxy
         writing = True
@@ -294,6 +302,7 @@ def run_sequence(
             batch_size=config.batch_size,
             progress=False,
             vis=config.vis,
+            outputs=config.outputs,
             flow_method=config.flow_method,
             pose_method=config.pose_method,
             exclusive=True,  # lists its files before writing them: what discard removes
@@ -304,9 +313,14 @@ def run_sequence(
             for f in summary["failures"]
         ]
         check = summary["check"] and {k: v for k, v in summary["check"].items() if k not in ("method", "per_pair")}
+        camera_of = summary["camera"] and {  # the K it ran with (per input in a job of several cameras)
+            "K": summary["camera"]["K_input_resolution"],
+            "source": summary["camera"]["source"],
+        }
         marker = {
             "sequence": unit.name,
             "input": unit.path,
+            "camera": camera_of,
             "frames": summary["frames"],
             "failures": failures,
             "check": check,
@@ -316,7 +330,7 @@ def run_sequence(
         }
         with atomic_write(out / MARKER_NAME) as tmp:
             tmp.write_text(json.dumps(marker) + "\n")
-        result.update(status="done", frames=summary["frames"], failures=failures, check=check)
+        result.update(status="done", frames=summary["frames"], failures=failures, check=check, camera=camera_of)
     except Exception as exc:  # noqa: BLE001 - any failure is recorded and the job goes on
         if writing and isinstance(exc, OSError):  # disk full, read-only, ...: every sequence would fail alike
             result["os_error"] = [exc.errno, exc.strerror or str(exc), exc.filename or str(out)]

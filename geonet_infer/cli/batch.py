@@ -22,11 +22,11 @@ from geonet_infer.cli.common import (
     positive_int,
     sigterm_as_interrupt,
 )
+from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.limits import MAX_BATCH_SIZE
 from geonet_infer.output.layout import SUMMARY_NAME
-from geonet_infer.tasks import parse_tasks
 
 HELP = f"""\
 Predict depth, optical flow and camera poses for many sequences.
@@ -36,6 +36,12 @@ INPUTS are sequence folders (frames in name order, f3 before f10), videos (.mp4
 relative paths are relative to the list file's folder). Each sequence gets
 `geonet-infer predict`'s layout in OUT/<sequence>/ (sequence = folder name, video
 stem or drive name; inputs sharing a name become <name>__<parent folder>).
+
+Calibration, per input, the first found: the file its list line pairs it with
+("INPUT | CALIB", e.g. "clips/a.mp4 | cams/a.txt"); --calib or --intrinsics (every
+input); a "<name>.calib.txt" beside it (clip.mp4 + clip.calib.txt, frames/ +
+frames.calib.txt); a KITTI drive's calib_cam_to_cam.txt. Inputs from different
+cameras run in one job; each sequence's K is in summary.json (per_sequence camera).
 
 OUT must be new, empty, or made by an earlier batch (marked by OUT/{OWNER_NAME}),
 and must not be, hold or be inside an input; batch only ever deletes or replaces
@@ -65,6 +71,7 @@ Engines:
 examples:
   geonet-infer batch runs/a runs/b runs/c --out out/batch --calib calib.txt
   geonet-infer batch sequences.txt --out out/batch --workers 2 --threads-per-worker 1
+  geonet-infer batch cameras.txt --out out/batch   # lines "clip.mp4 | clip_camera.txt"
   geonet-infer batch ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/batch --resume
   geonet-infer batch videos.txt --out out/batch --runner ray --ray-address auto --tasks depth
 """
@@ -131,6 +138,7 @@ def add_parser(sub) -> None:
         default=4,
         help=f"frames per DepthNet/PoseNet/ResFlowNet batch, at most {MAX_BATCH_SIZE} (default: 4)",
     )
+    add_outputs_arg(parser)
     parser.add_argument(
         "--no-vis",
         action="store_true",
@@ -147,7 +155,7 @@ def add_parser(sub) -> None:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    tasks = None if args.tasks is None else parse_tasks(args.tasks)  # resolved against the model by run_batch
+    tasks, outputs = tasks_and_outputs(args)  # resolved against the model by run_batch
     if args.engine is not None:
         print("geonet-infer batch: note: --engine is deprecated, use --runner", file=sys.stderr)
         if args.runner not in (None, args.engine):
@@ -170,6 +178,7 @@ def run_command(args: argparse.Namespace) -> int:
             batch_size=args.batch_size,
             camera=camera,
             vis=not args.no_vis,
+            outputs=outputs,
             flow_method=args.flow_method,
             pose_method=args.pose_method,
             resume=args.resume,

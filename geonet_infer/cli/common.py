@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.classical import CLASSICAL_STAGES, DIS_PRESET, FLOW_METHODS, POSE_METHODS
+from geonet_infer.classical import DIS_PRESET, FLOW_METHODS, POSE_METHODS
 from geonet_infer.core.cascade import RIGID_OPS
 from geonet_infer.core.manifest import PRECISION_CHOICES
-from geonet_infer.core.predictor import STAGES, Predictor, load
+from geonet_infer.core.predictor import Predictor, load
 from geonet_infer.engines import AUTO, BACKENDS, ENGINES
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
@@ -157,13 +157,23 @@ def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None
     return read_camera(path).validate(path)
 
 
-def stage_table(per_frame_ms: dict[str, float], frames: int) -> str:
-    """A plain-text table of the mean ms per frame of each stage that ran."""
-    rows = [(s, per_frame_ms[s]) for s in (*STAGES, *CLASSICAL_STAGES, "total") if per_frame_ms.get(s)]
-    width = max([len(s) for s, _ in rows] + [5])
+def stage_table(per_frame_ms: dict[str, float], frames: int, overlapped: dict[str, float] | None = None) -> str:
+    """A plain-text table of the mean ms per frame of each stage that ran: summary.json's
+    ``timings_ms_per_frame`` (they add up to its total, the wall time per frame), then its
+    ``overlapped_ms_per_frame`` apart (:mod:`geonet_infer.output.latency`)."""
+    from geonet_infer.output.latency import MEANINGS
+
+    rows = [(s, ms) for s, ms in per_frame_ms.items() if s != "total" and ms and round(ms, 2)]
+    rows.append(("total", per_frame_ms.get("total", sum(ms for _, ms in rows))))
+    more = [(s, ms) for s, ms in (overlapped or {}).items() if ms]
+    width = max([len(s) for s, _ in rows + more] + [5])
+
+    def line(stage: str, ms: float) -> str:
+        meaning = f"  ({MEANINGS[stage]})" if stage in MEANINGS else ""
+        return f"  {stage:<{width}}  {ms:8.2f}{meaning}"
+
     lines = [f"per-frame latency (mean over {frames} frames)", f"  {'stage':<{width}}  {'ms':>8}"]
-    lines += [f"  {s:<{width}}  {ms:8.2f}" for s, ms in rows]
-    return "\n".join(lines)
+    return "\n".join(lines + [line(s, ms) for s, ms in rows + more])
 
 
 @contextlib.contextmanager

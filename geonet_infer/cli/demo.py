@@ -104,5 +104,5 @@ def run(args: argparse.Namespace) -> int:
     write_image(args.out / DEMO_PICTURE, side_by_side(panels, labels, height=height))
     print(f"model {predictor.model_dir} ({predictor.precision}, {predictor.threads} threads)")
     print(f"{summary['frames']} frames -> {args.out}; picture of frame {frames[mid].stem}: {args.out / DEMO_PICTURE}")
-    print(stage_table(summary["timings_ms_per_frame"], summary["frames"]))
+    print(stage_table(summary["timings_ms_per_frame"], summary["frames"], summary["overlapped_ms_per_frame"]))
     return 1 if summary["failed"] else 0

@@ -20,6 +20,7 @@ from geonet_infer.cli.common import (
     sigterm_as_interrupt,
     stage_table,
 )
+from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
 from geonet_infer.core.predictor import TASKS, describe_skipped
 from geonet_infer.core.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
 from geonet_infer.errors import InputError
@@ -36,14 +37,15 @@ from geonet_infer.output.layout import SUMMARY_NAME, WORLD_CLOUD_NAME
 from geonet_infer.output.options import DEFAULT_COLOUR_SCALE, POINT_CLOUDS, OutputOptions
 from geonet_infer.output.predict import predict_to_dir
 from geonet_infer.output.video import FOLDER_FPS, VIDEO_CODECS
-from geonet_infer.tasks import parse_tasks
 
 HELP = """\
 Predict depth, optical flow and camera poses for one sequence.
 
 INPUT is a video file (.mp4 .avi .mov .mkv .webm), a folder of frames (in name
-order, numbers as numbers: f3 before f10), or a KITTI raw drive folder (frames from image_02/data; calibration
-calib_cam_to_cam.txt found in the folder or up to two levels up).
+order, numbers as numbers: f3 before f10), a KITTI raw drive folder (frames from image_02/data; calibration
+calib_cam_to_cam.txt found in the folder or up to two levels up), or one image (.png .jpg .jpeg .bmp .ppm:
+its depth). With --tasks depth (or one image), the frames may have any sizes, each gets its depth at
+its own size; pose and flow need frames of one size (a frame of another size fails, named).
 
 Outputs in --out (written atomically; a bad frame is recorded in summary.json and skipped).
 --out must be new, empty, or an earlier predict's output folder: then exactly the files that
@@ -57,7 +59,11 @@ examples:
   geonet-infer predict ../shared/realdata/udacity_dashcam/test_video.mp4 --out out/dashcam \\
       --calib ../shared/realdata/udacity_dashcam/calib_advanced_lane_lines.txt
   geonet-infer predict frames/ --out out/frames --intrinsics 721.5,721.5,609.6,172.9 --precision int8
+  geonet-infer predict photo.jpg --out out/photo
+  geonet-infer predict photos/ --out out/photos --tasks depth
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_m --camera-height 1.65
+  geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_small \
+      --outputs depth-png16,flow-png,poses
   geonet-infer predict ../shared/realdata/kitti_raw_2011_09_26_sfnd --out out/kitti_dis --flow-method dis \
       --pose-method orbvo
 """
@@ -75,7 +81,7 @@ def add_parser(sub) -> None:
         type=Path,
         nargs="?",
         metavar="INPUT",
-        help="video file, folder of frames or KITTI drive; '-' = raw frames on stdin (with --stdin-frames)",
+        help="video file, folder of frames, KITTI drive or one image; '-' = raw frames on stdin (with --stdin-frames)",
     )
     parser.add_argument(
         "--out", type=Path, required=True, help="output folder: new, empty, or an earlier predict's (created)"
@@ -115,6 +121,7 @@ def add_parser(sub) -> None:
         f"written this many frames late; 0 = each frame's own fit; summary.json keeps both (default: "
         f"{SCALE_HALF_WINDOW})",
     )
+    add_outputs_arg(parser)
     parser.add_argument(
         "--no-vis",
         action="store_true",
@@ -197,11 +204,17 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    tasks = None if args.tasks is None else parse_tasks(args.tasks)
+    tasks, outputs = tasks_and_outputs(args)
     check_batch_size(args.batch_size, "--batch-size")
     if args.scale_smoothing is not None and args.camera_height is None:
         raise InputError(None, "--scale-smoothing smooths the metric scale", "pass --camera-height METRES with it")
     source = _open_source(args)
+    if source.kind == "image":  # one photo: depth, the task that needs no sequence
+        tasks = tasks or ("depth",)
+        if set(tasks) & {"pose", "flow"}:
+            raise InputError(
+                source.path, "one image has no next frame for pose or flow", "pass --tasks depth, or a folder or video"
+            )
     options = OutputOptions(
         point_cloud=args.point_cloud,
         point_stride=args.point_stride,
@@ -232,6 +245,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             camera_height=args.camera_height,
             vis=not args.no_vis,
+            outputs=outputs,
             exclusive=True,
             options=options,
             max_frames=args.max_frames,
@@ -244,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['frames']} frames -> {args.out} ({summary['frames_per_s']:.1f} frames/s, "
         f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}"
     )
-    print(stage_table(summary["timings_ms_per_frame"], summary["frames"]))
+    print(stage_table(summary["timings_ms_per_frame"], summary["frames"], summary["overlapped_ms_per_frame"]))
     check = None if summary["check"] is None else SequenceCheck.from_dict(summary["check"])
     if check is not None:
         print(f"check: {check.line()}")
@@ -258,6 +272,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"failed: {failure['frame']}: {failure['reason']}", file=sys.stderr)
     if missing:  # one line for the frames a truncated video lacks (each is in summary.json)
         print(f"warning: {source.location}: truncated: {summary['truncated']}", file=sys.stderr)
+    for note in [] if args.quiet else summary["notes"]:  # a clean end before the header's frame count: not a failure
+        print(f"geonet-infer predict: note: {source.location}: {note}", file=sys.stderr)
     return 1 if summary["failed"] else 0
 
 

@@ -14,6 +14,7 @@ surface above it, such as a car transporter's deck or a truck bed: it is skipped
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -308,23 +309,28 @@ def metric_frames(
     """
     check_camera_height(camera_height)
     smoother = ScaleSmoother(half_window)
-    held: deque[tuple[FrameResult, float | None]] = deque()
+    held: deque[tuple[FrameResult, float | None, float]] = deque()  # frame, its fit, the fit's ms
     pose_world = np.eye(4)
     fitted = False
 
     def scaled(scales: list[float]) -> Iterator[FrameResult]:
         nonlocal pose_world
         for scale in scales:
-            frame, raw = held.popleft()
+            t0 = time.perf_counter()
+            frame, raw, fit_ms = held.popleft()
             pose_next, vector = frame.pose_to_next, frame.pose_vector_to_next
             if pose_next is not None and vector is not None:
                 pose_next, vector = pose_next.copy(), vector.copy()
                 pose_next[:3, 3] *= scale
                 vector[:3] *= scale
+            depth, disparity = _depth_of(frame) * scale, _depth_of(frame, "disparity") / scale
+            ms = fit_ms + (time.perf_counter() - t0) * 1e3  # the fit and the scaling: the "ground_fit" stage
+            timings = frame.timings_ms | {"ground_fit": ms, "total": frame.timings_ms.get("total", 0.0) + ms}
             yield replace(
                 frame,
-                depth=_depth_of(frame) * scale,
-                disparity=_depth_of(frame, "disparity") / scale,
+                depth=depth,
+                disparity=disparity,
+                timings_ms=timings,
                 camera_to_world=pose_world.copy(),
                 pose_to_next=pose_next,
                 pose_vector_to_next=vector,
@@ -335,6 +341,7 @@ def metric_frames(
                 pose_world = next_camera_to_world(pose_world, pose_next)
 
     for result in results:
+        t0 = time.perf_counter()
         depth = _depth_of(result)
         raw: float | None = None
         try:
@@ -349,7 +356,7 @@ def metric_frames(
                     "metric scale needs the road in view early in the video: start it where the road "
                     "shows, or drop --camera-height for relative depth",
                 ) from None
-        held.append((result, raw))
+        held.append((result, raw, (time.perf_counter() - t0) * 1e3))
         yield from scaled(smoother.push(raw))
     yield from scaled(smoother.finish())
     if held:

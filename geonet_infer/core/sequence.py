@@ -50,8 +50,9 @@ def iter_frames(
     once (one DepthNet batch per ``batch_size`` frames) and reused by the rigid-flow op of the pair
     it is the target of; pose and flow of frame t come from the snippet centred on t (ends
     replicated, :func:`snippet_indices`) towards t + 1. Frames are read lazily, at most
-    ``batch_size + seq_length // 2`` ahead. With pose or flow a sequence needs 2 frames; depth
-    alone runs on any number. ``need_depth``: depth is needed though not asked for (metric scale).
+    ``batch_size + seq_length // 2`` ahead. With pose or flow a sequence needs 2 frames of one size;
+    depth alone runs on any number, each frame at its own size. ``need_depth``: depth is needed
+    though not asked for (metric scale).
     ``check``: each flow is checked against the frames (:mod:`geonet_infer.check`, at the graph size).
     """
     check_batch_size(batch_size)
@@ -65,6 +66,7 @@ def iter_frames(
     frame_names: dict[int, str] = {}
     cam: Camera | None = None
     size: tuple[int, int] = (0, 0)
+    sizes: dict[int, tuple[tuple[int, int], Camera | None]] = {}  # depth alone: each frame its own size
     n_read, exhausted = 0, False
     pose_world = np.eye(4)
     t0 = 0
@@ -77,7 +79,7 @@ def iter_frames(
                 exhausted = True
                 break
             rgb, label = read_frame(item, timer, n_read)
-            if n_read == 0:
+            if n_read == 0 or (not run_pose and rgb.shape[:2] != size):
                 size = rgb.shape[:2]
                 cam = camera_at(camera, size)
                 if cam is None and with_flow:
@@ -89,6 +91,7 @@ def iter_frames(
                     "all frames of a sequence must have one size",
                 )
             prepared[n_read] = to_network(spec, rgb, cam, timer)
+            sizes[n_read] = (size, cam)
             frame_names[n_read] = (
                 names[n_read]
                 if names is not None
@@ -115,7 +118,8 @@ def iter_frames(
         parts: dict[str, np.ndarray] = {}
         if paired:
             windows = [snippet_window(t, n_read, spec.seq_length) for t in paired]
-            snippets = np.stack([np.stack([prepared[i] for i in w]) for w in windows])
+            with timer.stage("preprocess"):  # the snippets: timed, so the latency table adds up
+                snippets = np.stack([np.stack([prepared[i] for i in w]) for w in windows])
             parts = run_cascade(
                 graphs,
                 spec,
@@ -131,7 +135,8 @@ def iter_frames(
         no_flow: tuple[np.ndarray | None, Callable[[], np.ndarray] | None] = (None, None)
         with timer.stage("postprocess"):
             for j, t in enumerate(batch):
-                depth, disp = (None, None) if disparity is None else disparity_to_input(disparity[j], size)
+                at = sizes[t][0]  # the frame's own size (one size for a sequence with pose or flow)
+                depth, disp = (None, None) if disparity is None else disparity_to_input(disparity[j], at)
                 flows = flows_to_input(parts, j, size) if t in paired and with_flow else no_flow
                 pose_next = parts["pose_matrix"][j].astype(np.float64) if t in paired else None
                 vector = parts["pose"][j] if t in paired else None
@@ -151,6 +156,7 @@ def iter_frames(
                     )
         share = timer.result(1.0 / len(batch))
         for t, depth, disp, pose_next, vector, flows in results:
+            at_cam = sizes[t][1]
             yield FrameResult(
                 index=t,
                 name=frame_names.pop(t),
@@ -159,15 +165,15 @@ def iter_frames(
                 camera_to_world=pose_world.copy(),
                 pose_to_next=pose_next,
                 pose_vector_to_next=vector,
-                undistorted=bool(cam and cam.has_distortion),
+                undistorted=bool(at_cam and at_cam.has_distortion),
                 timings_ms=dict(share),
                 flow=flows[0],
                 rigid_flow_at_input=flows[1],
-                intrinsics=None if cam is None else cam.K,
+                intrinsics=None if at_cam is None else at_cam.K,
                 check=checks.get(t),
             )
             if pose_next is not None:
                 pose_world = next_camera_to_world(pose_world, pose_next)
         t0 = batch[-1] + 1
         for i in [i for i in prepared if i < t0 - k]:
-            del prepared[i]
+            del prepared[i], sizes[i]

@@ -6,7 +6,8 @@ import numpy as np
 
 from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
-from geonet_infer.io.images import _imread, _imwrite
+from geonet_infer.io.images import _imread
+from geonet_infer.io.png import encode_png
 
 __all__ = ["DEPTH_SCALE", "write_depth_kitti", "read_depth_kitti"]
 
@@ -23,14 +24,21 @@ def write_depth_kitti(path, depth: np.ndarray, too_far: str = "zero") -> None:
     """
     if too_far not in ("zero", "clip"):
         raise ValueError(f"too_far must be 'zero' or 'clip', got {too_far!r}")
-    depth = np.asarray(depth, dtype=np.float64)
+    depth = np.asarray(depth)
+    if depth.dtype not in (np.float32, np.float64):
+        depth = depth.astype(np.float64)
     if depth.ndim != 2:
         raise ValueError(f"depth must be (H, W), got {depth.shape}")
-    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
-    enc = np.round(depth * DEPTH_SCALE)
-    enc = np.where(enc > 65535, 0 if too_far == "zero" else 65535, enc).astype(np.uint16)
+    # In the depth's own dtype (a 720p frame in float64 took 12 of 17 ms): times 256 is exact and
+    # rint rounds half to even as np.round, so the codes are those of float64.
+    steps = depth * depth.dtype.type(DEPTH_SCALE)
+    np.rint(steps, out=steps)
+    finite = np.isfinite(steps)
+    far = finite & (steps > 65535)
+    steps[~(finite & (steps > 0))] = 0
+    steps[far] = 65535 if too_far == "clip" else 0
     with atomic_write(path) as tmp:
-        _imwrite(tmp, enc)
+        tmp.write_bytes(encode_png(steps.astype(np.uint16), up=True))
 
 
 def read_depth_kitti(path) -> np.ndarray:

@@ -6,7 +6,6 @@ lazily (one decoded frame in memory at a time), in temporal order.
 
 from __future__ import annotations
 
-import logging
 import os
 import re
 import sys
@@ -25,7 +24,6 @@ from geonet_infer.limits import MAX_CAMERA_INDEX
 
 __all__ = ["VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames", "open_stream", "open_stdin"]
 
-log = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")  # compared lower-case
 # FFmpeg (inside OpenCV) prints its own errors on stderr for a broken video ("moov atom not found"),
@@ -34,6 +32,9 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")  # compared lower-cas
 # first opens a video in the process, hence at import; cv2.utils.logging.setLogLevel does not reach it.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 KITTI_CALIB_NAME = "calib_cam_to_cam.txt"
+SIDE_CALIB_SUFFIX = ".calib.txt"  # clip.mp4 + clip.calib.txt: a video's (or folder's) own calibration
+CLEAN_END_SHORTFALL_S = 1.0  # a video that stops at most this much before its header's count ended cleanly
+FALLBACK_FPS = 25.0  # for that rule when the container gives no frame rate
 _KITTI_IMAGES = Path("image_02") / "data"  # KITTI raw: left colour camera, rectified
 
 
@@ -77,9 +78,12 @@ class FrameSource:
         truncated: for a video read to the end that decoded fewer frames than its container
             lists, ``"decoded N of M frames"``; else None.
         missing: names of the frames the container lists but that did not decode (with ``truncated``).
+        ended_early: for a video that ended cleanly a little before its container's frame count (a
+            note, not a failure: such counts are often approximate), what happened; else None.
     """
 
     truncated: str | None = None
+    ended_early: str | None = None
     missing: tuple[str, ...] = ()
 
     def __init__(
@@ -112,8 +116,16 @@ class FrameSource:
 class _ImageFolderSource(FrameSource):
     """A folder of image files (also a KITTI drive's ``image_02/data``), in file-name order."""
 
-    def __init__(self, path: Path, folder: Path, name: str, kind: str, default_calib: Path | None = None):
-        self.files = list_images(folder)
+    def __init__(
+        self,
+        path: Path,
+        folder: Path,
+        name: str,
+        kind: str,
+        default_calib: Path | None = None,
+        files: list[Path] | None = None,
+    ):
+        self.files = list_images(folder) if files is None else files
         stems = [p.stem for p in self.files]
         if len(set(stems)) != len(stems):
             dup = sorted({s for s in stems if stems.count(s) > 1})
@@ -185,10 +197,31 @@ class _VideoSource(FrameSource):
                 self.path, "cannot open this video (OpenCV decoded no frame)", "the file changed since it was opened?"
             )
         if len(names) < self._count:
-            self.truncated = f"decoded {len(names)} of {self._count} frames"
-            self.missing = tuple(f"{i:06d}" for i in range(len(names), self._count))
-            log.warning("%s: truncated or partly unreadable: %s the container lists", self.path, self.truncated)
+            self._short_end(cap, len(names))
         self.frame_names = names
+
+    def _short_end(self, cap: cv2.VideoCapture, decoded: int) -> None:
+        """The video stopped before its header's frame count: a clean end or a decode error?
+
+        OpenCV tells neither apart directly (FFmpeg's errors only reach its log). Container counts are
+        often approximate (an edit list cutting the last frames: project_video_clip_a.mp4 lists 210 frames,
+        FFmpeg itself decodes 201 without an error), so a stop within :data:`CLEAN_END_SHORTFALL_S` of
+        the count, after which not one more frame can be grabbed, is a clean end (``ended_early``, a
+        note); a bigger shortfall, or frames that still come after the stop, is a decode error
+        (``truncated``, the frames missing are failures)."""
+        cap.open(str(self.path))  # the released capture: grab past the stop from a fresh one
+        cap.set(cv2.CAP_PROP_POS_FRAMES, decoded)
+        more = sum(1 for _ in range(4) if cap.grab())
+        cap.release()
+        shortfall = self._count - decoded
+        if not more and shortfall <= CLEAN_END_SHORTFALL_S * (self.fps or FALLBACK_FPS):
+            self.ended_early = (
+                f"the video ended after {decoded} frames, {shortfall} before its header's count of "
+                f"{self._count} (container counts are often approximate)"
+            )
+            return
+        self.truncated = f"decoded {decoded} of {self._count} frames"
+        self.missing = tuple(f"{i:06d}" for i in range(decoded, self._count))
 
     def __len__(self) -> int:
         """Frame count: exact once read to the end, before that the container's (may be inexact)."""
@@ -323,6 +356,14 @@ def find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | Non
     return None
 
 
+def find_side_calib(path: Path) -> Path | None:
+    """The calibration file beside a video, image or folder of frames: ``<name>.calib.txt`` next to
+    it (``clip.mp4`` -> ``clip.calib.txt``, ``frames/`` -> ``frames.calib.txt``), or None."""
+    p = Path(os.path.abspath(path))
+    side = p.parent / f"{p.stem if p.is_file() else p.name}{SIDE_CALIB_SUFFIX}"
+    return side if side.is_file() else None
+
+
 def find_kitti_calib(drive: Path) -> Path | None:
     """``calib_cam_to_cam.txt`` in the drive folder or up to two levels up (KITTI: ``<date>/``)."""
     folder = find_up(drive, (KITTI_CALIB_NAME,))
@@ -333,12 +374,16 @@ def open_frames(path) -> FrameSource:
     """Open a video file, a KITTI raw drive or a folder of images as a :class:`FrameSource`.
 
     * A file with suffix .mp4 .avi .mov .mkv .webm: a video (OpenCV; BGR converted to RGB).
+    * An image file (:data:`~geonet_infer.io.images.IMAGE_SUFFIXES`): a one-frame ``"image"``
+      source (depth; pose and flow need a sequence).
     * A folder holding ``image_02/data`` (a KITTI raw drive, e.g.
       ``2011_09_26/2011_09_26_drive_0001_sync``) or a folder that *is* ``.../image_02/data``
       (or ``.../image_02``):
       a ``"kitti_drive"``; frames from ``image_02/data``; ``default_calib`` is the
       ``calib_cam_to_cam.txt`` in the drive folder or up to two levels above it.
     * Any other folder: its images (:func:`~geonet_infer.io.images.list_images`), in natural order.
+    * A video, an image or a folder of frames with a ``<name>.calib.txt`` beside it
+      (:func:`find_side_calib`): that file is its ``default_calib``, as a KITTI drive's is.
 
     Iterating yields :class:`Frame`; a frame that cannot be decoded is yielded with its
     ``error`` set (naming the file), so callers can report it and go on.
@@ -353,12 +398,16 @@ def open_frames(path) -> FrameSource:
     p = Path(os.path.abspath(given))  # lexical: keeps a symlinked image_02/data inside its drive layout
     if p.is_file():
         if p.suffix.lower() in VIDEO_SUFFIXES:
-            return _VideoSource(given)
-        what = "a single image" if p.suffix.lower() in IMAGE_SUFFIXES else "not a video"
+            video = _VideoSource(given)
+            video.default_calib = find_side_calib(given)
+            return video
+        if p.suffix.lower() in IMAGE_SUFFIXES:  # one photo: depth (pose and flow need a sequence)
+            return _ImageFolderSource(given, given.parent, given.stem, "image", find_side_calib(given), [given])
         raise InputError(
             given,
-            f"{what}: expected a video ({' '.join(VIDEO_SUFFIXES)}) or a folder of frames",
-            "put the frames in a folder and pass the folder",
+            f"not a video or an image: expected a video ({' '.join(VIDEO_SUFFIXES)}), an image "
+            f"({' '.join(IMAGE_SUFFIXES)}) or a folder of frames",
+            "pass a video, an image or a folder of frames",
         )
     if (p / _KITTI_IMAGES).is_dir():
         drive = p
@@ -367,6 +416,6 @@ def open_frames(path) -> FrameSource:
     elif p.name == _KITTI_IMAGES.parent.name and (p / _KITTI_IMAGES.name).is_dir():
         drive = p.parent
     else:
-        return _ImageFolderSource(given, given, p.name, "folder")
+        return _ImageFolderSource(given, given, p.name, "folder", find_side_calib(given))
     images = drive / _KITTI_IMAGES
     return _ImageFolderSource(given, images, drive.name, "kitti_drive", find_kitti_calib(drive))

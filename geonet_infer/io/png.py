@@ -24,11 +24,16 @@ __all__ = ["encode_png"]
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOUR_TYPE = {1: 0, 3: 2}  # channels -> PNG colour type: grey, RGB
 _SUB = 1  # PNG filter type 1: each byte minus the byte one pixel to its left
+_UP = 2  # PNG filter type 2: each byte minus the byte one row above
 _LEVEL = 1  # ISA-L level 1: its fastest full-compression level (0 is for already-compressed data)
 
 
-def encode_png(array: np.ndarray) -> bytes:
+def encode_png(array: np.ndarray, up: bool = False) -> bytes:
     """(H, W) grey or (H, W, 1 | 3) grey / RGB pixels, uint8 or uint16 -> PNG file bytes.
+
+    ``up``: the Up filter instead of Sub: about a fifth smaller and a little faster for the smooth
+    16-bit maps of upsampled network outputs (720p depth: 364 against 450 kB); the outputs that
+    always had Sub keep it, so their bytes do not change.
 
     Raises:
         ValueError for a shape or dtype PNG cannot hold this way.
@@ -46,9 +51,14 @@ def encode_png(array: np.ndarray) -> bytes:
     row_bytes = samples.view(np.uint8).reshape(height, -1)
     pixel_bytes = samples.itemsize * channels
     filtered = np.empty((height, row_bytes.shape[1] + 1), np.uint8)
-    filtered[:, 0] = _SUB
-    filtered[:, 1 : 1 + pixel_bytes] = row_bytes[:, :pixel_bytes]
-    np.subtract(row_bytes[:, pixel_bytes:], row_bytes[:, :-pixel_bytes], out=filtered[:, 1 + pixel_bytes :])
+    if up:
+        filtered[:, 0] = _UP
+        filtered[0, 1:] = row_bytes[0]
+        np.subtract(row_bytes[1:], row_bytes[:-1], out=filtered[1:, 1:])
+    else:
+        filtered[:, 0] = _SUB
+        filtered[:, 1 : 1 + pixel_bytes] = row_bytes[:, :pixel_bytes]
+        np.subtract(row_bytes[:, pixel_bytes:], row_bytes[:, :-pixel_bytes], out=filtered[:, 1 + pixel_bytes :])
     header = struct.pack(">IIBBBBB", width, height, 8 * samples.itemsize, _COLOUR_TYPE[channels], 0, 0, 0)
     return b"".join(
         (

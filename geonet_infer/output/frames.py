@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import itertools
+import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 
 import numpy as np
 
 from geonet_infer.core.results import FrameResult
-from geonet_infer.io.frames import FrameSource
+from geonet_infer.io.frames import Frame, FrameSource
 
 SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
 
@@ -20,6 +21,9 @@ class GoodFrames:
     The sequence's size is the one most of the first :data:`SIZE_VOTE_FRAMES` readable frames
     have (ties: the earliest), so one odd frame at the start does not reject all the others.
     ``on_size(width, height)`` is called once the size is known, before any frame is yielded.
+    ``one_size=False`` (depth alone: no snippets) keeps frames of any size; ``on_size`` is then
+    called for each new size, before its first frame, and ``size`` stays the sequence's most common
+    size among the first frames.
     """
 
     def __init__(
@@ -29,7 +33,9 @@ class GoodFrames:
         on_size: Callable[[int, int], None] | None = None,
         max_frames: int | None = None,
         keep: Callable[[np.ndarray], np.ndarray] | None = None,
+        one_size: bool = True,
     ):
+        self.one_size = one_size
         self.source, self.progress, self.on_size = source, progress, on_size
         self.max_frames = max_frames
         self.keep = keep  # the frames' pictures are needed after prediction (points' colours, video)
@@ -38,9 +44,24 @@ class GoodFrames:
         self.failures: list[dict] = []
         self.size: tuple[int, int] | None = None
         self.skipped_before: dict[str, list[str]] = {}  # good frame -> bad frames right before it
+        self.read_ms = 0.0  # time spent reading and decoding the source's frames
+
+    def _timed(self, frames: Iterator[Frame]) -> Iterator[Frame]:
+        """``frames``, the time each takes to come (read and decoded) added to ``read_ms``."""
+        try:
+            while True:
+                t0 = time.perf_counter()
+                frame = next(frames, None)
+                self.read_ms += (time.perf_counter() - t0) * 1e3
+                if frame is None:
+                    return
+                yield frame
+        finally:
+            if hasattr(frames, "close"):
+                frames.close()  # a camera or stream is released now
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        frames = iter(self.source)
+        frames = self._timed(iter(self.source))
         head = list(itertools.islice(frames, SIZE_VOTE_FRAMES))
         sizes = Counter(frame.rgb.shape[:2] for frame in head if frame.ok and frame.rgb is not None)
         if sizes:
@@ -60,7 +81,10 @@ class GoodFrames:
                 self.size = rgb.shape[:2]
                 if self.on_size is not None:
                     self.on_size(self.size[1], self.size[0])
-            if rgb.shape[:2] != self.size:
+            if rgb.shape[:2] != self.size and not self.one_size:
+                if self.on_size is not None:
+                    self.on_size(rgb.shape[1], rgb.shape[0])
+            elif rgb.shape[:2] != self.size:
                 h, w = rgb.shape[:2]
                 self.failures.append(
                     {"frame": frame.name, "reason": f"frame is {w}x{h}, the sequence is {self.size[1]}x{self.size[0]}"}

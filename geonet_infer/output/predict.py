@@ -22,6 +22,7 @@ import platform
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -44,16 +45,20 @@ from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.limits import MAX_HELD_PIXELS, check_batch_size
 from geonet_infer.output.clouds import WorldCloud, as_predicted
 from geonet_infer.output.frames import GoodFrames, unusable
+from geonet_infer.output.latency import latency_table, timed
 from geonet_infer.output.layout import (
     CAMERA_NAME,
     OUTPUT_LOCK,
     OUTPUT_MARKER,
     POSE_FILES,
     SUMMARY_NAME,
+    VIS_OUTPUTS,
     WORLD_CLOUD_NAME,
+    chosen_outputs,
     frame_files,
     listed_outputs,
     run_files,
+    written_summary,
 )
 from geonet_infer.output.options import OutputOptions
 from geonet_infer.output.video import FOLDER_FPS, VideoOut
@@ -73,6 +78,7 @@ def predict_to_dir(
     camera_height: float | None = None,
     vis: bool = True,
     exclusive: bool = False,
+    outputs: Collection[str] | None = None,
     extra_outputs: tuple[str, ...] = (),
     options: OutputOptions = OutputOptions(),
     max_frames: int | None = None,
@@ -94,6 +100,9 @@ def predict_to_dir(
             (:mod:`geonet_infer.core.scale`; needs ``camera``).
         vis: also write the depth colour maps and flow colour wheels (PNG encoding of
             pictures is most of the write time; fleets that only need the data skip it).
+        outputs: the --outputs names to write (:data:`geonet_infer.output.layout.OUTPUT_NAMES`); None:
+            the default set (:data:`~geonet_infer.output.layout.DEFAULT_OUTPUTS`); ``vis=False`` drops
+            the colour maps from either. An output of a task that does not run is not written.
         exclusive: own ``out_dir`` for this run (:class:`geonet_infer.ownership.OwnedFolder`): refuse a non-empty folder
             predict did not write or one another predict is writing, remove the previous run's files.
         extra_outputs: more files (relative to ``out_dir``) the caller writes there, recorded as
@@ -115,6 +124,7 @@ def predict_to_dir(
         with ``"interrupted": true`` for the frames written so far; no temp file is left.
     """
     out_dir = Path(out_dir)
+    chosen = chosen_outputs(outputs, vis)
     check_batch_size(batch_size)
     check_methods(flow_method, pose_method)
     tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
@@ -143,7 +153,7 @@ def predict_to_dir(
         raise ownership.not_written(video)
     run = functools.partial(
         _predict,
-        predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, vis,
+        predictor, source, out_dir, camera, tasks, batch_size, progress, camera_height, chosen,
         skipped_tasks=skipped_tasks, options=options, max_frames=max_frames, check=check,
         methods=(flow_method, pose_method, scale_smoothing),
     )  # fmt: skip
@@ -151,10 +161,10 @@ def predict_to_dir(
         out_dir.mkdir(parents=True, exist_ok=True)
         return run(owned=None)
     names = source.frame_names if source.frame_names is not None else [f"{i:06d}" for i in range(len(source))]
-    files = run_files(tasks, options.point_cloud, camera is not None) | set(extra_outputs)
+    files = run_files(tasks, options.point_cloud, camera is not None, chosen) | set(extra_outputs)
     if video is not None and video_in_out:
         files.add(os.path.relpath(ownership.real(video), ownership.real(out_dir)))
-    files |= set().union(*(frame_files(name, tasks, vis, options.point_cloud) for name in names))
+    files |= set().union(*(frame_files(name, tasks, chosen, options.point_cloud) for name in names))
     inputs = tuple(getattr(source, "files", None) or ([Path(source.path)] if source.kind == "video" else []))
     outside = video if video is not None and not video_in_out else None
     owned = ownership.OwnedFolder(
@@ -181,7 +191,7 @@ def _predict(
     batch_size: int,
     progress: bool,
     camera_height: float | None,
-    vis: bool,
+    outputs: frozenset[str],
     *,
     owned: ownership.OwnedFolder | None,
     skipped_tasks: dict[str, tuple[str, ...]],
@@ -194,6 +204,7 @@ def _predict(
 
     started = time.perf_counter()
     totals: dict[str, float] = defaultdict(float)
+    sizes: dict[str, int] = defaultdict(int)  # bytes written per layout pattern
     poses: list[np.ndarray] = []
     done = 0
     scales: dict[str, list] = {"frames": [], "raw": [], "smoothed": []}
@@ -208,8 +219,12 @@ def _predict(
     keep = None
     if options.point_cloud or options.video_out is not None:  # the pictures are needed after prediction
         keep = functools.partial(as_predicted, camera)
-    frames = GoodFrames(source, bar, check_camera, max_frames, keep)
+    one_size = bool({"pose", "flow"} & set(tasks))  # depth alone needs no snippets: photos of any size
+    frames = GoodFrames(source, bar, check_camera, max_frames, keep, one_size)
     colours = SteadyScale(options.colour_scale)
+    pictures = bool(outputs & set(VIS_OUTPUTS)) or options.video_out is not None
+    if not pictures:
+        colours.finish()  # no pictures to scale: no frame waits for the scale, none is observed for it
     waiting: list[FrameResult] = []  # predicted, waiting for the colour scale ("first:N")
     world = WorldCloud(options) if options.point_cloud == "world" else None
     video = None
@@ -219,21 +234,27 @@ def _predict(
     def record(result: FrameResult, rgb: np.ndarray | None, written: Written) -> None:
         nonlocal done
         totals["write"] += written.ms
+        totals["write_cpu"] += written.cpu_ms
+        for name, size in written.sizes.items():
+            sizes[name] += size
         if video is not None and rgb is not None:
-            video.write(rgb, written.pictures)
+            with timed(totals, "video"):
+                video.write(rgb, written.pictures)
         if world is not None and rgb is not None and written.points is not None:
-            world.add(result, *written.points)
+            with timed(totals, "world_cloud"):
+                world.add(result, *written.points)
         poses.append(result.camera_to_world)
         if result.metric_scale is not None:
             scales["frames"].append(result.name)
             scales["raw"].append(result.metric_scale_raw)
             scales["smoothed"].append(result.metric_scale)
         for stage, ms in result.timings_ms.items():
-            totals[stage] += ms
+            if stage != "total":  # the table's total is the wall time (latency_table)
+                totals[stage] += ms
         done += 1
         bar.set_postfix(done=done, failed=len(frames.failures), refresh=False)
 
-    writer = FrameWriter(out_dir, tasks, vis, record, options, camera_height, pictures=vis or video is not None)
+    writer = FrameWriter(out_dir, tasks, outputs, record, options, camera_height, pictures=pictures)
 
     def emit(ready: list[FrameResult]) -> None:
         scale = colours.scales()
@@ -241,7 +262,7 @@ def _predict(
             result = ready.pop(0)  # before it is handed on: an interrupt here never submits it twice
             rgb = frames.kept.pop(result.index, None)
             if owned is not None:
-                owned.add(frame_files(result.name, tasks, vis, options.point_cloud))
+                owned.add(frame_files(result.name, tasks, outputs, options.point_cloud))
             writer.submit(result, scale, rgb)
 
     try:
@@ -258,14 +279,19 @@ def _predict(
             scale_smoothing=methods[2],
         )
         for result in results:
-            bad = unusable(result, tasks)
+            with timed(totals, "finite_check"):
+                bad = unusable(result, tasks)
             if bad is not None:
                 frames.failures.append({"frame": result.name, "reason": f"model produced {bad}"})
                 frames.kept.pop(result.index, None)
                 continue
             if result.check is not None:
                 checks.append((result.name, result.check))
-            colours.observe(result.depth if "depth" in tasks else None, result.flow if "flow" in tasks else None)
+            if pictures:
+                with timed(totals, "colour_scale"):
+                    colours.observe(
+                        result.depth if "depth" in tasks else None, result.flow if "flow" in tasks else None
+                    )
             waiting.append(result)
             if not colours.ready and len(waiting) * np.prod(frames.size or (0,)) > MAX_HELD_PIXELS:
                 colours.finish()  # "first:N" of huge frames: the scale from the frames memory holds
@@ -289,12 +315,17 @@ def _predict(
     finally:
         writer.close()
         bar.close()
+        totals["read"] += frames.read_ms
+        totals["write_wait"] += writer.waited_ms
         if video is not None:
-            video.close(keep=done > 0 and sys.exc_info()[0] is None)
+            with timed(totals, "video"):
+                video.close(keep=done > 0 and sys.exc_info()[0] is None)
     if owned is not None and video is not None and video.frames:
         owned.video_written(video.path)
     if world is not None:
-        world.write(out_dir / WORLD_CLOUD_NAME, camera_height)
+        with timed(totals, "world_cloud"):
+            world.write(out_dir / WORLD_CLOUD_NAME, camera_height)
+    finish = time.perf_counter()
     if camera is not None and frames.size is not None:
         height, width = frames.size
         write_kitti_camera(out_dir / CAMERA_NAME, camera_at(camera, frames.size).K, width, height)
@@ -302,13 +333,14 @@ def _predict(
     if truncated:
         reason = f"{source.location}: truncated: {truncated}"
         frames.failures += [{"frame": name, "reason": reason} for name in getattr(source, "missing", ())]
-    totals["total"] += totals["write"]
-    if "pose" in tasks and poses:
+    if "pose" in tasks and "poses" in outputs and poses:
         fps = getattr(source, "fps", None)
         stamps = np.arange(len(poses)) / fps if fps else np.arange(len(poses), dtype=np.float64)
         write_kitti_poses(out_dir / POSE_FILES[0], np.stack(poses))
         write_tum_poses(out_dir / POSE_FILES[1], stamps, np.stack(poses))
+    totals["finish"] += (time.perf_counter() - finish) * 1e3
     elapsed = time.perf_counter() - started
+    sequential, overlapped = latency_table(totals, done, elapsed)
     summary = {
         "input": {
             "path": source.location,
@@ -322,10 +354,12 @@ def _predict(
         "gaps": [{"frame": k, "skipped_before": v} for k, v in frames.skipped_before.items()],
         "interrupted": interrupted,
         "truncated": truncated,
+        "notes": [] if interrupted or not getattr(source, "ended_early", None) else [source.ended_early],
         "tasks": list(tasks),
         "skipped_tasks": {task: list(graphs) for task, graphs in skipped_tasks.items()},  # tasks=None only
-        "outputs": listed_outputs(tasks, vis, options.point_cloud, camera is not None),
-        "colour_scale": colours.describe() if vis or video is not None else None,
+        "outputs": listed_outputs(tasks, outputs, options.point_cloud, camera is not None),
+        "written": written_summary(out_dir, sizes, run_files(tasks, options.point_cloud, True, outputs), done),
+        "colour_scale": colours.describe() if pictures else None,
         "point_cloud": None
         if not options.point_cloud
         else {
@@ -358,7 +392,8 @@ def _predict(
         "methods": describe_methods(tasks, methods[0], methods[1]),
         "metric_scale": None if camera_height is None else metric_scale_summary(camera_height, methods[2], scales),
         "check": check_summary(checks, predictor) if check and "flow" in tasks else None,
-        "timings_ms_per_frame": {k: v / max(done, 1) for k, v in totals.items()},
+        "timings_ms_per_frame": sequential,  # the main thread's stages: they add up to "total", the wall time
+        "overlapped_ms_per_frame": overlapped,  # the writer threads, alongside them
         "wall_s": elapsed,
         "frames_per_s": done / elapsed if elapsed > 0 else None,
         "versions": {"geonet_infer": __version__, "python": platform.python_version()},

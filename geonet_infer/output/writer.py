@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,10 +14,11 @@ import numpy as np
 from geonet_infer.core.points import write_ply
 from geonet_infer.core.results import FrameResult
 from geonet_infer.io.atomic import save_npy_atomic
+from geonet_infer.io.depth import write_depth_kitti
 from geonet_infer.io.flow import write_flow_kitti
 from geonet_infer.io.images import write_image
 from geonet_infer.output.clouds import ply_comments
-from geonet_infer.output.layout import output_path
+from geonet_infer.output.layout import DEFAULT_OUTPUTS, POINTS, frame_outputs, frame_path, pattern
 from geonet_infer.output.options import OutputOptions
 from geonet_infer.viz import depth_to_color, flow_to_color
 
@@ -29,6 +30,8 @@ class Written:
     """What writing one frame made, for the result video and the world cloud: each is computed once."""
 
     ms: float  # the write's wall time
+    cpu_ms: float  # the writing thread's CPU time for it
+    sizes: dict[str, int]  # bytes written per layout pattern (depth/*.npy: ...)
     pictures: tuple[np.ndarray | None, np.ndarray | None]  # depth colour map, flow colour wheel (RGB) or None
     points: tuple[np.ndarray, np.ndarray | None] | None  # the frame's points and colours (point clouds)
 
@@ -41,14 +44,15 @@ class FrameWriter:
     order with what the write made (:class:`Written`); at most ``in_flight`` frames wait (bounded
     memory). A failed write raises from :meth:`submit` or :meth:`drain`; :meth:`close` finishes
     the writes already started (every file is atomic) and drops the ones not started.
-    ``pictures``: make the colour pictures (for the PNGs with ``vis``, or a result video).
+    ``outputs``: the --outputs names to write (:mod:`geonet_infer.output.layout`).
+    ``pictures``: make the colour pictures (for the colour-map outputs, or a result video).
     """
 
     def __init__(
         self,
         out_dir: Path,
         tasks: tuple[str, ...],
-        vis: bool,
+        outputs: Collection[str],
         on_written: Callable[[FrameResult, np.ndarray | None, Written], None],
         options: OutputOptions = OutputOptions(),
         camera_height: float | None = None,
@@ -56,25 +60,25 @@ class FrameWriter:
         pictures: bool = True,
     ):
         self.on_written = on_written  # (result, its input frame or None, what was made), in frame order
-        self.out_dir, self.tasks, self.vis, self.pictures = out_dir, tasks, vis, pictures
+        self.out_dir, self.tasks, self.outputs, self.pictures = out_dir, tasks, outputs, pictures
         self.options, self.camera_height = options, camera_height
         self.in_flight = 2 * workers
         self.pool = ThreadPoolExecutor(workers, thread_name_prefix="geonet-write")
         self.pending: deque[tuple[FrameResult, np.ndarray | None, Future[Written]]] = deque()
+        self.waited_ms = 0.0  # the caller's time blocked on unfinished writes
 
     def _write(self, result: FrameResult, scale: tuple[float | None, float | None], rgb: np.ndarray | None) -> Written:
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         pictures = colour_pictures(result, self.tasks, scale) if self.pictures else (None, None)
-        write_frame(self.out_dir, result, self.tasks, pictures if self.vis else (None, None))
+        sizes = write_frame(self.out_dir, result, self.tasks, pictures, self.outputs)
         points = None
         if self.options.point_cloud and result.depth is not None and result.intrinsics is not None:
             points = result.points(rgb, self.options.point_stride, self.options.max_depth)
-            write_ply(
-                output_path(self.out_dir, "points", result.name, ".ply"),
-                *points,
-                ply_comments(f"frame {result.name}, in its camera's frame", self.camera_height),
-            )
-        return Written((time.perf_counter() - t0) * 1e3, pictures, points)
+            path = frame_path(self.out_dir, POINTS, result.name)
+            write_ply(path, *points, ply_comments(f"frame {result.name}, in its camera's frame", self.camera_height))
+            sizes[pattern(POINTS)] = path.stat().st_size
+        ms, cpu_ms = (time.perf_counter() - t0) * 1e3, (time.thread_time() - cpu0) * 1e3
+        return Written(ms, cpu_ms, sizes, pictures, points)
 
     def submit(
         self,
@@ -95,7 +99,9 @@ class FrameWriter:
         # SIGTERM) between two frames can neither drop a written frame nor count one twice.
         while self.pending and (len(self.pending) > keep or self.pending[0][2].done()):
             result, rgb, future = self.pending[0]
+            t0 = time.perf_counter()
             written = future.result()
+            self.waited_ms += (time.perf_counter() - t0) * 1e3
             self.pending.popleft()
             self.on_written(result, rgb, written)
 
@@ -128,29 +134,50 @@ def write_frame(
     result: FrameResult,
     tasks: tuple[str, ...],
     pictures: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
-) -> None:
+    outputs: Collection[str] = DEFAULT_OUTPUTS,
+) -> dict[str, int]:
     """All files of one frame, or none: an interrupt or a failed write removes the ones already written.
 
-    ``pictures``: the depth and flow colour pictures to write beside the data (:func:`colour_pictures`), or None."""
-    writes: list[tuple[Path, Callable[[Path], object]]] = []
-    depth, flow = result.depth, result.flow
-    depth_rgb, flow_rgb = pictures
-    if "depth" in tasks and depth is not None:
-        writes.append((output_path(out_dir, "depth", result.name, ".npy"), lambda p: save_npy_atomic(p, depth)))
-        if depth_rgb is not None:
-            path = output_path(out_dir, "depth", result.name, ".png")
-            writes.append((path, lambda p: write_image(p, depth_rgb)))
-    if "flow" in tasks and flow is not None:
-        writes.append((output_path(out_dir, "flow", result.name, ".png"), lambda p: write_flow_kitti(p, flow)))
-        if flow_rgb is not None:
-            path = output_path(out_dir, "flow_vis", result.name, ".png")
-            writes.append((path, lambda p: write_image(p, flow_rgb)))
+    ``outputs``: the --outputs names to write (:mod:`geonet_infer.output.layout`); the colour maps
+    only with their ``pictures`` (:func:`colour_pictures`). Returns bytes written per layout pattern."""
+    data: dict[str, np.ndarray | None] = {
+        "depth-npy": result.depth,
+        "depth-npy16": result.depth,
+        "depth-png16": result.depth,
+        "depth-vis": pictures[0],
+        "flow-png": result.flow,
+        "flow-vis": pictures[1],
+    }
+    writes = []
+    for output in frame_outputs(tasks, outputs):
+        array = data.get(output.name or "")
+        if array is not None:
+            writes.append((output, array))
     written: list[Path] = []
+    sizes: dict[str, int] = {}
     try:
-        for path, write in writes:
-            write(path)
+        for output, array in writes:
+            path = frame_path(out_dir, output, result.name)
+            _WRITERS[output.name](path, array)
             written.append(path)
+            sizes[pattern(output)] = path.stat().st_size
     except BaseException:
         for path in written:
             path.unlink(missing_ok=True)
         raise
+    return sizes
+
+
+_WRITERS: dict[str | None, Callable[[Path, np.ndarray], object]] = {  # --outputs name -> how its file is written
+    "depth-npy": save_npy_atomic,
+    "depth-npy16": lambda path, depth: save_npy_atomic(path, _float16(depth)),
+    "depth-png16": lambda path, depth: write_depth_kitti(path, depth, too_far="clip"),
+    "depth-vis": write_image,
+    "flow-png": write_flow_kitti,
+    "flow-vis": write_image,
+}
+
+
+def _float16(depth: np.ndarray) -> np.ndarray:
+    """Depth as float16, the farthest values held at float16's largest instead of becoming inf."""
+    return np.minimum(depth, np.finfo(np.float16).max).astype(np.float16)

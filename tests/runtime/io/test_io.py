@@ -85,13 +85,14 @@ def _decode_with_pypng(data: bytes) -> np.ndarray:
         ((1, 1, 3), np.uint16),
     ],
 )
-def test_png_encoder_round_trips_through_opencv_and_pypng(shape, dtype):
+@pytest.mark.parametrize("up", [False, True], ids=["sub", "up"])
+def test_png_encoder_round_trips_through_opencv_and_pypng(shape, dtype, up):
     from geonet_infer.io.png import encode_png
 
     rng = np.random.default_rng(len(shape) * 10 + np.dtype(dtype).itemsize)
     image = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
     image.flat[0], image.flat[-1] = 0, np.iinfo(dtype).max  # both ends of the range
-    data = encode_png(image)
+    data = encode_png(image, up=up)
     by_opencv = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image.ndim == 3:
         by_opencv = by_opencv[..., ::-1]  # OpenCV decodes to BGR
@@ -555,14 +556,14 @@ def test_open_frames_corrupt_video_missing_path_and_other_files(tmp_path):
         open_frames(tmp_path / "empty")
 
 
-def test_open_frames_truncated_video_counts_what_decodes_and_warns(realdata, caplog):
-    # README: the container lists 210 frames, OpenCV decodes the first 201.
+def test_open_frames_video_ending_before_its_header_count_is_a_clean_end(realdata):
+    # README: the container lists 210 frames, OpenCV decodes the first 201 (FFmpeg too, without an error).
     src = open_frames(realdata / "udacity_dashcam/project_video_clip_a.mp4")
     assert len(src) == 210 and src.frame_names is None  # container's count before reading
-    with caplog.at_level("WARNING", logger="geonet_infer.io.frames"):
-        n = sum(1 for f in src if f.rgb is not None)
+    n = sum(1 for f in src if f.rgb is not None)
     assert n == 201 and len(src) == 201 and src.frame_names[-1] == "000200"
-    assert any("project_video_clip_a.mp4" in r.getMessage() and "210" in r.getMessage() for r in caplog.records)
+    assert src.truncated is None and src.missing == ()
+    assert "after 201 frames, 9 before its header's count of 210" in src.ended_early
 
 
 def test_atomic_write_gives_the_mode_of_a_plain_open(tmp_path):

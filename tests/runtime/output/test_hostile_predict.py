@@ -296,6 +296,38 @@ def test_a_truncated_mp4_is_reported_and_exits_1(tmp_path, capsys):
     assert len(warnings) == 1 and f"decoded {decodable} of {listed} frames" in warnings[0]
 
 
+def overcounted_avi(path: Path, frames: int, listed: int) -> Path:
+    """An MJPG AVI of ``frames`` frames whose headers (avih total frames, strh length) say ``listed``."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+    rng = np.random.default_rng(0)
+    for _ in range(frames):
+        writer.write(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    writer.release()
+    data = bytearray(path.read_bytes())
+    avih, strh = data.find(b"avih") + 8, data.find(b"strh") + 8  # RIFF chunk bodies (AVI 1.0 layout)
+    data[avih + 16 : avih + 20] = struct.pack("<I", listed)  # dwTotalFrames
+    data[strh + 32 : strh + 36] = struct.pack("<I", listed)  # dwLength
+    path.write_bytes(bytes(data))
+    cap = cv2.VideoCapture(str(path))  # independent: the header OpenCV reads now over-counts
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == listed
+    cap.release()
+    return path
+
+
+def test_a_video_whose_header_over_counts_exits_0_with_one_note(tmp_path, capsys):
+    # Container frame counts are often approximate (issue 43): a clean end 3 frames early is no failure.
+    video = overcounted_avi(tmp_path / "clip.avi", frames=6, listed=9)
+    out = tmp_path / "out"
+    rc, _, stderr = run_cli(capsys, "predict", video, "--out", out, "--tasks", "depth", "--no-progress")
+    assert rc == 0, stderr
+    summary = summary_of(out)
+    assert summary["frames"] == 6 and summary["failed"] == 0 and summary["truncated"] is None
+    assert summary["notes"] == ["the video ended after 6 frames, 3 before its header's count of 9 (container "
+                                "counts are often approximate)"]  # fmt: skip
+    notes = [line for line in error_lines(stderr) if "header's count" in line]
+    assert len(notes) == 1 and "note" in notes[0], stderr
+
+
 # ----------------------------------------------------------------------------- 7. camera sanity limits
 @pytest.mark.parametrize(
     "case, argv, named",

@@ -1,0 +1,41 @@
+"""summary.json's latency table adds up to the wall time; the writer threads are shown apart (issue 43, point 4)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from geonet_infer.cli import main
+from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
+
+
+def test_the_stage_table_adds_up_to_the_wall_time_and_states_the_overlap(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["predict", SAMPLE_FRAMES, "--out", out, "--calib", SAMPLE_CALIB, "--no-progress", "--quiet"]
+    more = ["--camera-height", "1.65", "--video-out", out / "video.mp4", "--point-cloud", "world"]
+    assert main([str(a) for a in [*argv, *more, "--point-stride", "8"]]) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    table, overlapped = summary["timings_ms_per_frame"], summary["overlapped_ms_per_frame"]
+    wall = summary["wall_s"] * 1e3 / summary["frames"]
+    assert table["total"] == pytest.approx(wall, rel=1e-9)  # the total is the wall time per frame ...
+    assert sum(ms for stage, ms in table.items() if stage != "total") == pytest.approx(wall, rel=1e-9)  # ... summed
+    assert table["untimed"] >= 0  # the stages are the main thread's, one after another: never more than the wall
+    stages = (
+        "read",
+        "depthnet",
+        "posenet",
+        "ground_fit",
+        "finite_check",
+        "colour_scale",
+        "video",
+        "world_cloud",
+        "finish",
+    )
+    for stage in stages:
+        assert table[stage] > 0, stage  # every stage that costs time is in the table
+    assert "write" not in table and overlapped["write"] > 0 and overlapped["write_cpu"] > 0
+    lines = {line.split()[0]: line for line in printed.splitlines() if line.startswith("  ")}
+    assert "overlapped: not in the total" in lines["write"]
+    assert "wall time per frame" in lines["total"] and f"{table['total']:.2f}" in lines["total"]
