@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer.errors import InputError
+from geonet_infer.io import protobuf
 
 REDOWNLOAD = "the file is truncated or corrupt: download the checkpoint again"
 _MAGIC = 0xDB4775248B80FB57  # LevelDB table magic, the last 8 bytes of every .index
@@ -135,40 +136,11 @@ def mask(crc: int) -> int:
 
 
 # ------------------------------------------------------------------------------ protobuf wire format
-def _varint(buf: bytes, pos: int) -> tuple[int, int]:
-    value = shift = 0
-    while True:
-        byte = buf[pos]  # IndexError past the end: the caller reports a corrupt file
-        pos += 1
-        value |= (byte & 0x7F) << shift
-        if byte < 0x80:
-            return value, pos
-        shift += 7
-        if shift > 63:
-            raise ValueError("varint longer than 10 bytes")
-
-
 def _fields(buf: bytes) -> dict[int, list]:
     """Field number -> values (ints for varint/fixed fields, bytes for length-delimited ones)."""
     out: dict[int, list] = {}
-    pos = 0
-    while pos < len(buf):
-        key, pos = _varint(buf, pos)
-        number, wire = key >> 3, key & 7
-        if wire == 0:
-            value, pos = _varint(buf, pos)
-        elif wire == 1:
-            value, pos = struct.unpack_from("<Q", buf, pos)[0], pos + 8
-        elif wire == 2:
-            size, pos = _varint(buf, pos)
-            value, pos = buf[pos : pos + size], pos + size
-            if pos > len(buf):
-                raise ValueError("field runs past its message")
-        elif wire == 5:
-            value, pos = struct.unpack_from("<I", buf, pos)[0], pos + 4
-        else:
-            raise ValueError(f"wire type {wire}")
-        out.setdefault(number, []).append(value)
+    for number, wire, value in protobuf.fields(buf, 0, len(buf)):
+        out.setdefault(number, []).append(buf[value[0] : value[1]] if wire == 2 else value)  # type: ignore[index]
     return out
 
 
@@ -236,9 +208,9 @@ def _block(index: bytes, offset: int, size: int) -> list[tuple[bytes, bytes]]:
         raise ValueError(f"block at byte {offset} has a bad restart array")
     entries, key, pos = [], b"", 0
     while pos < limit:
-        shared, pos = _varint(block, pos)
-        own, pos = _varint(block, pos)
-        length, pos = _varint(block, pos)
+        shared, pos = protobuf.read_varint(block, pos)
+        own, pos = protobuf.read_varint(block, pos)
+        length, pos = protobuf.read_varint(block, pos)
         key = key[:shared] + block[pos : pos + own]
         pos += own
         entries.append((key, block[pos : pos + length]))
@@ -253,14 +225,14 @@ def _parse_index(index: bytes) -> tuple[int, dict[str, Entry]]:
     if len(index) < _FOOTER or struct.unpack_from("<Q", index, len(index) - 8)[0] != _MAGIC:
         raise ValueError("not a TensorFlow V2 checkpoint index (no table footer: truncated, or another format)")
     pos = len(index) - _FOOTER
-    _, pos = _varint(index, pos)  # metaindex block: unused by TensorFlow bundles
-    _, pos = _varint(index, pos)
-    offset, pos = _varint(index, pos)
-    size, pos = _varint(index, pos)
+    _, pos = protobuf.read_varint(index, pos)  # metaindex block: unused by TensorFlow bundles
+    _, pos = protobuf.read_varint(index, pos)
+    offset, pos = protobuf.read_varint(index, pos)
+    size, pos = protobuf.read_varint(index, pos)
     shards, entries = None, {}
     for _, handle in _block(index, offset, size):
-        block_offset, p = _varint(handle, 0)
-        block_size, _ = _varint(handle, p)
+        block_offset, p = protobuf.read_varint(handle, 0)
+        block_size, _ = protobuf.read_varint(handle, p)
         for key, value in _block(index, block_offset, block_size):
             if key == b"":
                 header = _fields(value)

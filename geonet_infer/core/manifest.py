@@ -59,7 +59,6 @@ from geonet_infer.core.onnx_check import (  # noqa: F401  (re-exported: this mod
     _dim_fits,
     _fields,
     _tensor_location,
-    _varint,
     _verify_file,
     check_graph_io,
     external_data_location,

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from geonet_infer.core.manifest_schema import BATCH_AXIS, REEXPORT_HINT, GraphEntry
 from geonet_infer.errors import ModelError
+from geonet_infer.io.protobuf import fields as _fields
 
 # ----------------------------------------------------------------------------- graph file checks
 IoSpec = tuple[str, list | None, str]  # name, shape (int = fixed, str or None = dynamic; None = unknown rank), dtype
@@ -87,42 +88,6 @@ _ONNX_CHILDREN = {
 _TENSOR_EXTERNAL_DATA, _TENSOR_DATA_LOCATION, _EXTERNAL = 13, 14, 1  # TensorProto fields, DataLocation.EXTERNAL
 
 
-def _varint(buf, pos: int) -> tuple[int, int]:
-    value = shift = 0
-    while True:
-        byte = buf[pos]
-        pos += 1
-        value |= (byte & 0x7F) << shift
-        if byte < 0x80:
-            return value, pos
-        shift += 7
-        if shift > 63:
-            raise ValueError("varint too long")
-
-
-def _fields(buf, start: int, end: int):
-    """(field number, wire type, value) of one protobuf message; value = (start, end) for wire type 2."""
-    pos = start
-    while pos < end:
-        key, pos = _varint(buf, pos)
-        field_number, wire = key >> 3, key & 7
-        if wire == 0:
-            value, pos = _varint(buf, pos)
-            yield field_number, wire, value
-        elif wire == 2:
-            size, pos = _varint(buf, pos)
-            if pos + size > end:
-                raise ValueError("field runs past its message")
-            yield field_number, wire, (pos, pos + size)
-            pos += size
-        elif wire in (1, 5):
-            pos += 8 if wire == 1 else 4
-        else:
-            raise ValueError(f"wire type {wire}")
-    if pos != end:
-        raise ValueError("message runs past its end")
-
-
 def external_data_location(buf, kind: str = "model", start: int = 0, end: int | None = None) -> str | None:
     """The ``location`` of the first tensor an ONNX model keeps in external data ("" if it names none),
     or None when every tensor is inside the file. Walks the protobuf structure only (weights are
@@ -133,7 +98,7 @@ def external_data_location(buf, kind: str = "model", start: int = 0, end: int | 
         return _tensor_location(buf, start, end)
     for field_number, wire, value in _fields(buf, start, end):
         child = _ONNX_CHILDREN[kind].get(field_number)
-        if child and wire == 2:
+        if child and isinstance(value, tuple):
             location = external_data_location(buf, child, *value)
             if location is not None:
                 return location
@@ -143,8 +108,8 @@ def external_data_location(buf, kind: str = "model", start: int = 0, end: int | 
 def _tensor_location(buf, start: int, end: int) -> str | None:
     external = None
     for field_number, wire, value in _fields(buf, start, end):
-        if field_number == _TENSOR_EXTERNAL_DATA and wire == 2:
-            entry = {k: bytes(buf[v[0] : v[1]]) for k, w, v in _fields(buf, *value) if w == 2}
+        if field_number == _TENSOR_EXTERNAL_DATA and isinstance(value, tuple):
+            entry = {k: bytes(buf[v[0] : v[1]]) for k, _, v in _fields(buf, *value) if isinstance(v, tuple)}
             if entry.get(1) == b"location":  # StringStringEntryProto: key = 1, value = 2
                 return entry.get(2, b"").decode("utf-8", "replace")
             external = ""

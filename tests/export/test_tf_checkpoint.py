@@ -66,7 +66,8 @@ def test_reads_what_tensorflow_wrote():
 
 def test_fixture_index_has_two_data_blocks():
     """The fixture exercises the index block's walk: its 300 long names fill two table blocks."""
-    from export.tf_checkpoint import _block, _varint
+    from export.tf_checkpoint import _block
+    from geonet_infer.io.protobuf import read_varint as _varint
 
     index = (FIXTURE / "tf_written.index").read_bytes()
     pos = len(index) - 48

@@ -97,8 +97,8 @@ def test_outputs_writes_only_what_is_asked_and_the_16_bit_depth_png_decodes_to_t
 
 
 def test_the_16_bit_depth_png_clips_what_it_cannot_hold(tmp_path):
-    from geonet_infer.output.writer import write_frame
     from geonet_infer.core.results import FrameResult
+    from geonet_infer.output.writer import write_frame
 
     depth = np.array([[1.0, 300.0], [255.99, 0.5]], np.float32)
     result = FrameResult(

@@ -1,0 +1,51 @@
+"""The protobuf wire format, read without protobuf: enough to walk ONNX files (their external-data
+fields, :mod:`geonet_infer.core.onnx_check`) and TensorFlow checkpoint records (``export/tf_checkpoint.py``)."""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator
+
+
+def read_varint(buf, pos: int) -> tuple[int, int]:
+    """(value, position after it) of the base-128 varint at ``pos``; IndexError past the end,
+    ValueError for one longer than 10 bytes."""
+    value = shift = 0
+    while True:
+        byte = buf[pos]
+        pos += 1
+        value |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return value, pos
+        shift += 7
+        if shift > 63:
+            raise ValueError("varint longer than 10 bytes")
+
+
+def fields(buf, start: int, end: int) -> Iterator[tuple[int, int, int | tuple[int, int]]]:
+    """(field number, wire type, value) of one message in ``buf[start:end]``: an int for varint and
+    fixed64/fixed32 fields, (start, end) of the payload for length-delimited ones. ValueError when
+    the message is malformed."""
+    pos = start
+    while pos < end:
+        key, pos = read_varint(buf, pos)
+        number, wire = key >> 3, key & 7
+        if wire == 0:
+            value, pos = read_varint(buf, pos)
+            yield number, wire, value
+        elif wire == 2:
+            size, pos = read_varint(buf, pos)
+            if pos + size > end:
+                raise ValueError("field runs past its message")
+            yield number, wire, (pos, pos + size)
+            pos += size
+        elif wire in (1, 5):
+            width = 8 if wire == 1 else 4
+            if pos + width > end:
+                raise ValueError("field runs past its message")
+            yield number, wire, struct.unpack_from("<Q" if wire == 1 else "<I", buf, pos)[0]
+            pos += width
+        else:
+            raise ValueError(f"wire type {wire}")
+    if pos != end:
+        raise ValueError("message runs past its end")
