@@ -14,8 +14,13 @@ import json
 import sys
 from pathlib import Path
 
-# written by batch_throughput.py, speed_targets.py, and by hand (issue 45)
-KEPT_SECTIONS = ("## Batch throughput", "## Speed targets", "## AVX2-only CPUs")
+# written by batch_throughput.py, speed_targets.py, peer_models.py, and by hand (issue 45)
+KEPT_SECTIONS = (
+    "## Batch throughput",
+    "## Speed targets",
+    "## Versus the models users pick instead",
+    "## AVX2-only CPUs",
+)
 TASK_LABELS = {
     "depth": "depth",
     "pose": "pose",
