@@ -368,13 +368,24 @@ def collect_models(args, log) -> tuple[list[Model], dict]:
     return models, info
 
 
+def high_water_mib() -> float | None:
+    """Peak RSS of this process image (``VmHWM``), MiB. Unlike ``getrusage``'s maximum, which a child
+    keeps from the (large) benchmark process that forked it, it starts afresh at exec; else ``peak_rss_mib``."""
+    try:
+        with open("/proc/self/status") as f:
+            line = next(line for line in f if line.startswith("VmHWM:"))
+        return int(line.split()[1]) / 1024
+    except (OSError, StopIteration, ValueError):
+        return peak_rss_mib()
+
+
 def memory_child(path: str, backend: str, threads: int, frame: str, h: int, w: int, norm: str) -> dict:
     """In a fresh process: RSS before loading, after, and the peak after one e2e frame (MiB)."""
     before = current_rss_mib()
     engine = make_engine(path, backend, threads)
     loaded = current_rss_mib()
     e2e_call(engine, Path(frame), (h, w), json.loads(norm))()
-    peak = peak_rss_mib()
+    peak = high_water_mib()
     return {"rss_before_mib": before, "rss_loaded_mib": loaded, "peak_rss_mib": peak, "added_peak_mib": peak - before}
 
 
@@ -401,15 +412,16 @@ def measure_memory(models: list[Model], backends: list[str], threads: int, frame
 
 
 def rankings(results: list[dict]) -> dict[str, list[str]]:
-    """Per (size kind, precision, engine, mode): the models from fastest to slowest (p50)."""
-    out: dict[str, list[tuple[float, str]]] = {}
+    """Models from fastest to slowest (p50), per (size kind, precision, engine, mode), and per (size
+    kind, mode) with each model at its best engine and precision ("best"). GeoNet's 128x416 is both
+    its native size and ours."""
+    out: dict[str, dict[str, float]] = {}
     for r in results:
-        kinds = ["ours"] if r["model"] == "geonet" else [r["which"]]
-        if r["model"] == "geonet":
-            kinds.append("native")  # 128x416 is GeoNet's native size too
-        for kind in kinds:
-            out.setdefault(f"{kind}/{r['precision']}/{r['backend']}/{r['mode']}", []).append((r["p50_ms"], r["model"]))
-    return {k: [name for _, name in sorted(v)] for k, v in sorted(out.items())}
+        for kind in ("ours", "native") if r["model"] == "geonet" else (r["which"],):
+            for key in (f"{kind}/{r['precision']}/{r['backend']}/{r['mode']}", f"{kind}/best/{r['mode']}"):
+                times = out.setdefault(key, {})
+                times[r["model"]] = min(times.get(r["model"], float("inf")), r["p50_ms"])
+    return {k: sorted(v, key=v.__getitem__) for k, v in sorted(out.items())}
 
 
 def run(args) -> dict:
@@ -644,7 +656,9 @@ def markdown(data: dict, compared: dict | None = None) -> str:
         "|---|---|" + ("---|---|" if compared else ""),
     ]
     old = (compared or {}).get("rankings", {})
-    for key, names in data["rankings"].items():
+    keys = sorted(data["rankings"], key=lambda k: ("/best/" not in k, k))  # each model at its best first
+    for key in keys:
+        names = data["rankings"][key]
         if not key.endswith("/e2e"):
             continue
         line = f"| {key[: -len('/e2e')]} | {' < '.join(names)} |"
@@ -653,11 +667,14 @@ def markdown(data: dict, compared: dict | None = None) -> str:
             line += f" {' < '.join(prev) if prev else '—'} | {'yes' if prev == names else 'no'} |"
         lines.append(line)
     if compared:
-        same = sum(old.get(k) == v for k, v in data["rankings"].items())
+        same = [k for k, v in data["rankings"].items() if old.get(k) == v]
+        first = [k for k, v in data["rankings"].items() if old.get(k) and old[k][0] == v[0]]
         lines += [
             "",
-            f"Re-run check: {same} of {len(data['rankings'])} rankings (graph and e2e) identical to the previous "
-            f"run's (`--compare`; git `{compared['environment'].get('git')}`).",
+            f"Re-run check against the previous run (`--compare`; git `{compared['environment'].get('git')}`, "
+            f"1-min load average {compared['environment']['load_average_start'][0]} at its start): "
+            f"{len(same)} of {len(data['rankings'])} rankings (graph and e2e) identical; the fastest model the same "
+            f"in {len(first)} of {len(data['rankings'])}.",
         ]
     if data["failures"]:
         lines += ["", "Not timed (the engine could not load the graph):", ""]
@@ -667,7 +684,7 @@ def markdown(data: dict, compared: dict | None = None) -> str:
         ]
     lines += [
         "",
-        "Reproduce (`pip install -e '.[train,openvino]'`; about 10 minutes on 2 cores, the exports cached in "
+        "Reproduce (`pip install -e '.[train,openvino]'`; about 15 minutes on 2 cores, the exports cached in "
         "`runs/peer_models/onnx`):",
         "",
         "```bash",
@@ -716,7 +733,7 @@ def build_parser() -> argparse.ArgumentParser:
     # Small defaults: Depth-Anything-V2 at 518x518 takes seconds per call on 2 cores, and every case
     # is also re-warmed (one call at least) before each block.
     p.add_argument("--warmup", type=int, default=1, help="untimed calls per case first (default 1)")
-    p.add_argument("--rounds", type=int, default=4, help="interleaved rounds (default 4)")
+    p.add_argument("--rounds", type=int, default=6, help="interleaved rounds (default 6)")
     p.add_argument("--block", type=int, default=1, help="timed calls per case per round (default 1)")
     p.add_argument("--no-memory", action="store_true", help="skip the per-configuration memory processes")
     p.add_argument("--quick", action="store_true", help="development: 1 warm-up, 1 round x 1 call, no memory")

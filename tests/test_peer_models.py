@@ -19,6 +19,7 @@ from benchmarks.peer_models import (  # noqa: E402
     export_peer,
     graph_macs_all,
     prepare,
+    rankings,
     replace_section,
 )
 from geonet_infer.engines import make_engine  # noqa: E402
@@ -126,3 +127,23 @@ def test_replace_section_rewrites_only_its_own_section(tmp_path):
     other.write_text("# Q\n")
     replace_section(other, "## Versus the models users pick instead\n\nx\n")
     assert other.read_text() == "# Q\n\n## Versus the models users pick instead\n\nx\n"
+
+
+def test_rankings_per_configuration_and_at_each_models_best():
+    def row(model, which, precision, backend, ms):
+        return {"model": model, "which": which, "precision": precision, "backend": backend, "mode": "e2e", "p50_ms": ms}
+
+    results = [
+        row("geonet", "ours", "fp32", "onnxruntime", 30.0),
+        row("geonet", "ours", "int8", "onnxruntime", 50.0),
+        row("a", "ours", "fp32", "onnxruntime", 20.0),
+        row("a", "ours", "int8", "onnxruntime", 60.0),
+        row("b", "ours", "fp32", "onnxruntime", 40.0),
+        row("b", "ours", "int8", "onnxruntime", 10.0),
+        row("a", "native", "fp32", "onnxruntime", 90.0),
+    ]
+    r = rankings(results)
+    assert r["ours/fp32/onnxruntime/e2e"] == ["a", "geonet", "b"]
+    assert r["ours/int8/onnxruntime/e2e"] == ["b", "geonet", "a"]
+    assert r["ours/best/e2e"] == ["b", "a", "geonet"]  # b 10, a 20, geonet 30
+    assert r["native/best/e2e"] == ["geonet", "a"]  # GeoNet's 128x416 is its native size too
