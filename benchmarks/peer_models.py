@@ -585,6 +585,8 @@ def markdown(data: dict, compared: dict | None = None) -> str:
         f"on disk ({env['frame']}): read, resize, normalise, graph, output resized back. "
         f"*frames/s per core* = 1000 / e2e ms / {env['threads']} threads, best engine and precision.",
         f"- INT8 calibration: {env['calibration']}.",
+        "- With few samples on a loaded machine a cell can show e2e below graph (the two are separate, "
+        "interleaved samples): read differences of less than about 30 % between models as noise.",
         "",
     ]
     for kind, title in (("ours", "At our input size (128x416)"), ("native", "At each model's native input size")):
