@@ -96,7 +96,7 @@ def external_data_location(buf, kind: str = "model", start: int = 0, end: int | 
     end = len(buf) if end is None else end
     if kind == "tensor":
         return _tensor_location(buf, start, end)
-    for field_number, wire, value in _fields(buf, start, end):
+    for field_number, _, value in _fields(buf, start, end):
         child = _ONNX_CHILDREN[kind].get(field_number)
         if child and isinstance(value, tuple):
             location = external_data_location(buf, child, *value)

@@ -22,11 +22,14 @@ CPU facts behind the defaults (``../shared/reference/onnx_notes.md`` section 2):
   uint8 x int8 products in int16 with saturation (VPMADDUBSW), so 8-bit weights beyond +-64
   overflow (``export/int8_arith.py`` emulates it). :data:`X64_QUANT_PRECISION` turns on
   onnxruntime's own remedy: it stores such a graph's int8 weights as uint8 and runs exact U8U8
-  kernels; it changes nothing on CPUs with VNNI or AMX (issue 45, docs/performance.md).
+  kernels; it changes nothing on CPUs with VNNI or AMX, so it is set only where the INT8 kernel is
+  "avx2" (issue 45, docs/performance.md). onnxruntime refuses it for a graph whose int8 weight
+  feeds several nodes; such a graph then loads without it, after one line on stderr.
 """
 
 from __future__ import annotations
 
+import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -35,6 +38,7 @@ import numpy as np
 import onnxruntime as ort
 
 from geonet_infer.core.manifest import IoSpec
+from geonet_infer.cpu import cpu_info
 from geonet_infer.errors import InputError, ModelError
 
 # onnxruntime's kOrtSessionOptionsAvx2PrecisionMode (see the module docstring)
@@ -73,7 +77,8 @@ def make_session_options(
     flag = "1" if spinning else "0"
     so.add_session_config_entry("session.intra_op.allow_spinning", flag)
     so.add_session_config_entry("session.inter_op.allow_spinning", flag)
-    so.add_session_config_entry(X64_QUANT_PRECISION, "1")
+    if cpu_info()["int8_kernel"] == "avx2":  # only there does it change anything (module docstring)
+        so.add_session_config_entry(X64_QUANT_PRECISION, "1")
     so.log_severity_level = 3  # errors only; warnings about unused initialisers are noise
     return so
 
@@ -108,10 +113,22 @@ def make_session(
     path = Path(path)
     if not path.is_file():
         raise ModelError(path, "ONNX model not found", "export models with `python -m export`")
+    options = options or make_session_options()
     try:
-        session = ort.InferenceSession(
-            str(path), sess_options=options or make_session_options(), providers=list(providers)
-        )
+        try:
+            session = ort.InferenceSession(str(path), sess_options=options, providers=list(providers))
+        except Exception as exc:
+            if "Attempt to replace the existing tensor" not in str(exc) or not _has_int8_remedy(options):
+                raise
+            # onnxruntime cannot apply its remedy to an int8 weight that feeds several nodes: without it
+            # the graph loads, and its INT8 may saturate on this CPU (said in one line)
+            options.add_session_config_entry(X64_QUANT_PRECISION, "0")
+            session = ort.InferenceSession(str(path), sess_options=options, providers=list(providers))
+            print(
+                f"geonet-infer: warning: {path}: onnxruntime cannot run this graph's INT8 exactly on a CPU "
+                "without VNNI (an int8 weight feeds several nodes); its INT8 may saturate here",
+                file=sys.stderr,
+            )
     except Exception as exc:  # ORT raises Fail / InvalidProtobuf / InvalidGraph / RuntimeException
         raise ModelError(
             path,
@@ -124,6 +141,13 @@ def make_session(
             path, f"execution provider(s) {missing} not active", f"available: {ort.get_available_providers()}"
         )
     return session
+
+
+def _has_int8_remedy(options: ort.SessionOptions) -> bool:
+    try:
+        return options.get_session_config_entry(X64_QUANT_PRECISION) == "1"
+    except RuntimeError:  # onnxruntime raises for an entry never set
+        return False
 
 
 class OrtEngine:

@@ -21,6 +21,7 @@ from export.int8_arith import (
 )
 from geonet_infer.core.manifest import load_manifest
 from geonet_infer.cpu import cpu_info
+from geonet_infer.engines import onnxruntime as ort_engine
 from geonet_infer.engines.onnxruntime import X64_QUANT_PRECISION, make_session_options
 from geonet_infer.io import list_images, read_image
 from geonet_infer.models import resolve_model
@@ -76,7 +77,7 @@ def _first_conv_inputs(model: onnx.ModelProto, image: np.ndarray, kernel: tuple[
     return windows.transpose(1, 2, 0, 3, 4).reshape(-1, q.shape[0] * kernel[0] * kernel[1])
 
 
-def test_bundled_int8_convs_exact_on_avx2_as_the_runtime_runs_them():
+def test_bundled_int8_convs_exact_on_avx2_as_the_runtime_runs_them(monkeypatch):
     """The bundled INT8 DepthNet's first convolution on a real sample frame: AVX2's saturating sums
     differ from the exact ones (8-bit weights overflow int16 pairs); with the runtime's session options
     onnxruntime computes it exactly on AVX2 too (it fails without X64_QUANT_PRECISION in them)."""
@@ -91,11 +92,63 @@ def test_bundled_int8_convs_exact_on_avx2_as_the_runtime_runs_them():
     weights = w.reshape(w.shape[0], -1).T  # (K, out channels)
     exact = dot_exact(a, weights)
     assert not np.array_equal(dot_avx2_u8s8(a, weights), exact), f"{name}: no saturation on this frame"
+    # the session options the runtime makes on an AVX2-only CPU
+    monkeypatch.setattr(ort_engine, "cpu_info", lambda: {"int8_kernel": "avx2"})
     try:
         precision_mode = make_session_options().get_session_config_entry(X64_QUANT_PRECISION) == "1"
     except RuntimeError:  # onnxruntime raises for a key never set
         precision_mode = False
     assert np.array_equal(dot_as_onnxruntime_runs_it(a, weights, "avx2", precision_mode), exact)
+
+
+def _shared_weight_graph(path):
+    """A QDQ graph whose one int8 weight (beyond +-64) feeds two MatMuls (as a norm shared by several
+    layers does): onnxruntime refuses its AVX2 remedy for such a graph."""
+    rng = np.random.default_rng(3)
+    inits = [
+        numpy_helper.from_array(rng.integers(-127, 128, (8, 8)).astype(np.int8), "w"),
+        numpy_helper.from_array(np.array(0.01, np.float32), "ws"),
+        numpy_helper.from_array(np.array(0, np.int8), "wz"),
+        numpy_helper.from_array(np.array(0.02, np.float32), "xs"),
+        numpy_helper.from_array(np.array(128, np.uint8), "xz"),
+    ]
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "xs", "xz"], ["xq"]),
+        helper.make_node("DequantizeLinear", ["xq", "xs", "xz"], ["xd"]),
+        helper.make_node("DequantizeLinear", ["w", "ws", "wz"], ["wd"]),
+        helper.make_node("MatMul", ["xd", "wd"], ["h"]),
+        helper.make_node("Relu", ["h"], ["r"]),
+        helper.make_node("QuantizeLinear", ["r", "xs", "xz"], ["rq"]),
+        helper.make_node("DequantizeLinear", ["rq", "xs", "xz"], ["rd"]),
+        helper.make_node("MatMul", ["rd", "wd"], ["y"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "g",
+        [helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [4, 8])],
+        [helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, None)],
+        inits,
+    )
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), str(path))
+
+
+def test_the_avx2_remedy_is_set_only_where_it_matters_and_a_graph_it_refuses_still_loads(monkeypatch, tmp_path, capsys):
+    path = tmp_path / "shared.onnx"
+    _shared_weight_graph(path)
+    x = {"x": np.linspace(-1, 1, 32, dtype=np.float32).reshape(4, 8)}
+    monkeypatch.setattr(ort_engine, "cpu_info", lambda: {"int8_kernel": "avx512_vnni"})
+    with pytest.raises(RuntimeError):  # exact kernels: nothing to remedy, the entry is not set
+        make_session_options().get_session_config_entry(X64_QUANT_PRECISION)
+    reference = ort_engine.make_session(path, make_session_options(threads=1)).run(None, x)[0]
+    assert capsys.readouterr().err == ""
+
+    monkeypatch.setattr(ort_engine, "cpu_info", lambda: {"int8_kernel": "avx2"})
+    options = make_session_options(threads=1)
+    assert options.get_session_config_entry(X64_QUANT_PRECISION) == "1"
+    session = ort_engine.make_session(path, options)  # onnxruntime refuses the remedy for this graph
+    np.testing.assert_array_equal(session.run(None, x)[0], reference)  # this CPU: exact kernels either way
+    err = capsys.readouterr().err
+    assert f"{path}: onnxruntime cannot run this graph's INT8 exactly on a CPU without VNNI" in err
 
 
 @pytest.mark.parametrize("graph", ["depthnet", "posenet", "resflownet"])
