@@ -17,6 +17,7 @@ from geonet_infer import GeoNetError
 from geonet_infer.engines import (
     BACKENDS,
     ENGINES,
+    REFERENCE_MARGIN,
     OpenVinoEngine,
     OrtEngine,
     make_engine,
@@ -84,7 +85,11 @@ def test_auto_picks_one_engine_per_graph_and_keeps_the_results(sequence, ort_fp3
     for name, choice in predictor.backend_choice.items():
         assert choice["chosen"] == predictor.engines[name] in ENGINES
         timings = choice["min_ms_batch1"]
-        assert timings[choice["chosen"]] == min(timings.values())
+        best = min(timings.values())
+        # the fastest, or the reference (onnxruntime) when nothing beats it by more than the margin
+        assert timings[choice["chosen"]] == best or (
+            choice["chosen"] == "onnxruntime" and best > (1 - REFERENCE_MARGIN) * timings["onnxruntime"]
+        )
     _assert_close(
         ort_fp32, predictor.predict_sequence(frames, camera=camera), depth_rtol=1e-4, flow_atol=1e-2, pose_atol=1e-5
     )

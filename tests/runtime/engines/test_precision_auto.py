@@ -96,6 +96,15 @@ def test_auto_never_beats_fp32_by_choosing_something_slower(monkeypatch):
         assert predictor.graph_set.runs[name]["precision"] == "fp32"
 
 
+def test_a_tie_within_timing_noise_keeps_fp32(monkeypatch):
+    _fake_timings(monkeypatch, {"onnxruntime fp32": 10.0, "onnxruntime int8": 9.8})  # 2 % faster: noise
+    runs = geonet_infer.load(precision="auto", backend="onnxruntime", threads=1).graph_set.runs
+    assert {runs[n]["precision"] for n in ("depthnet", "posenet", "resflownet")} == {"fp32"}
+    _fake_timings(monkeypatch, {"onnxruntime fp32": 10.0, "onnxruntime int8": 9.5})  # 5 % faster
+    runs = geonet_infer.load(precision="auto", backend="onnxruntime", threads=1).graph_set.runs
+    assert {runs[n]["precision"] for n in ("depthnet", "posenet", "resflownet")} == {"int8"}
+
+
 def test_unknown_precision_names_auto_among_the_choices():
     with pytest.raises(GeoNetError, match="unknown precision 'int4'.*fp32, int8, auto"):
         geonet_infer.load(precision="int4")
