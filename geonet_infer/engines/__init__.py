@@ -146,8 +146,9 @@ ENGINES: dict[str, type[Engine]] = {
 }
 BACKENDS = (*ENGINES, AUTO)  # what load(backend=) and --backend accept
 # auto takes another candidate than the reference (the first engine, FP32) only when its fastest call
-# beats the reference's by more than this: timing noise at load is a few %, and a tie keeps FP32
-REFERENCE_MARGIN = 0.03
+# beats the reference's by more than this: at load, on random inputs, a tie within a few % can still go
+# either way on real frames (ORT DepthNet INT8 vs FP32 here: 1-8 % apart at load, INT8 6 % slower end to end)
+REFERENCE_MARGIN = 0.05
 
 
 def make_engine(path: str | Path, backend: str, threads: int | None) -> Engine:

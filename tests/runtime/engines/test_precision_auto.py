@@ -97,10 +97,10 @@ def test_auto_never_beats_fp32_by_choosing_something_slower(monkeypatch):
 
 
 def test_a_tie_within_timing_noise_keeps_fp32(monkeypatch):
-    _fake_timings(monkeypatch, {"onnxruntime fp32": 10.0, "onnxruntime int8": 9.8})  # 2 % faster: noise
+    _fake_timings(monkeypatch, {"onnxruntime fp32": 10.0, "onnxruntime int8": 9.6})  # 4 % faster: noise
     runs = geonet_infer.load(precision="auto", backend="onnxruntime", threads=1).graph_set.runs
     assert {runs[n]["precision"] for n in ("depthnet", "posenet", "resflownet")} == {"fp32"}
-    _fake_timings(monkeypatch, {"onnxruntime fp32": 10.0, "onnxruntime int8": 9.5})  # 5 % faster
+    _fake_timings(monkeypatch, {"onnxruntime fp32": 10.0, "onnxruntime int8": 9.0})  # 10 % faster
     runs = geonet_infer.load(precision="auto", backend="onnxruntime", threads=1).graph_set.runs
     assert {runs[n]["precision"] for n in ("depthnet", "posenet", "resflownet")} == {"int8"}
 
