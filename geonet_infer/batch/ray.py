@@ -22,6 +22,7 @@ import logging
 import os
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
@@ -198,6 +199,7 @@ class RayRunner:
             # stack dump): the job's own handler is put back, so SIGTERM stops the job like Ctrl-C.
             main_thread = threading.current_thread() is threading.main_thread()
             previous = signal.getsignal(signal.SIGTERM) if main_thread else None
+            started = time.perf_counter()
             try:
                 if address:
                     ray.init(address=address, **common)
@@ -226,6 +228,13 @@ class RayRunner:
                 if previous is not None:
                     signal.signal(signal.SIGTERM, previous)
             started_here = True
+            # Ray's core worker then prints one "E ... core_worker.cc ... constructor arguments in the object
+            # store" line per actor pool (Ray issue 57733): harmless, and said so before the user sees it
+            log(
+                f"geonet-infer batch: note: Ray {'joined' if address else 'local cluster up'} in "
+                f"{time.perf_counter() - started:.1f} s; its 'core_worker.cc ... constructor arguments' "
+                "error line is harmless (on one machine the local runner is faster: docs/runtime.md)"
+            )
         ctx = ray.data.DataContext.get_current()
         for key, value in (
             ("enable_progress_bars", False),
