@@ -51,13 +51,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from geonet_infer.benchmark import cpu_flags
-from geonet_infer.cascade import InputSpec
+from geonet_infer.bench.environment import cpu_flags
+from geonet_infer.core.manifest import load_manifest
+from geonet_infer.core.spec import InputSpec
 from geonet_infer.cpu import cpu_info, isa_line
 from geonet_infer.engines import ENGINES, make_engine, usable_cpus
 from geonet_infer.errors import GeoNetError
 from geonet_infer.io.images import list_images, read_image, write_image
-from geonet_infer.manifest import load_manifest
 from geonet_infer.models import resolve_model
 from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mib, time_interleaved
 

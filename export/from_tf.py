@@ -556,7 +556,7 @@ def verify_conversion(conv: Conversion, model, height: int, width: int, seq_leng
     from export.to_onnx import ExportCheckError
     from export.verify import ort_outputs, torch_outputs
     from export.wrappers import build_wrapper
-    from geonet_infer.cascade import InputSpec
+    from geonet_infer.core.spec import InputSpec
     from geonet_infer.engines.onnxruntime import make_session
 
     frames, _ = load_frames(cfg.verify, height, width, max_frames=max(seq_length, 2))
