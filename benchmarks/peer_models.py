@@ -620,7 +620,7 @@ def markdown(data: dict, compared: dict | None = None) -> str:
         "### The models: parameters, accuracy as reported, memory",
         "",
         "Parameters are those of our PyTorch rebuild, beside the figure its authors state (within 2 % for "
-        "every peer: `tests/test_peer_models.py`). KITTI AbsRel is **reported, not measured here** (Eigen "
+        "every peer: `tests/benchmarks/test_peer_models.py`). KITTI AbsRel is **reported, not measured here** (Eigen "
         "split, 80 m cap, median scaling, as each paper states it); random weights cannot measure it. "
         "Memory: peak RSS a fresh process adds by loading the graph and running one e2e frame, MiB, at 128x416 "
         "(DA-V2: 126x420) / at the native size.",
