@@ -247,7 +247,7 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGINT"])
 def test_killed_job_resumes_to_identical_outputs(tmp_path, capfd, how):
-    names = ["k1", "k2", "k3", "k4"]
+    names = ["k1", "k2", "k3", "k4", "k5", "k6"]  # enough that the signal lands before the last one ends
     seqs = make_sequences(tmp_path / "in", names, 12)
     common = ["--calib", SAMPLE_CALIB, "--no-progress", "--batch-size", "4", "--workers", "1"]
     ref = tmp_path / "ref"
