@@ -259,6 +259,10 @@ def test_killed_job_resumes_to_identical_outputs(tmp_path, capfd, how):
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        # the job gets SIGINT with its default action, as from a user's terminal: in two CI rehearsals
+        # (the whole file, started in the background) the SIGINT'd job ran to its end; an ignored SIGINT
+        # inherited from the suite's process is the likely cause (not pinned down)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         assert _wait_for(lambda: any(out.glob(f"*/{MARKER_NAME}")), 120), "no sequence finished"
