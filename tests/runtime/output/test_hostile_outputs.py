@@ -243,6 +243,7 @@ class _Exited(BaseException):
     """os._exit, made visible to the test."""
 
 
+@pytest.mark.skipif(bool(os.environ.get("GEONET_RUNTIME_ONLY")), reason="runs this test module from the source tree")
 def test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker(tmp_path, monkeypatch):
     """Case 6: a SIGTERM sent to the whole group reaches a busy worker, then the job's own SIGTERM (stopping
     the pool) comes while the worker removes its unfinished folder. That one must neither cut the clean-up
