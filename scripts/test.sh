@@ -22,7 +22,9 @@ if [ $# -eq 0 ]; then
     failed=()
     files=(tests/**/test_*.py)
     for f in "${files[@]}"; do
+        start=$SECONDS
         .venv/bin/python -m pytest -q -p no:cacheprovider "$f" || failed+=("$f")
+        echo "scripts/test.sh: $f took $((SECONDS - start)) s"
     done
     n=${#files[@]}
     echo "scripts/test.sh: $((n - ${#failed[@]})) of $n test files passed${failed[*]:+; failed: ${failed[*]}}"

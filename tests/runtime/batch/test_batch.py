@@ -154,9 +154,12 @@ def test_local_engine_matches_predict(three, tmp_path, capfd):
 
 
 def require_ray() -> None:
-    """Skip without ray, except on CI (env var CI set), where a missing ray is a failure."""
+    """Skip without ray, except on CI (env var CI set), where a missing ray is a failure.
+
+    The runtime-only venv (scripts/test_runtime.sh) installs the runtime without extras by design;
+    the source-tree suite, which installs the ray extra, runs these tests on CI."""
     if importlib.util.find_spec("ray") is None:
-        if on_ci():
+        if on_ci() and not os.environ.get("GEONET_RUNTIME_ONLY"):
             pytest.fail("ray is not installed and CI is set: install the extra (pip install '.[ray]')", pytrace=False)
         pytest.skip("ray not installed (pip install 'geonet-infer[ray]')")
 

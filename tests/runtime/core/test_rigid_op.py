@@ -132,7 +132,7 @@ def test_predictor_with_the_numpy_op_gives_the_graphs_flow(kitti_raw):
     frames = list_images(kitti_raw / "image_02" / "data")[:3]
     graph = geonet_infer.load().flow(frames, camera=camera)
     fast = geonet_infer.load(rigid_op="numpy")
-    assert fast.graph_set.backends["rigidflow"] == "numpy"
+    assert fast.graph_set.engines["rigidflow"] == "numpy"
     ours = fast.flow(frames, camera=camera)
     np.testing.assert_allclose(ours.rigid_flow, graph.rigid_flow, atol=5e-4)
     np.testing.assert_allclose(ours.flow, graph.flow, atol=0.05)
