@@ -415,13 +415,55 @@ def rankings(results: list[dict]) -> dict[str, list[str]]:
     """Models from fastest to slowest (p50), per (size kind, precision, engine, mode), and per (size
     kind, mode) with each model at its best engine and precision ("best"). GeoNet's 128x416 is both
     its native size and ours."""
-    out: dict[str, dict[str, float]] = {}
+    return {k: rankings_of(v) for k, v in tied_rankings(results).items()}
+
+
+def tied_rankings(results: list[dict]) -> dict[str, list[list[str]]]:
+    """:func:`rankings` with ties: each ranking is a list of groups, fastest first. Two models that are
+    next to each other by p50 are in one group when their interquartile ranges of timed calls overlap
+    (the run cannot tell them apart); groups chain. A row without quartiles (an older JSON) is its own group."""
+    best: dict[str, dict[str, dict]] = {}
     for r in results:
         for kind in ("ours", "native") if r["model"] == "geonet" else (r["which"],):
             for key in (f"{kind}/{r['precision']}/{r['backend']}/{r['mode']}", f"{kind}/best/{r['mode']}"):
-                times = out.setdefault(key, {})
-                times[r["model"]] = min(times.get(r["model"], float("inf")), r["p50_ms"])
-    return {k: sorted(v, key=v.__getitem__) for k, v in sorted(out.items())}
+                rows = best.setdefault(key, {})
+                if r["model"] not in rows or r["p50_ms"] < rows[r["model"]]["p50_ms"]:
+                    rows[r["model"]] = r
+    out: dict[str, list[list[str]]] = {}
+    for key, rows in sorted(best.items()):
+        groups: list[list[str]] = []
+        previous = None
+        for model in sorted(rows, key=lambda m: rows[m]["p50_ms"]):
+            row = rows[model]
+            overlap = previous is not None and "q3_ms" in previous and "q1_ms" in row
+            if overlap and previous["q3_ms"] >= row["q1_ms"]:
+                groups[-1].append(model)
+            else:
+                groups.append([model])
+            previous = row
+        out[key] = groups
+    return out
+
+
+def quartiles(samples_ns: list[int]) -> dict[str, float]:
+    q1, q3 = np.percentile(np.asarray(samples_ns) / 1e6, [25, 75])
+    return {"q1_ms": float(q1), "q3_ms": float(q3)}
+
+
+def rankings_of(groups: list[list[str]]) -> list[str]:
+    return [m for group in groups for m in group]
+
+
+def contradictions(a: list[list[str]], b: list[list[str]]) -> list[tuple[str, str]]:
+    """Pairs of models that one tied ranking puts strictly in one order and the other strictly in the
+    other (a tie in either run is no contradiction)."""
+
+    def rank(groups: list[list[str]]) -> dict[str, int]:
+        return {m: i for i, group in enumerate(groups) for m in group}
+
+    ra, rb = rank(a), rank(b)
+    common = sorted(set(ra) & set(rb))
+    return [(x, y) for i, x in enumerate(common) for y in common[i + 1 :] if (ra[x] - ra[y]) * (rb[x] - rb[y]) < 0]
 
 
 def run(args) -> dict:
@@ -476,6 +518,8 @@ def run(args) -> dict:
                     "backend": backend,
                     "mode": mode,
                     **s.as_dict(),
+                    # quartiles of the timed calls: the ranking's ties (tied_rankings)
+                    **quartiles(case.samples_ns),
                     "fps_per_core": 1000.0 / s.p50_ms / threads,
                 }
             )
@@ -654,29 +698,37 @@ def markdown(data: dict, compared: dict | None = None) -> str:
         "",
         "### Ranking (e2e p50, fastest first)",
         "",
-        "| size / precision / engine | this run |" + (" previous run | same |" if compared else ""),
+        "`a < b`: a is faster, and the interquartile ranges of their timed calls do not overlap; `a ≈ b`: they "
+        "overlap, so this run cannot order them.",
+        "",
+        "| size / precision / engine | this run |" + (" previous run | same order |" if compared else ""),
         "|---|---|" + ("---|---|" if compared else ""),
     ]
-    old = (compared or {}).get("rankings", {})
-    keys = sorted(data["rankings"], key=lambda k: ("/best/" not in k, k))  # each model at its best first
+    tied = tied_rankings(data["results"])
+    old_tied = tied_rankings(compared["results"]) if compared else {}
+    shown_order = lambda groups: " < ".join(" ≈ ".join(g) for g in groups)  # noqa: E731
+    keys = sorted(tied, key=lambda k: ("/best/" not in k, k))  # each model at its best first
     for key in keys:
-        names = data["rankings"][key]
         if not key.endswith("/e2e"):
             continue
-        line = f"| {key[: -len('/e2e')]} | {' < '.join(names)} |"
+        line = f"| {key[: -len('/e2e')]} | {shown_order(tied[key])} |"
         if compared:
-            prev = old.get(key)
-            line += f" {' < '.join(prev) if prev else '—'} | {'yes' if prev == names else 'no'} |"
+            prev = old_tied.get(key)
+            clash = contradictions(tied[key], prev) if prev else []
+            verdict = "—" if not prev else "no: " + ", ".join(f"{a}/{b}" for a, b in clash) if clash else "yes"
+            line += f" {shown_order(prev) if prev else '—'} | {verdict} |"
         lines.append(line)
     if compared:
-        same = [k for k, v in data["rankings"].items() if old.get(k) == v]
-        first = [k for k, v in data["rankings"].items() if old.get(k) and old[k][0] == v[0]]
+        strict = [k for k in tied if old_tied.get(k) and rankings_of(tied[k]) == rankings_of(old_tied[k])]
+        clashing = [k for k in tied if old_tied.get(k) and contradictions(tied[k], old_tied[k])]
+        best = [k for k in tied if "/best/" in k and old_tied.get(k)]
         lines += [
             "",
             f"Re-run check against the previous run (`--compare`; git `{compared['environment'].get('git')}`, "
-            f"1-min load average {compared['environment']['load_average_start'][0]} at its start): "
-            f"{len(same)} of {len(data['rankings'])} rankings (graph and e2e) identical; the fastest model the same "
-            f"in {len(first)} of {len(data['rankings'])}.",
+            f"1-min load average {compared['environment']['load_average_start'][0]} at its start): of "
+            f"{len(tied)} rankings (graph and e2e), {len(tied) - len(clashing)} have no pair of models in the "
+            f"opposite order where both runs tell them apart ({len(best) - len(set(best) & set(clashing))} of the "
+            f"{len(best)} at each model's best); {len(strict)} have the same strict order of p50s, ties ignored.",
         ]
     if data["failures"]:
         lines += ["", "Not timed (the engine could not load the graph):", ""]
@@ -735,7 +787,7 @@ def build_parser() -> argparse.ArgumentParser:
     # Small defaults: Depth-Anything-V2 at 518x518 takes seconds per call on 2 cores, and every case
     # is also re-warmed (one call at least) before each block.
     p.add_argument("--warmup", type=int, default=1, help="untimed calls per case first (default 1)")
-    p.add_argument("--rounds", type=int, default=6, help="interleaved rounds (default 6)")
+    p.add_argument("--rounds", type=int, default=9, help="interleaved rounds (default 9)")
     p.add_argument("--block", type=int, default=1, help="timed calls per case per round (default 1)")
     p.add_argument("--no-memory", action="store_true", help="skip the per-configuration memory processes")
     p.add_argument("--quick", action="store_true", help="development: 1 warm-up, 1 round x 1 call, no memory")

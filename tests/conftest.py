@@ -23,6 +23,12 @@ if "tests" not in sys.modules:
     _tests.__path__ = [str(Path(__file__).resolve().parent)]
     sys.modules["tests"] = _tests
 
+# The CLI as a subprocess, as users run it: the venv's console script. `python -m geonet_infer.cli` from
+# the repository root would import the source tree (the working directory comes first on sys.path),
+# not the installed package the runtime-only run tests.
+_SCRIPT = Path(sys.executable).with_name("geonet-infer")
+GEONET_CLI = [str(_SCRIPT)] if _SCRIPT.exists() else [sys.executable, "-m", "geonet_infer.cli"]
+
 REALDATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
 KITTI_RAW = "kitti_raw_2011_09_26_sfnd"  # one KITTI raw drive: image_02, Velodyne scans, calibration
 KITTI_ODOMETRY = "kitti_odometry_00"  # KITTI odometry sequence 00, grey frames and calib.txt

@@ -1,4 +1,4 @@
-"""PNG encoding for the runtime's outputs: every row Sub-filtered, deflated by ISA-L.
+"""PNG encoding for the runtime's outputs: every row Sub- or Up-filtered, deflated by ISA-L.
 
 Why not OpenCV's encoder: writing a frame's PNGs was the largest cost of ``geonet-infer predict``
 (issue 30). OpenCV's PNG path takes 22 ms for a 1242x375 KITTI flow PNG even with compression
@@ -32,8 +32,8 @@ def encode_png(array: np.ndarray, up: bool = False) -> bytes:
     """(H, W) grey or (H, W, 1 | 3) grey / RGB pixels, uint8 or uint16 -> PNG file bytes.
 
     ``up``: the Up filter instead of Sub: about a fifth smaller and a little faster for the smooth
-    16-bit maps of upsampled network outputs (720p depth: 364 against 450 kB); the outputs that
-    always had Sub keep it, so their bytes do not change.
+    16-bit maps of upsampled network outputs (720p depth: 364 against 450 kB; 720p KITTI flow: 1.07
+    against 1.34 MB); the 8-bit pictures keep Sub.
 
     Raises:
         ValueError for a shape or dtype PNG cannot hold this way.

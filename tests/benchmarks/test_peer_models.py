@@ -16,11 +16,13 @@ from benchmarks import peer_nets  # noqa: E402
 from benchmarks.peer_models import (  # noqa: E402
     PEERS,
     build_module,
+    contradictions,
     export_peer,
     graph_macs_all,
     prepare,
     rankings,
     replace_section,
+    tied_rankings,
 )
 from geonet_infer.engines import make_engine  # noqa: E402
 
@@ -147,3 +149,25 @@ def test_rankings_per_configuration_and_at_each_models_best():
     assert r["ours/int8/onnxruntime/e2e"] == ["b", "geonet", "a"]
     assert r["ours/best/e2e"] == ["b", "a", "geonet"]  # b 10, a 20, geonet 30
     assert r["native/best/e2e"] == ["geonet", "a"]  # GeoNet's 128x416 is its native size too
+
+
+def test_models_whose_quartiles_overlap_are_tied_and_only_opposite_strict_orders_contradict():
+    def row(model, q1, p50, q3):
+        return {
+            "model": model,
+            "which": "ours",
+            "precision": "fp32",
+            "backend": "onnxruntime",
+            "mode": "e2e",
+            "p50_ms": p50,
+            "q1_ms": q1,
+            "q3_ms": q3,
+        }
+
+    # a [9, 11] and b [10.5, 12] overlap; c [20, 22] is apart; d [21.5, 23] overlaps c: two ties, one order.
+    results = [row("c", 20, 21, 22), row("a", 9, 10, 11), row("d", 21.5, 22, 23), row("b", 10.5, 11, 12)]
+    tied = tied_rankings(results)["ours/fp32/onnxruntime/e2e"]
+    assert tied == [["a", "b"], ["c", "d"]]
+    assert contradictions(tied, [["b"], ["a"], ["d", "c"]]) == []  # a/b ordered in one run, tied in the other
+    assert contradictions(tied, [["c"], ["a", "b", "d"]]) == [("a", "c"), ("b", "c")]
+    assert contradictions([["a"], ["b"]], [["b"], ["a"]]) == [("a", "b")]

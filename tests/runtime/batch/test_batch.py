@@ -25,12 +25,13 @@ import geonet_infer
 from geonet_infer.batch import FAILURES_NAME, MARKER_NAME, OWNER_NAME, plan_units, plan_workers
 from geonet_infer.cli import main
 from geonet_infer.output.layout import OUTPUT_MARKER
+from tests.conftest import GEONET_CLI
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 SAMPLE = PKG / "samples" / "synth_seq"
 SAMPLE_CALIB = SAMPLE / "calib.txt"
 FRAMES = sorted((SAMPLE / "image").glob("*.png"))
-CLI = [sys.executable, "-m", "geonet_infer.cli"]
+CLI = GEONET_CLI
 
 
 def on_ci() -> bool:
@@ -248,11 +249,6 @@ def _alive(pid: int) -> bool:
         return False
 
 
-@pytest.mark.skipif(
-    bool(os.environ.get("GEONET_RUNTIME_ONLY")),
-    reason="against the installed package its resume was refused as 'made with another set of options' "
-    "(not investigated yet); it runs in the source-tree suite",
-)
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGINT"])
 def test_killed_job_resumes_to_identical_outputs(tmp_path, capfd, how):
     names = ["k1", "k2", "k3", "k4", "k5", "k6"]  # enough that the signal lands before the last one ends

@@ -257,13 +257,10 @@ def test_no_command_prints_help_and_exits_2(capsys):
     assert rc == 2 and "predict" in stdout
 
 
-# BUG: geonet_infer/cli has no __main__.py, so `python -m geonet_infer.cli` fails with
-# "No module named geonet_infer.cli.__main__; 'geonet_infer.cli' is a package and cannot be
-# directly executed" (rc 1), although cli/__init__.py ends with `if __name__ == "__main__":
-# # python -m geonet_infer.cli`. Fix: add geonet_infer/cli/__main__.py calling sys.exit(main()).
-def test_module_entry_point_help_in_a_subprocess():
+# `python -m geonet_infer.cli` needs geonet_infer/cli/__main__.py (a package cannot run without it).
+def test_module_entry_point_help_in_a_subprocess(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-m", "geonet_infer.cli", "--help"], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "geonet_infer.cli", "--help"], cwd=tmp_path, capture_output=True, text=True, timeout=120
     )
     assert result.returncode == 0, result.stderr
     assert "predict" in result.stdout and "demo" in result.stdout and "info" in result.stdout

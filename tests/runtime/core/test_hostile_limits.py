@@ -25,6 +25,7 @@ import geonet_infer
 from geonet_infer import GeoNetError
 from geonet_infer.cli import main
 from geonet_infer.core.predictor import Predictor
+from tests.conftest import GEONET_CLI
 from tests.runtime.core.test_hostile_model import _synth_pose_sequence, edit_manifest, model_copy
 from tests.runtime.output.test_hostile_predict import (
     REPO,
@@ -252,8 +253,7 @@ def test_stdin_frames_of_another_size_than_declared_fail_with_a_warning(tmp_path
     data = rng.integers(0, 256, (5, 48, 64, 3), dtype=np.uint8).tobytes()  # 5 frames of 64x48
     out = tmp_path / "out"
     proc = subprocess.run(
-        [sys.executable, "-m", "geonet_infer.cli", "predict", "-", "--stdin-frames", "63x48", "--out", str(out)]
-        + list(DEPTH),
+        [*GEONET_CLI, "predict", "-", "--stdin-frames", "63x48", "--out", str(out)] + list(DEPTH),
         input=data,
         cwd=REPO,
         capture_output=True,
@@ -313,7 +313,7 @@ def test_a_short_write_names_the_file(tmp_path):
     code += "sys.exit(main(sys.argv[1:]))"
     proc = subprocess.run(
         [sys.executable, "-c", code, "predict", str(folder), "--out", str(out), *DEPTH],
-        cwd=REPO,
+        cwd=tmp_path,  # not the repository root: `-c` puts the working directory first on sys.path
         capture_output=True,
         text=True,
         timeout=120,

@@ -243,7 +243,6 @@ class _Exited(BaseException):
     """os._exit, made visible to the test."""
 
 
-@pytest.mark.skipif(bool(os.environ.get("GEONET_RUNTIME_ONLY")), reason="runs this test module from the source tree")
 def test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker(tmp_path, monkeypatch):
     """Case 6: a SIGTERM sent to the whole group reaches a busy worker, then the job's own SIGTERM (stopping
     the pool) comes while the worker removes its unfinished folder. That one must neither cut the clean-up
@@ -254,7 +253,10 @@ def test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker(tmp_path, monkey
     if not os.environ.get("GEONET_ISOLATED_TEST"):
         name = f"{Path(__file__).relative_to(REPO)}::test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker"
         proc = subprocess.run(
-            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", name],
+            # pytest's script, not `python -m pytest` (which puts the repository root, and so the source tree,
+            # first on sys.path); the runtime-only run keeps its empty pythonpath
+            [str(Path(sys.executable).with_name("pytest")), "-q", "-p", "no:cacheprovider", name]
+            + (["-o", "pythonpath="] if os.environ.get("GEONET_RUNTIME_ONLY") else []),
             cwd=REPO,
             env={**os.environ, "GEONET_ISOLATED_TEST": "1"},
             capture_output=True,

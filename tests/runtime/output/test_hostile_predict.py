@@ -29,6 +29,7 @@ import pytest
 import geonet_infer
 from geonet_infer.cli import main
 from geonet_infer.core.predictor import Predictor
+from tests.conftest import GEONET_CLI
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 SAMPLE = PKG / "samples" / "synth_seq"
@@ -54,7 +55,7 @@ def run_cli(capture, *argv) -> tuple[int, str, str]:
 
 def run_sub(*argv, **kwargs) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "geonet_infer.cli", *map(str, argv)],
+        [*GEONET_CLI, *map(str, argv)],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -222,8 +223,7 @@ def test_sigterm_mid_run_cleans_up_writes_an_interrupted_summary_and_exits_130(t
     folder = sample_folder(tmp_path, 150)
     out = tmp_path / "out"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "geonet_infer.cli", "predict", str(folder), "--out", str(out), "--no-progress"]
-        + ["--calib", str(SAMPLE_CALIB)],
+        [*GEONET_CLI, "predict", str(folder), "--out", str(out), "--no-progress"] + ["--calib", str(SAMPLE_CALIB)],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -381,7 +381,7 @@ except Exception as exc:
 
 def test_a_png_write_the_disk_refuses_is_an_os_error_not_a_bad_suffix(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-c", FSIZE_SCRIPT, str(tmp_path / "x.png")], cwd=REPO, capture_output=True, text=True
+        [sys.executable, "-c", FSIZE_SCRIPT, str(tmp_path / "x.png")], cwd=tmp_path, capture_output=True, text=True
     )
     assert proc.stdout.strip() == f"OSError {errno.EFBIG}", proc.stdout + proc.stderr
     assert os.listdir(tmp_path) == []  # no temp file left

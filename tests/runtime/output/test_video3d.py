@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -23,6 +22,7 @@ from geonet_infer.cli import main
 from geonet_infer.core.points import backproject, write_ply
 from geonet_infer.io import read_camera
 from geonet_infer.viz import SteadyScale, depth_to_color
+from tests.conftest import GEONET_CLI
 
 DASHCAM_VIDEO = "test_video.mp4"
 DASHCAM_CALIB = "calib_advanced_lane_lines.txt"
@@ -202,7 +202,7 @@ def test_raw_frames_on_stdin_give_the_depth_of_the_file(tmp_path, dashcam, ffmpe
         check=True,
     ).stdout
     assert len(raw) == 5 * 1280 * 720 * 3
-    cli = [sys.executable, "-m", "geonet_infer.cli", "predict"]
+    cli = [*GEONET_CLI, "predict"]
     common = ["--calib", str(calib), "--tasks", "depth", "--no-progress", "--quiet"]
     piped = subprocess.run(
         [*cli, "--stdin-frames", "1280x720", "--out", str(tmp_path / "stdin"), *common],
