@@ -1,8 +1,10 @@
 """GeoNet's depth network against the depth models users pick instead, in ONE interleaved run (issue 44).
 
-    python -m benchmarks.peer_models --json runs/bench/peer_models.json --page docs/performance.md
-    python -m benchmarks.peer_models --json runs/bench/peer_models_2.json \\
-        --compare runs/bench/peer_models.json              # a second run: same ranking?
+    python -m benchmarks.peer_models --json docs/peer_models_run1.json
+    python -m benchmarks.peer_models --json docs/peer_models_run2.json \\
+        --compare docs/peer_models_run1.json --page docs/performance.md   # a second run: same ranking?
+    python -m benchmarks.peer_models --render docs/peer_models_run2.json \\
+        --compare docs/peer_models_run1.json --page docs/performance.md   # the page again, no timing
     python -m benchmarks.peer_models --quick              # development: 1 round, no memory children
 
 The peers (:mod:`benchmarks.peer_nets`, random weights: speed only) are monodepth2 (ResNet18),
@@ -738,13 +740,16 @@ def markdown(data: dict, compared: dict | None = None) -> str:
         ]
     lines += [
         "",
-        "Reproduce (`pip install -e '.[train,openvino]'`; about 15 minutes on 2 cores, the exports cached in "
-        "`runs/peer_models/onnx`):",
+        "Reproduce (`pip install -e '.[train,openvino]'`; 7-8 minutes per run on 2 cores, plus the exports "
+        "the first time, cached in `runs/peer_models/onnx`):",
         "",
         "```bash",
-        "python -m benchmarks.peer_models --json runs/bench/peer_models_1.json",
-        "python -m benchmarks.peer_models --json runs/bench/peer_models_2.json \\",
-        "    --compare runs/bench/peer_models_1.json --page docs/performance.md",
+        "python -m benchmarks.peer_models --json docs/peer_models_run1.json",
+        "python -m benchmarks.peer_models --json docs/peer_models_run2.json \\",
+        "    --compare docs/peer_models_run1.json --page docs/performance.md",
+        "# the page again from the two JSONs, without timing:",
+        "python -m benchmarks.peer_models --render docs/peer_models_run2.json \\",
+        "    --compare docs/peer_models_run1.json --page docs/performance.md",
         "```",
         "",
     ]
@@ -776,6 +781,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, help="write every number of the run here")
     p.add_argument("--markdown", type=Path, help="write the section's markdown here")
     p.add_argument("--page", type=Path, help=f"rewrite this page's '{SECTION[3:]}' section")
+    p.add_argument("--render", type=Path, help="no timing: render a previous run's --json (with --page, --compare)")
     p.add_argument("--compare", type=Path, help="a previous run's --json: report whether the rankings are the same")
     p.add_argument("--geonet", default="small_synth", help="GeoNet model: bundled name or model directory")
     p.add_argument("--peers", default=",".join(PEERS), help=f"comma list of {', '.join(PEERS)}")
@@ -817,9 +823,16 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError) as exc:
             print(f"error: --compare {args.compare}: {exc}", file=sys.stderr)
             return 2
-    data = run(args)
+    if args.render:
+        try:
+            data = json.loads(args.render.read_text())
+        except (OSError, ValueError) as exc:
+            print(f"error: --render {args.render}: {exc}", file=sys.stderr)
+            return 2
+    else:
+        data = run(args)
     text = markdown(data, compared)
-    if args.json:
+    if args.json and not args.render:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(data, indent=1, default=str) + "\n")
     if args.markdown:

@@ -38,7 +38,7 @@ def write_depth_kitti(path, depth: np.ndarray, too_far: str = "zero") -> None:
     steps[~(finite & (steps > 0))] = 0
     steps[far] = 65535 if too_far == "clip" else 0
     with atomic_write(path) as tmp:
-        tmp.write_bytes(encode_png(steps.astype(np.uint16), up=True))
+        tmp.write_bytes(encode_png(steps.astype(">u2"), up=True))  # big-endian, as PNG stores it: no copy
 
 
 def read_depth_kitti(path) -> np.ndarray:

@@ -29,7 +29,7 @@ _LEVEL = 1  # ISA-L level 1: its fastest full-compression level (0 is for alread
 
 
 def encode_png(array: np.ndarray, up: bool = False) -> bytes:
-    """(H, W) grey or (H, W, 1 | 3) grey / RGB pixels, uint8 or uint16 -> PNG file bytes.
+    """(H, W) grey or (H, W, 1 | 3) grey / RGB pixels, uint8 or uint16 (either byte order) -> PNG file bytes.
 
     ``up``: the Up filter instead of Sub: about a fifth smaller and a little faster for the smooth
     16-bit maps of upsampled network outputs (720p depth: 364 against 450 kB; 720p KITTI flow: 1.07
@@ -39,15 +39,19 @@ def encode_png(array: np.ndarray, up: bool = False) -> bytes:
         ValueError for a shape or dtype PNG cannot hold this way.
     """
     array = np.asarray(array)
-    if array.dtype not in (np.uint8, np.uint16):
+    if array.dtype.kind != "u" or array.dtype.itemsize not in (1, 2):
         raise ValueError(f"PNG holds uint8 or uint16 pixels, got {array.dtype}")
     channels = 1 if array.ndim == 2 else array.shape[2] if array.ndim == 3 else 0
     if channels not in _COLOUR_TYPE or 0 in array.shape[:2]:
         raise ValueError(f"PNG needs (H, W) or (H, W, 3) with H, W > 0, got shape {array.shape}")
     height, width = array.shape[:2]
     # PNG stores 16-bit samples big-endian; one row of bytes per image row.
-    samples = np.empty((height, width, channels), ">u2" if array.dtype == np.uint16 else np.uint8)
-    samples.reshape(array.shape)[...] = array
+    big_endian = np.dtype(">u2") if array.dtype.itemsize == 2 else np.dtype(np.uint8)
+    if array.dtype == big_endian and array.flags.c_contiguous:
+        samples = array.reshape(height, width, channels)  # already as PNG stores it: no copy
+    else:
+        samples = np.empty((height, width, channels), big_endian)
+        samples.reshape(array.shape)[...] = array
     row_bytes = samples.view(np.uint8).reshape(height, -1)
     pixel_bytes = samples.itemsize * channels
     filtered = np.empty((height, row_bytes.shape[1] + 1), np.uint8)

@@ -83,6 +83,7 @@ def _decode_with_pypng(data: bytes) -> np.ndarray:
         ((19, 7), np.uint16),
         ((19, 7, 3), np.uint16),
         ((1, 1, 3), np.uint16),
+        ((19, 7, 3), ">u2"),  # big-endian, as PNG stores them (the flow writer's samples)
     ],
 )
 @pytest.mark.parametrize("up", [False, True], ids=["sub", "up"])
@@ -90,13 +91,14 @@ def test_png_encoder_round_trips_through_opencv_and_pypng(shape, dtype, up):
     from geonet_infer.io.png import encode_png
 
     rng = np.random.default_rng(len(shape) * 10 + np.dtype(dtype).itemsize)
-    image = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
+    native = np.dtype(dtype).newbyteorder("=")
+    image = rng.integers(0, np.iinfo(native).max, shape, dtype=native, endpoint=True).astype(dtype)
     image.flat[0], image.flat[-1] = 0, np.iinfo(dtype).max  # both ends of the range
     data = encode_png(image, up=up)
     by_opencv = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image.ndim == 3:
         by_opencv = by_opencv[..., ::-1]  # OpenCV decodes to BGR
-    assert by_opencv.dtype == dtype
+    assert by_opencv.dtype == native
     np.testing.assert_array_equal(by_opencv, image)
     np.testing.assert_array_equal(_decode_with_pypng(data).reshape(image.shape), image)
 
