@@ -801,6 +801,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _read_run(path: Path, flag: str) -> dict:
+    """A previous run's --json; ValueError naming the flag and the file if it cannot be read."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{flag} {path}: {exc}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.memory_child:
@@ -816,21 +824,13 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     if args.quick:
         args.warmup, args.rounds, args.block, args.no_memory = 1, 1, 1, True
-    compared = None
-    if args.compare:
-        try:
-            compared = json.loads(args.compare.read_text())
-        except (OSError, ValueError) as exc:
-            print(f"error: --compare {args.compare}: {exc}", file=sys.stderr)
-            return 2
-    if args.render:
-        try:
-            data = json.loads(args.render.read_text())
-        except (OSError, ValueError) as exc:
-            print(f"error: --render {args.render}: {exc}", file=sys.stderr)
-            return 2
-    else:
-        data = run(args)
+    try:
+        compared = _read_run(args.compare, "--compare") if args.compare else None
+        rendered = _read_run(args.render, "--render") if args.render else None
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    data = rendered if rendered is not None else run(args)
     text = markdown(data, compared)
     if args.json and not args.render:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -6,6 +6,8 @@ from the module under test), and hand-computed MACs of a two-layer graph.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -19,6 +21,7 @@ from benchmarks.peer_models import (  # noqa: E402
     contradictions,
     export_peer,
     graph_macs_all,
+    main,
     prepare,
     rankings,
     replace_section,
@@ -171,3 +174,17 @@ def test_models_whose_quartiles_overlap_are_tied_and_only_opposite_strict_orders
     assert contradictions(tied, [["b"], ["a"], ["d", "c"]]) == []  # a/b ordered in one run, tied in the other
     assert contradictions(tied, [["c"], ["a", "b", "d"]]) == [("a", "c"), ("b", "c")]
     assert contradictions([["a"], ["b"]], [["b"], ["a"]]) == [("a", "b")]
+
+
+DOCS = Path(__file__).resolve().parents[2] / "docs"
+
+
+def test_the_page_section_is_what_render_makes_of_the_two_committed_runs(tmp_path):
+    """docs/performance.md's peer section is exactly what the command named there renders from the
+    committed JSONs (no hand edits, no drift), and a missing --render file is a one-line error."""
+    page = tmp_path / "performance.md"
+    page.write_text((DOCS / "performance.md").read_text())
+    argv = ["--render", str(DOCS / "peer_models_run2.json"), "--compare", str(DOCS / "peer_models_run1.json")]
+    assert main([*argv, "--page", str(page)]) == 0
+    assert page.read_text() == (DOCS / "performance.md").read_text()
+    assert main(["--render", str(tmp_path / "missing.json")]) == 2
