@@ -251,13 +251,15 @@ def test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker(tmp_path, monkey
     It signals its own process, so it runs in a fresh interpreter: in the whole suite's process, where
     earlier tests loaded TensorFlow, Ray and OpenVINO, the same signals ended pytest with SIGSEGV."""
     if not os.environ.get("GEONET_ISOLATED_TEST"):
-        name = f"{Path(__file__).relative_to(REPO)}::test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker"
+        checkout = Path(__file__).resolve().parents[3]  # not REPO: site-packages in the runtime-only run
+        this_test = test_a_second_sigterm_in_a_workers_clean_up_ends_the_worker.__name__
+        name = f"{Path(__file__).resolve().relative_to(checkout)}::{this_test}"
         proc = subprocess.run(
             # pytest's script, not `python -m pytest` (which puts the repository root, and so the source tree,
             # first on sys.path); the runtime-only run keeps its empty pythonpath
             [str(Path(sys.executable).with_name("pytest")), "-q", "-p", "no:cacheprovider", name]
             + (["-o", "pythonpath="] if os.environ.get("GEONET_RUNTIME_ONLY") else []),
-            cwd=REPO,
+            cwd=checkout,
             env={**os.environ, "GEONET_ISOLATED_TEST": "1"},
             capture_output=True,
             text=True,
