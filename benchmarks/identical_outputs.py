@@ -37,7 +37,7 @@ CASES = {  # name -> predict arguments after INPUT (all on the KITTI drive, cali
     "kitti_pose": ["--tasks", "pose"],
 }
 # summary.json keys that differ between any two runs of the same code
-PER_RUN_KEYS = {"timings_ms_per_frame", "wall_s", "frames_per_s"}
+PER_RUN_KEYS = {"timings_ms_per_frame", "overlapped_ms_per_frame", "wall_s", "frames_per_s"}
 
 
 def run_predict(tree: Path, args: list[str], out: Path) -> None:
@@ -92,8 +92,10 @@ def compare(before: Path, after: Path, roots: tuple[Path, Path]) -> list[str]:
     for rel in sorted(files_before & files_after):
         a, b = (before / rel).read_bytes(), (after / rel).read_bytes()
         if rel.name == "summary.json":
-            if _strip(json.loads(_unrooted(a, roots))) != _strip(json.loads(_unrooted(b, roots))):
-                diffs.append(f"differs (beyond timings): {rel}")
+            sa, sb = _strip(json.loads(_unrooted(a, roots))), _strip(json.loads(_unrooted(b, roots)))
+            if sa != sb:
+                keys = sorted(k for k in sa.keys() | sb.keys() if sa.get(k) != sb.get(k))
+                diffs.append(f"differs (beyond timings): {rel}: {', '.join(keys)}")
         elif rel.name.startswith(".geonet-predict"):
             continue  # ownership marker and lock: paths and pids of this run
         elif rel.suffix == ".png" and a != b:
