@@ -22,7 +22,7 @@ from :mod:`geonet_infer.eval.baselines`); this module only picks the data and re
   camera height (1.65 m, ground plane fitted to the prediction, no ground truth),
   counting and naming the frames where no ground plane is found.
 
-``--real JSON`` (what ``geonet-infer eval all --json`` wrote for this model: every real set in
+``--real JSON`` (what ``python -m benchmarks.eval_all --json`` wrote for this model: every real set in
 ``../shared`` with ground truth, the model at FP32 and INT8 beside the classical baselines, and the
 real validation figure) adds the card's "Real data" section, rendered from that file and refused
 unless its graph files are the model's; with ``--from-json`` it needs no other measurement.
@@ -59,12 +59,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks import teacher_experiment
+from benchmarks import eval_all, teacher_experiment
 from geonet_infer.bench.environment import git_commit
 from geonet_infer.core.manifest import MANIFEST_NAME, Manifest, load_manifest
 from geonet_infer.core.predictor import Predictor
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.eval import eval_all, evaluation, metrics
+from geonet_infer.eval import evaluation, metrics
 from geonet_infer.eval.datasets import SNIPPET, Dataset, depth_dataset, flow_dataset, pose_dataset, read_heldout
 from geonet_infer.io.atomic import atomic_write
 
@@ -850,7 +850,7 @@ def render_card(result: dict) -> str:
 
 
 def _real_section(result: dict) -> list[str]:
-    """Section "Real data": every real set with ground truth, from ``geonet-infer eval all`` (``--real``)."""
+    """Section "Real data": every real set with ground truth, from ``python -m benchmarks.eval_all`` (``--real``)."""
     real = result.get("real")
     if not real:
         return []
@@ -861,7 +861,8 @@ def _real_section(result: dict) -> list[str]:
         f"Measured by `{real['command']} --json {result.get('real_json', 'REAL.json')}` (from the repository "
         f"root; {real['generated_utc']}) and rendered here from that JSON by "
         f"`{result.get('real_render_command', 'python -m benchmarks.model_card --real REAL.json ...')}`; every "
-        "number below comes from that run, scored by the code of `geonet-infer eval` (`geonet_infer.eval.eval_all`).",
+        "number below comes from that run, scored by the code of `geonet-infer eval` (`benchmarks/eval_all.py` on "
+        "`geonet_infer.eval`).",
         "",
         *body[2:],  # its first line (model, command, date) is said above
         "",
@@ -971,8 +972,8 @@ def _header_section(result: dict) -> list[str]:
     ]
     if result.get("real"):
         L += [
-            f"The section *Real data* comes from `geonet-infer eval all` (its own command is given there) and was "
-            f"added with `--real {result.get('real_json', 'REAL.json')}`.",
+            "The section *Real data* comes from `python -m benchmarks.eval_all` (its own command is given there) "
+            f"and was added with `--real {result.get('real_json', 'REAL.json')}`.",
             "",
         ]
     if result.get("real_training"):
@@ -1381,8 +1382,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--real",
         metavar="JSON",
-        help="the JSON of `geonet-infer eval all --json` for this model: rendered as the card's real-data section "
-        "(every real set of ../shared with ground truth); refused if measured on other graph files",
+        help="the JSON of `python -m benchmarks.eval_all --json` for this model: rendered as the card's real-data "
+        "section (every real set of ../shared with ground truth); refused if measured on other graph files",
     )
     p.add_argument(
         "--experiment",
@@ -1530,18 +1531,22 @@ def recorded_experiment(path: str | Path) -> dict:
 
 
 def recorded_real(path: str | Path, model: str | Path) -> dict:
-    """The JSON of ``geonet-infer eval all --json``, refused unless measured on ``model``'s graph files."""
+    """The JSON of ``python -m benchmarks.eval_all --json``, refused unless measured on ``model``'s graph files."""
     try:
         real = json.loads(Path(path).read_text())
         recorded = real["model"]["graphs"]
         real["sets"], real["validation"]  # noqa: B018  (the keys the section renders)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise InputError(path, f"not a `geonet-infer eval all --json` file ({exc})", "pass the file it wrote") from None
+        raise InputError(
+            path, f"not a `python -m benchmarks.eval_all --json` file ({exc})", "pass the file it wrote"
+        ) from None
     manifest = load_manifest(model)
     current = {p: {n: manifest.graph(n, p).sha256 for n in manifest.graph_names(p)} for p in manifest.precisions}
     if recorded != current:
         raise InputError(
-            path, f"its numbers were measured on other graph files than those of {model}", "run eval all on this model"
+            path,
+            f"its numbers were measured on other graph files than those of {model}",
+            "run python -m benchmarks.eval_all on this model",
         )
     for real_set in real["sets"]:  # the per-item rows stay in the eval-all JSON; the card needs the means
         for method in real_set["results"].values():

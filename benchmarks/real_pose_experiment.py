@@ -2,7 +2,7 @@
 
 ``python -m benchmarks.real_pose_experiment --out docs/real_pose_experiment.json`` writes the rule
 alone (committed before anything was scored); with ``--before BUNDLED.json --after CANDIDATE.json``
-(two ``geonet-infer eval all --json`` files, the bundled model's and the candidate's) it adds the
+(two ``python -m benchmarks.eval_all --json`` files, the bundled model's and the candidate's) it adds the
 before/after numbers and the verdict. ``python -m benchmarks.model_card ... --experiment
 docs/real_pose_experiment.json`` renders it in docs/models.md. ``--round 2`` is the second candidate
 (the same recipe with the pose loss against the official poses), judged against round 1's shipped
@@ -15,7 +15,7 @@ and the bundled model's own synthetic training scenes; the bundled ResFlowNet on
 Frames the candidate trains on (:data:`TRAIN_FRAMES`) are kept away from every frame it is judged
 on: sequence 00 is not trained on at all (its frame 0 is also a stereo-SGBM validation frame),
 sequence 06 only from frame 31 on (its frame 12 is the other SGBM frame), sequence 01 only up to
-frame 30. The pose half of the rule is judged on the snippets of ``eval all`` whose five frames are
+frame 30. The pose half of the rule is judged on the snippets of ``benchmarks.eval_all`` whose five frames are
 all outside :data:`TRAIN_FRAMES`.
 """
 
@@ -32,12 +32,13 @@ from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
 
 SNIPPET = 5
-# eval all's pose set name -> the frame numbers of that sequence the candidate was trained on
+# benchmarks.eval_all's pose set name -> the frame numbers of that sequence the candidate was trained on
 TRAIN_FRAMES = {
     "KITTI odometry 00": range(0),
     "KITTI odometry 06": range(31, 51),
     "KITTI odometry 01": range(0, 31),
 }
+# Kept verbatim as written before scoring (its `geonet-infer eval all` is `benchmarks.eval_all` since issue 42).
 RULE = (
     "Written before any candidate was scored. The candidate ships (replaces the bundled model) only if "
     "both hold, each judged on the FP32 graphs: (1) **real pose improves**: its mean ATE (paper, ÷N) over "
@@ -77,7 +78,9 @@ def _load(path: str | Path) -> dict:
         result = json.loads(Path(path).read_text())
         result["sets"], result["validation"]  # noqa: B018  (what the figures need)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise InputError(path, f"not a `geonet-infer eval all --json` file ({exc})", "pass the file it wrote") from None
+        raise InputError(
+            path, f"not a `python -m benchmarks.eval_all --json` file ({exc})", "pass the file it wrote"
+        ) from None
     return result
 
 
@@ -116,8 +119,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.real_pose_experiment", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("--out", required=True, help="JSON to write (docs/real_pose_experiment.json)")
-    p.add_argument("--before", help="eval all --json of the bundled model")
-    p.add_argument("--after", help="eval all --json of the candidate")
+    p.add_argument("--before", help="python -m benchmarks.eval_all --json of the bundled model")
+    p.add_argument("--after", help="python -m benchmarks.eval_all --json of the candidate")
     p.add_argument("--candidate", default="", help="what the candidate is (its model directory, training command)")
     p.add_argument("--round", type=int, choices=sorted(NOTES), default=1, help="which candidate (default 1)")
     args = p.parse_args(argv)

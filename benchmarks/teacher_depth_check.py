@@ -1,7 +1,7 @@
 """The triangulated depth teacher (``training.prepare --teacher-depth triangulate``) against stereo.
 
 An independent yardstick: OpenCV SGBM depth from each frame's right camera
-(:mod:`geonet_infer.eval.stereo`, the real validation depth of ``geonet-infer eval all``), on KITTI
+(:mod:`geonet_infer.eval.stereo`, the real validation depth of ``python -m benchmarks.eval_all``), on KITTI
 odometry 00 frame 0 and 06 frame 12 (validation frames: measured here, never trained on). The
 teacher has no metric scale, so its depth is scaled per image to SGBM's median over the pixels
 both have. Printed per frame and motion (the teacher's, from the flow; two-view ORB-VO for

@@ -2,7 +2,7 @@
 
 ``python -m benchmarks.teacher_experiment --out docs/teacher_experiment.json`` writes the rule alone
 (committed before anything was scored). With ``--before-model/--after-model`` (model directories) and
-``--before/--after`` (their ``geonet-infer eval all --json`` files) it scores both models on the held-back
+``--before/--after`` (their ``python -m benchmarks.eval_all --json`` files) it scores both models on the held-back
 clip and adds the numbers and the verdict. Candidates come from ``scripts/teacher_finetune.sh``.
 
 The held-back clip is ``test_video.mp4``, the one calibrated Udacity clip no candidate trains on,
@@ -26,6 +26,7 @@ from benchmarks.real_pose_experiment import _load, figures, write_result
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import read_flow_kitti
 
+# Kept verbatim as written before scoring (its `geonet-infer eval all` is `benchmarks.eval_all` since issue 42).
 RULE = (
     "Written before any candidate was scored. Two candidates (A: lr 2e-4, B: lr 1e-4; otherwise the same "
     "recipe) are compared on the held-back clip alone: the one with the lower FP32 EPE against the DIS "
@@ -171,8 +172,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="JSON to write (docs/teacher_experiment.json)")
     p.add_argument("--candidates", nargs="*", default=[], help="model directories to choose from on the held-back clip")
     p.add_argument("--before-model", help="the bundled model's directory")
-    p.add_argument("--before", help="eval all --json of the bundled model")
-    p.add_argument("--after", help="eval all --json of the chosen candidate")
+    p.add_argument("--before", help="python -m benchmarks.eval_all --json of the bundled model")
+    p.add_argument("--after", help="python -m benchmarks.eval_all --json of the chosen candidate")
     p.add_argument("--round", type=int, choices=sorted(ROUNDS), default=1, help="which round (default 1)")
     args = p.parse_args(argv)
     out: dict = {"rule": RULE, "round": args.round, "notes": ROUNDS[args.round], "holdback_data": str(HOLDBACK)}

@@ -1,6 +1,6 @@
 """The classical methods as choices beside the networks: DIS flow and ORB-VO poses for a sequence.
 
-The eval scores them as baselines (:mod:`geonet_infer.eval.baselines`, ``geonet-infer eval all``);
+The eval scores them as baselines (:mod:`geonet_infer.eval.baselines`, ``geonet-infer eval``);
 here the same code fills a sequence's :class:`~geonet_infer.core.results.FrameResult` flow or poses,
 so ``predict``, ``batch`` and :meth:`Predictor.iter_sequence` write them in the usual layout.
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 46: fine-tune the bundled ResFlowNet on real footage labelled by a classical teacher (OpenCV DIS
 # flow, forward-backward checked), beside GeoNet's own flow losses; export the candidate and score it with
-# `geonet-infer eval all` and the held-back clip (benchmarks/teacher_experiment.py applies the shipping
+# `python -m benchmarks.eval_all` and the held-back clip (benchmarks/teacher_experiment.py applies the shipping
 # rule written before scoring, docs/models.md "Classical-teacher experiment").
 #
 #   bash scripts/teacher_finetune.sh                      prepare + train (CPU) + export + score
@@ -60,6 +60,6 @@ if want finish; then
     run $PY -m training.checkpoint --weights-only "$OUT/flow/last.pt" "$OUT/combined.pt"
     run $PY -m export --checkpoint "$OUT/combined.pt" --out "$OUT/model" --force --precision fp32,int8 \
         --calib-data data/synth40/seq_0000/image --calib-method percentile --calib-frames 40 --int8-ops "$INT8_OPS"
-    run $PY -m geonet_infer.cli eval all --data "$REALDATA" --model "$OUT/model" --json "$OUT/real_eval.json" \
+    run $PY -m benchmarks.eval_all --data "$REALDATA" --model "$OUT/model" --json "$OUT/real_eval.json" \
         --markdown "$OUT/real_eval.md" || true  # exit 1 = a set missing or NaN: the JSON says which
 fi

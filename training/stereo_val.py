@@ -13,8 +13,8 @@ semi-global matching, kept only where the left and right disparities agree withi
 ``depth = fx * baseline / disparity``, with fx and the baseline read from the sequence's
 ``calib.txt`` projection matrices. It is a noisy yardstick (two frames, SGBM errors at
 occlusions and on thin poles), fit for comparing recipes, not for publishing.
-``geonet-infer eval all`` scores these frames with the other real depth outside the test drive
-(the real validation figure); the matcher lives in :mod:`geonet_infer.eval.stereo` for that reason.
+``python -m benchmarks.eval_all`` scores these frames with the other real depth outside the test drive
+(the real validation figure); the matcher lives in :mod:`geonet_infer.eval.stereo`, which both use.
 """
 
 from __future__ import annotations

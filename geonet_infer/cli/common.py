@@ -42,9 +42,12 @@ def backend_help() -> str:
     )
 
 
-def add_model_args(parser: argparse.ArgumentParser, threads: bool = True, rigid_op: bool = True) -> None:
-    """--model, --precision, --backend and (unless ``threads=False``: batch has per-worker threads)
-    --threads, and (unless ``rigid_op=False``) --rigid-op."""
+def add_model_args(
+    parser: argparse.ArgumentParser, threads: bool = True, rigid_op: bool = True, precision: bool = True
+) -> None:
+    """--model, --precision (unless ``precision=False``: the caller runs every precision), --backend and
+    (unless ``threads=False``: batch has per-worker threads) --threads, and (unless ``rigid_op=False``)
+    --rigid-op."""
     group = parser.add_argument_group("model")
     group.add_argument(
         "--model",
@@ -52,13 +55,14 @@ def add_model_args(parser: argparse.ArgumentParser, threads: bool = True, rigid_
         help=f"bundled model name or a model directory from `python -m export` "
         f"(default: the bundled {DEFAULT_MODEL!r})",
     )
-    group.add_argument(
-        "--precision",
-        default="fp32",
-        choices=PRECISION_CHOICES,
-        help="fp32; int8 (quantised ConvNets, faster on CPUs with VNNI); or auto: per graph, the fastest "
-        "precision that is exact on this CPU, timed at load with the engines --backend allows (default: fp32)",
-    )
+    if precision:
+        group.add_argument(
+            "--precision",
+            default="fp32",
+            choices=PRECISION_CHOICES,
+            help="fp32; int8 (quantised ConvNets, faster on CPUs with VNNI); or auto: per graph, the fastest "
+            "precision that is exact on this CPU, timed at load with the engines --backend allows (default: fp32)",
+        )
     group.add_argument(
         "--backend",
         default=BACKENDS[0],

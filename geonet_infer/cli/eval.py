@@ -3,23 +3,20 @@
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import add_model_args, load_predictor, parse_intrinsics, positive_int
-from geonet_infer.engines import BACKENDS
 from geonet_infer.errors import InputError
-from geonet_infer.eval import eval_all, evaluation
+from geonet_infer.eval import evaluation
 from geonet_infer.eval.datasets import EVAL_TASKS, LAYOUTS, REGISTRY, load_dataset, read_heldout
 from geonet_infer.io.atomic import atomic_write
 
 HELP_TEMPLATE = """\
 Score depth, optical flow or camera pose against ground truth, with the GeoNet paper's
 protocols, and print a table in the paper's column order (JSON with every item via --json).
-`eval all` scores a model on every real set with ground truth at once (see below).
 
   depth  Eigen metrics AbsRel SqRel RMSE RMSElog δ<1.25 δ<1.25² δ<1.25³; per-image median
          scaling, then clamp to [0.001, --max-depth]; Garg crop on KITTI, every GT pixel on
@@ -41,16 +38,6 @@ protocols, and print a table in the paper's column order (JSON with every item v
 Comma-separate several to get one table (--method model,dis,zero).
 
 {layouts}
-all: `geonet-infer eval all --data ../shared/realdata [--model M]` scores the model at every
-precision it has (FP32 and INT8) and the baselines (constant depth; DIS medium, zero flow;
-ORB-VO, identity pose) on each real set with ground truth: KITTI raw 2011_09_26 (the test
-drive), KITTI object 000000-000002, KITTI 2015 stereo 000046 and the stereo-SGBM frames of
-odometry 00/06 (depth), KITTI 2015 flow 000010 (flow), KITTI odometry 00, 06, 01 (pose).
-One row per (set, metric), frames counted, what each set is (drive, camera, scene), and the
-real validation figure: the mean over the real depth frames outside the test drive, on
-which models are chosen. --markdown FILE and --json FILE keep it. Exit 1 if a set's
-folder is missing or a prediction held NaN/inf.
-
 Ground truth: a frame of a KITTI raw drive without its ground-truth file (sparse depth PNG or
 Velodyne scan) is not scored; a warning on stderr says how many and which, the JSON lists them
 (data.frames_without_gt), and the exit code is 1 unless --allow-missing-gt accepts that. Ground
@@ -71,7 +58,6 @@ examples:
   geonet-infer eval flow --data ../shared/realdata/middlebury_flow --method dis,zero
   geonet-infer eval pose --data ../shared/realdata/kitti_odometry_00/sequences/00 --method model,orb-vo,identity
   geonet-infer eval flow --data data/synth40 --heldout data/synth40_prepared/heldout.txt --json flow.json
-  geonet-infer eval all --data ../shared/realdata --json real.json --markdown real.md
 """
 
 
@@ -98,10 +84,8 @@ def add_parser(sub) -> None:
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("task", choices=[*EVAL_TASKS, "all"], help="what to score (all: every real set, see above)")
-    parser.add_argument(
-        "--data", type=Path, required=True, help="dataset folder (see layouts above); all: the real-data folder"
-    )
+    parser.add_argument("task", choices=EVAL_TASKS, help="what to score")
+    parser.add_argument("--data", type=Path, required=True, help="dataset folder (see layouts above)")
     parser.add_argument(
         "--layout",
         default="auto",
@@ -196,62 +180,7 @@ def methods_for(task: str, text: str, args) -> list[tuple[str, Callable]]:
     return out
 
 
-# Options of one task's evaluation that `eval all` does not take (each set has its own), with their defaults.
-NOT_FOR_ALL = {
-    "layout": "auto",
-    "method": "model",
-    "heldout": None,
-    "stride": 1,
-    "limit": None,
-    "allow_missing_gt": False,
-    "max_depth": evaluation.MAX_DEPTH,
-    "crop": "auto",
-    "no_median_scaling": False,
-    "camera_height": None,
-    "multiview": None,
-    "intrinsics": None,
-    "fx": None,
-    "baseline": None,
-    "precision": "fp32",
-}
-
-
-def run_all(args: argparse.Namespace) -> int:
-    """`eval all`: the model at each precision and the baselines on every real set (geonet_infer.eval.eval_all)."""
-    for name, default in NOT_FOR_ALL.items():
-        if getattr(args, name) != default:
-            flag = "--" + name.replace("_", "-")
-            why = "it runs every precision of the model" if name == "precision" else "each set has its own"
-            raise InputError(None, f"{flag} does not apply to `eval all` ({why})", f"leave out {flag}")
-    predictor = load_predictor(args)
-    predictors = {"fp32": predictor}
-    for precision in predictor.manifest.precisions:
-        if precision != "fp32":
-            predictors[precision] = load_predictor(argparse.Namespace(**{**vars(args), "precision": precision}))
-    # the command that reproduces the numbers (output files left out: they do not change them)
-    words = ["geonet-infer", "eval", "all", "--data", str(args.data)]
-    for flag, value in (("--model", args.model), ("--backend", args.backend), ("--threads", args.threads)):
-        if value is not None and not (flag == "--backend" and value == BACKENDS[0]):
-            words += [flag, str(value)]
-    result = eval_all.run(args.data, predictors, command=shlex.join(words), progress=_progress)
-    text = eval_all.markdown(result)
-    print(text, end="")
-    if args.markdown:
-        with atomic_write(args.markdown) as tmp:
-            tmp.write_text(text)
-    if args.json:
-        evaluation.write_json(args.json, result)
-    errors = [e for s in result["sets"] for r in s["results"].values() for e in r["errors"]]
-    return 1 if errors or result["missing"] else 0
-
-
-def _progress(message: str) -> None:
-    print(f"geonet-infer eval all: {message}", file=sys.stderr)
-
-
 def run(args: argparse.Namespace) -> int:
-    if args.task == "all":
-        return run_all(args)
     if args.max_depth <= evaluation.MIN_DEPTH:
         raise InputError(None, f"--max-depth {args.max_depth:g} must be above {evaluation.MIN_DEPTH:g} m")
     if args.camera_height is not None and args.task != "depth":

@@ -1,8 +1,9 @@
 """Real validation depth from rectified KITTI stereo pairs (OpenCV SGBM), outside the test drive.
 
 The library half of ``python -m training.stereo_val`` (which writes these frames to a folder) and
-of ``geonet-infer eval all`` (which scores them): it lives in the runtime because the runtime's
-evaluation needs it and must never import ``training``. numpy + OpenCV only.
+of the repository's ``python -m benchmarks.eval_all`` (which scores them): it lives in the runtime
+because the runtime's evaluation needs it too (the kitti-disparity layout reads
+:func:`focal_and_baseline`) and must never import ``training``. numpy + OpenCV only.
 
 :func:`build` writes the stereo pairs of ``../shared/realdata/kitti_odometry_{00,06}`` as a
 KITTI-raw layout folder: ``image_02/data/<name>.png`` (the left image) and

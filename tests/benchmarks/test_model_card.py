@@ -656,11 +656,12 @@ def test_training_stage_row_says_where_the_run_started(card3, flags, origin):
 
 
 def test_real_section_is_rendered_from_the_eval_all_json(card3, tmp_path, kitti_object):
-    """`--real` renders the JSON of `geonet-infer eval all` (here on the KITTI object frames) as the card's real
+    """`--real` renders the JSON of `python -m benchmarks.eval_all` (here on the KITTI object frames) as the card's real
     section and its limitation; an eval-all JSON of other graph files is refused."""
+    from benchmarks import eval_all
     from benchmarks.model_card import recorded_real
     from geonet_infer.errors import GeoNetError
-    from geonet_infer.eval import eval_all, evaluation
+    from geonet_infer.eval import evaluation
 
     _, result = card3
     model_dir = Path(result["model"]["dir"])
@@ -668,14 +669,16 @@ def test_real_section_is_rendered_from_the_eval_all_json(card3, tmp_path, kitti_
     root.mkdir()
     (root / "kitti_object_3frames").symlink_to(kitti_object.resolve())
     predictors = {p: Predictor(model_dir, precision=p, threads=1) for p in ("fp32", "int8")}
-    real = eval_all.run(root, predictors, command="geonet-infer eval all --data realdata", allow_random_init=True)
+    real = eval_all.run(
+        root, predictors, command="python -m benchmarks.eval_all --data realdata", allow_random_init=True
+    )
     evaluation.write_json(tmp_path / "real.json", real)
     (tmp_path / "card.json").write_text(json.dumps(result))
     args = ["--model", str(model_dir), "--from-json", str(tmp_path / "card.json"), "--out", str(tmp_path / "m.md")]
     assert main([*args, "--real", str(tmp_path / "real.json"), "--no-manifest", "--quiet"]) == 0
     md = (tmp_path / "m.md").read_text()
     assert "## Real data: every set in ../shared with ground truth" in md
-    assert "Measured by `geonet-infer eval all --data realdata --json " in md
+    assert "Measured by `python -m benchmarks.eval_all --data realdata --json " in md
     (obj,) = real["sets"]
     fp32, int8, const = (obj["results"][k]["metrics"]["abs_rel"] for k in ("fp32", "int8", "constant"))
     assert f"| KITTI object 000000–000002 | AbsRel | 3 | {fp32:.3f} | {int8:.3f} | {const:.3f} |" in md
@@ -704,7 +707,7 @@ def test_real_pose_experiment_judges_only_snippets_not_trained_on(tmp_path):
     def eval_all(ate06: dict, abs_rel: float) -> dict:
         items = [{"name": n, "ate_snippet": v} for n, v in ate06.items()]
         return {
-            "command": "geonet-infer eval all --data realdata",
+            "command": "python -m benchmarks.eval_all --data realdata",
             "model": {"precisions": ["fp32"]},
             "validation": {"frames": 6, "metrics": {"fp32": {"abs_rel": abs_rel}}},
             "sets": [

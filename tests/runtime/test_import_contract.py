@@ -1,4 +1,5 @@
-"""Import contract: the runtime ``geonet_infer`` never imports torch, training or export.
+"""Import contract: the runtime ``geonet_infer`` never imports torch, training, export or benchmarks (the
+repository's developer tools, its catalogue of ../shared real sets among them: not in the wheel).
 
 Checked two ways: statically (every import statement of every runtime module, including
 imports inside functions, which a plain ``import geonet_infer`` would not execute) and
@@ -17,7 +18,7 @@ import geonet_infer
 
 ROOT = Path(__file__).resolve().parents[2]
 RUNTIME = ROOT / "geonet_infer"
-FORBIDDEN = ("torch", "training", "export")
+FORBIDDEN = ("torch", "training", "export", "benchmarks")
 TOP_LEVEL = {"geonet_infer", "training", "export", "benchmarks", "tests", "scripts"}  # the repository's packages
 
 

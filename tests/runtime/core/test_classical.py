@@ -1,6 +1,6 @@
 """The classical methods as choices in predict, batch and the API: DIS flow, ORB-VO poses.
 
-Golden values: the eval's own DIS score of the KITTI 2015 pair (``geonet-infer eval all``,
+Golden values: the eval's own DIS score of the KITTI 2015 pair (``python -m benchmarks.eval_all``,
 docs/real_eval.json) and the eval run here on the same pair; closed-form two-view geometry for
 the ORB-VO step length; the pose graph's own vector <-> matrix pairs for the Euler angles. No torch.
 """

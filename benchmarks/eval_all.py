@@ -1,10 +1,11 @@
-"""``geonet-infer eval all``: a model and the classical baselines on every real set with ground truth.
+"""``python -m benchmarks.eval_all``: a model and the classical baselines on every real set with ground truth.
 
-One table of real sets (:data:`REAL_SETS`), each a folder under the real-data root
-(``../shared/realdata``) read by its :mod:`geonet_infer.eval.datasets` layout and scored by
-:mod:`geonet_infer.eval.evaluation`, exactly as ``geonet-infer eval depth|flow|pose`` would score it:
-the model at every precision its manifest has (FP32 and INT8) beside the baselines of the task
-(depth: constant depth; flow: DIS medium and zero flow; pose: ORB-VO and identity pose).
+This repository's catalogue of real sets (:data:`REAL_SETS`, folders under ``../shared/realdata``) and
+its test drive: developer tooling, not part of the wheel (issue 42). Each set is read by its
+:mod:`geonet_infer.eval.datasets` layout and scored by :mod:`geonet_infer.eval.evaluation`, exactly as
+``geonet-infer eval depth|flow|pose`` would score it: the model at every precision its manifest has
+(FP32 and INT8) beside the baselines of the task (depth: constant depth; flow: DIS medium and zero
+flow; pose: ORB-VO and identity pose).
 
 It also computes the **real validation figure**: the mean over every real depth frame *outside*
 the test drive ``kitti_raw_2011_09_26_sfnd`` (the KITTI object frames, KITTI 2015 scene 000046 and
@@ -12,13 +13,16 @@ the two stereo-SGBM frames of :mod:`geonet_infer.eval.stereo`), each frame weigh
 choices are made on that figure, never on the test drive.
 
 :func:`run` returns a JSON-able dict; :func:`markdown` renders it (sets, then one row per (set,
-metric) with the model and the baselines side by side).
+metric) with the model and the baselines side by side); :func:`main` is the command line.
 """
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import math
+import shlex
+import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,12 +30,17 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.errors import InputError
+from geonet_infer.cli.common import add_model_args, load_predictor
+from geonet_infer.engines import BACKENDS
+from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.eval import evaluation, metrics, stereo
 from geonet_infer.eval.datasets import Dataset, load_dataset
+from geonet_infer.io.atomic import atomic_write
+
+PROG = "python -m benchmarks.eval_all"
 
 TEST_DRIVE = "kitti_raw_2011_09_26_sfnd"
-# Where a KITTI 2015 scene of the extract has no calibration file, eval all uses these values and says so.
+# Where a KITTI 2015 scene of the extract has no calibration file, eval_all uses these values and says so.
 # 2011_09_26's P_rect_02 (the test drive's calibration file); KITTI 2015 scenes come from days with
 # fx 707.05-721.54 px, so metric depth from it carries up to 2 % scale uncertainty (median-scaled
 # metrics are unaffected: every disparity of 000046 gives a depth under 80 m with either fx).
@@ -163,7 +172,7 @@ REAL_SETS: tuple[RealSet, ...] = (
     ),
 )
 
-# Folders of the real-data root that eval all does not score, and why (anything else is named as unknown).
+# Folders of the real-data root that eval_all does not score, and why (anything else is named as unknown).
 NOT_SCORED = {
     "middlebury_flow": "rendered scenes, not real footage (score it with `geonet-infer eval flow`)",
     "euroc_v1_01_micro": "the MAV stands still on the ground in these 20 frames (and no eval layout reads TUM poses)",
@@ -253,7 +262,7 @@ def run(
             sets.append(_score_set(real, folder, predictors, progress, allow_random_init))
     present = {p.split("/")[0] for real in REAL_SETS for p in (real.sources or (real.path,))}
     not_scored = [
-        {"folder": d.name, "why": NOT_SCORED.get(d.name, "no entry in geonet_infer.eval.eval_all.REAL_SETS")}
+        {"folder": d.name, "why": NOT_SCORED.get(d.name, "no entry in benchmarks.eval_all.REAL_SETS")}
         for d in sorted(root.iterdir())
         if d.is_dir() and d.name not in present and not d.name.startswith(".")
     ]
@@ -444,3 +453,92 @@ def _notes(result: dict) -> list[str]:
     for n in result["not_scored"]:
         L.append(f"* not scored: `{n['folder']}`: {n['why']}")
     return L + [""] if L else L
+
+
+# ----------------------------------------------------------------------------- command line
+HELP = """\
+Score a model at every precision it has (FP32 and INT8) and the classical baselines (constant
+depth; DIS medium, zero flow; ORB-VO, identity pose) on each real set with ground truth of this
+repository's real-data folder: KITTI raw 2011_09_26 (the test drive), KITTI object 000000-000002,
+KITTI 2015 stereo 000046 and the stereo-SGBM frames of odometry 00/06 (depth), KITTI 2015 flow
+000010 (flow), KITTI odometry 00, 06, 01 (pose). One row per (set, metric), frames counted, what
+each set is (drive, camera, scene), and the real validation figure: the mean over the real depth
+frames outside the test drive, on which models are chosen. --markdown FILE and --json FILE keep
+it; the JSON records the command that reproduces its numbers.
+
+Each set is scored as `geonet-infer eval depth|flow|pose` scores its folder (those commands take
+one folder and its own options). This catalogue of ../shared folders is the repository's, not the
+wheel's: run it from the repository root.
+
+exit codes: 0 done; 1 a set's folder is missing or a prediction held NaN/inf; 2 bad usage or data
+(one line naming the file); 3 a file could not be read or written; 130 interrupted
+
+examples (from the repository root):
+  python -m benchmarks.eval_all --data ../shared/realdata --json docs/real_eval.json --markdown docs/real_eval.md
+  python -m benchmarks.eval_all --data ../shared/realdata --model runs/real_pose/model --threads 1
+"""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # bad usage: one line, as the geonet-infer errors are
+        print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog=PROG, description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True, help="the real-data folder (../shared/realdata)")
+    # every precision of the model is scored, and the rigid-flow op is the reference graph: no flags for them
+    add_model_args(parser, precision=False, rigid_op=False)
+    parser.add_argument("--json", type=Path, default=None, help="also write every result and item here")
+    parser.add_argument("--markdown", type=Path, default=None, help="also write the printed tables here")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # 2 on bad usage, 0 on --help
+        return int(exc.code or 0)
+    try:
+        return _main(args)
+    except GeoNetError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # permission, disk full: one line, not a traceback
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"{PROG}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(args: argparse.Namespace) -> int:
+    predictors = {"fp32": load_predictor(argparse.Namespace(**vars(args), precision="fp32"))}
+    for precision in predictors["fp32"].manifest.precisions:
+        if precision != "fp32":
+            predictors[precision] = load_predictor(argparse.Namespace(**vars(args), precision=precision))
+    # the command that reproduces the numbers (output files left out: they do not change them)
+    words = ["python", "-m", "benchmarks.eval_all", "--data", str(args.data)]
+    for flag, value in (("--model", args.model), ("--backend", args.backend), ("--threads", args.threads)):
+        if value is not None and not (flag == "--backend" and value == BACKENDS[0]):
+            words += [flag, str(value)]
+    result = run(args.data, predictors, command=shlex.join(words), progress=_progress)
+    text = markdown(result)
+    print(text, end="")
+    if args.markdown:
+        with atomic_write(args.markdown) as tmp:
+            tmp.write_text(text)
+    if args.json:
+        evaluation.write_json(args.json, result)
+    errors = [e for s in result["sets"] for r in s["results"].values() for e in r["errors"]]
+    return 1 if errors or result["missing"] else 0
+
+
+def _progress(message: str) -> None:
+    print(f"{PROG}: {message}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
