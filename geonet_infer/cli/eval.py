@@ -84,7 +84,10 @@ def add_parser(sub) -> None:
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("task", choices=EVAL_TASKS, help="what to score")
+    # "all" only to say where it went (python -m benchmarks.eval_all, issue 42); not shown in --help
+    parser.add_argument(
+        "task", choices=[*EVAL_TASKS, "all"], metavar="{" + ",".join(EVAL_TASKS) + "}", help="what to score"
+    )
     parser.add_argument("--data", type=Path, required=True, help="dataset folder (see layouts above)")
     parser.add_argument(
         "--layout",
@@ -181,6 +184,12 @@ def methods_for(task: str, text: str, args) -> list[tuple[str, Callable]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.task == "all":
+        raise InputError(
+            None,
+            "`geonet-infer eval all` moved out of the package: it scores the repository's catalogue of real sets",
+            "In a checkout of the repository: python -m benchmarks.eval_all --data ../shared/realdata",
+        )
     if args.max_depth <= evaluation.MIN_DEPTH:
         raise InputError(None, f"--max-depth {args.max_depth:g} must be above {evaluation.MIN_DEPTH:g} m")
     if args.camera_height is not None and args.task != "depth":

@@ -740,3 +740,10 @@ def test_training_evaluate_scores_a_checkpoint_through_the_shared_loops(tmp_path
     for full, light in zip(results, from_weights):  # conv kernels stored as float16: close, not equal
         for key, value in full["metrics"].items():
             assert light["metrics"][key] == pytest.approx(value, rel=0.02, abs=1e-3), (full["task"], key)
+
+
+def test_eval_all_says_in_one_line_where_it_went(tmp_path, capsys):
+    """`eval all` left the package (issue 42): an old command gets exit 2 and the new one, not a usage dump."""
+    assert cli_main(["eval", "all", "--data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "python -m benchmarks.eval_all" in err
