@@ -47,7 +47,7 @@ from geonet_infer.batch.sizing import (  # noqa: F401  (re-exported: this module
 from geonet_infer.core.manifest import file_sha256
 from geonet_infer.core.predictor import TASKS
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.io.atomic import atomic_write
+from geonet_infer.io.atomic import atomic_write, leftover_temps
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
 from geonet_infer.output.layout import OUTPUT_MARKER
@@ -162,6 +162,9 @@ def discard(folder: Path) -> None:
     (folder / MARKER_NAME).unlink(missing_ok=True)  # first: a folder half cleared is never complete
     ownership.remove_listed(folder, sorted(listed))
     markers = (OUTPUT_MARKER, OWNER_NAME)  # kept while anything else is there (a user's file, a late write)
+    for name in (*markers, MARKER_NAME):  # a marker's temp, from a writer stopped (SIGTERM, SIGKILL) mid-write
+        for leftover in leftover_temps(folder / name):
+            leftover.unlink()
     if all(p.name in markers for p in folder.iterdir()):
         for name in markers:
             (folder / name).unlink(missing_ok=True)

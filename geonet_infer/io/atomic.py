@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
-import tempfile
+import secrets
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -41,6 +42,14 @@ def _umask() -> int:
     return mask
 
 
+_TEMP_CHARS = "abcdefghijklmnopqrstuvwxyz0123456789_"
+
+
+def _temp_name(path: Path) -> Path:
+    prefix, suffix = _temp_affixes(path)
+    return path.parent / (prefix + "".join(secrets.choice(_TEMP_CHARS) for _ in range(8)) + suffix)
+
+
 @contextlib.contextmanager
 def atomic_write(path) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
@@ -53,13 +62,21 @@ def atomic_write(path) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = None
-    try:  # from mkstemp on: an interrupt (Ctrl-C, SIGTERM) at any point still removes the temp file
-        prefix, suffix = _temp_affixes(path)
-        fd, name = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=suffix)
-        tmp = Path(name)
-        os.close(fd)
+    try:  # an interrupt (Ctrl-C, SIGTERM) at any point from the temp's creation on still removes it
+        # As mkstemp (O_EXCL, 0600), but the name is held before the file exists: an exception raised by
+        # a signal handler while mkstemp ran (after its open, before its return) left a temp nobody
+        # could remove (a batch worker stopped by SIGTERM, issue 43's CI run).
+        for _ in range(100):
+            tmp = _temp_name(path)
+            try:
+                os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+                break
+            except FileExistsError:  # another's file: never ours to remove
+                tmp = None
+        if tmp is None:
+            raise FileExistsError(errno.EEXIST, "no free temporary name", str(path))
         yield tmp
-        # mkstemp makes 0600 files; outputs get the mode a plain open() would give (0666 & ~umask).
+        # the temp is 0600; outputs get the mode a plain open() would give (0666 & ~umask).
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException as exc:

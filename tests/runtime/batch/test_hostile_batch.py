@@ -266,3 +266,23 @@ def test_no_temp_files_after_a_complete_run(tmp_path, capfd):
     rc, _, stderr = cli(capfd, "batch", *seqs, "--out", out, "--calib", SAMPLE_CALIB, "--no-progress")
     assert rc == 0, stderr
     assert leftovers(out) == [] and (out / OWNER_NAME).is_file()
+
+
+def test_a_folder_stopped_while_writing_its_marker_is_removed_whole(tmp_path):
+    """A worker stopped (SIGTERM, SIGKILL) while it wrote the folder's file list leaves that list's temp:
+    discarding the unfinished folder removes it too, and a user's file still keeps the folder."""
+    from geonet_infer.batch.units import discard
+
+    folder = tmp_path / "s2"
+    folder.mkdir()
+    (folder / OWNER_NAME).write_text("{}\n")
+    (folder / "..geonet-predict.ktjixf0g.tmp").write_text('{"files": [')  # the name CI saw left behind
+    discard(folder)
+    assert not folder.exists()
+
+    folder.mkdir()
+    (folder / OWNER_NAME).write_text("{}\n")
+    (folder / "..geonet-predict.abcd1234.tmp").write_text("")
+    (folder / "notes.txt").write_text("the user's")
+    discard(folder)
+    assert sorted(p.name for p in folder.iterdir()) == [OWNER_NAME, "notes.txt"]

@@ -591,3 +591,28 @@ def test_camera_undistort_equals_opencv_and_builds_its_maps_once(realdata):
     assert after.hits - before.hits >= 1  # the second frame reused the first frame's maps
     rectified = read_camera(realdata / "kitti_raw_2011_09_26_sfnd" / "calib_cam_to_cam.txt")
     assert rectified.undistort(frames[0]) is frames[0]  # no distortion: nothing to do
+
+
+def test_an_interrupt_right_after_the_temp_is_created_leaves_no_temp(tmp_path, monkeypatch):
+    """A signal handler that raises (a batch worker's SIGTERM) can fire right after the temp file's open
+    returns. With tempfile.mkstemp that was inside mkstemp, before its name reached the caller: the temp
+    stayed behind (seen in CI). The open is made to raise just after creating the file, as such a signal would."""
+    import os as os_module
+
+    from geonet_infer.io.atomic import atomic_write, leftover_temps
+
+    real_open = os_module.open
+
+    def open_then_interrupt(path, flags, *args, **kwargs):
+        fd = real_open(path, flags, *args, **kwargs)
+        if flags & os_module.O_EXCL:
+            os_module.close(fd)
+            raise KeyboardInterrupt
+        return fd
+
+    monkeypatch.setattr(os_module, "open", open_then_interrupt)
+    target = tmp_path / "out.png"
+    with pytest.raises(KeyboardInterrupt), atomic_write(target) as tmp:
+        tmp.write_bytes(b"never")
+    monkeypatch.undo()
+    assert os_module.listdir(tmp_path) == [] and leftover_temps(target) == []
