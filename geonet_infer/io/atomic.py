@@ -8,12 +8,12 @@ import os
 import re
 import secrets
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_write", "leftover_temps", "save_npy_atomic"]
+__all__ = ["atomic_write", "create_temp", "leftover_temps", "save_npy_atomic"]
 
 
 def _temp_affixes(path: Path) -> tuple[str, str]:
@@ -45,9 +45,25 @@ def _umask() -> int:
 _TEMP_CHARS = "abcdefghijklmnopqrstuvwxyz0123456789_"
 
 
-def _temp_name(path: Path) -> Path:
+def create_temp(path: Path, hold: Callable[[Path | None], object]) -> Path:
+    """Create a new empty file (0600, O_EXCL, as mkstemp) named like ``path``'s temps, and return its name.
+
+    ``hold(name)`` is called before the file exists (and ``hold(None)`` when another file has that name):
+    the caller holds the name from then on, so an exception a signal handler raises at any point (a batch
+    worker's SIGTERM) still lets it remove the temp. With mkstemp such an exception could come after its
+    open and before its return, and the temp stayed behind (seen in a CI run, issue 43).
+    """
     prefix, suffix = _temp_affixes(path)
-    return path.parent / (prefix + "".join(secrets.choice(_TEMP_CHARS) for _ in range(8)) + suffix)
+    for _ in range(100):
+        name = path.parent / (prefix + "".join(secrets.choice(_TEMP_CHARS) for _ in range(8)) + suffix)
+        hold(name)
+        try:
+            os.close(os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        except FileExistsError:  # another's file: never ours to remove
+            hold(None)
+            continue
+        return name
+    raise FileExistsError(errno.EEXIST, "no free temporary name", str(path))
 
 
 @contextlib.contextmanager
@@ -61,28 +77,17 @@ def atomic_write(path) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = None
+    held: list[Path | None] = [None]
     try:  # an interrupt (Ctrl-C, SIGTERM) at any point from the temp's creation on still removes it
-        # As mkstemp (O_EXCL, 0600), but the name is held before the file exists: an exception raised by
-        # a signal handler while mkstemp ran (after its open, before its return) left a temp nobody
-        # could remove (a batch worker stopped by SIGTERM, issue 43's CI run).
-        for _ in range(100):
-            tmp = _temp_name(path)
-            try:
-                os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-                break
-            except FileExistsError:  # another's file: never ours to remove
-                tmp = None
-        if tmp is None:
-            raise FileExistsError(errno.EEXIST, "no free temporary name", str(path))
+        tmp = create_temp(path, lambda name: held.__setitem__(0, name))
         yield tmp
         # the temp is 0600; outputs get the mode a plain open() would give (0666 & ~umask).
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException as exc:
-        if tmp is not None:
+        if held[0] is not None:
             with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
+                held[0].unlink()
         if isinstance(exc, OSError) and exc.filename is None:  # the error names the file it failed on
             # numpy's short write (a full disk) says only "N requested and M written", without errno
             why = exc.strerror or f"{exc} (a short write: is the disk full?)"

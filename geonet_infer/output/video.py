@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import errno
 import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from geonet_infer.errors import InputError
-from geonet_infer.io.atomic import _umask
+from geonet_infer.io.atomic import _umask, create_temp
 from geonet_infer.viz import side_by_side
 
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}  # what OpenCV's own FFmpeg writes everywhere
@@ -36,9 +35,7 @@ class VideoOut:
         panel = panel[: panel.shape[0] // 2 * 2, : panel.shape[1] // 2 * 2]  # even sizes: what codecs expect
         if self.writer is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd, name = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.stem}.", suffix=self.path.suffix)
-            os.close(fd)
-            self.tmp = Path(name)
+            create_temp(self.path, lambda name: setattr(self, "tmp", name))  # held before it exists: close() removes it
             codec = cv2.VideoWriter.fourcc(*VIDEO_CODECS[self.path.suffix.lower()])
             self.writer = cv2.VideoWriter(str(self.tmp), codec, self.fps, (panel.shape[1], panel.shape[0]))
             if not self.writer.isOpened():
