@@ -30,9 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
+from geonet_infer.cli import run_reporting_errors
 from geonet_infer.cli.common import add_model_args, load_predictor
 from geonet_infer.engines import BACKENDS
-from geonet_infer.errors import GeoNetError, InputError
+from geonet_infer.errors import InputError
 from geonet_infer.eval import evaluation, metrics, stereo
 from geonet_infer.eval.datasets import Dataset, load_dataset
 from geonet_infer.io.atomic import atomic_write
@@ -500,18 +501,7 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # 2 on bad usage, 0 on --help
         return int(exc.code or 0)
-    try:
-        return _main(args)
-    except GeoNetError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:  # permission, disk full: one line, not a traceback
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"{PROG}: error: {where}{exc.strerror or exc}", file=sys.stderr)
-        return 3
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+    return run_reporting_errors(PROG, lambda: _main(args))
 
 
 def _main(args: argparse.Namespace) -> int:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from geonet_infer.errors import GeoNetError
 
@@ -67,18 +67,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return EXIT_USAGE
+    return run_reporting_errors(f"geonet-infer {args.command}", lambda: args.run(args))
+
+
+def run_reporting_errors(prog: str, run: Callable[[], int]) -> int:
+    """``run()``'s exit code, with the errors a user can meet as one line on stderr and the exit codes
+    above (also the repository's own tools: ``python -m benchmarks.eval_all``)."""
     try:
-        return args.run(args)
+        return run()
     except GeoNetError as exc:
-        print(f"geonet-infer {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except BrokenPipeError:  # `geonet-infer info | head`: the reader left, nothing to report
         sys.stderr.close()
         return 0
     except KeyboardInterrupt:
-        print(f"geonet-infer {args.command}: interrupted", file=sys.stderr)
+        print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except OSError as exc:  # permission, disk full, read-only: one line, not a traceback
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"geonet-infer {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"{prog}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_OS_ERROR
