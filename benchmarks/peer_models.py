@@ -59,6 +59,7 @@ from geonet_infer.core.spec import InputSpec
 from geonet_infer.cpu import cpu_info, isa_line
 from geonet_infer.engines import ENGINES, make_engine, usable_cpus
 from geonet_infer.errors import GeoNetError
+from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.images import list_images, read_image, write_image
 from geonet_infer.models import resolve_model
 from geonet_infer.timing import Case, current_rss_mib, load_average, peak_rss_mib, time_interleaved
@@ -709,20 +710,20 @@ def markdown(data: dict, compared: dict | None = None) -> str:
     tied = tied_rankings(data["results"])
     old_tied = tied_rankings(compared["results"]) if compared else {}
     shown_order = lambda groups: " < ".join(" ≈ ".join(g) for g in groups)  # noqa: E731
+    clashes = {k: contradictions(v, old_tied[k]) for k, v in tied.items() if old_tied.get(k)}
     keys = sorted(tied, key=lambda k: ("/best/" not in k, k))  # each model at its best first
     for key in keys:
         if not key.endswith("/e2e"):
             continue
         line = f"| {key[: -len('/e2e')]} | {shown_order(tied[key])} |"
         if compared:
-            prev = old_tied.get(key)
-            clash = contradictions(tied[key], prev) if prev else []
+            prev, clash = old_tied.get(key), clashes.get(key)
             verdict = "—" if not prev else "no: " + ", ".join(f"{a}/{b}" for a, b in clash) if clash else "yes"
             line += f" {shown_order(prev) if prev else '—'} | {verdict} |"
         lines.append(line)
     if compared:
-        strict = [k for k in tied if old_tied.get(k) and rankings_of(tied[k]) == rankings_of(old_tied[k])]
-        clashing = [k for k in tied if old_tied.get(k) and contradictions(tied[k], old_tied[k])]
+        strict = [k for k in clashes if rankings_of(tied[k]) == rankings_of(old_tied[k])]
+        clashing = [k for k, clash in clashes.items() if clash]
         best = [k for k in tied if "/best/" in k and old_tied.get(k)]
         lines += [
             "",
@@ -765,9 +766,8 @@ def replace_section(page: Path, text: str) -> None:
     else:
         end = old.find("\n## ", start + len(SECTION))
         new = old[:start] + text + ("" if end < 0 else old[end + 1 :])
-    tmp = page.with_suffix(page.suffix + ".tmp")
-    tmp.write_text(new)
-    tmp.replace(page)
+    with atomic_write(page) as tmp:
+        tmp.write_text(new)
 
 
 # ----------------------------------------------------------------------------- command line
