@@ -22,8 +22,8 @@ ISA_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8")
 _NUMPY_NAMES = {"avx2": "AVX2", "avx512f": "AVX512F", "avx512_vnni": "AVX512VNNI"}
 
 
-def _from_proc(text: str) -> tuple[str | None, dict[str, bool | None]] | None:
-    """(model name, {flag: present}) from /proc/cpuinfo text; None if it lists no flags (not x86)."""
+def _parse_proc(text: str) -> tuple[str | None, set[str]] | None:
+    """(model name, flags) from /proc/cpuinfo text (its first CPU); None if it lists no flags (not x86)."""
     model, flags = None, None
     for line in text.splitlines():
         key, _, value = line.partition(":")
@@ -32,10 +32,31 @@ def _from_proc(text: str) -> tuple[str | None, dict[str, bool | None]] | None:
             model = value.strip()
         elif key == "flags" and flags is None:
             flags = set(value.split())
-    if flags is None:
+    return None if flags is None else (model, flags)
+
+
+def _from_proc(text: str) -> tuple[str | None, dict[str, bool | None]] | None:
+    """(model name, {flag: present}) from /proc/cpuinfo text; None if it lists no flags (not x86)."""
+    parsed = _parse_proc(text)
+    if parsed is None:
         return None
-    isa: dict[str, bool | None] = {f: f in flags for f in ISA_FLAGS}
-    return model, isa
+    model, flags = parsed
+    return model, {f: f in flags for f in ISA_FLAGS}
+
+
+@lru_cache(maxsize=1)
+def _proc_cpuinfo() -> str | None:
+    try:
+        return Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        return None
+
+
+def proc_flags() -> set[str]:
+    """Every flag /proc/cpuinfo lists for the first CPU (empty where there is none: not Linux, not x86)."""
+    text = _proc_cpuinfo()
+    parsed = None if text is None else _parse_proc(text)
+    return set() if parsed is None else parsed[1]
 
 
 def _from_numpy() -> dict[str, bool | None]:
@@ -51,11 +72,8 @@ def _from_numpy() -> dict[str, bool | None]:
 @lru_cache(maxsize=1)
 def cpu_info() -> dict:
     """``{"model": str | None, "isa": {flag: True/False/None}, "int8_kernel": str, "source": str}``."""
-    parsed = None
-    try:
-        parsed = _from_proc(Path("/proc/cpuinfo").read_text(errors="replace"))
-    except OSError:
-        pass
+    text = _proc_cpuinfo()
+    parsed = None if text is None else _from_proc(text)
     if parsed is not None:
         model, isa = parsed
         source = "/proc/cpuinfo"

@@ -15,7 +15,7 @@ from geonet_infer import __version__
 from geonet_infer.core.manifest import ModelCard, load_manifest
 from geonet_infer.core.predictor import TASK_GRAPHS as MODEL_TASK_GRAPHS  # depth, pose, flow
 from geonet_infer.core.predictor import missing_graphs
-from geonet_infer.cpu import cpu_info, isa_line
+from geonet_infer.cpu import cpu_info, isa_line, proc_flags
 from geonet_infer.engines import ENGINES, check_graphs, usable_cpus
 from geonet_infer.models import bundled_models, resolve_model
 
@@ -42,14 +42,8 @@ THREAD_ENV = (
 
 
 def cpu_flags() -> list[str]:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
-                have = set(line.split(":", 1)[1].split())
-                return [f for f in CPU_FLAGS if f in have]
-    except OSError:
-        pass
-    return []
+    have = proc_flags()
+    return [f for f in CPU_FLAGS if f in have]
 
 
 def cpu_model() -> str:
