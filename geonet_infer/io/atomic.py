@@ -17,7 +17,7 @@ __all__ = ["atomic_write", "create_temp", "leftover_temps", "save_npy_atomic"]
 
 
 def _temp_affixes(path: Path) -> tuple[str, str]:
-    """(prefix, suffix) of the temp names of ``path``: mkstemp puts 8 random characters between them."""
+    """(prefix, suffix) of the temp names of ``path``: :func:`create_temp` puts 8 random characters between them."""
     return f".{path.stem}.", path.suffix or ".tmp"
 
 
