@@ -29,9 +29,9 @@ import sys
 from pathlib import Path
 
 from export.build import ExportConfig, export_model
-from export.quantize import CALIBRATION_METHODS
 from export.to_onnx import ExportCheckError
 from export.wrappers import GRAPH_NAMES
+from geonet_infer.convert.quantize import CALIBRATION_METHODS
 from geonet_infer.errors import GeoNetError
 from geonet_infer.samples import SAMPLE_FRAMES
 from training.config import ARCHS

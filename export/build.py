@@ -12,25 +12,23 @@ renamed when complete, so DIR is either absent or whole. Bad input raises
 from __future__ import annotations
 
 import dataclasses
-import os
 import shutil
 import sys
-import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import onnx
 import torch
 
 from export import manifest as mf
-from export import quantize as qz
-from export.int8_arith import int8_kernels
 from export.source import Source, check_graph_size
 from export.to_onnx import OPSET, ExportCheckError, export_graph
 from export.wrappers import GRAPH_NAMES, RIGID_GRAPHS, build_wrapper, example_inputs, io_spec, photometric_alpha
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
+from geonet_infer.convert import manifest as cmf
+from geonet_infer.convert import quantize as qz
+from geonet_infer.convert.build import make_tmp_dir, publish
+from geonet_infer.convert.int8 import quantize_directory
 from geonet_infer.core.manifest import PRECISIONS, load_manifest, write_manifest
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
@@ -220,76 +218,52 @@ def _checkpoint_source(cfg: ExportConfig, graphs: list[str]) -> Source:
 
 
 def load_source(cfg: ExportConfig, graphs: list[str]) -> Source:
-    if cfg.from_tf:
-        from export.from_tf import tf_source
-
-        src = tf_source(cfg, graphs, lambda msg: _log(cfg, msg))
-    else:
-        src = _random_source(cfg, graphs) if cfg.random_init else _checkpoint_source(cfg, graphs)
+    src = _random_source(cfg, graphs) if cfg.random_init else _checkpoint_source(cfg, graphs)
     check_graph_size(src.height, src.width)
     return src
 
 
 # ------------------------------------------------------------------------------ directory
-def _make_tmp_dir(out: Path) -> Path:
-    parent = out.parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f"{out.name}.tmp-", dir=parent))
-    except OSError as exc:
-        raise InputError(
-            parent,
-            f"cannot create the output directory here ({exc.strerror or exc})",
-            "choose a writable --out location",
-        ) from None
-    os.chmod(tmp, 0o755)  # mkdtemp makes 0700; a model directory is meant to be shared
-    return tmp
-
-
-def _publish(tmp: Path, out: Path, force: bool) -> None:
-    """Rename the finished tmp dir onto ``out`` (an existing ``out`` is replaced only with force)."""
-    old = None
-    if out.exists():
-        if not force:
-            raise InputError(out, "output directory appeared during the export", "pass --force or choose another --out")
-        old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-", dir=out.parent))
-        os.rmdir(old)
-        os.replace(out, old)
-    os.replace(tmp, out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 # ------------------------------------------------------------------------------ export
 def _log(cfg: ExportConfig, msg: str) -> None:
     if not cfg.quiet:
         print(msg, file=sys.stderr, flush=True)
 
 
+def _manifest(src: Source, graphs: dict, prov, metrics: dict, quantization) -> object:
+    return cmf.build_manifest(
+        height=src.height,
+        width=src.width,
+        seq_length=src.seq_length,
+        arch=src.arch,
+        random_init=src.random_init,
+        graphs=graphs,
+        prov=prov,
+        metrics=metrics,
+        quantization=quantization,
+        photometric_alpha=photometric_alpha(src.model),
+    )
+
+
 def _interim_manifest(src: Source, graphs: dict, tmp: Path) -> None:
     """A manifest over the graphs written so far, so the runtime Predictor can run from ``tmp``."""
-    write_manifest(
-        mf.build_manifest(
-            height=src.height,
-            width=src.width,
-            seq_length=src.seq_length,
-            arch=src.arch,
-            random_init=src.random_init,
-            graphs=graphs,
-            prov=mf.provenance(src.arch, src.random_init, ""),
-            metrics={},
-            quantization=None,
-            photometric_alpha=photometric_alpha(src.model),
-        ),
-        tmp,
-    )
+    write_manifest(_manifest(src, graphs, mf.provenance(src.arch, src.random_init, ""), {}, None), tmp)
 
 
 def _export_fp32(cfg: ExportConfig, src: Source, graphs: list[str], tmp: Path) -> tuple[dict, str]:
     entries, exporters = {}, set()
     for graph in graphs:
         example = example_inputs(graph, src.height, src.width, src.seq_length, batch=1)
-        meta = mf.graph_metadata(graph, src.arch, src.height, src.width, src.seq_length, "fp32", src.random_init)
+        meta = cmf.graph_metadata(
+            graph,
+            src.arch,
+            src.height,
+            src.width,
+            src.seq_length,
+            "fp32",
+            src.random_init,
+            photometric_alpha(src.model),
+        )
         result = export_graph(
             build_wrapper(graph, src.model),
             example,
@@ -323,58 +297,6 @@ def _check_outputs(path: Path, example) -> None:
             raise ExportCheckError(
                 f"{path.name}: output {out.name} is {value.flat[0]:g} everywhere on example inputs (degenerate weights)"
             )
-
-
-def _export_int8(cfg: ExportConfig, src: Source, fp32: dict, tmp: Path):
-    from geonet_infer.core.cascade import InputSpec
-    from geonet_infer.core.predictor import Predictor
-
-    settings = cfg.quant_settings()
-    frames, original = qz.load_frames(
-        cfg.calib_data, src.height, src.width, settings.max_frames, min_frames=src.seq_length
-    )
-    K, k_source = qz.calibration_intrinsics(cfg.calib_data, original, src.height, src.width)
-    _interim_manifest(src, {"fp32": fp32}, tmp)  # the fp32 cascade validates hashes too
-    spec = InputSpec.from_conventions(src.height, src.width, src.seq_length)
-    feeds = {"depthnet": qz.depth_feeds(frames, spec), "posenet": qz.pose_feeds(frames, spec)}
-    if "resflownet" in fp32:
-        feeds["resflownet"] = qz.resflow_feeds(Predictor(tmp, "fp32"), frames, K)
-    entries, plan_notes = {}, {}
-    for graph in fp32:
-        if graph in qz.FP32_ONLY_GRAPHS:
-            entries[graph] = fp32[graph]  # same file: the int8 set reuses fp32 rigidflow.onnx
-            continue
-        started = time.perf_counter()
-        notes = qz.quantize_graph(
-            tmp / fp32[graph].file,
-            tmp / "int8" / f"{graph}.onnx",
-            feeds[graph],
-            settings,
-            qz.plan_for(graph, src.arch),
-        )
-        if notes:
-            plan_notes[graph] = notes
-        entries[graph] = mf.graph_entry(
-            tmp,
-            f"int8/{graph}.onnx",
-            graph,
-            src.height,
-            src.width,
-            src.seq_length,
-            OPSET,
-            "int8",
-            f"onnxruntime quantize_static QDQ of {fp32[graph].file}",
-        )
-        size = (tmp / "int8" / f"{graph}.onnx").stat().st_size / 2**20
-        _log(
-            cfg,
-            f"  int8 {graph}.onnx  {size:.1f} MiB  ({len(feeds[graph])} calibration inputs, "
-            f"{time.perf_counter() - started:.1f} s)",
-        )
-        for line in notes:
-            _log(cfg, f"    {line}")
-    samples = {g: len(f) for g, f in feeds.items() if g in entries}
-    return entries, settings, samples, k_source, plan_notes
 
 
 def _delta(results: dict, group: str, key: str) -> dict:
@@ -415,41 +337,23 @@ def _write_graphs(cfg: ExportConfig, src: Source, graphs: list[str], precisions:
     all_graphs = {"fp32": fp32}
     quant = None
     if "int8" in precisions:
-        int8, settings, samples, k_source, plan_notes = _export_int8(cfg, src, fp32, tmp)
+        int8, quant = quantize_directory(
+            tmp,
+            fp32,
+            arch=src.arch,
+            height=src.height,
+            width=src.width,
+            seq_length=src.seq_length,
+            calib_data=Path(cfg.calib_data),  # type: ignore[arg-type]
+            settings=cfg.quant_settings(),
+            write_interim=lambda g: _interim_manifest(src, g, tmp),
+            log=lambda msg: _log(cfg, msg),
+        )
         all_graphs["int8"] = int8
         delta, reason = _accuracy_delta(cfg, src, all_graphs, tmp)
-        kernels = {  # which x86 INT8 kernels compute each quantised graph exactly (issue 45)
-            graph: int8_kernels(onnx.load(str(tmp / entry.file)))
-            for graph, entry in int8.items()
-            if graph not in qz.FP32_ONLY_GRAPHS
-        }
-        quant = mf.quantization_record(
-            settings.describe(), str(cfg.calib_data), samples, k_source, plan_notes, delta, reason, kernels
-        )
+        quant = dataclasses.replace(quant, accuracy_delta=cmf.json_safe(delta), accuracy_delta_reason=reason)
     prov = mf.provenance(src.arch, src.random_init, exporter, src.checkpoint, src.ckpt)
-    if src.sources is not None:
-        prov = dataclasses.replace(
-            prov,
-            checkpoint=" + ".join(s["path"] for s in src.sources),
-            checkpoint_stage="official TensorFlow release (export/from_tf.py)",
-            checkpoint_step=src.sources[0]["global_step"] if len(src.sources) == 1 else None,
-            sources=src.sources,
-        )
-    manifest = mf.build_manifest(
-        height=src.height,
-        width=src.width,
-        seq_length=src.seq_length,
-        arch=src.arch,
-        random_init=src.random_init,
-        graphs=all_graphs,
-        prov=prov,
-        metrics=(src.ckpt or {}).get("metrics", {}),
-        quantization=quant,
-        photometric_alpha=photometric_alpha(src.model),
-    )
-    if src.official is not None:
-        manifest = dataclasses.replace(manifest, conventions={**manifest.conventions, "official_tf": src.official})
-    write_manifest(manifest, tmp)
+    write_manifest(_manifest(src, all_graphs, prov, (src.ckpt or {}).get("metrics", {}), quant), tmp)
     load_manifest(tmp)  # the directory must validate before it is published
 
 
@@ -461,10 +365,13 @@ def export_model(cfg: ExportConfig) -> Path:
         ExportCheckError: an exported graph failed its structural check.
     """
     graphs, precisions = _check(cfg)
+    if cfg.from_tf:  # the runtime's conversion, with templates for the asked size (export/from_tf.py)
+        from export.from_tf import tf_export
+
+        return tf_export(cfg, lambda msg: _log(cfg, msg))
     src = load_source(cfg, graphs)
-    graphs = src.graphs or graphs
     out = Path(cfg.out)
-    tmp = _make_tmp_dir(out)
+    tmp = make_tmp_dir(out)
     try:
         _log(
             cfg,
@@ -472,9 +379,7 @@ def export_model(cfg: ExportConfig) -> Path:
             f"({'random init' if src.random_init else src.checkpoint or 'TensorFlow checkpoints'}) -> {out}",
         )
         _write_graphs(cfg, src, graphs, precisions, tmp)
-        if src.verify is not None:
-            print(src.verify(tmp), flush=True)  # asked for: printed even with --quiet
-        _publish(tmp, out, cfg.force)
+        publish(tmp, out, cfg.force)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -7,7 +7,6 @@ two used to import each other inside functions (issue 42).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,10 +26,6 @@ class Source:
     random_init: bool
     checkpoint: Path | None = None
     ckpt: dict | None = None
-    graphs: list | None = None  # from_tf: the graphs its checkpoints can give (overrides cfg.graphs)
-    sources: list | None = None  # from_tf: provenance record of each TF checkpoint
-    official: dict | None = None  # from_tf: the official code's conventions (manifest conventions.official_tf)
-    verify: Callable[[Path], str] | None = None  # from_tf --verify: model dir -> one line (export/from_tf.py)
 
 
 def check_graph_size(height: int, width: int) -> None:

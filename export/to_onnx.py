@@ -40,9 +40,9 @@ from pathlib import Path
 import onnx
 import torch
 
-from export.tf_checkpoint import encode_varint
 from export.wrappers import IOSpec
 from geonet_infer.core.manifest import BATCH_AXIS
+from geonet_infer.io.protobuf import encode_varint
 
 OPSET = 18
 TRACE_BATCH = 2

@@ -6,7 +6,7 @@
 * ``amx_int8``: AMX tile multiplies (Sapphire Rapids and later), exact as well.
 
 Without VNNI or AMX, INT8 kernels add pairs of products in int16 with saturation
-(:func:`int8_kernel` returns "avx2"; ``export/int8_arith.py`` emulates the arithmetic).
+(:func:`int8_kernel` returns "avx2"; ``geonet_infer/convert/int8_arith.py`` emulates the arithmetic).
 Read from ``/proc/cpuinfo`` on Linux, checked against numpy's runtime CPU detection (CPUID),
 which knows avx2, avx512f and avx512_vnni; where the two disagree (user-mode emulation) and
 off Linux, numpy's answer holds and the other flags are None: unknown.

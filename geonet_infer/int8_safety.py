@@ -2,7 +2,7 @@
 
 Without VNNI or AMX (:func:`geonet_infer.cpu.int8_kernel` "avx2"), uint8 x int8 kernels add
 pairs of products in int16 with saturation: 8-bit weights beyond +-64 overflow
-(``export/int8_arith.py``). The manifest records, per INT8 graph, whether its weights stay
+(``geonet_infer/convert/int8_arith.py``). The manifest records, per INT8 graph, whether its weights stay
 within that bound (``quantization.int8_kernels``, written by export).
 """
 

@@ -1,11 +1,12 @@
-"""Derive export/official_variables.json from the official GeoNet code (not run by tests or CI).
+"""Derive geonet_infer/convert/official_variables.json from the official GeoNet code (not run by tests or CI).
 
 Needs the official repository (https://github.com/yzcjtr/GeoNet, commit 5b17602) and, besides the
 project's ``[tf]`` extra, ``tf-slim==1.1.0`` and ``tf-keras==2.21.0`` (not project dependencies)::
 
     pip install tensorflow-cpu==2.21.0 tf-slim==1.1.0 tf-keras==2.21.0
     git clone https://github.com/yzcjtr/GeoNet && git -C GeoNet checkout 5b17602
-    python scripts/derive_official_variables.py GeoNet/geonet_nets.py 5b17602 > export/official_variables.json
+    python scripts/derive_official_variables.py GeoNet/geonet_nets.py 5b17602 \
+        > geonet_infer/convert/official_variables.json
 
 It builds each released network once at 128x416 with ``tensorflow.compat.v1`` and records every
 model variable's name, shape and dtype in creation order (../shared/reference/official_checkpoints.md).

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from export import quantize as qz  # noqa: E402
+from geonet_infer.convert import quantize as qz  # noqa: E402
 from geonet_infer.core.cascade import InputSpec  # noqa: E402
 from geonet_infer.core.manifest import load_manifest  # noqa: E402
 from geonet_infer.core.predictor import Predictor  # noqa: E402

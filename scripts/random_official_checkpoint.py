@@ -3,8 +3,9 @@
 The released files cannot be downloaded on this project's machines; this stands in for them so that
 every command of docs/official_models.md can be run as written (the values are random: the depth,
 poses and flow it gives mean nothing). Names, shapes and dtypes come from
-export/official_variables.json (derived from the official code); the files are written by
-export/tf_checkpoint.py (no TensorFlow needed; TensorFlow reads them, tests/export/test_tf_checkpoint.py)::
+geonet_infer/convert/official_variables.json (derived from the official code); the files are written by
+geonet_infer/convert/tf_checkpoint.py (no TensorFlow needed; TensorFlow reads them,
+tests/export/test_tf_checkpoint.py)::
 
     python scripts/random_official_checkpoint.py /tmp/geonet_depthnet/model-250000 depth_resnet50 pose_seq3
     python scripts/random_official_checkpoint.py /tmp/geonet_posenet/model-206000 depth_resnet50 pose_seq5
@@ -25,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from export.from_tf import official_variables  # noqa: E402
-from export.tf_checkpoint import write_checkpoint  # noqa: E402
+from geonet_infer.convert.official import official_variables  # noqa: E402
+from geonet_infer.convert.tf_checkpoint import write_checkpoint  # noqa: E402
 
 
 def random_values(variables: list, rng: np.random.Generator) -> dict[str, np.ndarray]:

@@ -26,6 +26,8 @@ COMMANDS = {
     "info": "versions, CPU, threads and the model's manifest",
     "bench": "latency of each stage (network only and end to end), table + JSON",
     "eval": "accuracy against ground truth (model or baselines), paper's tables",
+    "convert": "the authors' released TensorFlow checkpoints -> a model by name (no torch, no TensorFlow)",
+    "models": "the models a name reaches: bundled and converted; `models rm NAME`",
 }
 EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, EXIT_OS_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 

@@ -138,7 +138,7 @@ class Quantization:
     accuracy_delta_reason: str | None = None  # why accuracy_delta is null (or a note)
     graph_notes: dict = field(default_factory=dict)  # graph -> what stayed fp32 / was rescaled in it
     op_types: tuple[str, ...] = ()  # operator types quantised (export --int8-ops); () = every type ORT quantises
-    # graph -> which x86 INT8 kernels compute it exactly (export/int8_arith.py int8_kernels); {} = not recorded
+    # graph -> which x86 INT8 kernels compute it exactly (convert/int8_arith.py int8_kernels); {} = not recorded
     int8_kernels: dict = field(default_factory=dict)
 
     @classmethod

@@ -20,7 +20,7 @@ CPU facts behind the defaults (``../shared/reference/onnx_notes.md`` section 2):
   every run's buffers are then fresh pages (system time 0.9 -> 1.4 s, predict 6-10 % slower).
 * INT8 on CPUs without VNNI (AVX2 only, plain AVX-512): onnxruntime's U8S8 kernels add pairs of
   uint8 x int8 products in int16 with saturation (VPMADDUBSW), so 8-bit weights beyond +-64
-  overflow (``export/int8_arith.py`` emulates it). :data:`X64_QUANT_PRECISION` turns on
+  overflow (``geonet_infer/convert/int8_arith.py`` emulates it). :data:`X64_QUANT_PRECISION` turns on
   onnxruntime's own remedy: it stores such a graph's int8 weights as uint8 and runs exact U8U8
   kernels; it changes nothing on CPUs with VNNI or AMX, so it is set only where the INT8 kernel is
   "avx2" (issue 45, docs/performance.md). onnxruntime refuses it for a graph whose int8 weight

@@ -1,5 +1,6 @@
-"""The protobuf wire format, read without protobuf: enough to walk ONNX files (their external-data
-fields, :mod:`geonet_infer.core.onnx_check`) and TensorFlow checkpoint records (``export/tf_checkpoint.py``)."""
+"""The protobuf wire format without protobuf: enough to walk ONNX files (their external-data
+fields, :mod:`geonet_infer.core.onnx_check`), to read and write TensorFlow checkpoint records
+(:mod:`geonet_infer.convert.tf_checkpoint`) and to write ONNX graphs (:mod:`geonet_infer.convert.onnx_writer`)."""
 
 from __future__ import annotations
 
@@ -49,3 +50,21 @@ def fields(buf, start: int, end: int) -> Iterator[tuple[int, int, int | tuple[in
             raise ValueError(f"wire type {wire}")
     if pos != end:
         raise ValueError("message runs past its end")
+
+
+def encode_varint(value: int) -> bytes:
+    """Protobuf's base-128 varint (``value`` >= 0)."""
+    out = bytearray()
+    while True:
+        byte = value & 0x7F
+        value >>= 7
+        out.append(byte | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def encode_field(number: int, value: int | bytes) -> bytes:
+    """One field: bytes as length-delimited (wire type 2), an int as a varint (wire type 0)."""
+    if isinstance(value, bytes):
+        return encode_varint(number << 3 | 2) + encode_varint(len(value)) + value
+    return encode_varint(number << 3) + encode_varint(value)

@@ -1,11 +1,11 @@
 """``python -m export --from-tf``: the released GeoNet TensorFlow checkpoints, converted (issue 28).
 
 The released files cannot be downloaded here, so the tests write checkpoints with exactly the
-official variable names and shapes (``export/official_variables.json``, derived from the official
+official variable names and shapes (``geonet_infer/convert/official_variables.json``, derived from the official
 code) and random values, run the official forward pass in TensorFlow (``OfficialNet`` below: our own
 re-statement of ``geonet_nets.py``, NHWC, its padding and resizing ops) and compare with the
 converted ONNX graphs. Those need the ``[tf]`` extra (CI installs it); the files they convert are
-written by TensorFlow, so the reader (export/tf_checkpoint.py) is checked on TensorFlow's own files.
+written by TensorFlow, so the reader (geonet_infer/convert/tf_checkpoint.py) is checked on TensorFlow's own files.
 The conversion without TensorFlow, the refusals and the variable-list test need no TensorFlow: their
 checkpoints come from the project's writer (``tf_checkpoint.write_checkpoint``), whose files
 TensorFlow reads (tests/export/test_tf_checkpoint.py).
@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export import official_tf, tf_checkpoint
-from export.from_tf import build_network, expected_variables, official_variables
+from export.from_tf import build_network, expected_variables
+from geonet_infer.convert import official_tf, tf_checkpoint
+from geonet_infer.convert.official import official_variables
 from tests.conftest import require_realdata
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
@@ -59,7 +60,7 @@ def test_mapping_matches_official_variable_list(key):
 
 # ------------------------------------------------------------------------------ the official layers in TF
 class OfficialNet(official_tf.OfficialNet):
-    """``export/official_tf.py``'s official forward pass, creating each layer's variables on first use:
+    """``geonet_infer/convert/official_tf.py``'s official forward pass, creating each layer's variables on first use:
     He-scaled weights, small biases/betas, and moving statistics near the batch's own (so activations
     stay in range through 50 layers). BN then runs in inference mode with those statistics, eps 1e-3,
     no gamma."""
@@ -182,7 +183,7 @@ def converted(tmp_path_factory):
 
 def _run(model_dir: Path, precision: str, graph: str, feed: dict) -> dict:
     """One graph as the runtime runs it: its session options turn on onnxruntime's exact INT8
-    arithmetic on CPUs without VNNI (plain sessions saturate there: export/int8_arith.py)."""
+    arithmetic on CPUs without VNNI (plain sessions saturate there: geonet_infer/convert/int8_arith.py)."""
     from geonet_infer.core.manifest import load_manifest
     from geonet_infer.engines import OrtEngine
 
@@ -332,10 +333,10 @@ def test_conversion_without_tensorflow(tmp_path, capsys, no_tensorflow):
 def test_verify_beyond_tolerance_fails_and_writes_nothing(tmp_path, capsys, pose_values, no_tensorflow, monkeypatch):
     """--verify's bound: with a bound of 0, float32 rounding already exceeds it: exit 1, the line
     names the graph, no model directory."""
-    import export.from_tf
+    import geonet_infer.convert.verify
     from export.__main__ import main
 
-    monkeypatch.setattr(export.from_tf, "VERIFY_TOLERANCE", 0.0)
+    monkeypatch.setattr(geonet_infer.convert.verify, "TOLERANCE", 0.0)
     prefix = write_checkpoint(tmp_path / "model-1", pose_values)
     out = tmp_path / "model"
     argv = ["--from-tf", str(prefix), "--out", str(out), "--height", str(H), "--width", str(W), "--verify"]
@@ -413,7 +414,7 @@ def test_not_a_checkpoint_path_is_refused(tmp_path, capsys):
 def test_prefix_file_and_folder_forms(tmp_path, pose_values):
     """The prefix, any of its files (suffix stripped) and its folder name the same checkpoint;
     the folder's 'checkpoint' file may hold the authors' absolute path (only its name is used)."""
-    from export.from_tf import resolve_prefix
+    from geonet_infer.convert.official import resolve_prefix
 
     ckpt = write_checkpoint(tmp_path / "geonet_posenet" / "model-5", pose_values)
     write_checkpoint(tmp_path / "geonet_posenet" / "model-10", pose_values)
@@ -425,7 +426,7 @@ def test_prefix_file_and_folder_forms(tmp_path, pose_values):
 
 def test_combining_rules(tmp_path, pose_values):
     """A plain prefix gives every net it holds that no KIND= names; a net given twice is refused."""
-    from export.from_tf import convert_checkpoints
+    from geonet_infer.convert.official import select_networks as convert_checkpoints
     from geonet_infer.errors import GeoNetError
 
     seq3 = write_checkpoint(tmp_path / "a" / "model-1", pose_values)

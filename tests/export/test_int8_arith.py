@@ -1,7 +1,7 @@
 """INT8 arithmetic of x86 CPUs without VNNI, emulated so that any CPU can check it (issue 45).
 
 On AVX2-only CPUs onnxruntime's uint8 x int8 kernels add pairs of products in int16 with
-saturation (``export/int8_arith.py``); the bundled INT8 graphs have 8-bit weights that overflow
+saturation (``geonet_infer/convert/int8_arith.py``); the bundled INT8 graphs have 8-bit weights that overflow
 there unless the session turns on onnxruntime's exact path, as the runtime's sessions do.
 """
 
@@ -12,7 +12,7 @@ import onnx
 import pytest
 from onnx import helper, numpy_helper
 
-from export.int8_arith import (
+from geonet_infer.convert.int8_arith import (
     conv_weights,
     dot_as_onnxruntime_runs_it,
     dot_avx2_u8s8,

@@ -1,4 +1,4 @@
-"""INT8 graph plans (export/quantize.py) on a hand-built decoder level.
+"""INT8 graph plans (geonet_infer/convert/quantize.py) on a hand-built decoder level.
 
 The graph mimics one level of GeoNet's decoder: wide features (range ~10) concatenated with a
 2-channel prediction of range ~0.05 fed back from a coarser head, a conv over the concat, and an
@@ -13,7 +13,7 @@ import onnxruntime as ort
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from export import quantize as qz
+from geonet_infer.convert import quantize as qz
 from geonet_infer.errors import GeoNetError
 
 C, HW = 8, 16
@@ -175,7 +175,7 @@ def test_finest_levels_of_a_graph_without_a_decoder_is_an_error(tmp_path):
 
 
 def test_resnet50_keeps_resflownets_input_layer_quantised():
-    """The fp32 input layer was measured on the small arch only (export/quantize.py, INPUT_LAYER_ARCHS)."""
+    """The fp32 input layer was measured on the small arch only (convert/quantize.py INPUT_LAYER_ARCHS)."""
     assert qz.plan_for("resflownet", "small") == qz.PLANS["resflownet"]
     resnet50 = qz.plan_for("resflownet", "resnet50")
     assert not resnet50.float_input_layer

@@ -1,4 +1,4 @@
-"""export/tf_checkpoint.py: TensorFlow V2 checkpoints read with numpy alone (issue 43, point 7).
+"""geonet_infer/convert/tf_checkpoint.py: TensorFlow V2 checkpoints read with numpy alone (issue 43, point 7).
 
 Golden values: files TensorFlow wrote (tests/export/fixtures/tf_bundle, made by its write_fixture.py) read
 back against the values it was given; crc32c against RFC 3720's test vectors and a bit-by-bit
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("torch")  # the export package imports torch
-from export.tf_checkpoint import BundleReader, crc32c, write_checkpoint  # noqa: E402
+from geonet_infer.convert.tf_checkpoint import BundleReader, crc32c, write_checkpoint  # noqa: E402
 from geonet_infer.errors import GeoNetError  # noqa: E402
 
 FIXTURE = Path(__file__).parent / "fixtures" / "tf_bundle"
@@ -66,7 +66,7 @@ def test_reads_what_tensorflow_wrote():
 
 def test_fixture_index_has_two_data_blocks():
     """The fixture exercises the index block's walk: its 300 long names fill two table blocks."""
-    from export.tf_checkpoint import _block
+    from geonet_infer.convert.tf_checkpoint import _block
     from geonet_infer.io.protobuf import read_varint as _varint
 
     index = (FIXTURE / "tf_written.index").read_bytes()
@@ -165,7 +165,7 @@ def test_missing_shard_is_named(tmp_path):
 
 def test_size_that_does_not_fit_the_shape_is_refused():
     """An entry whose byte size contradicts dtype x shape (a corrupt entry with a valid block crc)."""
-    from export import tf_checkpoint as tc
+    from geonet_infer.convert import tf_checkpoint as tc
 
     bad = tc._enc_field(1, 1) + tc._enc_field(2, tc._enc_field(2, tc._enc_field(1, 3))) + tc._enc_field(5, 8)
     with pytest.raises(ValueError, match="8 bytes do not hold shape \\[3\\] float32"):
@@ -175,7 +175,7 @@ def test_size_that_does_not_fit_the_shape_is_refused():
 def test_partitioned_variable_is_named_as_unsupported(tmp_path, monkeypatch):
     """A slices field (a partitioned variable) is a valid checkpoint this reader leaves out: said so,
     not called corrupt."""
-    from export import tf_checkpoint as tc
+    from geonet_infer.convert import tf_checkpoint as tc
 
     sliced = tc._enc_field(1, 1) + tc._enc_field(2, tc._enc_field(2, tc._enc_field(1, 3))) + tc._enc_field(7, b"")
     with pytest.raises(tc.Unsupported, match="variable v is stored in slices"):

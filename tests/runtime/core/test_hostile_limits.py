@@ -392,7 +392,7 @@ def test_an_interrupted_batch_summary_counts_sequences_done_on_disk_with_their_f
 # ----------------------------------------------------------------------------- 17, 19, 22: export (needs torch)
 def test_calibration_frames_the_runtime_refuses_are_refused(tmp_path):
     pytest.importorskip("torch")
-    from export.quantize import load_frames
+    from geonet_infer.convert.quantize import load_frames
 
     folder = tmp_path / "calib"
     folder.mkdir()
@@ -415,8 +415,8 @@ def test_export_calib_frames_negative_is_a_count_error_not_a_folder_mixup(tmp_pa
 def test_export_from_tf_path_with_glob_characters_reads(tmp_path):
     """TensorFlow's reader took the prefix as a glob pattern; ours opens such a path as it is."""
     pytest.importorskip("torch")
-    from export.from_tf import TFCheckpoint
-    from export.tf_checkpoint import write_checkpoint
+    from geonet_infer.convert.official import TFCheckpoint
+    from geonet_infer.convert.tf_checkpoint import write_checkpoint
 
     prefix = write_checkpoint(tmp_path / "ckpt [1]*?" / "model-1", {"pose_net/Conv/weights": np.ones((1, 1, 3, 2))})
     ckpt = TFCheckpoint.open(prefix)
@@ -456,8 +456,8 @@ def test_export_from_tf_refuses_a_checkpoint_with_nan_weights(tmp_path, capsys):
     finally:
         sys.path.pop(0)
     from export.__main__ import main as export_main
-    from export.from_tf import official_variables
-    from export.tf_checkpoint import write_checkpoint
+    from geonet_infer.convert.official import official_variables
+    from geonet_infer.convert.tf_checkpoint import write_checkpoint
 
     values = random_values(official_variables()["pose_seq3"], np.random.default_rng(0))
     name = next(n for n in sorted(values) if n.endswith("/weights"))

@@ -1,6 +1,6 @@
 """The integer arithmetic of onnxruntime's x86 INT8 kernels, emulated in numpy (issue 45).
 
-An INT8 graph (QDQ, uint8 activations, int8 weights: :mod:`export.quantize`) runs its
+An INT8 graph (QDQ, uint8 activations, int8 weights: :mod:`geonet_infer.convert.quantize`) runs its
 convolutions as uint8 x int8 dot products. How they are summed depends on the CPU:
 
 * VNNI (``avx512_vnni``, ``avx_vnni``) and AMX (``amx_int8``): VPDPBUSD / TDPBUSD add four

@@ -28,6 +28,8 @@ import numpy as np
 
 from geonet_infer.errors import InputError
 from geonet_infer.io import protobuf
+from geonet_infer.io.protobuf import encode_field as _enc_field
+from geonet_infer.io.protobuf import encode_varint
 
 REDOWNLOAD = "the file is truncated or corrupt: download the checkpoint again"
 _MAGIC = 0xDB4775248B80FB57  # LevelDB table magic, the last 8 bytes of every .index
@@ -120,7 +122,7 @@ def crc32c(data) -> int:
     padded[start:] = buf
     padded[start : start + 4] ^= 0xFF
     columns = padded.reshape(count, _ROW).T.copy()  # column j of every row, contiguous
-    crc = np.zeros(count, np.uint32)
+    crc: np.ndarray = np.zeros(count, np.uint32)
     for col in columns:
         crc = _TABLE[(crc ^ col) & 0xFF] ^ (crc >> 8)
     level = 0
@@ -142,23 +144,6 @@ def _fields(buf: bytes) -> dict[int, list]:
     for number, wire, value in protobuf.fields(buf, 0, len(buf)):
         out.setdefault(number, []).append(buf[value[0] : value[1]] if wire == 2 else value)  # type: ignore[index]
     return out
-
-
-def encode_varint(value: int) -> bytes:
-    """Protobuf's base-128 varint."""
-    out = bytearray()
-    while True:
-        byte = value & 0x7F
-        value >>= 7
-        out.append(byte | (0x80 if value else 0))
-        if not value:
-            return bytes(out)
-
-
-def _enc_field(number: int, value) -> bytes:
-    if isinstance(value, bytes):
-        return encode_varint(number << 3 | 2) + encode_varint(len(value)) + value
-    return encode_varint(number << 3) + encode_varint(value)
 
 
 # ------------------------------------------------------------------------------ reader
@@ -184,7 +169,7 @@ def _entry(name: str, value: bytes) -> Entry:
         raise Unsupported(f"variable {name} has TensorFlow dtype {code} (bfloat16, string, complex or resource)")
     shape_fields = _fields(f[2][0]) if 2 in f else {}
     shape = tuple(_fields(d).get(1, [0])[0] for d in shape_fields.get(2, []))
-    dtype = DTYPES[code]
+    dtype: np.dtype = DTYPES[code]
     size = f.get(5, [0])[0]
     if size != int(np.prod(shape, dtype=np.int64)) * dtype.itemsize:
         raise ValueError(f"variable {name}: {size} bytes do not hold shape {list(shape)} {dtype.name}")
