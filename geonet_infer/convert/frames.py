@@ -31,7 +31,7 @@ def load_frames(
         rgb = check_image(read_image(f), f)  # what the runtime refuses is no calibration frame either
         original = original or rgb.shape[:2]
         frames.append(cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA))
-    return frames, original  # type: ignore[return-value]  (min_frames >= 1: one frame was read)
+    return frames, original  # type: ignore[return-value]
 
 
 def calibration_intrinsics(

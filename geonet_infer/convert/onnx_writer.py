@@ -40,7 +40,7 @@ def tensor_record(name: str, value: np.ndarray) -> list:
     tensor_len = len(head) + len(raw_key) + raw.nbytes
     init_key = encode_varint(GRAPH_INITIALIZER << 3 | 2) + encode_varint(tensor_len)
     graph_key = encode_varint(MODEL_GRAPH << 3 | 2) + encode_varint(len(init_key) + tensor_len)
-    return [graph_key + init_key + head + raw_key, memoryview(raw.reshape(-1)).cast("B")  # type: ignore[arg-type]]
+    return [graph_key + init_key + head + raw_key, raw.reshape(-1).view(np.uint8)]
 
 
 def metadata_record(key: str, value: str) -> bytes:
