@@ -38,7 +38,7 @@ _BLOCK_TRAILER = 5  # compression type byte + masked crc32c of block and type by
 
 # tensorflow/core/framework/types.proto DataType -> numpy. bfloat16, strings, complex and
 # resources are not here: no GeoNet checkpoint holds them, and they are refused by name.
-DTYPES = {
+DTYPES: dict[int, np.dtype] = {
     1: np.dtype("<f4"),
     2: np.dtype("<f8"),
     3: np.dtype("<i4"),
@@ -111,10 +111,10 @@ def crc32c(data) -> int:
     buf = buf.reshape(-1)
     n = len(buf)
     if n < 4:
-        crc = 0xFFFFFFFF
+        small = 0xFFFFFFFF
         for b in buf.tolist():
-            crc = int(_TABLE[(crc ^ b) & 0xFF]) ^ (crc >> 8)
-        return crc ^ 0xFFFFFFFF
+            small = int(_TABLE[(small ^ b) & 0xFF]) ^ (small >> 8)
+        return small ^ 0xFFFFFFFF
     rows = -(-n // _ROW)
     count = 1 << (rows - 1).bit_length()  # a power of two: the merge tree pairs every row
     start = count * _ROW - n
@@ -122,7 +122,7 @@ def crc32c(data) -> int:
     padded[start:] = buf
     padded[start : start + 4] ^= 0xFF
     columns = padded.reshape(count, _ROW).T.copy()  # column j of every row, contiguous
-    crc: np.ndarray = np.zeros(count, np.uint32)
+    crc = np.zeros(count, np.uint32)
     for col in columns:
         crc = _TABLE[(crc ^ col) & 0xFF] ^ (crc >> 8)
     level = 0
@@ -169,7 +169,7 @@ def _entry(name: str, value: bytes) -> Entry:
         raise Unsupported(f"variable {name} has TensorFlow dtype {code} (bfloat16, string, complex or resource)")
     shape_fields = _fields(f[2][0]) if 2 in f else {}
     shape = tuple(_fields(d).get(1, [0])[0] for d in shape_fields.get(2, []))
-    dtype: np.dtype = DTYPES[code]
+    dtype = DTYPES[code]
     size = f.get(5, [0])[0]
     if size != int(np.prod(shape, dtype=np.int64)) * dtype.itemsize:
         raise ValueError(f"variable {name}: {size} bytes do not hold shape {list(shape)} {dtype.name}")
