@@ -4,8 +4,8 @@
 The conversion itself is the runtime's (:mod:`geonet_infer.convert`: numpy, no torch): it fills
 architecture templates with the checkpoint's tensors. This module holds what needs torch:
 
-- :func:`torch_layers`: our layers in the official creation order (layer i of ours is slim's
-  ``Conv_i``), from which ``python -m export.templates`` writes each template's recipe;
+- :func:`expected_variables`: the variables our layers (``export.templates.torch_layers``, in the
+  official creation order) take, checked against the official list by the tests;
 - :func:`convert_network`: a PyTorch net holding a checkpoint's tensors (the tests' reference: the
   torch exporter's graph of the same checkpoint);
 - :func:`tf_export`: ``--from-tf`` at any size (templates made for it here) and ``--verify``.
@@ -20,6 +20,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from export.templates import torch_layers
 from geonet_infer import conventions
 from geonet_infer.convert.official import (
     BN_VARIABLES,
@@ -33,41 +34,6 @@ from geonet_infer.errors import InputError
 
 
 # ------------------------------------------------------------------------------ our layers
-def torch_layers(net: nn.Module) -> list[tuple[nn.Conv2d, nn.Module | None]]:
-    """(conv, batch norm or None) of ``net`` in the official code's creation order (``Conv_i`` = item i).
-
-    DepthNet/ResFlowNet resnet50: conv1, per bottleneck conv1, conv2, conv3, shortcut (``resconv``),
-    then per decoder level upconv, iconv and (the last four levels) the prediction head. VGG: the
-    7 encoder pairs, then the same decoder. PoseNet: 7 convs, then the 1x1 pose conv.
-    """
-    from training.networks import DepthNet, PoseNet, ResFlowNet
-    from training.networks.depthnet import VGGEncoder
-
-    def block(b) -> tuple[nn.Conv2d, nn.Module]:
-        return b.conv, b.bn
-
-    layers = []
-    if isinstance(net, PoseNet):
-        layers += [block(b) for b in net.convs]
-        return layers + [(net.pose_pred, None)]
-    if not isinstance(net, (DepthNet, ResFlowNet)):
-        raise TypeError(f"not a GeoNet network: {type(net).__name__}")
-    enc, dec = net.encoder, net.decoder
-    if isinstance(enc, VGGEncoder):
-        layers += [block(b) for pair in enc.pairs for b in pair]
-    else:
-        layers.append(block(enc.conv1))
-        for stage in enc.stages:
-            for bottleneck in stage:
-                layers += [block(getattr(bottleneck, n)) for n in ("conv1", "conv2", "conv3", "shortcut")]
-    first_pred_level = dec.num_levels - dec.num_preds
-    for level in range(dec.num_levels):
-        layers += [block(dec.upconvs[level].conv), block(dec.iconvs[level])]
-        if level >= first_pred_level:
-            layers.append((dec.heads[dec.num_levels - 1 - level].conv, None))
-    return layers
-
-
 def expected_variables(kind: str, net: nn.Module) -> list[tuple[str, list[int], str]]:
     """(name, TF shape, dtype) of every checkpoint variable ``net`` needs, in creation order."""
     scope = SCOPES[kind]

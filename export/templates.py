@@ -6,7 +6,7 @@
 Each template is the graph ``export.to_onnx.export_graph`` makes of our network (random weights),
 with every initializer that holds a checkpoint variable removed and named in the recipe instead
 (:mod:`geonet_infer.convert.templates` says the format). Which initializer is which comes from
-:func:`export.from_tf.torch_layers` (our layers in the official creation order) and the parameter
+:func:`torch_layers` (our layers in the official creation order: layer i is slim's ``Conv_i``) and the parameter
 names the exporter keeps; an initializer it cannot place fails the build, so a changed exporter
 cannot ship a template that silently keeps random weights.
 """
@@ -20,8 +20,8 @@ import tempfile
 from pathlib import Path
 
 import onnx
+import torch.nn as nn
 
-from export.from_tf import torch_layers
 from export.to_onnx import OPSET, ExportCheckError, export_graph
 from export.wrappers import build_wrapper, example_inputs, io_spec, photometric_alpha
 from geonet_infer.conventions import REFERENCE_HEIGHT, REFERENCE_WIDTH
@@ -39,6 +39,41 @@ SHIPPED = (
     ("rigidflow", "resnet50", 3, False),
 )
 NET_OF_GRAPH = {"depthnet": "depth_net", "posenet": "pose_net", "resflownet": "flow_net"}
+
+
+def torch_layers(net: nn.Module) -> list[tuple[nn.Conv2d, nn.Module | None]]:
+    """(conv, batch norm or None) of ``net`` in the official code's creation order (``Conv_i`` = item i).
+
+    DepthNet/ResFlowNet resnet50: conv1, per bottleneck conv1, conv2, conv3, shortcut (``resconv``),
+    then per decoder level upconv, iconv and (the last four levels) the prediction head. VGG: the
+    7 encoder pairs, then the same decoder. PoseNet: 7 convs, then the 1x1 pose conv.
+    """
+    from training.networks import DepthNet, PoseNet, ResFlowNet
+    from training.networks.depthnet import VGGEncoder
+
+    def block(b) -> tuple[nn.Conv2d, nn.Module]:
+        return b.conv, b.bn
+
+    layers = []
+    if isinstance(net, PoseNet):
+        layers += [block(b) for b in net.convs]
+        return layers + [(net.pose_pred, None)]
+    if not isinstance(net, (DepthNet, ResFlowNet)):
+        raise TypeError(f"not a GeoNet network: {type(net).__name__}")
+    enc, dec = net.encoder, net.decoder
+    if isinstance(enc, VGGEncoder):
+        layers += [block(b) for pair in enc.pairs for b in pair]
+    else:
+        layers.append(block(enc.conv1))
+        for stage in enc.stages:
+            for bottleneck in stage:
+                layers += [block(getattr(bottleneck, n)) for n in ("conv1", "conv2", "conv3", "shortcut")]
+    first_pred_level = dec.num_levels - dec.num_preds
+    for level in range(dec.num_levels):
+        layers += [block(dec.upconvs[level].conv), block(dec.iconvs[level])]
+        if level >= first_pred_level:
+            layers.append((dec.heads[dec.num_levels - 1 - level].conv, None))
+    return layers
 
 
 def recipe_rules(wrapper, net) -> dict[str, dict]:

@@ -51,16 +51,19 @@ def metadata_record(key: str, value: str) -> bytes:
 def write_graph(path: Path, head: bytes, metadata: dict[str, str], tensors: Iterable[tuple[str, np.ndarray]]) -> str:
     """Write the graph to ``path``; returns its sha256 (hex)."""
     digest = hashlib.sha256()
-    with open(path, "wb") as f:
+    try:
+        with open(path, "wb") as f:
 
-        def put(data) -> None:
-            f.write(data)
-            digest.update(data)
+            def put(data) -> None:
+                f.write(data)
+                digest.update(data)
 
-        put(head)
-        for key in sorted(metadata):
-            put(metadata_record(key, str(metadata[key])))
-        for name, value in tensors:
-            for piece in tensor_record(name, value):
-                put(piece)
+            put(head)
+            for key in sorted(metadata):
+                put(metadata_record(key, str(metadata[key])))
+            for name, value in tensors:
+                for piece in tensor_record(name, value):
+                    put(piece)
+    except OSError as exc:  # a full disk says which file it stopped
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
     return digest.hexdigest()

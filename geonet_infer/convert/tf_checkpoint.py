@@ -14,7 +14,7 @@ maintained Python package that reads the format without TensorFlow (only crc32c 
 each shard is memory-mapped and a tensor is copied out only when asked for, after its crc32c is
 checked as TensorFlow's reader does.
 
-The writer (:func:`write_checkpoint`) exists for tests and ``scripts/random_official_checkpoint.py``:
+The writer (:func:`write_checkpoint`) exists for tests and ``python -m geonet_infer.convert.random_checkpoint``:
 one shard, one data block; TensorFlow reads its files (tests/export/test_tf_checkpoint.py).
 """
 

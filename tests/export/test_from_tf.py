@@ -27,12 +27,8 @@ import pytest
 from export.from_tf import build_network, expected_variables
 from geonet_infer.convert import official_tf, tf_checkpoint
 from geonet_infer.convert.official import official_variables
+from geonet_infer.convert.random_checkpoint import random_values
 from tests.conftest import require_realdata
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-from random_official_checkpoint import random_values  # noqa: E402
-
-sys.path.pop(0)
 
 H, W = 64, 224  # multiples of 64/32 where the official resize_like is NOT a no-op (W/64 = 3.5 -> 4 -> 7)
 # Real road frames: the parity inputs, and the INT8 calibration set of this random-valued, throwaway
@@ -127,7 +123,7 @@ def _frames(n: int) -> np.ndarray:
 
 
 def _pose_values(num_source: int, seed: int) -> dict:
-    """Official pose_net variables (scripts/random_official_checkpoint.py's random values) for
+    """Official pose_net variables (geonet_infer.convert.random_checkpoint's random values) for
     snippets of 1 + num_source frames."""
     return random_values(official_variables()[f"pose_seq{num_source + 1}"], np.random.default_rng(seed))
 

@@ -450,13 +450,9 @@ def test_export_refuses_a_graph_whose_output_is_nan_or_degenerate(tmp_path, weig
 
 def test_export_from_tf_refuses_a_checkpoint_with_nan_weights(tmp_path, capsys):
     pytest.importorskip("torch")
-    sys.path.insert(0, str(REPO / "scripts"))
-    try:
-        from random_official_checkpoint import random_values
-    finally:
-        sys.path.pop(0)
     from export.__main__ import main as export_main
     from geonet_infer.convert.official import official_variables
+    from geonet_infer.convert.random_checkpoint import random_values
     from geonet_infer.convert.tf_checkpoint import write_checkpoint
 
     values = random_values(official_variables()["pose_seq3"], np.random.default_rng(0))

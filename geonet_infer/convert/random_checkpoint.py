@@ -7,9 +7,9 @@ geonet_infer/convert/official_variables.json (derived from the official code); t
 geonet_infer/convert/tf_checkpoint.py (no TensorFlow needed; TensorFlow reads them,
 tests/export/test_tf_checkpoint.py)::
 
-    python scripts/random_official_checkpoint.py /tmp/geonet_depthnet/model-250000 depth_resnet50 pose_seq3
-    python scripts/random_official_checkpoint.py /tmp/geonet_posenet/model-206000 depth_resnet50 pose_seq5
-    python scripts/random_official_checkpoint.py /tmp/geonet_resflownet/model-400000 \\
+    python -m geonet_infer.convert.random_checkpoint /tmp/geonet_depthnet/model-250000 depth_resnet50 pose_seq3
+    python -m geonet_infer.convert.random_checkpoint /tmp/geonet_posenet/model-206000 depth_resnet50 pose_seq5
+    python -m geonet_infer.convert.random_checkpoint /tmp/geonet_resflownet/model-400000 \\
         depth_resnet50 pose_seq3 flow_resnet50
 
 A ``train_rigid`` release holds depth_net and pose_net, a ``train_flow`` release flow_net as well
@@ -25,9 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from geonet_infer.convert.official import official_variables  # noqa: E402
-from geonet_infer.convert.tf_checkpoint import write_checkpoint  # noqa: E402
+from geonet_infer.convert.official import official_variables
+from geonet_infer.convert.tf_checkpoint import write_checkpoint
 
 
 def random_values(variables: list, rng: np.random.Generator) -> dict[str, np.ndarray]:
