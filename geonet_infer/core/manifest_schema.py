@@ -31,8 +31,8 @@ MIN_SEQ_LENGTH, MAX_SEQ_LENGTH = 3, 9
 MAX_CONVENTION_MAGNITUDE = 1e4  # every number of the conventions (the largest is a reference size)
 MIN_NORM_SCALE = 1e-3  # image_norm.scale: a zero scale feeds the nets a constant image
 REAL_VIDEO_HINT = (
-    "for real video, convert the released GeoNet checkpoints with `python -m export --from-tf` "
-    "(docs/official_models.md)"
+    "for real video, convert the released GeoNet checkpoints with `geonet-infer convert CHECKPOINT --name NAME`, "
+    "then --model NAME (docs/official_models.md)"
 )
 
 

@@ -63,7 +63,7 @@ def check_notice(line: str, card: dict) -> None:
         assert f"{number:.3g}" in line
     assert "worse than the constant depth baseline" in line
     assert ("trained on synthetic scenes only" in line) == (not card.get("real_training"))
-    assert "docs/models.md" in line and "docs/official_models.md" in line and "--from-tf" in line
+    assert "docs/models.md" in line and "docs/official_models.md" in line and "geonet-infer convert" in line
 
 
 # ----------------------------------------------------------------------------- predict
@@ -216,6 +216,6 @@ def test_the_notice_is_for_synthetic_only_models_and_models_no_better_than_their
     assert card(False, 0.2).notice() is None  # trained on real footage too and better than constant depth
     worse = card(False, 0.38).notice()
     assert worse and "worse than the constant depth baseline: depth AbsRel 0.38 vs 0.376" in worse
-    assert "synthetic scenes only" not in worse and "--from-tf" in worse
+    assert "synthetic scenes only" not in worse and "geonet-infer convert" in worse
     better = card(True, 0.2).notice()
     assert better and better.startswith("trained on synthetic scenes only: on real video it is better")
