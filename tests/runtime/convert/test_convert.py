@@ -336,3 +336,21 @@ def test_int8_without_frames_and_unknown_precision_are_refused(tmp_path):
         proc = run(env, "convert", prefix, *argv, "--quiet")
         assert proc.returncode == 2 and says in proc.stderr, proc.stderr
     assert not (tmp_path / "home").exists()
+
+
+def test_verify_says_plainly_when_tensorflow_is_missing(tmp_path):
+    env = blocked_env(tmp_path, tmp_path / "home")
+    proc = run(env, "convert", _pose_release(tmp_path), "--name", "p", "--verify", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "not verified: posenet (no reference: install TensorFlow" in proc.stdout
+
+
+def test_verify_compares_with_the_official_tensorflow_graph(tmp_path):
+    pytest.importorskip("tensorflow")
+    env = {**os.environ, "GEONET_INFER_HOME": str(tmp_path / "home")}
+    proc = run(env, "convert", _pose_release(tmp_path), "--name", "p", "--verify", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("verify: "))
+    assert "vs the official TensorFlow graph with the checkpoint's tensors" in line
+    error = float(line.split("posenet pose max ")[1].split()[0])
+    assert error < 1e-6, line  # a float32 re-statement of the same arithmetic
