@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from geonet_infer.errors import InputError
+from geonet_infer.io.layouts import find_layout
 from geonet_infer.output.layout import SUMMARY_NAME
 
 # The names batch keeps in OUT beside the sequence folders (a sequence is never named so).
@@ -19,7 +20,6 @@ _RESERVED = {SUMMARY_NAME, FAILURES_NAME, LOCK_NAME, MARKER_NAME, OWNER_NAME}
 
 LIST_SUFFIX = ".txt"
 CALIB_SEPARATOR = "|"  # in an input list: INPUT | ITS CALIBRATION
-_KITTI = ("image_02", "data")
 
 
 # ----------------------------------------------------------------------------- work units
@@ -107,13 +107,8 @@ def sequence_name(path) -> str:
     p = Path(os.path.abspath(path))
     if p.is_file():
         return p.stem
-    if (p / _KITTI[0] / _KITTI[1]).is_dir():
-        return p.name
-    if p.name == _KITTI[1] and p.parent.name == _KITTI[0]:
-        return p.parent.parent.name
-    if p.name == _KITTI[0] and (p / _KITTI[1]).is_dir():
-        return p.parent.name
-    return p.name
+    layout = find_layout(p)
+    return p.name if layout is None else layout.name
 
 
 def _safe_name(name: str) -> str:
@@ -124,13 +119,11 @@ def _safe_name(name: str) -> str:
 
 
 def sequence_root(path: Path) -> Path:
-    """The folder or file a sequence is named after (a KITTI drive for ``.../image_02/data``)."""
+    """The folder or file a sequence is named after (a KITTI drive for ``.../image_02/data``, a
+    dataset's sequence folder for its frames folder: :mod:`geonet_infer.io.layouts`)."""
     p = Path(os.path.abspath(path))
-    if p.is_dir() and p.name == _KITTI[1] and p.parent.name == _KITTI[0]:
-        return p.parent.parent
-    if p.is_dir() and p.name == _KITTI[0] and (p / _KITTI[1]).is_dir():
-        return p.parent
-    return p
+    layout = find_layout(p)
+    return p if layout is None else layout.root
 
 
 def plan_units(paths, calibs=None) -> list[WorkUnit]:
@@ -165,11 +158,11 @@ def plan_units(paths, calibs=None) -> list[WorkUnit]:
 def needs_own_calib(path) -> bool:
     """Whether the input has no calibration of its own: no ``<name>.calib.txt`` beside it
     (:func:`~geonet_infer.io.frames.find_side_calib`) and not a KITTI drive with its file."""
-    from geonet_infer.io.frames import find_kitti_calib, find_side_calib
+    from geonet_infer.io.frames import find_side_calib
+    from geonet_infer.io.layouts import find_layout
 
     root = sequence_root(path)
     if find_side_calib(root) is not None:
         return False
-    if not (root.is_dir() and (root / _KITTI[0] / _KITTI[1]).is_dir()):
-        return True
-    return find_kitti_calib(root) is None
+    layout = find_layout(root)
+    return layout is None or (layout.calib is None and layout.tum_camera is None)

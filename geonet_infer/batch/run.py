@@ -43,9 +43,10 @@ from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
+from geonet_infer.io.camera import ASSUMED_RULE
 from geonet_infer.limits import check_batch_size
 from geonet_infer.output.layout import SUMMARY_NAME
-from geonet_infer.tasks import needs_intrinsics, no_intrinsics
+from geonet_infer.tasks import needs_intrinsics
 
 # ----------------------------------------------------------------------------- the job
 # name -> runner class. A runner has ``start(config, options, n_units, workers, threads, *, manifest,
@@ -197,6 +198,7 @@ def run_batch(
     outputs: Collection[str] | None = None,
     flow_method: str = "network",
     pose_method: str = "network",
+    estimate_intrinsics: bool = False,
     resume: bool = False,
     ray_address: str | None = None,
     progress: bool = True,
@@ -240,14 +242,9 @@ def run_batch(
     tasks = model_tasks(model_dir, graphs, tasks, log, classical_tasks(tasks or TASKS, flow_method, pose_method))
     needing = needs_intrinsics(tasks, flow_method, pose_method)  # inputs without a calibration of their own
     lacking = [u.path for u in units if not u.calib and needs_own_calib(u.path)] if needing and camera is None else []
-    if lacking:
-        more = f" (and {len(lacking) - 1} more inputs)" if len(lacking) > 1 else ""
-        raise no_intrinsics(
-            needing,
-            lacking[0],
-            "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose, or --flow-method dis)",
-            f"this input has none{more}",
-        )
+    if lacking and not estimate_intrinsics:  # they run with the assumed intrinsics (each summary.json records it)
+        more = f" (and {len(lacking) - 1} more)" if len(lacking) > 1 else ""
+        log(f"note: {lacking[0]}{more}: no calibration; intrinsics assumed ({ASSUMED_RULE})")
     out_dir = Path(os.path.abspath(out_dir))
     check_out(out_dir, units)
     claim(out_dir)
@@ -264,6 +261,7 @@ def run_batch(
         outputs=None if outputs is None else tuple(sorted(outputs)),
         flow_method=flow_method,
         pose_method=pose_method,
+        estimate_intrinsics=estimate_intrinsics,
     )
     options = probe.options()
     with _job_lock(out_dir):

@@ -15,7 +15,6 @@ from pathlib import Path
 
 from geonet_infer import __version__, ownership
 from geonet_infer.batch.inputs import (  # noqa: F401  (re-exported: this module's names before the split)
-    _KITTI,
     _RESERVED,
     CALIB_SEPARATOR,
     FAILURES_NAME,
@@ -59,7 +58,8 @@ class BatchConfig:
     """What every worker needs (picklable: it travels to processes and Ray actors).
 
     camera: from --calib / --intrinsics for every sequence; None = each input's own
-    calibration (a KITTI drive's calib_cam_to_cam.txt), or none.
+    calibration (its layout's: :mod:`geonet_infer.io.layouts`), else the focal estimated from
+    the footage (``estimate_intrinsics``), else the assumed intrinsics.
     """
 
     out_dir: str
@@ -74,6 +74,7 @@ class BatchConfig:
     outputs: tuple[str, ...] | None = None  # --outputs names (geonet_infer.output.layout); None: the default
     flow_method: str = "network"  # or "dis" (geonet_infer.classical)
     pose_method: str = "network"  # or "orbvo"
+    estimate_intrinsics: bool = False  # --intrinsics estimate: each input's focal from its footage
 
     def options(self) -> dict:
         """What decides the outputs (stored in each ``.done``; a resume with other options is refused)."""
@@ -97,6 +98,8 @@ class BatchConfig:
             "camera": cam,
             "vis": self.vis,
         }
+        if self.estimate_intrinsics:  # recorded only when on: resuming an earlier job's folders stays possible
+            options["estimate_intrinsics"] = True
         # only when not the networks: a .done written before these options existed stays resumable
         methods = {"flow_method": self.flow_method, "pose_method": self.pose_method}
         chosen = {} if self.outputs is None else {"outputs": sorted(self.outputs)}  # likewise
@@ -288,8 +291,13 @@ def run_sequence(
         discard(out)  # the files of an interrupted run, or of an earlier job
         source = open_frames(unit.path)
         camera = read_camera(unit.calib).validate(unit.calib) if unit.calib else config.camera
-        if camera is None and source.default_calib is not None:
-            camera = read_camera(source.default_calib).validate(source.default_calib)
+        if camera is None and config.estimate_intrinsics:
+            from geonet_infer.core.self_calibration import camera_from_footage
+
+            frames = (frame.rgb for frame in source if frame.rgb is not None)
+            camera, _ = camera_from_footage(frames)  # a refusal is in the assumed camera's source
+        if camera is None:
+            camera = source.own_camera()  # its layout's calibration (KITTI, EuRoC, TUM) or its side file
         inputs = _fingerprint(unit.path, _input_files(source, unit, config.camera is None))
         if on_frame is not None:
             source = _CountingSource(source, on_frame)  # type: ignore[assignment]  # a FrameSource proxy

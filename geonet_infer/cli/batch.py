@@ -15,6 +15,7 @@ from geonet_infer.batch import (
 )
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import (
+    ESTIMATE,
     add_camera_args,
     add_method_args,
     add_model_args,
@@ -163,7 +164,7 @@ def run_command(args: argparse.Namespace) -> int:
     runner = args.runner or args.engine or "local"
     if args.ray_address and runner != "ray":
         raise InputError(None, "--ray-address needs --runner ray")
-    camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own
+    camera = camera_from_args(args)  # --calib / --intrinsics for every input; else each input's own (or estimate)
     with sigterm_as_interrupt():  # SIGTERM is handled like Ctrl-C: workers stopped, summary written
         summary = run_batch(
             args.inputs,
@@ -181,6 +182,7 @@ def run_command(args: argparse.Namespace) -> int:
             outputs=outputs,
             flow_method=args.flow_method,
             pose_method=args.pose_method,
+            estimate_intrinsics=args.intrinsics == ESTIMATE,
             resume=args.resume,
             ray_address=args.ray_address,
             progress=not args.no_progress,

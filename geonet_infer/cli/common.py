@@ -18,6 +18,7 @@ from geonet_infer.core.predictor import Predictor, load
 from geonet_infer.engines import AUTO, BACKENDS, ENGINES
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
+from geonet_infer.io.camera import ASSUMED_RULE
 from geonet_infer.limits import check_threads
 from geonet_infer.models import DEFAULT_MODEL
 
@@ -135,8 +136,12 @@ def add_camera_args(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--intrinsics",
         default=None,
-        metavar="FX,FY,CX,CY",
-        help="pinhole intrinsics in pixels at the input frames' resolution",
+        metavar="FX,FY,CX,CY|estimate",
+        help="pinhole intrinsics in pixels at the input frames' resolution; or 'estimate': the focal length "
+        "from the footage itself (it needs the camera to rotate; where the footage cannot determine it, one "
+        "line says why and the assumed intrinsics are used). Without --calib or --intrinsics: the input's "
+        "own calibration (KITTI raw and odometry, EuRoC, TUM RGB-D layouts, or NAME.calib.txt beside it), "
+        f"else assumed: {ASSUMED_RULE}",
     )
 
 
@@ -146,19 +151,36 @@ def parse_intrinsics(text: str) -> Camera:
         fx, fy, cx, cy = (float(v) for v in text.split(","))
     except ValueError:
         raise InputError(
-            None, f"--intrinsics {text!r} is not four numbers", "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9"
+            None,
+            f"--intrinsics {text!r} is not four numbers nor 'estimate'",
+            "write it as FX,FY,CX,CY, e.g. 721.5,721.5,609.6,172.9, or --intrinsics estimate",
         ) from None
-    return Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None, None, "--intrinsics").validate("--intrinsics")
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    return Camera(K, None, None, f"--intrinsics {text}", "flag").validate("--intrinsics")
 
 
-def camera_from_args(args: argparse.Namespace, default_calib: Path | None = None) -> Camera | None:
-    """The Camera from --calib / --intrinsics / a default calibration file, or None."""
+ESTIMATE = "estimate"
+
+
+def camera_from_args(args: argparse.Namespace, source=None, log=None) -> Camera | None:
+    """The Camera from --calib, --intrinsics FX,FY,CX,CY or estimate (needs ``source``), or the input's own
+    calibration (``source.own_camera()``); None: the caller assumes them (:data:`ASSUMED_RULE`)."""
+    if args.intrinsics == ESTIMATE:
+        if source is None:
+            return None  # batch: each input estimates its own
+        if source.kind in ("camera", "stream", "stdin"):
+            raise InputError(source.location, "a live source cannot be read twice to estimate its focal length")
+        from geonet_infer.core.self_calibration import camera_from_footage
+
+        camera, refusal = camera_from_footage(frame.rgb for frame in source if frame.rgb is not None)
+        if refusal and log is not None:
+            log(f"{source.location}: {refusal}")
+        return camera
     if args.intrinsics is not None:
         return parse_intrinsics(args.intrinsics)
-    path = args.calib if args.calib is not None else default_calib
-    if path is None:
-        return None
-    return read_camera(path).validate(path)
+    if args.calib is not None:
+        return read_camera(args.calib).validate(args.calib)
+    return None if source is None else source.own_camera()
 
 
 def stage_table(per_frame_ms: dict[str, float], frames: int, overlapped: dict[str, float] | None = None) -> str:

@@ -224,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
         video_out=args.video_out,
         video_fps=args.fps,
     )
-    camera = camera_from_args(args, source.default_calib)
+    camera = camera_from_args(args, source, lambda msg: print(f"geonet-infer predict: note: {msg}", file=sys.stderr))
     predictor = load_predictor(args)
     if tasks is None:
         doable, skipped = predictor.resolve_tasks(classical=classical_tasks(TASKS, args.flow_method, args.pose_method))
@@ -259,6 +259,10 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['failed']} failed); details in {args.out / SUMMARY_NAME}"
     )
     print(stage_table(summary["timings_ms_per_frame"], summary["frames"], summary["overlapped_ms_per_frame"]))
+    if summary["camera"] is not None:  # where the intrinsics came from, once
+        used = summary["camera"]
+        at = f" at {used['size'][0]}x{used['size'][1]}" if used["size"] else ""
+        print(f"intrinsics: {used['origin']}, fx {used['K'][0][0]:.1f}{at} ({used['source']})")
     check = None if summary["check"] is None else SequenceCheck.from_dict(summary["check"])
     if check is not None:
         print(f"check: {check.line()}")

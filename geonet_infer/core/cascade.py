@@ -68,7 +68,7 @@ from geonet_infer.core.spec import (  # noqa: F401  (re-exported: this module's 
     to_network,
 )
 from geonet_infer.errors import ModelError
-from geonet_infer.tasks import API_K_HINT, no_intrinsics
+from geonet_infer.io.camera import assumed_camera
 
 
 def run_cascade(
@@ -129,8 +129,9 @@ def run_cascade(
     }
     if not with_flow:
         return out
-    if K is None or disparity is None:  # DepthNet ran above unless disparity was given
-        raise no_intrinsics(["flow"], None, API_K_HINT, "none were given")
+    assert disparity is not None  # DepthNet ran above unless disparity was given
+    if K is None:  # the stated rule rather than a stop (geonet_infer.io.camera.ASSUMED_RULE)
+        K = assumed_camera(size[1], size[0]).K
     K_graph = np.repeat(graph_intrinsics(K, size, spec)[None], B, axis=0)
     with timer.stage("rigidflow"):
         rigid = call(

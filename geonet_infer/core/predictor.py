@@ -49,6 +49,7 @@ from geonet_infer.core.spec import (
     flows_to_input,
     read_frame,
     to_network,
+    with_assumed,
 )
 from geonet_infer.core.task_graphs import (
     METRIC_TASK,
@@ -63,7 +64,7 @@ from geonet_infer.engines import BACKENDS, usable_cpus
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.limits import MAX_BATCH_SIZE, check_batch_size, check_threads
 from geonet_infer.models import resolve_model
-from geonet_infer.tasks import API_K_HINT, TASKS, needs_intrinsics, no_intrinsics
+from geonet_infer.tasks import TASKS, needs_intrinsics
 
 __all__ = [
     "STAGES",
@@ -247,6 +248,7 @@ class Predictor:
                 f"pass at most {MAX_BATCH_SIZE} at a time, or stream them with iter_sequence(..., tasks=['depth'])",
             )
         if camera_height is not None:
+            camera = with_assumed(camera)  # the ground fit needs K: the assumed one where none was given
             check_metric_request(camera_height, camera)
         timer = StageTimer()
         rgbs = [read_frame(img, timer, i)[0] for i, img in enumerate(images)]
@@ -305,9 +307,8 @@ class Predictor:
         camera = _camera_keyword(camera, deprecated, "flow")
         require_graphs("flow", RIGID_FLOW_GRAPHS, self.graphs, self.model_dir)
         timer = StageTimer()
-        x, cam, size = load_snippet(self.spec, frames, camera, timer)
-        if cam is None:  # before the graphs run
-            raise no_intrinsics(needs_intrinsics(["flow"]), None, API_K_HINT, "none were given")
+        x, cam, size = load_snippet(self.spec, frames, with_assumed(camera), timer)
+        assert cam is not None  # with_assumed gave one
         parts = run_cascade(self.graph_set, self.spec, x[None], [len(x) // 2], cam.K, size, timer=timer)
         with timer.stage("postprocess"):
             depth, _ = disparity_to_input(parts["disparity"][0], size)
@@ -322,6 +323,7 @@ class Predictor:
             flow=flow,
             rigid_flow=rigid_flow,
             residual_flow=residual_flow,
+            intrinsics=cam.record(),
         )
 
     # ------------------------------------------------------------------ sequences
@@ -379,8 +381,8 @@ class Predictor:
             require_graphs("flow", RIGID_FLOW_GRAPHS, self.graphs, self.model_dir)
         if "pose" in classical:
             require_graphs("pose", CLASSICAL_GRAPHS["pose"], self.graphs, self.model_dir)
-            if camera is None:
-                raise no_intrinsics(["ORB-VO poses"], None, API_K_HINT, "none were given")
+        if needs_intrinsics(tasks, flow_method, pose_method) or camera_height is not None:
+            camera = with_assumed(camera)  # never stop for missing intrinsics: the rule, recorded
         if camera_height is not None:
             require_graphs(METRIC_TASK, TASK_GRAPHS["depth"], self.graphs, self.model_dir)
             check_metric_request(camera_height, camera)
@@ -424,6 +426,8 @@ class Predictor:
         """All of :meth:`iter_sequence` in memory (mind the size of flow for long videos);
         ``SequenceResult.check`` sums up the frames' flow checks."""
         camera = _camera_keyword(camera, deprecated, "predict_sequence")
+        if needs_intrinsics(TASKS, flow_method, pose_method) or camera_height is not None:
+            camera = with_assumed(camera)  # as iter_sequence does; here to record it in the result
         results = list(
             self.iter_sequence(
                 frames,
@@ -440,4 +444,6 @@ class Predictor:
         for r in results:
             for stage, ms in r.timings_ms.items():
                 totals[stage] += ms
-        return SequenceResult(frames=results, timings_ms=dict(totals))
+        depth = results[0].depth if results else None
+        used = None if camera is None or depth is None else camera_at(camera, depth.shape).record()
+        return SequenceResult(frames=results, timings_ms=dict(totals), intrinsics=used)

@@ -97,6 +97,8 @@ class FlowResult:
         pose: (4, 4) float64, the transform target -> next frame.
         undistorted: the frames were undistorted first.
         timings_ms: stage -> ms for the snippet.
+        intrinsics: the intrinsics the rigid flow was made with (:meth:`Camera.record`: K, size,
+            source and origin: given, or assumed when none were).
     """
 
     flow: np.ndarray
@@ -106,6 +108,7 @@ class FlowResult:
     pose: np.ndarray
     undistorted: bool
     timings_ms: dict[str, float]
+    intrinsics: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -177,10 +180,13 @@ class SequenceResult:
     Attributes:
         frames: one :class:`FrameResult` per frame, in order.
         timings_ms: stage -> ms summed over the sequence.
+        intrinsics: the intrinsics used at the frames' size (:meth:`Camera.record`: K, size, source,
+            origin: given, or assumed when none were and a task needed them); None when none were used.
     """
 
     frames: list[FrameResult]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    intrinsics: dict | None = None
 
     @property
     def check(self) -> SequenceCheck | None:

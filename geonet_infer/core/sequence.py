@@ -24,11 +24,11 @@ from geonet_infer.core.spec import (
     flows_to_input,
     read_frame,
     to_network,
+    with_assumed,
 )
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera
 from geonet_infer.limits import check_batch_size
-from geonet_infer.tasks import API_K_HINT, no_intrinsics
 
 
 # ----------------------------------------------------------------------------- sequences
@@ -81,9 +81,7 @@ def iter_frames(
             rgb, label = read_frame(item, timer, n_read)
             if n_read == 0 or (not run_pose and rgb.shape[:2] != size):
                 size = rgb.shape[:2]
-                cam = camera_at(camera, size)
-                if cam is None and with_flow:
-                    raise no_intrinsics(["flow"], None, API_K_HINT, "none were given")
+                cam = camera_at(with_assumed(camera) if with_flow else camera, size)
             elif rgb.shape[:2] != size:
                 raise InputError(
                     label,

@@ -21,6 +21,7 @@ from geonet_infer.check import GREY_WEIGHTS
 from geonet_infer.core.manifest import MANIFEST_NAME, Manifest
 from geonet_infer.errors import GeoNetError, InputError, ModelError
 from geonet_infer.io.calib import Camera
+from geonet_infer.io.camera import assumed_camera
 from geonet_infer.io.images import read_image
 
 # What each graph of a model directory must accept and return for this runtime to drive it.
@@ -275,6 +276,8 @@ def camera_at(camera: Intrinsics | None, size: tuple[int, int]) -> Camera | None
     if camera is None:
         return None
     if isinstance(camera, Camera):
+        if camera.size is None:  # a calibration that does not say its size is at the input resolution
+            camera = Camera(camera.K, camera.dist, (size[1], size[0]), camera.source, camera.origin)
         return camera.scaled_to(size[1], size[0]).validate(camera.source or None)
     K = np.asarray(camera, dtype=np.float64)
     if K.shape != (3, 3):  # Camera() itself raises a plain ValueError for this
@@ -284,6 +287,12 @@ def camera_at(camera: Intrinsics | None, size: tuple[int, int]) -> Camera | None
             "pass K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] at the input resolution",
         )
     return Camera(K=K, dist=None, size=(size[1], size[0])).validate()
+
+
+def with_assumed(camera: Intrinsics | None) -> Intrinsics:
+    """``camera``, or the assumed intrinsics (:data:`geonet_infer.io.camera.ASSUMED_RULE`) where none were
+    given: they follow the frames' size (:class:`~geonet_infer.io.camera.AssumedCamera`)."""
+    return camera if camera is not None else assumed_camera(conventions.KITTI_WIDTH, conventions.KITTI_HEIGHT)
 
 
 def to_network(spec: InputSpec, rgb: np.ndarray, camera: Camera | None, timer: StageTimer) -> np.ndarray:

@@ -53,8 +53,9 @@ from geonet_infer.io.flow import (
     write_flo,
     write_flow_kitti,
 )
-from geonet_infer.io.frames import KITTI_CALIB_NAME, VIDEO_SUFFIXES, Frame, FrameSource, open_frames
+from geonet_infer.io.frames import VIDEO_SUFFIXES, Frame, FrameSource, open_frames
 from geonet_infer.io.images import IMAGE_SUFFIXES, list_images, read_image, read_mask, write_image, write_mask
+from geonet_infer.io.layouts import KITTI_CALIB_NAME
 from geonet_infer.io.poses import (
     quaternion_to_rotation,
     read_kitti_poses,

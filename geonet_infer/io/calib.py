@@ -188,7 +188,12 @@ def _key_values(text: str) -> dict[str, list[str]] | None:
     return out or None
 
 
-def _camera_from_key_values(kv: dict[str, list[str]], path: Path) -> Camera | None:
+def _camera_from_key_values(kv: dict[str, list[str]], path: Path, key: str | None = None) -> Camera | None:
+    if key is not None:  # the caller knows which camera the frames are (KITTI odometry image_0: P0)
+        if key not in kv:
+            raise InputError(path, f"missing calibration key '{key}'", "the frames' camera needs its own entry")
+        P = _floats(kv[key], path, key, (12,))
+        return Camera(P.reshape(3, 4)[:, :3], None, None, f"{path} (KITTI, {key})")
     if "P_rect_02" in kv:  # KITTI raw calib_cam_to_cam.txt: rectified images, no distortion
         P = _floats(kv["P_rect_02"], path, "P_rect_02", (12,))
         size = None
@@ -272,7 +277,7 @@ def _camera_from_plain_matrix(text: str, path: Path) -> Camera | None:
     return Camera(np.array(vals).reshape(3, 3), None, None, f"{path} (3x3 matrix)")
 
 
-def read_camera(path) -> Camera:
+def read_camera(path, key: str | None = None) -> Camera:
     """Read a camera calibration file, detecting its format -> validated :class:`Camera`.
 
     Formats (:data:`CAMERA_FORMATS`):
@@ -289,6 +294,8 @@ def read_camera(path) -> Camera:
     * EuRoC / Kalibr ``sensor.yaml``: ``intrinsics: [fu, fv, cu, cv]``,
       ``distortion_coefficients: [k1, k2, p1, p2]``, ``resolution: [w, h]``.
 
+    ``key`` names the projection matrix of a KITTI file to use (``P0`` for odometry ``image_0`` frames).
+
     Raises:
         GeoNetError naming the file if it is missing, in none of these formats,
         or holds invalid values (:meth:`Camera.validate`).
@@ -300,14 +307,14 @@ def read_camera(path) -> Camera:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise InputError(path, "not a text calibration file", _FORMATS_HINT) from None
-    cam = _camera_from_euroc_yaml(text, path)
-    if cam is None:
+    cam = None if key is not None else _camera_from_euroc_yaml(text, path)
+    if cam is None and key is None:
         cam = _camera_from_plain_matrix(text, path)
     kv = None
     if cam is None:
         kv = _key_values(text)
-        cam = _camera_from_key_values(kv, path) if kv else None
+        cam = _camera_from_key_values(kv, path, key) if kv else None
     if cam is None:
         found = f" (keys: {', '.join(list(kv)[:12])})" if kv else ""
         raise InputError(path, f"unrecognised calibration format{found}", _FORMATS_HINT)
-    return cam.validate(path)
+    return Camera(cam.K, cam.dist, cam.size, cam.source, "calibration file").validate(path)

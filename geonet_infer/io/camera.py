@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from geonet_infer.conventions import scale_intrinsics
+from geonet_infer.conventions import KITTI_FX, KITTI_WIDTH, scale_intrinsics
 from geonet_infer.errors import InputError
 
 OPENCV_DIST_LENGTHS = (4, 5, 8, 12, 14)  # k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]
@@ -19,6 +19,17 @@ OPENCV_DIST_LENGTHS = (4, 5, 8, 12, 14)  # k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s
 MAX_DISTORTION = 100.0  # |coefficient|
 FOCAL_RANGE = (0.05, 100.0)  # fx / image width and fy / image height (a 170-degree to a 0.6-degree view)
 PRINCIPAL_POINT_MARGIN = 0.5  # cx, cy at most this fraction of the image width / height outside it
+# Where a camera's intrinsics came from (``Camera.origin``): recorded in summary.json and the API's results.
+ORIGINS = ("calibration file", "flag", "estimated", "assumed", "given")
+# The assumed intrinsics of footage without a calibration (docs/runtime.md "Intrinsics"): the focal of
+# KITTI's colour camera relative to the image width (721.5 px of 1242: an 81-degree horizontal view),
+# square pixels, the principal point at the centre. Every released GeoNet model and ours learnt depth
+# and motion on footage of that view, and dashcams are built near it (60-120 degrees).
+ASSUMED_FOCAL_PER_WIDTH = KITTI_FX / KITTI_WIDTH
+ASSUMED_RULE = (
+    f"fx = fy = {ASSUMED_FOCAL_PER_WIDTH:.4f} x width (KITTI's 81-degree horizontal view, the footage GeoNet "
+    "was trained on), principal point at the image centre"
+)
 
 
 # --------------------------------------------------------------------------- Camera
@@ -40,6 +51,9 @@ class Camera:
             or None when the images are rectified / undistorted.
         size: (width, height) in pixels of the images K belongs to; None when the file does not say.
         source: where the calibration came from (file and format), for messages and logs.
+        origin: what kind of source that is, one of :data:`ORIGINS`: a calibration file, a flag
+            (``--intrinsics``), estimated from the footage, assumed (:func:`assumed_camera`), or
+            given through the API.
 
     ``eq=False``: cameras compare by identity (field-wise ``==`` on arrays is ambiguous).
     """
@@ -48,6 +62,7 @@ class Camera:
     dist: np.ndarray | None = None
     size: tuple[int, int] | None = None
     source: str = ""
+    origin: str = "given"
 
     def __post_init__(self):
         K = np.array(self.K, dtype=np.float64)
@@ -83,7 +98,23 @@ class Camera:
         if width <= 0 or height <= 0:
             raise ValueError(f"target size must be positive, got {width}x{height}")
         K = scale_intrinsics(self.K, width / self.size[0], height / self.size[1])
-        return Camera(K, self.dist, (int(width), int(height)), self.source)
+        return Camera(K, self.dist, (int(width), int(height)), self.source, self.origin)
+
+    def record(self) -> dict:
+        """What summary.json and the API's results say of these intrinsics: K, the size it applies to,
+        the distortion removed, the source (a file's path and format, a flag, the rule) and its origin."""
+        return {
+            "K": self.K.tolist(),
+            "size": None if self.size is None else list(self.size),
+            "dist": None if self.dist is None else self.dist.tolist(),
+            "source": self.source,
+            "origin": self.origin,
+        }
+
+    def describe(self) -> str:
+        """One line for the closing message: ``intrinsics fx 721.5 at 1242x375 (calibration file: ...)``."""
+        size = f" at {self.size[0]}x{self.size[1]}" if self.size else ""
+        return f"intrinsics fx {self.K[0, 0]:.1f} fy {self.K[1, 1]:.1f}{size} ({self.origin}: {self.source})"
 
     def undistort(self, image: np.ndarray) -> np.ndarray:
         """``image`` without lens distortion, same K: the pixels of ``cv2.undistort(image, K, dist)``.
@@ -176,3 +207,18 @@ class Camera:
                 f"principal point cx={cx:g}, cy={cy:g} lies far outside the {width}x{height} image",
                 "check the calibration values and that they belong to these frames",
             )
+
+
+class AssumedCamera(Camera):
+    """The intrinsics of :data:`ASSUMED_RULE` at whatever size the frames are: rescaling it applies the
+    rule at the new size (square pixels stay square, the principal point stays at the centre)."""
+
+    def scaled_to(self, width: int, height: int) -> Camera:
+        return assumed_camera(width, height, self.source)
+
+
+def assumed_camera(width: int, height: int, source: str = ASSUMED_RULE) -> AssumedCamera:
+    """:data:`ASSUMED_RULE` for ``width`` x ``height`` frames (``source``: the rule, and why it was assumed)."""
+    f = ASSUMED_FOCAL_PER_WIDTH * width
+    K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+    return AssumedCamera(K, None, (int(width), int(height)), source, "assumed")

@@ -1,4 +1,4 @@
-"""Frame sources for the command line: a video file, a KITTI raw drive or a folder of images.
+"""Frame sources for the command line: a video file, a dataset's sequence folder or a folder of images.
 
 :func:`open_frames` picks the source from the path; iterating it yields :class:`Frame` objects
 lazily (one decoded frame in memory at a time), in temporal order.
@@ -20,6 +20,7 @@ import numpy as np
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import images
 from geonet_infer.io.images import IMAGE_SUFFIXES, list_images, read_image
+from geonet_infer.io.layouts import KITTI_CALIB_NAME, SequenceLayout, find_layout
 from geonet_infer.limits import MAX_CAMERA_INDEX
 
 __all__ = ["VIDEO_SUFFIXES", "KITTI_CALIB_NAME", "Frame", "FrameSource", "open_frames", "open_stream", "open_stdin"]
@@ -31,11 +32,9 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")  # compared lower-cas
 # unless the user set OPENCV_FFMPEG_LOGLEVEL (e.g. 32 to see it). OpenCV reads the variable when it
 # first opens a video in the process, hence at import; cv2.utils.logging.setLogLevel does not reach it.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
-KITTI_CALIB_NAME = "calib_cam_to_cam.txt"
 SIDE_CALIB_SUFFIX = ".calib.txt"  # clip.mp4 + clip.calib.txt: a video's (or folder's) own calibration
 CLEAN_END_SHORTFALL_S = 1.0  # a video that stops at most this much before its header's count ended cleanly
 FALLBACK_FPS = 25.0  # for that rule when the container gives no frame rate
-_KITTI_IMAGES = Path("image_02") / "data"  # KITTI raw: left colour camera, rectified
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,8 +72,9 @@ class FrameSource:
         frame_names: frame names in order; None for a video until it was read to the end, and
             for live sources (their length is 0: unknown).
         fps: frames per second of a video (None for folders or when the container does not say).
-        default_calib: calibration file that belongs to these frames (KITTI raw
-            ``calib_cam_to_cam.txt``), or None.
+        default_calib: calibration file that belongs to these frames (a dataset layout's, e.g. KITTI
+            raw ``calib_cam_to_cam.txt``, or a ``<name>.calib.txt`` beside them), or None.
+        layout: the dataset layout the folder was recognised as (:mod:`geonet_infer.io.layouts`), or None.
         truncated: for a video read to the end that decoded fewer frames than its container
             lists, ``"decoded N of M frames"``; else None.
         missing: names of the frames the container lists but that did not decode (with ``truncated``).
@@ -85,6 +85,17 @@ class FrameSource:
     truncated: str | None = None
     ended_early: str | None = None
     missing: tuple[str, ...] = ()
+    layout: SequenceLayout | None = None
+
+    def own_camera(self):
+        """The calibration that comes with the frames (their layout's, or the side file), or None."""
+        if self.layout is not None and (self.layout.calib is not None or self.layout.tum_camera is not None):
+            return self.layout.camera()
+        if self.default_calib is not None:
+            from geonet_infer.io.calib import read_camera
+
+            return read_camera(self.default_calib)
+        return None
 
     def __init__(
         self,
@@ -344,18 +355,6 @@ def open_stdin(width: int, height: int, stream: BinaryIO | None = None, fps: flo
     return _RawStdinSource(width, height, stream, fps)
 
 
-def find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | None:
-    """The first of ``folder`` and its ``levels`` parents that holds every file in ``names``.
-
-    KITTI raw keeps a date's calibration in ``<date>/``, beside its drive folders; extracts
-    often copy it into the drive folder itself.
-    """
-    for candidate in [folder, *list(folder.parents)[:levels]]:
-        if all((candidate / n).is_file() for n in names):
-            return candidate
-    return None
-
-
 def find_side_calib(path: Path) -> Path | None:
     """The calibration file beside a video, image or folder of frames: ``<name>.calib.txt`` next to
     it (``clip.mp4`` -> ``clip.calib.txt``, ``frames/`` -> ``frames.calib.txt``), or None."""
@@ -364,23 +363,15 @@ def find_side_calib(path: Path) -> Path | None:
     return side if side.is_file() else None
 
 
-def find_kitti_calib(drive: Path) -> Path | None:
-    """``calib_cam_to_cam.txt`` in the drive folder or up to two levels up (KITTI: ``<date>/``)."""
-    folder = find_up(drive, (KITTI_CALIB_NAME,))
-    return None if folder is None else folder / KITTI_CALIB_NAME
-
-
 def open_frames(path) -> FrameSource:
     """Open a video file, a KITTI raw drive or a folder of images as a :class:`FrameSource`.
 
     * A file with suffix .mp4 .avi .mov .mkv .webm: a video (OpenCV; BGR converted to RGB).
     * An image file (:data:`~geonet_infer.io.images.IMAGE_SUFFIXES`): a one-frame ``"image"``
       source (depth; pose and flow need a sequence).
-    * A folder holding ``image_02/data`` (a KITTI raw drive, e.g.
-      ``2011_09_26/2011_09_26_drive_0001_sync``) or a folder that *is* ``.../image_02/data``
-      (or ``.../image_02``):
-      a ``"kitti_drive"``; frames from ``image_02/data``; ``default_calib`` is the
-      ``calib_cam_to_cam.txt`` in the drive folder or up to two levels above it.
+    * A folder of a dataset layout (:mod:`geonet_infer.io.layouts`: a KITTI raw drive, a KITTI
+      odometry sequence, EuRoC, TUM RGB-D), or its frames folder: its frames, ``kind`` the layout's,
+      and its calibration (:meth:`FrameSource.own_camera`).
     * Any other folder: its images (:func:`~geonet_infer.io.images.list_images`), in natural order.
     * A video, an image or a folder of frames with a ``<name>.calib.txt`` beside it
       (:func:`find_side_calib`): that file is its ``default_calib``, as a KITTI drive's is.
@@ -409,13 +400,9 @@ def open_frames(path) -> FrameSource:
             f"({' '.join(IMAGE_SUFFIXES)}) or a folder of frames",
             "pass a video, an image or a folder of frames",
         )
-    if (p / _KITTI_IMAGES).is_dir():
-        drive = p
-    elif p.name == _KITTI_IMAGES.name and p.parent.name == _KITTI_IMAGES.parent.name:
-        drive = p.parent.parent
-    elif p.name == _KITTI_IMAGES.parent.name and (p / _KITTI_IMAGES.name).is_dir():
-        drive = p.parent
-    else:
+    layout = find_layout(p)
+    if layout is None:
         return _ImageFolderSource(given, given, p.name, "folder", find_side_calib(given))
-    images = drive / _KITTI_IMAGES
-    return _ImageFolderSource(given, images, drive.name, "kitti_drive", find_kitti_calib(drive))
+    source = _ImageFolderSource(given, layout.images, layout.name, layout.kind, layout.calib)
+    source.layout = layout
+    return source

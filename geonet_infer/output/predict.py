@@ -31,6 +31,7 @@ from geonet_infer import __version__, ownership
 from geonet_infer.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
 from geonet_infer.classical import check_methods, classical_tasks
 from geonet_infer.classical import describe as describe_methods
+from geonet_infer.conventions import KITTI_HEIGHT, KITTI_WIDTH
 from geonet_infer.core.cascade import camera_at
 from geonet_infer.core.manifest import model_notice
 from geonet_infer.core.predictor import Predictor
@@ -40,6 +41,7 @@ from geonet_infer.cpu import isa_line
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, write_kitti_camera
+from geonet_infer.io.camera import assumed_camera
 from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.limits import MAX_HELD_PIXELS, check_batch_size
@@ -63,7 +65,7 @@ from geonet_infer.output.layout import (
 from geonet_infer.output.options import OutputOptions
 from geonet_infer.output.video import FOLDER_FPS, VideoOut
 from geonet_infer.output.writer import FrameWriter, Written
-from geonet_infer.tasks import TASKS, needs_intrinsics, no_intrinsics
+from geonet_infer.tasks import TASKS, needs_intrinsics
 from geonet_infer.viz import SteadyScale
 
 
@@ -130,19 +132,12 @@ def predict_to_dir(
     tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
         tasks, metric=camera_height is not None, classical=classical_tasks(tasks or TASKS, flow_method, pose_method)
     )
-    needing = needs_intrinsics(tasks, flow_method, pose_method)
-    if needing and camera is None:
-        raise no_intrinsics(
-            needing, source.path, "pass --calib FILE or --intrinsics FX,FY,CX,CY (or --tasks depth,pose)"
-        )
+    if camera is None and (needs_intrinsics(tasks, flow_method, pose_method) or camera_height or options.point_cloud):
+        camera = assumed_camera(KITTI_WIDTH, KITTI_HEIGHT)  # never stop: the stated rule, follows the frames' size
     if camera_height is not None:
         check_metric_request(camera_height, camera, source.path)
-    if options.point_cloud and ("depth" not in tasks or camera is None):
-        raise InputError(
-            source.path,
-            "point clouds need depth and the camera intrinsics",
-            "pass --calib FILE or --intrinsics FX,FY,CX,CY, and keep depth in --tasks",
-        )
+    if options.point_cloud and "depth" not in tasks:
+        raise InputError(source.path, "point clouds need depth", "keep depth in --tasks")
     if options.point_cloud == "world" and "pose" not in tasks:
         raise InputError(
             source.path, "a world point cloud needs poses", "keep pose in --tasks, or use --point-cloud camera"
@@ -384,8 +379,7 @@ def _predict(
         if camera is None
         else {
             "K_input_resolution": (camera_at(camera, frames.size).K.tolist() if frames.size else camera.K.tolist()),
-            "dist": None if camera.dist is None else camera.dist.tolist(),
-            "source": camera.source,
+            **(camera_at(camera, frames.size) if frames.size else camera).record(),  # K, size, source, origin
             "undistorted": camera.has_distortion,
         },
         "image_size": None if frames.size is None else [frames.size[1], frames.size[0]],

@@ -27,6 +27,7 @@ from geonet_infer.eval.datasets.base import (
     _snippets,
 )
 from geonet_infer.io import list_images, read_calib_file
+from geonet_infer.io.layouts import ODOMETRY_CAMERAS
 
 
 class KittiOdometry(Layout):
@@ -42,11 +43,11 @@ class KittiOdometry(Layout):
 
     @staticmethod
     def detect(task: str, root: Path) -> bool:
-        return (root / "calib.txt").is_file() and ((root / "image_2").is_dir() or (root / "image_0").is_dir())
+        return (root / "calib.txt").is_file() and any((root / n).is_dir() for n in ODOMETRY_CAMERAS)
 
     @classmethod
     def items(cls, task: str, root: Path, *, sequences: list[str] | None, stride: int, multiview: Path | None) -> Found:
-        names = [n for n in ("image_2", "image_0") if (root / n).is_dir()]
+        names = [n for n in ODOMETRY_CAMERAS if (root / n).is_dir()]
         if not names:
             raise InputError(
                 root / "image_2",
@@ -66,12 +67,12 @@ class KittiOdometry(Layout):
         poses = _finite_poses(poses_path)
         candidates = {}  # camera folder -> (frames, snippets), colour first
         for name in names:
-            key = "P2" if name == "image_2" else "P0"  # each camera's own projection matrix
+            key = ODOMETRY_CAMERAS[name]  # each camera's own projection matrix
             frames = list_images(root / name)
             candidates[name] = (frames, _snippets(frames, poses, poses_path, stride, "", calib, key))
         image_name = max(names, key=lambda n: len(candidates[n][1]))  # max keeps the first (colour) on a tie
         frames, items = candidates[image_name]
-        key = "P2" if image_name == "image_2" else "P0"
+        key = ODOMETRY_CAMERAS[image_name]
         if key not in read_calib_file(calib):
             raise InputError(calib, f"missing calibration key '{key}'", f"{image_name}/ frames need {key}")
         if not items:

@@ -22,7 +22,7 @@ from geonet_infer.eval.datasets.base import (
     calibration_K_or_error,
 )
 from geonet_infer.io import list_images
-from geonet_infer.io.frames import find_up
+from geonet_infer.io.layouts import find_up
 
 
 class KittiRaw(Layout):

@@ -502,19 +502,21 @@ def test_engine_is_the_deprecated_name_of_runner(tmp_path, capfd):
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["engine"] == "local"
 
 
-def test_run_batch_refuses_flow_for_an_input_without_intrinsics_before_any_work(tmp_path):
-    """The needs-K rule (geonet_infer.tasks) is applied once, by run_batch, after the tasks are resolved
-    against the model: the API and the CLI get the same one-line error, and OUT is never made."""
+def test_run_batch_runs_flow_for_an_input_without_intrinsics_with_the_assumed_ones(tmp_path):
+    """The needs-K rule (geonet_infer.tasks) is applied once, by run_batch: one note names the inputs
+    without a calibration, and each sequence's summary records the assumed intrinsics."""
     from geonet_infer.batch import run_batch
-    from geonet_infer.errors import InputError
+    from geonet_infer.io.camera import ASSUMED_FOCAL_PER_WIDTH
 
     frames = tmp_path / "frames"
     frames.mkdir()
     for f in FRAMES[:3]:
         shutil.copy(f, frames / f.name)
-    out = tmp_path / "out"
-    with pytest.raises(InputError, match="flow needs camera intrinsics and this input has none") as err:
-        run_batch([frames], out, tasks=("flow",), progress=False, log=lambda msg: None)
-    assert err.value.path == frames or str(frames) in str(err.value)
-    assert not out.exists()
+    notes: list[str] = []
+    run_batch([frames], tmp_path / "out", tasks=("flow",), progress=False, log=notes.append)
+    assert any("no calibration; intrinsics assumed" in n and str(frames) in n for n in notes), notes
+    camera = json.loads((tmp_path / "out" / "frames" / "summary.json").read_text())["camera"]
+    assert camera["origin"] == "assumed" and camera["K"][0][0] == pytest.approx(
+        ASSUMED_FOCAL_PER_WIDTH * camera["size"][0]
+    )
     run_batch([frames], tmp_path / "dis", tasks=("flow",), flow_method="dis", progress=False, log=lambda m: None)

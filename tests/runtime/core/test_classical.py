@@ -139,10 +139,12 @@ def test_orbvo_a_camera_standing_still_does_not_move():
     assert info["failed_pairs"] == 1 and not np.allclose(eval_poses[2], eval_poses[1])
 
 
-def test_orbvo_needs_intrinsics_and_unknown_methods_are_refused(tmp_path, capsys):
+def test_orbvo_without_intrinsics_assumes_them_and_unknown_methods_are_refused(tmp_path, capsys):
     base = ["predict", str(SAMPLE_FRAMES), "--no-progress"]
-    assert main([*base, "--out", str(tmp_path / "a"), "--pose-method", "orbvo", "--tasks", "pose"]) == 2
-    assert "ORB-VO poses need camera intrinsics" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "a"), "--pose-method", "orbvo", "--tasks", "pose"]) == 0
+    out = capsys.readouterr().out
+    assert "intrinsics: assumed" in out and "--tasks depth,pose" not in out  # no hint at what was asked for
+    assert json.loads((tmp_path / "a" / "summary.json").read_text())["camera"]["origin"] == "assumed"
     assert main([*base, "--out", str(tmp_path / "b"), "--flow-method", "farneback"]) == 2
     assert "invalid choice: 'farneback'" in capsys.readouterr().err
     with pytest.raises(geonet_infer.GeoNetError, match="unknown pose method"):

@@ -104,7 +104,7 @@ def test_error_map_matches_ssim_and_l1_written_out_per_pixel(height, width):
 
 def test_the_numpy_op_agrees_with_rigidflow_onnx_on_real_frames(kitti_raw):
     from geonet_infer.io import list_images, read_camera, read_image
-    from geonet_infer.io.frames import find_kitti_calib
+    from geonet_infer.io.layouts import find_kitti_calib
 
     predictor = geonet_infer.load()
     camera = read_camera(find_kitti_calib(kitti_raw))
@@ -126,7 +126,7 @@ def test_the_numpy_op_agrees_with_rigidflow_onnx_on_real_frames(kitti_raw):
 
 def test_predictor_with_the_numpy_op_gives_the_graphs_flow(kitti_raw):
     from geonet_infer.io import list_images, read_camera
-    from geonet_infer.io.frames import find_kitti_calib
+    from geonet_infer.io.layouts import find_kitti_calib
 
     camera = read_camera(find_kitti_calib(kitti_raw))
     frames = list_images(kitti_raw / "image_02" / "data")[:3]

@@ -257,12 +257,15 @@ def test_sequence_with_camera_height_scales_depth_and_translations_per_frame(sam
             np.testing.assert_allclose(b.flow, a.flow)  # flow is in pixels: unchanged
 
 
-def test_camera_height_needs_a_camera_and_a_positive_height(sample):
+def test_camera_height_needs_a_positive_height_and_assumes_a_missing_camera(sample):
+    from geonet_infer.io.camera import ASSUMED_FOCAL_PER_WIDTH
+
     predictor, frames, camera = sample
     with pytest.raises(GeoNetError, match="smoothing window"):
         predictor.iter_sequence(frames, camera, camera_height=1.65, scale_smoothing=-1)  # before any frame
-    with pytest.raises(GeoNetError, match="needs the camera intrinsics"):
-        predictor.depth(frames[0], camera_height=1.65)
+    result = predictor.depth(frames[0], camera_height=1.65)  # no camera: the assumed intrinsics
+    width = result.depth.shape[1]
+    assert result.intrinsics[0, 0] == pytest.approx(ASSUMED_FOCAL_PER_WIDTH * width)
     with pytest.raises(GeoNetError, match="positive number of metres"):
         predictor.depth(frames[0], camera=camera, camera_height=0)
 

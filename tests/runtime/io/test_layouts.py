@@ -1,0 +1,103 @@
+"""Dataset layouts recognised by predict, batch and eval (issue 58): each on folders the test writes,
+with calibration values typed here, and on the real extracts in ../shared/realdata."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+import geonet_infer
+from geonet_infer.io.frames import open_frames
+from geonet_infer.io.layouts import find_layout
+
+SAMPLE = Path(geonet_infer.__file__).resolve().parent / "samples" / "synth_seq" / "image"
+P_LINE = "{k}: {f} 0 {cx} 0 0 {f} {cy} 0 0 0 1 0"
+
+
+def _frames(folder: Path, n: int, suffix: str = ".png") -> list[Path]:
+    folder.mkdir(parents=True)
+    files = sorted(SAMPLE.glob("*.png"))
+    out = []
+    for i in range(n):
+        dst = folder / f"{i:06d}{suffix}"
+        if suffix == ".png":
+            shutil.copy(files[i % len(files)], dst)
+        else:
+            cv2.imwrite(str(dst), cv2.imread(str(files[i % len(files)])))
+        out.append(dst)
+    return out
+
+
+def _odometry(root: Path, colour: int, grey: int) -> Path:
+    """sequences/07 with P0 (fx 700) and P2 (fx 710) told apart, times.txt, and frames."""
+    seq = root / "sequences" / "07"
+    if colour:
+        _frames(seq / "image_2", colour)
+    if grey:
+        _frames(seq / "image_0", grey)
+    lines = [P_LINE.format(k="P0", f=700.0, cx=200.0, cy=60.0), P_LINE.format(k="P1", f=700.0, cx=200.0, cy=60.0)]
+    lines += [P_LINE.format(k="P2", f=710.0, cx=205.0, cy=61.0)]
+    (seq / "calib.txt").write_text("\n".join(lines) + "\n")
+    (seq / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(max(colour, grey))))
+    return seq
+
+
+def test_kitti_odometry_prefers_colour_and_reads_its_own_matrix(tmp_path):
+    seq = _odometry(tmp_path, colour=4, grey=4)
+    source = open_frames(seq)
+    assert source.kind == "kitti_odometry" and source.name == "07" and len(source) == 4
+    assert source.layout.images.name == "image_2" and source.layout.times == seq / "times.txt"
+    K = source.own_camera().K
+    assert (K[0, 0], K[0, 2], K[1, 2]) == (710.0, 205.0, 61.0)  # P2's, typed above
+    bare = open_frames(seq / "image_0")  # a bare image_0 finds ../calib.txt and its P0
+    assert bare.own_camera().K[0, 0] == 700.0 and bare.name == "07"
+
+
+def test_kitti_odometry_extract_with_more_grey_frames_runs_the_grey_camera(tmp_path):
+    seq = _odometry(tmp_path, colour=2, grey=6)
+    source = open_frames(seq)
+    assert source.layout.images.name == "image_0" and len(source) == 6
+    assert source.own_camera().K[0, 0] == 700.0
+
+
+def test_euroc_from_each_of_its_folders(require_real):
+    root = require_real("euroc_v1_01_micro")
+    for given in (root, root / "mav0", root / "mav0" / "cam0", root / "mav0" / "cam0" / "data"):
+        source = open_frames(given)
+        assert source.kind == "euroc" and source.name == "euroc_v1_01_micro" and len(source) == 20, given
+        cam = source.own_camera()
+        # sensor.yaml: intrinsics [458.654, 457.296, 367.215, 248.375], radial-tangential distortion
+        np.testing.assert_allclose(cam.K[[0, 1, 0, 1], [0, 1, 2, 2]], [458.654, 457.296, 367.215, 248.375])
+        np.testing.assert_allclose(cam.dist, [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05])
+        assert cam.size == (752, 480) and cam.origin == "calibration file"
+
+
+def test_tum_rgbd_takes_the_tables_camera_by_its_name(tmp_path):
+    seq = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    files = _frames(seq / "rgb", 3)
+    (seq / "rgb.txt").write_text(
+        "# timestamp filename\n" + "".join(f"{i}.0 rgb/{f.name}\n" for i, f in enumerate(files))
+    )
+    source = open_frames(seq)
+    assert source.kind == "tum_rgbd" and len(source) == 3
+    cam = source.own_camera()  # TUM's published freiburg1 intrinsics: 517.3 516.5 318.6 255.3
+    np.testing.assert_allclose(cam.K[[0, 1, 0, 1], [0, 1, 2, 2]], [517.3, 516.5, 318.6, 255.3])
+    assert cam.size == (640, 480) and cam.dist is not None
+    unnamed = tmp_path / "my_rgbd"
+    shutil.copytree(seq, unnamed)
+    assert open_frames(unnamed / "rgb").kind == "tum_rgbd" and open_frames(unnamed).own_camera() is None
+
+
+def test_a_plain_folder_has_no_layout(tmp_path):
+    _frames(tmp_path / "frames", 2, ".jpg")
+    assert find_layout(tmp_path / "frames") is None and open_frames(tmp_path / "frames").own_camera() is None
+
+
+def test_eval_reads_the_odometry_cameras_from_the_same_place():
+    from geonet_infer.eval.datasets import kitti_odometry
+    from geonet_infer.io import layouts
+
+    assert kitti_odometry.ODOMETRY_CAMERAS is layouts.ODOMETRY_CAMERAS
