@@ -133,6 +133,8 @@ def focal_from_matches(
 
     if tried == 0:
         return refuse("the camera does not move enough (no pair of frames with parallax)")
+    if tried < MIN_PAIRS:
+        return refuse(f"only {tried} pairs of frames moved (at least {MIN_PAIRS} needed)")
     if len(estimates) < MIN_PAIRS:
         return refuse(
             f"{len(estimates)} of {tried} moving pairs determine it (at least {MIN_PAIRS} needed): "

@@ -404,7 +404,6 @@ def test_ray_missing_is_a_usage_error(tmp_path, capfd, monkeypatch):
     "case",
     [
         "missing_input",
-        "flow_without_intrinsics",
         "unknown_model",
         "resume_other_options",
         "address_without_ray",
@@ -418,8 +417,6 @@ def test_bad_usage_exits_2_with_one_line(tmp_path, capfd, case):
     argv = ["batch", seq, "--out", out, "--no-progress", "--tasks", "depth"]
     if case == "missing_input":
         argv[1:2] = [seq, tmp_path / "nope"]
-    elif case == "flow_without_intrinsics":
-        argv = argv[:-2]
     elif case == "unknown_model":
         argv += ["--model", "no_such_model"]
     elif case == "resume_other_options":

@@ -187,7 +187,6 @@ def _folder_without_calib(tmp_path):
     "case",
     [
         "missing_input",
-        "flow_without_calib",
         "bad_intrinsics",
         "bad_tasks",
         "missing_model",
@@ -200,9 +199,6 @@ def test_usage_errors_exit_2_with_one_line_naming_the_item(tmp_path, capfd, case
     if case == "missing_input":
         item = tmp_path / "no_such_input"
         argv = ["predict", item, "--out", out]
-    elif case == "flow_without_calib":
-        item = _folder_without_calib(tmp_path)
-        argv = ["predict", item, "--out", out, "--tasks", "flow"]
     elif case == "bad_intrinsics":
         item = "--intrinsics"
         argv = ["predict", _folder_without_calib(tmp_path), "--out", out, "--intrinsics", "1,2,3"]

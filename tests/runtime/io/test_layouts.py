@@ -8,6 +8,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 import geonet_infer
 from geonet_infer.io.frames import open_frames
@@ -101,3 +102,21 @@ def test_eval_reads_the_odometry_cameras_from_the_same_place():
     from geonet_infer.io import layouts
 
     assert kitti_odometry.ODOMETRY_CAMERAS is layouts.ODOMETRY_CAMERAS
+
+
+def test_batch_reads_each_inputs_layout_calibration(tmp_path):
+    """batch: a KITTI odometry sequence and a TUM folder, each with its own K in its summary."""
+    import json
+
+    from geonet_infer.batch import run_batch
+
+    seq = _odometry(tmp_path / "odom", colour=3, grey=3)
+    tum = tmp_path / "rgbd_dataset_freiburg3_office"
+    files = _frames(tum / "rgb", 3)
+    (tum / "rgb.txt").write_text("".join(f"{i}.0 rgb/{f.name}\n" for i, f in enumerate(files)))
+    run_batch([seq, tum], tmp_path / "out", tasks=("flow",), progress=False, log=lambda _: None)
+    odom = json.loads((tmp_path / "out" / "07" / "summary.json").read_text())["camera"]
+    assert odom["origin"] == "calibration file" and odom["K"][0][0] == 710.0  # P2, typed in _odometry
+    fr3 = json.loads((tmp_path / "out" / tum.name / "summary.json").read_text())["camera"]
+    width = fr3["size"][0]  # the TUM table's 535.4 at 640 px, rescaled to the frames' width
+    assert fr3["origin"] == "calibration file" and fr3["K"][0][0] == pytest.approx(535.4 * width / 640)
