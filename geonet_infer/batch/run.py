@@ -28,6 +28,7 @@ from geonet_infer.batch.units import (
     claim,
     expand_input_pairs,
     is_empty,
+    model_changed,
     needs_own_calib,
     not_ours,
     owned,
@@ -35,6 +36,7 @@ from geonet_infer.batch.units import (
     read_marker,
     sequence_root,
     stale,
+    without_model,
 )
 from geonet_infer.classical import check_methods, classical_tasks
 from geonet_infer.core.predictor import TASKS, describe_skipped, resolve_tasks
@@ -150,18 +152,20 @@ def _resume_plan(units, out_dir: Path, options: dict, own_calib: bool, log):
         if marker is None:
             todo.append(unit)
             continue
-        if marker.get("options") != options or marker.get("input") != unit.path:
+        recorded = marker.get("options")
+        before: dict = recorded if isinstance(recorded, dict) else {}
+        if without_model(before) != without_model(options) or marker.get("input") != unit.path:
             what = (
                 "input"
                 if marker.get("input") != unit.path
-                else "set of options (model, precision, tasks, batch size, camera, flow or pose method, outputs)"
+                else "set of options (precision, engine, tasks, batch size, camera, flow or pose method, outputs)"
             )
             raise InputError(
                 folder,
                 f"was made with another {what} than this job has",
                 "resume with the options of the first run, or pass another --out",
             )
-        why = stale(marker, unit, folder, own_calib)
+        why = model_changed(before, options) or stale(marker, unit, folder, own_calib)
         if why:
             log(f"geonet-infer batch: note: {unit.name}: redoing it, {why}")
             redone.append({"sequence": unit.name, "reason": why})
@@ -363,7 +367,8 @@ def run_batch(
                 "frames_per_s": frames / wall if wall > 0 and frames else 0.0,
                 "tasks": list(tasks),
                 "batch_size": batch_size,
-                "model": options["model"],
+                "model": str(Path(model_dir).resolve()),
+                "graphs": options["graphs"],  # sha256 of each graph: what a --resume compares
                 "model_notice": model_notice(manifest),  # synthetic-only model: how it does on real video
                 "precision": precision,
                 "backend": backend,  # per graph engine, precision and why: each sequence's summary.json

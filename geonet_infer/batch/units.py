@@ -77,9 +77,9 @@ class BatchConfig:
     estimate_intrinsics: bool = False  # --intrinsics estimate: each input's focal from its footage
 
     def options(self) -> dict:
-        """What decides the outputs (stored in each ``.done``; a resume with other options is refused)."""
-        from geonet_infer.models import resolve_model
-
+        """What decides the outputs (stored in each ``.done``). The model is named by its graphs' sha256
+        (``graphs``), not its folder: a resume after the model changed redoes the sequence
+        (:func:`model_changed`); other options that differ are refused."""
         cam = (
             None
             if self.camera is None
@@ -90,7 +90,7 @@ class BatchConfig:
             }
         )
         options = {
-            "model": str(resolve_model(self.model).resolve()),
+            "graphs": graph_hashes(self.model, self.precision),
             "precision": self.precision,
             "backend": self.backend,
             "tasks": list(self.tasks),
@@ -104,6 +104,36 @@ class BatchConfig:
         methods = {"flow_method": self.flow_method, "pose_method": self.pose_method}
         chosen = {} if self.outputs is None else {"outputs": sorted(self.outputs)}  # likewise
         return options | {k: v for k, v in methods.items() if v != "network"} | chosen
+
+
+MODEL_KEYS = ("graphs", "model")  # how a .done names the model: its graphs' sha256 (before: its folder's path)
+
+
+def graph_hashes(model: str | None, precision: str) -> dict[str, str]:
+    """``precision/graph`` -> sha256 of every graph the run may use (all precisions for ``auto``)."""
+    from geonet_infer.core.manifest import load_manifest
+    from geonet_infer.models import resolve_model
+
+    manifest = load_manifest(resolve_model(model), verify_files=False)
+    sets = {p: g for p, g in manifest.graphs.items() if precision in (p, "auto")}
+    return {f"{p}/{name}": entry.sha256 for p, graphs in sets.items() for name, entry in sorted(graphs.items())}
+
+
+def model_changed(marker_options: dict, options: dict) -> str | None:
+    """Why the model of a ``.done`` is not this job's (its graphs differ, or it names a folder only), or None."""
+    before = marker_options.get("graphs")
+    if not isinstance(before, dict):
+        return f"its {MARKER_NAME} names the model by its folder, not by its graphs"
+    if before != options["graphs"]:
+        changed = sorted(
+            k for k in before.keys() | options["graphs"].keys() if before.get(k) != options["graphs"].get(k)
+        )
+        return f"the model changed since the run ({', '.join(changed)} differ)"
+    return None
+
+
+def without_model(options: dict) -> dict:
+    return {k: v for k, v in options.items() if k not in MODEL_KEYS}
 
 
 # ----------------------------------------------------------------------------- one sequence
