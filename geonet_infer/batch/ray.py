@@ -186,6 +186,8 @@ class RayRunner:
         log,
     ) -> RayRunner:
         """Start a local cluster (no address) or join ``address``, and size the actor pool."""
+        if address:
+            check_reachable(address)  # before anything needs ray: an unreachable cluster is the user's error to see
         ray = import_ray()
         started_here = False
         for name in ("ray", "ray.data"):  # Ray's notices (token auth on, progress bars off) are not ours to show
@@ -193,8 +195,6 @@ class RayRunner:
         if not ray.is_initialized():
             os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
             common = dict(logging_level=logging.ERROR, log_to_driver=True)
-            if address:
-                check_reachable(address)
             # ray.init replaces the SIGTERM handler with sys.exit(15) (and its core worker adds a C++
             # stack dump): the job's own handler is put back, so SIGTERM stops the job like Ctrl-C.
             main_thread = threading.current_thread() is threading.main_thread()

@@ -411,7 +411,7 @@ def test_ray_missing_is_a_usage_error(tmp_path, capfd, monkeypatch):
         "unreachable_ray_cluster",
     ],
 )
-def test_bad_usage_exits_2_with_one_line(tmp_path, capfd, case):
+def test_bad_usage_exits_2_with_one_line(tmp_path, capfd, monkeypatch, case):
     (seq,) = make_sequences(tmp_path / "in", ["s"], 2)
     out = tmp_path / "out"
     argv = ["batch", seq, "--out", out, "--no-progress", "--tasks", "depth"]
@@ -424,8 +424,9 @@ def test_bad_usage_exits_2_with_one_line(tmp_path, capfd, case):
         argv = [a if a != "depth" else "depth,pose" for a in argv] + ["--resume"]
     elif case == "address_without_ray":
         argv += ["--ray-address", "auto"]
-    elif case == "unreachable_ray_cluster":  # fails fast (ray.init alone would retry for minutes)
+    elif case == "unreachable_ray_cluster":  # fails fast (ray.init alone would retry for minutes) ...
         argv += ["--runner", "ray", "--ray-address", "127.0.0.1:1"]
+        monkeypatch.setitem(sys.modules, "ray", None)  # ... and before anything imports ray
     elif case == "empty_list":
         (tmp_path / "list.txt").write_text("# nothing\n")
         argv[1] = tmp_path / "list.txt"
@@ -433,6 +434,8 @@ def test_bad_usage_exits_2_with_one_line(tmp_path, capfd, case):
     assert rc == 2
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("geonet-infer batch: error:"), stderr
+    if case == "unreachable_ray_cluster":
+        assert "cannot reach the Ray cluster at 127.0.0.1:1" in lines[0], lines[0]
 
 
 # ----------------------------------------------------------------------------- planning

@@ -215,15 +215,64 @@ def _sigterm_run(tmp_path, engine: str, first_output_timeout: float):
     done = [n for n in names if (out / n / MARKER_NAME).is_file()]
     assert [p.name for p in out.iterdir() if p.is_dir() and p.name not in done] == []  # unfinished ones removed
     assert summary["sequences"]["done"] == len(done) < len(names)
+    return out, seqs, argv, done
 
 
 def test_sigterm_stops_a_local_job_with_a_summary_and_130(tmp_path):
     _sigterm_run(tmp_path, "local", 120)
 
 
-def test_sigterm_stops_a_ray_job_with_a_summary_and_130(tmp_path):
+def test_sigterm_stops_a_ray_job_with_a_summary_and_130_and_resume_with_ray_finishes_it(tmp_path):
+    """Stopped mid-way (the pending sequences' folders discarded), then --resume --runner ray: the done
+    ones are skipped, the others predicted, each equal to a local job's outputs of the same sequence."""
     require_ray()
-    _sigterm_run(tmp_path, "ray", 240)
+    out, seqs, argv, done = _sigterm_run(tmp_path, "ray", 240)
+    proc = subprocess.run([*argv, "--resume"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert f"{len(seqs) - len(done)} sequences done, 0 failed, {len(done)} skipped" in proc.stdout, proc.stdout
+    assert leftovers(out) == []
+    local = tmp_path / "local"
+    assert cli_run([*argv[: argv.index("--out")], "--out", str(local), "--tasks", "depth", "--no-progress"]) == 0
+    for seq in seqs:
+        ours = sorted((out / seq.name / "depth").glob("*.npy"))
+        assert [p.name for p in ours] == [p.name for p in sorted((local / seq.name / "depth").glob("*.npy"))]
+        assert all(p.read_bytes() == (local / seq.name / "depth" / p.name).read_bytes() for p in ours), seq.name
+
+
+def cli_run(argv: list[str]) -> int:
+    return subprocess.run(argv, capture_output=True, text=True, timeout=300).returncode
+
+
+def test_an_actor_that_cannot_load_the_model_fails_each_sequence_and_leaves_no_folder(tmp_path):
+    """The model passes the driver's checks (manifest, hashes, protobuf) but onnxruntime refuses it in
+    the actors (an unknown operator, written with onnx): each sequence fails with that reason, exit 1."""
+    require_ray()
+    onnx = pytest.importorskip("onnx")
+    import dataclasses
+
+    from geonet_infer.core.manifest import file_sha256, write_manifest
+    from geonet_infer.models import bundled_models
+
+    model = tmp_path / "model"
+    shutil.copytree(bundled_models()["small_synth"], model)
+    graph = onnx.load(str(model / "depthnet.onnx"))
+    graph.graph.node[0].op_type = "GeoNetNoSuchOp"
+    onnx.save(graph, str(model / "depthnet.onnx"))
+    manifest = load_manifest(model, verify_files=False)
+    fp32 = {**manifest.graphs["fp32"]}
+    fp32["depthnet"] = dataclasses.replace(fp32["depthnet"], sha256=file_sha256(model / "depthnet.onnx"))
+    write_manifest(dataclasses.replace(manifest, graphs={**manifest.graphs, "fp32": fp32}), model)
+    seqs = make_sequences(tmp_path / "in", ["a", "b"], 2)
+    out = tmp_path / "out"
+    argv = [*CLI, "batch", *map(str, seqs), "--out", str(out), "--model", str(model), "--tasks", "depth"]
+    proc = subprocess.run([*argv, "--runner", "ray", "--no-progress"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1, proc.stderr
+    failures = [json.loads(line) for line in (out / "failures.jsonl").read_text().splitlines()]
+    assert sorted(f["sequence"] for f in failures) == ["a", "b"]
+    assert all(f["reason"].startswith("the actor could not load the model: ") and "GeoNetNoSuchOp" in f["reason"]
+               for f in failures)  # fmt: skip
+    assert [p for p in out.iterdir() if p.is_dir()] == [] and leftovers(out) == []
+    assert json.loads((out / "summary.json").read_text())["sequences"]["failed"] == 2
 
 
 # ----------------------------------------------------------------------------- OS refusals: exit 3, one line
