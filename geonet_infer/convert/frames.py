@@ -12,6 +12,7 @@ from geonet_infer.conventions import kitti_like_K, scale_intrinsics
 from geonet_infer.core.cascade import InputSpec, calibration_input, check_image, posenet_order
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import list_images, read_calib_K, read_image
+from geonet_infer.io.layouts import find_layout
 
 
 def load_frames(
@@ -39,20 +40,21 @@ def calibration_intrinsics(
 ) -> tuple[np.ndarray, str]:
     """K at H x W for the calibration frames and where it came from.
 
-    Looks for ``calib.txt`` (key ``K``) in the folder or its parent (synthetic
-    layout ``<seq>/image/*.png`` + ``<seq>/calib.txt``), then for a KITTI raw
-    ``calib_cam_to_cam.txt`` (key ``P_rect_02``) two levels up
-    (``<date>/image_02/data``); otherwise :func:`~geonet_infer.conventions.kitti_like_K`
-    (only ResFlowNet's calibration inputs depend on it).
+    The frames' dataset layout first (:mod:`geonet_infer.io.layouts`: KITTI raw and odometry, EuRoC,
+    TUM RGB-D, with the calibration predict reads for them), then ``calib.txt`` (key ``K``) in the
+    folder or its parent (the synthetic layout ``<seq>/image/*.png`` + ``<seq>/calib.txt``);
+    otherwise :func:`~geonet_infer.conventions.kitti_like_K` (only ResFlowNet's calibration inputs
+    depend on it).
     """
     folder = Path(folder)
+    layout = find_layout(folder)
+    camera = None if layout is None else layout.camera()
+    if camera is not None:
+        size = camera.size or (original_hw[1], original_hw[0])  # a file without a size: the frames'
+        K = scale_intrinsics(camera.K, width / size[0], height / size[1])
+        return K.astype(np.float32), camera.source
     sx, sy = width / original_hw[1], height / original_hw[0]
-    candidates = [
-        (folder / "calib.txt", "K"),
-        (folder.parent / "calib.txt", "K"),
-        (folder.parent.parent / "calib_cam_to_cam.txt", "P_rect_02"),
-        (folder.parent / "calib_cam_to_cam.txt", "P_rect_02"),
-    ]
+    candidates = [(folder / "calib.txt", "K"), (folder.parent / "calib.txt", "K")]
     for path, key in candidates:
         if path.is_file():
             try:

@@ -149,6 +149,11 @@ def test_int8_conversion_follows_the_fp32_reference(converted):
     corr = float(np.corrcoef(ref, got)[0, 1])
     err = float(np.abs(ref - got).mean() / (ref.max() - ref.min()))
     assert corr > INT8_MIN_CORRELATION and err < INT8_MAX_ERROR, (corr, err)
+    from geonet_infer.core.manifest import load_manifest
+
+    quant = load_manifest(converted["home"] / "models" / "depth_int8").quantization
+    assert quant.calibration_intrinsics.endswith("sequences/00/calib.txt (KITTI, P0)"), quant.calibration_intrinsics
+    assert quant.calibration_samples == {"depthnet": 6, "posenet": 4}  # 6 frames; 4 windows of 3
 
 
 @pytest.mark.slow
