@@ -229,7 +229,51 @@ def test_int8_graph_follows_official_forward(converted, graph):
         ref, q = converted["ref"][out].ravel(), got[out].ravel()
         corr = float(np.corrcoef(ref, q)[0, 1])
         err = float(np.abs(ref - q).mean() / (ref.max() - ref.min()))
+        print(f"int8 {graph}: {out} correlation {corr:.3f}, mean error {err:.3f} of the range")
         assert corr > INT8_MIN_CORRELATION and err < INT8_MAX_ERROR, (out, corr, err)
+
+
+def _scores(ref: np.ndarray, got: np.ndarray) -> tuple[float, float]:
+    ref, got = ref.ravel(), got.ravel()
+    return float(np.corrcoef(ref, got)[0, 1]), float(np.abs(ref - got).mean() / (ref.max() - ref.min()))
+
+
+WRONG_MAPPINGS = {  # mistakes a converter could make, each applied to every conv of the checkpoint
+    "kernels not transposed spatially (HWIO read as WHIO)": lambda n, v: (
+        v.transpose(1, 0, 2, 3) if n.endswith("/weights") and v.shape[0] == v.shape[1] and v.shape[0] > 1 else v
+    ),
+    "moving mean and variance swapped": None,  # handled below: it pairs two variables
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mistake", list(WRONG_MAPPINGS))
+def test_the_int8_bounds_fail_a_wrong_mapping(converted, tmp_path, mistake):
+    """The bounds above have power: the same checkpoint mapped wrongly (our PyTorch nets, fp32, which
+    INT8 only adds rounding to) falls outside them for the depth and pose outputs."""
+    import torch
+
+    from export.from_tf import build_network, convert_network
+    from geonet_infer.convert.official import select_networks
+
+    sel = select_networks([str(converted["a"])], log=lambda _: None)
+    values = {n: sel.checkpoints["depth"].tensor(n) for n in sel.checkpoints["depth"].shapes if n != "global_step"}
+    if WRONG_MAPPINGS[mistake] is not None:
+        values = {n: WRONG_MAPPINGS[mistake](n, v) for n, v in values.items()}
+    else:
+        for n in [n for n in values if n.endswith("BatchNorm/moving_mean")]:
+            var = n.replace("moving_mean", "moving_variance")
+            values[n], values[var] = values[var], np.abs(values[n]) + 1e-3
+    wrong = select_networks([str(write_checkpoint(tmp_path / "wrong" / "model-1", values))], log=lambda _: None)
+    with torch.no_grad():
+        depth = convert_network(wrong.checkpoints["depth"], wrong.specs["depth"], build_network("depth", "resnet50"))
+        pose = convert_network(wrong.checkpoints["pose"], wrong.specs["pose"], build_network("pose", num_source=4))
+        disparity = depth(torch.from_numpy(converted["inputs"]["image"]))[0].numpy()
+        pose_vec = pose(torch.from_numpy(converted["inputs"]["snippet"])).numpy()
+    for name, got in (("disparity", disparity), ("pose", pose_vec)):
+        corr, err = _scores(converted["ref"][name], got)
+        print(f"wrong mapping ({mistake}): {name} correlation {corr:.3f}, mean error {err:.3f} of the range")
+        assert not (corr > INT8_MIN_CORRELATION and err < INT8_MAX_ERROR), (mistake, name, corr, err)
 
 
 @pytest.mark.slow
