@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import geonet_infer
 from geonet_infer.core.manifest import file_sha256, load_manifest
@@ -32,3 +33,27 @@ def test_exporting_the_shipped_weights_again_gives_the_bundled_graphs_outputs(tm
     np.testing.assert_allclose(b.pose(frames).vectors, a.pose(frames).vectors, atol=1e-6)
     K = np.array([[200.0, 0, 208], [0, 200.0, 64], [0, 0, 1]])
     np.testing.assert_allclose(b.flow(frames, K).flow, a.flow(frames, K).flow, atol=1e-4)
+
+
+def test_the_manifests_int8_accuracy_delta_is_measured_again(tmp_path):
+    """The bundled manifest's INT8 - FP32 delta (held-out synthetic sequences 36-39 of the seed-2026 set,
+    every second frame) against a fresh measurement: the sequences made again by the deterministic
+    generator, the graphs on this machine's engine and INT8 kernels."""
+    from training.evaluate import evaluate_depth, evaluate_flow, onnx_depth_fn, onnx_flow_fn
+    from training.synth.sequence import write_sequence
+
+    bundled = bundled_models()["small_synth"]
+    recorded = load_manifest(bundled).quantization.accuracy_delta
+    assert Path(recorded["synth_dir"]).name == "synth40"  # scripts/build_bundled_model.sh: seed 2026, 40 frames
+    for name in recorded["sequences"]:
+        write_sequence(tmp_path, 2026, int(name.split("_")[1]), 40, 128, 416)
+    fresh = {}
+    for precision in ("fp32", "int8"):
+        predictor = geonet_infer.load(bundled, precision=precision)
+        depth = evaluate_depth(onnx_depth_fn(predictor), tmp_path, recorded["sequences"], recorded["stride"])
+        flow = evaluate_flow(onnx_flow_fn(predictor), tmp_path, recorded["sequences"], recorded["stride"])
+        fresh[precision] = (depth["model"]["abs_rel"], flow["noc"]["epe"])
+    for i, key in enumerate(("depth_abs_rel", "flow_epe_noc")):
+        for precision in ("fp32", "int8"):
+            assert fresh[precision][i] == pytest.approx(recorded[key][precision], rel=1e-4), (key, precision)
+        assert fresh["int8"][i] - fresh["fp32"][i] == pytest.approx(recorded[key]["delta"], abs=1e-4), key
