@@ -20,6 +20,7 @@ one shard, one data block; TensorFlow reads its files (tests/export/test_tf_chec
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -160,6 +161,10 @@ class Entry:
     crc32c: int | None
 
 
+MAX_RANK = 8  # the official networks' variables have at most 4 dimensions
+MAX_ELEMENTS = 2**31  # values in one variable: the largest official one has 2.4 million
+
+
 def _entry(name: str, value: bytes) -> Entry:
     f = _fields(value)
     code = f.get(1, [0])[0]
@@ -168,10 +173,16 @@ def _entry(name: str, value: bytes) -> Entry:
     if code not in DTYPES:
         raise Unsupported(f"variable {name} has TensorFlow dtype {code} (bfloat16, string, complex or resource)")
     shape_fields = _fields(f[2][0]) if 2 in f else {}
-    shape = tuple(_fields(d).get(1, [0])[0] for d in shape_fields.get(2, []))
+    dims = shape_fields.get(2, [])
+    if len(dims) > MAX_RANK:  # before building anything from them (numpy stops at 64 dimensions)
+        raise ValueError(f"variable {name} has {len(dims)} dimensions (at most {MAX_RANK} are read)")
+    shape = tuple(_fields(d).get(1, [0])[0] for d in dims)
     dtype = DTYPES[code]
     size = f.get(5, [0])[0]
-    if size != int(np.prod(shape, dtype=np.int64)) * dtype.itemsize:
+    count = math.prod(shape)  # Python integers: a crafted 2**69 does not overflow
+    if any(d > MAX_ELEMENTS for d in shape) or count > MAX_ELEMENTS:
+        raise ValueError(f"variable {name} claims shape {list(shape)}: over {MAX_ELEMENTS} values")
+    if size != count * dtype.itemsize:
         raise ValueError(f"variable {name}: {size} bytes do not hold shape {list(shape)} {dtype.name}")
     return Entry(name, dtype, shape, f.get(3, [0])[0], f.get(4, [0])[0], size, f.get(6, [None])[0])
 

@@ -359,3 +359,57 @@ def test_verify_compares_with_the_official_tensorflow_graph(tmp_path):
     assert "vs the official TensorFlow graph with the checkpoint's tensors" in line
     error = float(line.split("posenet pose max ")[1].split()[0])
     assert error < 1e-6, line  # a float32 re-statement of the same arithmetic
+
+
+def _crafted_index(prefix: Path, name: str, dims: list[int], size: int) -> Path:
+    """A one-variable checkpoint whose index claims ``dims`` and ``size`` bytes (an empty data file),
+    assembled from the writer's own pieces: a file a hostile or broken tool could write."""
+    import struct
+
+    from geonet_infer.convert import tf_checkpoint as tc
+    from geonet_infer.io.protobuf import encode_field, encode_varint
+
+    prefix.parent.mkdir(parents=True, exist_ok=True)
+    Path(f"{prefix}.data-00000-of-00001").write_bytes(b"")
+    shape = b"".join(encode_field(2, encode_field(1, d) if d else b"") for d in dims)
+    entry = encode_field(1, 1) + encode_field(2, shape) + encode_field(5, size)
+    entry += encode_varint(6 << 3 | 5) + struct.pack("<I", 0)
+    entries = [(b"", encode_field(1, 1) + encode_field(3, encode_field(1, 1))), (name.encode(), entry)]
+    out, handles = bytearray(), []
+    for block in (tc._table_block(entries), tc._table_block([])):
+        handles.append(encode_varint(len(out)) + encode_varint(len(block)))
+        out += block + b"\0" + struct.pack("<I", tc.mask(tc.crc32c(block + b"\0")))
+    index_block = tc._table_block([(entries[-1][0], handles[0])])
+    index_handle = encode_varint(len(out)) + encode_varint(len(index_block))
+    out += index_block + b"\0" + struct.pack("<I", tc.mask(tc.crc32c(index_block + b"\0")))
+    footer = (handles[1] + index_handle).ljust(tc._FOOTER - 8, b"\0")
+    Path(f"{prefix}.index").write_bytes(bytes(out) + footer + struct.pack("<Q", tc._MAGIC))
+    return prefix
+
+
+@pytest.mark.parametrize(
+    "dims, size, says",
+    [
+        ([2**69], 4, "over 2147483648 values"),
+        ([1] * 70, 4, "has 70 dimensions"),
+        ([2**32, 2**32], 0, "over 2147483648 values"),
+    ],
+)
+def test_absurd_shapes_in_a_checkpoint_index_give_one_line(tmp_path, dims, size, says):
+    """Issue 55: numpy's OverflowError, its 64-dimension ValueError and reshape's ValueError before."""
+    prefix = _crafted_index(tmp_path / "x" / "model-1", "depth_net/Conv/weights", dims, size)
+    env = {**os.environ, "GEONET_INFER_HOME": str(tmp_path / "home")}
+    proc = run(env, "convert", prefix, "--name", "x", "--quiet")
+    assert proc.returncode == 2, proc.stderr
+    [line] = [x for x in proc.stderr.splitlines() if x.strip()]
+    assert says in line and "Traceback" not in proc.stderr
+    assert leftovers(tmp_path / "home") == []
+
+
+@pytest.mark.parametrize("step", [np.zeros(0, np.int64), np.array([1, 2], np.int64)])
+def test_a_global_step_that_is_not_one_integer_gives_one_line(tmp_path, step):
+    values = random_values(official_variables()["pose_seq3"], np.random.default_rng(0))
+    prefix = write_checkpoint(tmp_path / "p" / "model-1", {**values, "global_step": step})
+    env = {**os.environ, "GEONET_INFER_HOME": str(tmp_path / "home")}
+    proc = run(env, "convert", prefix, "--name", "x", "--quiet")
+    assert proc.returncode == 2 and "global_step is a int64 tensor of shape" in proc.stderr, proc.stderr
