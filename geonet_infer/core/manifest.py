@@ -103,7 +103,8 @@ def load_manifest(directory: str | Path, verify_files: bool = True) -> Manifest:
         raise ModelError(path, "no manifest in this model directory", REEXPORT_HINT)
     try:
         raw: Any = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:  # Recursion: nested 10^5 deep
+    # ValueError: JSONDecodeError, and a number of more digits than Python's int-string limit (4300)
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # Recursion: nested 10^5 deep
         raise ModelError(path, f"cannot parse the manifest ({exc})", REEXPORT_HINT) from None
     if not isinstance(raw, dict):
         raise ModelError(path, "the manifest is not a JSON object", REEXPORT_HINT)
@@ -205,6 +206,8 @@ def _check_number_types(given: dict, defaults: dict, where: str, path: Path) -> 
     be read as 1.0 (image_norm.scale true ran as scale 1)."""
     for key, default in defaults.items():
         value = given.get(key)
+        if isinstance(default, dict) and key in given and not isinstance(value, dict):
+            raise ModelError(path, f"{where}.{key} is {type(value).__name__}: expected an object", REEXPORT_HINT)
         if isinstance(default, dict) and isinstance(value, dict):
             _check_number_types(value, default, f"{where}.{key}", path)
         elif key in given and isinstance(default, (int, float)) and not isinstance(default, bool):

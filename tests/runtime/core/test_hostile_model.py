@@ -95,13 +95,22 @@ def test_manifest_size_that_disagrees_with_its_graph_entries_is_refused(tmp_path
         (lambda m: m["conventions"]["image_norm"].update(scale=0.0), "image_norm"),
         (lambda m: m["conventions"]["image_norm"].update(offset=1e30), "image_norm"),
         (lambda m: m["conventions"].update(flow_scaling=float("nan")), "flow_scaling"),
+        (lambda m: m["conventions"].update(image_norm=[1, 2]), "conventions.image_norm is list"),  # issue 55
     ],
-    ids=["norm_nan", "norm_inf", "norm_zero", "norm_huge", "flow_scaling_nan"],
+    ids=["norm_nan", "norm_inf", "norm_zero", "norm_huge", "flow_scaling_nan", "norm_list"],
 )
 def test_nonfinite_or_absurd_convention_numbers_are_refused_at_load(tmp_path, edit, needle):
     model = model_copy(tmp_path)
     edit_manifest(model, edit)
     refused(lambda: geonet_infer.load(model), "manifest.json", needle)
+
+
+def test_a_manifest_number_of_5001_digits_is_refused_in_one_line(tmp_path):
+    """Issue 55: Python's int-string limit raised a ValueError traceback in info and predict."""
+    model = model_copy(tmp_path)
+    path = model / "manifest.json"
+    path.write_text(path.read_text().replace('"height": 128', '"height": ' + "1" * 5001, 1))
+    refused(lambda: geonet_infer.load(model), "manifest.json", "cannot parse the manifest", "4300 digits")
 
 
 # ----------------------------------------------------------------------------- 3. external data
