@@ -32,6 +32,7 @@ from geonet_infer.convert.int8 import quantize_directory
 from geonet_infer.core.manifest import PRECISIONS, load_manifest, write_manifest
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
+from geonet_infer.io.atomic import json_safe
 from training.checkpoint import load_weights, model_from_checkpoint, trained_by
 from training.config import ARCHS
 
@@ -351,7 +352,7 @@ def _write_graphs(cfg: ExportConfig, src: Source, graphs: list[str], precisions:
         )
         all_graphs["int8"] = int8
         delta, reason = _accuracy_delta(cfg, src, all_graphs, tmp)
-        quant = dataclasses.replace(quant, accuracy_delta=cmf.json_safe(delta), accuracy_delta_reason=reason)
+        quant = dataclasses.replace(quant, accuracy_delta=json_safe(delta), accuracy_delta_reason=reason)
     prov = mf.provenance(src.arch, src.random_init, exporter, src.checkpoint, src.ckpt)
     write_manifest(_manifest(src, all_graphs, prov, (src.ckpt or {}).get("metrics", {}), quant), tmp)
     load_manifest(tmp)  # the directory must validate before it is published

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import math
 from pathlib import Path
 
 from geonet_infer import conventions
@@ -22,6 +21,7 @@ from geonet_infer.core.manifest import (
     TensorSpec,
     file_sha256,
 )
+from geonet_infer.io.atomic import json_safe
 
 FP32_ONLY_GRAPHS = ("rigidflow",)  # the geometric op stays fp32: the int8 set's entry is the fp32 file
 
@@ -65,22 +65,6 @@ def versions() -> dict:
 
 def utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
-
-
-def json_safe(value):
-    """Recursively turn non-finite floats into None and tuples into lists (strict JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if hasattr(value, "item") and not isinstance(value, (str, bytes)):  # numpy / torch scalars
-        try:
-            return json_safe(value.item())
-        except (TypeError, ValueError):
-            pass
-    return value
 
 
 def graph_metadata(

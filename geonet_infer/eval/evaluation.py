@@ -46,7 +46,7 @@ from geonet_infer.eval.adapters import (  # noqa: F401  (re-exported: this modul
 )
 from geonet_infer.eval.datasets import SNIPPET, Dataset, layout_class
 from geonet_infer.io import read_image
-from geonet_infer.io.atomic import atomic_write
+from geonet_infer.io.atomic import atomic_write, json_safe
 
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
 SCALINGS = ("median", "camera_height", "none")
@@ -419,24 +419,7 @@ def format_table(labelled: list[tuple[str, dict]]) -> str:
     return "\n".join(lines)
 
 
-def _json_safe(obj):
-    """NaN / inf -> None (strict JSON); the ``errors`` list of a result says which item was not finite."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return _json_safe(obj.item())
-    if isinstance(obj, np.ndarray):
-        return _json_safe(obj.tolist())
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def write_json(path, payload) -> None:
-    text = json.dumps(_json_safe(payload), indent=2, allow_nan=False)
+    text = json.dumps(json_safe(payload), indent=2, allow_nan=False)
     with atomic_write(Path(path)) as tmp:
         tmp.write_text(text + "\n")

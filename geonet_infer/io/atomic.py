@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import math
 import os
 import re
 import secrets
@@ -105,3 +106,19 @@ def save_npy_atomic(path, array) -> None:
     arr = np.asarray(array)
     with atomic_write(path) as tmp, open(tmp, "wb") as f:
         np.save(f, arr, allow_pickle=False)
+
+
+def json_safe(value):
+    """``value`` as strict JSON holds it: NaN and infinity become None, tuples and arrays lists, numpy
+    (and torch) scalars Python numbers, paths strings (manifests, eval results, summaries)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):  # numpy arrays and scalars, torch tensors
+        return json_safe(value.tolist())
+    return value
