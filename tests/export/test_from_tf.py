@@ -217,7 +217,8 @@ def test_fp32_graph_equals_official_forward(converted, graph):
 # (disparity), 0.44 and 0.06 (pose), mean error 0.22 and 0.30 (disparity), 6.1 and 0.99 (pose): the bounds
 # lie between the right INT8 graphs (>= 0.68, <= 0.14) and those. The same on AVX2-only CPUs:
 # onnxruntime's real AVX2 kernels under `qemu-x86_64 -cpu Haswell` give these numbers with the runtime's
-# session options, and 0.40 disparity correlation, 0.72 pose error without them (issue 45, docs/performance.md "AVX2-only CPUs").
+# session options, and 0.40 disparity correlation, 0.72 pose error without them (issue 45,
+# docs/performance.md "AVX2-only CPUs").
 INT8_MIN_CORRELATION = 0.6
 INT8_MAX_ERROR = 0.2  # mean |int8 - official| / output range
 
