@@ -43,7 +43,7 @@ def describe(name: str, path, origin: str) -> dict:
         "precisions": list(m.precisions),
         "megabytes": round(sum((path / f).stat().st_size for f in files if (path / f).is_file()) / 1e6, 1),
         "from": [f"{s['checkpoint']} (sha256 {next(iter(s['sha256'].values()), '?')[:12]})" for s in sources]
-        or [m.provenance.checkpoint_stage or ("random init" if m.random_init else "our training")],
+        or ["random weights" if m.random_init else f"our training (stage {m.provenance.checkpoint_stage or '?'})"],
     }
 
 
