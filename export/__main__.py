@@ -167,6 +167,10 @@ def main(argv=None) -> int:
     except ExportCheckError as err:
         print(f"error: export check failed: {err}", file=sys.stderr)
         return 1
+    except OSError as err:  # a full disk, a read-only folder: one line (the temporary folder is removed)
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"error: {where}{err.strerror or err}", file=sys.stderr)
+        return 3
     if not args.quiet:
         print(out)
     return 0

@@ -311,10 +311,13 @@ def save_streamed(model: onnx.ModelProto, path: str | Path) -> None:
     _copy_fields(model.graph, head.graph, skip="initializer")
     graph_field = onnx.ModelProto.DESCRIPTOR.fields_by_name["graph"].number
     init_field = onnx.GraphProto.DESCRIPTOR.fields_by_name["initializer"].number
-    with open(path, "wb") as f:
-        f.write(head.SerializeToString())
-        for init in model.graph.initializer:
-            f.write(_length_delimited(graph_field, _length_delimited(init_field, init.SerializeToString())))
+    try:
+        with open(path, "wb") as f:
+            f.write(head.SerializeToString())
+            for init in model.graph.initializer:
+                f.write(_length_delimited(graph_field, _length_delimited(init_field, init.SerializeToString())))
+    except OSError as exc:  # a full disk says which file it stopped
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
 
 
 def _dims(value_info) -> list:

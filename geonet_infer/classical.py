@@ -61,7 +61,15 @@ def dis_flow(preset: str):
 
     def predict(frames: list, K=None) -> np.ndarray:
         dis = cv2.DISOpticalFlow.create(code)  # per call: the object keeps no useful state between pairs
-        return dis.calc(grey(frames[-2]), grey(frames[-1]), None)
+        a, b = grey(frames[-2]), grey(frames[-1])
+        try:
+            return dis.calc(a, b, None)
+        except cv2.error:  # its image pyramid: a frame under 16 px high at a wide aspect resizes to nothing
+            raise InputError(
+                None,
+                f"DIS optical flow cannot run on {a.shape[1]}x{a.shape[0]} frames (too thin for its image pyramid)",
+                "use --flow-method network, or frames at least 16 pixels high",
+            ) from None
 
     return predict
 

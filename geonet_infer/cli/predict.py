@@ -22,7 +22,7 @@ from geonet_infer.cli.common import (
 )
 from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
 from geonet_infer.core.predictor import TASKS, describe_skipped
-from geonet_infer.core.scale import MAX_FRAMES_BEFORE_GROUND, SCALE_HALF_WINDOW
+from geonet_infer.core.scale import MAX_FRAMES_BEFORE_GROUND, MAX_SCALE_HALF_WINDOW, SCALE_HALF_WINDOW
 from geonet_infer.errors import InputError
 from geonet_infer.io.frames import FrameSource, open_frames, open_stdin, open_stream
 from geonet_infer.limits import (
@@ -119,7 +119,7 @@ def add_parser(sub) -> None:
         help="with --camera-height: each frame's scale is the robust mean (outliers dropped) of the ground "
         "fits of this many frames before and after it, so metric depth does not flicker; frames are "
         f"written this many frames late; 0 = each frame's own fit; summary.json keeps both (default: "
-        f"{SCALE_HALF_WINDOW})",
+        f"{SCALE_HALF_WINDOW}, at most {MAX_SCALE_HALF_WINDOW}: the frames are held until their window closes)",
     )
     add_outputs_arg(parser)
     parser.add_argument(

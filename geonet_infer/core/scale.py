@@ -178,6 +178,9 @@ MAX_FRAMES_BEFORE_GROUND = 60  # frames held back waiting for a first ground pla
 # The per-frame fit follows the model's depth, which wobbles from frame to frame (on the KITTI test drive
 # consecutive factors jump 3.8 -> 2.8 -> 6.9), so a sequence's factor is smoothed over a centred window.
 SCALE_HALF_WINDOW = 7  # frames each side: a 15-frame window; a stream is held back 7 frames (0.7 s at 10 Hz)
+# The cap (issue 55): every frame inside the window is held in memory until its window closes (at
+# 1242x375 about 6 MB a frame); 12 each side keeps a run's memory within 10 % of the default's.
+MAX_SCALE_HALF_WINDOW = 12
 SCALE_OUTLIER_K = 2.5  # a fit further than this many robust sigmas from the window's median is dropped
 SCALE_MIN_SPREAD = 0.05  # floor of that sigma in log units, so a steady run does not reject a 5 % wobble
 
@@ -211,6 +214,13 @@ class ScaleSmoother:
     def __init__(self, half_window: int = SCALE_HALF_WINDOW):
         if not (isinstance(half_window, int) and half_window >= 0):
             raise InputError(None, f"scale smoothing window must be a whole number >= 0, got {half_window!r}")
+        if half_window > MAX_SCALE_HALF_WINDOW:
+            raise InputError(
+                None,
+                f"scale smoothing window {half_window} is over the cap of {MAX_SCALE_HALF_WINDOW} frames each side",
+                "frames are held in memory until their window closes: pass at most "
+                f"--scale-smoothing {MAX_SCALE_HALF_WINDOW}",
+            )
         self.half_window = half_window
         self._raw: deque[float | None] = deque()  # the fits of frames _base .. pushed-1
         self._base = 0

@@ -188,3 +188,17 @@ def test_predict_and_batch_write_the_classical_outputs_in_the_usual_layout(tmp_p
     assert "flow or pose method" in capsys.readouterr().err
     assert main([*rerun, *methods]) == 0  # the same options: complete already, skipped
     capsys.readouterr()
+
+
+def test_dis_on_frames_too_thin_for_its_pyramid_is_one_line(tmp_path, capsys):
+    """Issue 55: a 500x12 frame made OpenCV's DIS raise cv2.error from inside its pyramid."""
+    import cv2
+
+    folder = tmp_path / "thin"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"{i:06d}.png"), np.full((12, 500, 3), 60 * i, np.uint8))
+    rc = main(["predict", str(folder), "--out", str(tmp_path / "out"), "--flow-method", "dis", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "DIS optical flow cannot run on 500x12 frames" in err, err
+    assert len([line for line in err.splitlines() if "error" in line]) == 1

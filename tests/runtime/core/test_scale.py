@@ -328,3 +328,13 @@ def test_predict_cli_camera_height(tmp_path, capsys):
     assert scales["smoothing"]["half_window_frames"] == 7
     rc = main(["predict", str(SAMPLE_FRAMES), "--out", str(tmp_path / "x"), "--scale-smoothing", "3"])
     assert rc == 2 and "pass --camera-height" in capsys.readouterr().err
+
+
+def test_the_smoothing_window_is_capped(sample):
+    """Issue 55: a window of 100,000 held every frame of the video in memory."""
+    from geonet_infer.core.scale import MAX_SCALE_HALF_WINDOW
+
+    predictor, frames, camera = sample
+    with pytest.raises(GeoNetError, match=f"over the cap of {MAX_SCALE_HALF_WINDOW} frames each side"):
+        predictor.iter_sequence(frames, camera, camera_height=1.65, scale_smoothing=100_000)
+    predictor.iter_sequence(frames, camera, camera_height=1.65, scale_smoothing=MAX_SCALE_HALF_WINDOW)
