@@ -35,6 +35,7 @@ os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 SIDE_CALIB_SUFFIX = ".calib.txt"  # clip.mp4 + clip.calib.txt: a video's (or folder's) own calibration
 CLEAN_END_SHORTFALL_S = 1.0  # a video that stops at most this much before its header's count ended cleanly
 FALLBACK_FPS = 25.0  # for that rule when the container gives no frame rate
+MAX_MISSING_LISTED = 1000  # missing frames named one by one; more (a header's claim) are one record
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,7 +233,11 @@ class _VideoSource(FrameSource):
             )
             return
         self.truncated = f"decoded {decoded} of {self._count} frames"
-        self.missing = tuple(f"{i:06d}" for i in range(decoded, self._count))
+        if shortfall <= MAX_MISSING_LISTED:
+            self.missing = tuple(f"{i:06d}" for i in range(decoded, self._count))
+        else:  # a header that claims far more than the file held: one record, never one per claimed frame
+            self.missing = (f"{decoded:06d}-{self._count - 1:06d}",)
+            self.truncated += f" (the {shortfall} frames its header lists beyond them did not decode)"
 
     def __len__(self) -> int:
         """Frame count: exact once read to the end, before that the container's (may be inexact)."""

@@ -155,7 +155,8 @@ def predict_to_dir(
     if not exclusive:
         out_dir.mkdir(parents=True, exist_ok=True)
         return run(owned=None)
-    names = source.frame_names if source.frame_names is not None else [f"{i:06d}" for i in range(len(source))]
+    # A video's names are claimed in blocks as it decodes (emit), never sized by its header's count.
+    names = source.frame_names if source.frame_names is not None else [f"{i:06d}" for i in range(VIDEO_CLAIM)]
     files = run_files(tasks, options.point_cloud, camera is not None, chosen) | set(extra_outputs)
     if video is not None and video_in_out:
         files.add(os.path.relpath(ownership.real(video), ownership.real(out_dir)))
@@ -175,6 +176,9 @@ def predict_to_dir(
     )
     with owned:
         return run(owned=owned)
+
+
+VIDEO_CLAIM = 256  # frame names of a video claimed before it is decoded (then more as it decodes)
 
 
 def _predict(
@@ -256,8 +260,10 @@ def _predict(
         while ready:
             result = ready.pop(0)  # before it is handed on: an interrupt here never submits it twice
             rgb = frames.kept.pop(result.index, None)
-            if owned is not None:
-                owned.add(frame_files(result.name, tasks, outputs, options.point_cloud))
+            if owned is not None and not frame_files(result.name, tasks, outputs, options.point_cloud) <= owned.files:
+                # a video's next block of frames (as many as claimed so far: one marker write per doubling)
+                block = [result.name] + [f"{i:06d}" for i in range(result.index, 2 * result.index + VIDEO_CLAIM)]
+                owned.add(set().union(*(frame_files(n, tasks, outputs, options.point_cloud) for n in block)))
             writer.submit(result, scale, rgb)
 
     try:

@@ -4,7 +4,7 @@ runtime alone, torch and TensorFlow blocked from importing.
 The released files cannot be downloaded here: checkpoints with the official names and shapes and
 random values come from ``geonet_infer.convert.random_checkpoint`` (seeded). The reference outputs
 (``fixtures/reference_outputs.npz``) are those of the torch exporter's graphs of the same checkpoints
-on real KITTI frames, written by ``fixtures/write_reference.py`` (torch); ``tests/export/test_convert.py``
+on real KITTI frames, written by ``fixtures/write_reference.py`` (torch); ``tests/export/test_convert_templates.py``
 re-checks them against live torch exports wherever torch is installed, so they cannot go stale.
 """
 

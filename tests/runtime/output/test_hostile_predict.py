@@ -53,13 +53,13 @@ def run_cli(capture, *argv) -> tuple[int, str, str]:
     return rc, out, err
 
 
-def run_sub(*argv, **kwargs) -> subprocess.CompletedProcess:
+def run_sub(*argv, timeout_s: float = 120, **kwargs) -> subprocess.CompletedProcess:
     return subprocess.run(
         [*GEONET_CLI, *map(str, argv)],
         cwd=REPO,
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=timeout_s,
         **kwargs,
     )
 
@@ -326,6 +326,31 @@ def test_a_video_whose_header_over_counts_exits_0_with_one_note(tmp_path, capsys
                                 "counts are often approximate)"]  # fmt: skip
     notes = [line for line in error_lines(stderr) if "header's count" in line]
     assert len(notes) == 1 and "note" in notes[0], stderr
+
+
+@pytest.mark.parametrize("listed", [1_000_000, 2_000_000_000])
+@pytest.mark.parametrize("how", ["predict", "predict --max-frames 20", "batch"])
+def test_a_header_that_lies_about_the_length_sizes_no_work(tmp_path, listed, how):
+    """Issue 55: an AVI of 8 frames whose header claims a million (or two billion) made predict claim,
+    check and list every claimed frame (over 60 s, 1.1-3 GB). Now: the 8 depths, one record for the rest,
+    one warning line, and an ownership marker of a few hundred names (claimed in blocks as frames decode)."""
+    video = overcounted_avi(tmp_path / "clip.avi", frames=8, listed=listed)
+    out = tmp_path / "out"
+    command, *extra = how.split(" ", 1)
+    argv = [command, video, "--out", out, "--tasks", "depth", "--no-progress", *(extra[0].split() if extra else [])]
+    proc = run_sub(*argv, timeout_s=120)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    folder = out if command == "predict" else out / "clip"
+    assert len(list((folder / "depth").glob("*.npy"))) == 8
+    summary = summary_of(folder)
+    assert summary["failures"] == [
+        {"frame": f"000008-{listed - 1:06d}", "reason": f"{video}: truncated: {summary['truncated']}"}
+    ]
+    assert f"the {listed - 8} frames its header lists beyond them did not decode" in summary["truncated"]
+    marker = json.loads(next(folder.glob(".geonet-predict*")).read_text())
+    assert len(marker["files"]) < 4000
+    if command == "predict":
+        assert len([line for line in error_lines(proc.stderr) if "truncated" in line]) == 1
 
 
 # ----------------------------------------------------------------------------- 7. camera sanity limits
