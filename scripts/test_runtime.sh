@@ -10,7 +10,9 @@ VENV=${RUNTIME_VENV:-.venv-runtime}
 rm -rf "$VENV" build
 "$PY" -m venv "$VENV"
 "$VENV/bin/python" -m pip install --quiet --upgrade pip >/dev/null
-"$VENV/bin/python" -m pip install --quiet . pytest pypng onnx  # onnx: the hostile-model tests write broken graphs with it (a test tool; the runtime does not import it)
+# onnx: the hostile-model tests write broken graphs with it, and it is the [convert] extra (INT8); hypothesis fuzzes
+# the parsers. Test tools: the runtime imports neither.
+"$VENV/bin/python" -m pip install --quiet . pytest pypng onnx hypothesis
 rm -rf build
 "$VENV/bin/python" -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)" \
     || { echo "torch is installed in the runtime venv: the runtime must not need it"; exit 1; }

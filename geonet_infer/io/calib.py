@@ -63,7 +63,11 @@ def read_calib_file(path) -> dict[str, np.ndarray | str]:
     if not path.is_file():
         raise InputError(path, "calibration file not found", "check the path")
     out: dict[str, np.ndarray | str] = {}
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:  # found by tests/runtime/io/test_fuzz_parsers.py
+        raise InputError(path, "not a text calibration file", "KITTI calibration files are text") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
         if not line.strip():
             continue
         key, sep, value = line.partition(":")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,9 @@ def read_kitti_poses(path) -> np.ndarray:
     if not path.is_file():
         raise InputError(path, "pose file not found", "check the path")
     try:
-        vals = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():  # an empty file: the error below says so, not numpy's warning
+            warnings.simplefilter("ignore", UserWarning)
+            vals = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as err:
         raise InputError(path, f"could not parse poses ({err})", "expected 12 numbers per line") from None
     if vals.size == 0 or vals.shape[1] != 12:
@@ -133,7 +136,11 @@ def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
     if not path.is_file():
         raise InputError(path, "trajectory file not found", "check the path")
     rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:  # found by tests/runtime/io/test_fuzz_parsers.py
+        raise InputError(path, "not a text trajectory file", "is this a TUM trajectory?") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

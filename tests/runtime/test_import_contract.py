@@ -242,3 +242,11 @@ def test_no_module_of_core_reaches_output_batch_eval_or_bench():
         for m in core
     }
     assert not {m: r for m, r in bad.items() if r}, bad
+
+
+def test_no_two_test_files_share_a_name():
+    """pytest imports test files by their base name (no __init__.py in tests/): two of one name stop a
+    one-process run of the whole suite at collection (issue 55), though each passes alone."""
+    tests = Path(__file__).resolve().parents[1]
+    names = [p.name for p in tests.rglob("test_*.py")]
+    assert sorted({n for n in names if names.count(n) > 1}) == []
