@@ -179,8 +179,8 @@ MAX_FRAMES_BEFORE_GROUND = 60  # frames held back waiting for a first ground pla
 # consecutive factors jump 3.8 -> 2.8 -> 6.9), so a sequence's factor is smoothed over a centred window.
 SCALE_HALF_WINDOW = 7  # frames each side: a 15-frame window; a stream is held back 7 frames (0.7 s at 10 Hz)
 # The cap (issue 55): every frame inside the window is held in memory until its window closes (at
-# 1242x375 about 6 MB a frame); 12 each side keeps a run's memory within 10 % of the default's.
-MAX_SCALE_HALF_WINDOW = 12
+# 1242x375 about 8 MB a frame); 10 each side keeps a run's memory within 10 % of the default's (7).
+MAX_SCALE_HALF_WINDOW = 10
 SCALE_OUTLIER_K = 2.5  # a fit further than this many robust sigmas from the window's median is dropped
 SCALE_MIN_SPREAD = 0.05  # floor of that sigma in log units, so a steady run does not reject a 5 % wobble
 

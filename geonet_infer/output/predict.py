@@ -36,7 +36,7 @@ from geonet_infer.core.cascade import camera_at
 from geonet_infer.core.manifest import model_notice
 from geonet_infer.core.predictor import Predictor
 from geonet_infer.core.results import FrameResult
-from geonet_infer.core.scale import SCALE_HALF_WINDOW, check_metric_request, metric_scale_summary
+from geonet_infer.core.scale import SCALE_HALF_WINDOW, ScaleSmoother, check_metric_request, metric_scale_summary
 from geonet_infer.cpu import isa_line
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
@@ -129,6 +129,8 @@ def predict_to_dir(
     chosen = chosen_outputs(outputs, vis)
     check_batch_size(batch_size)
     check_methods(flow_method, pose_method)
+    if camera_height is not None:
+        ScaleSmoother(scale_smoothing)  # a bad window is the user's error, before any frame is read
     tasks, skipped_tasks = predictor.resolve_tasks(  # None: all it can
         tasks, metric=camera_height is not None, classical=classical_tasks(tasks or TASKS, flow_method, pose_method)
     )

@@ -338,3 +338,17 @@ def test_the_smoothing_window_is_capped(sample):
     with pytest.raises(GeoNetError, match=f"over the cap of {MAX_SCALE_HALF_WINDOW} frames each side"):
         predictor.iter_sequence(frames, camera, camera_height=1.65, scale_smoothing=100_000)
     predictor.iter_sequence(frames, camera, camera_height=1.65, scale_smoothing=MAX_SCALE_HALF_WINDOW)
+
+
+def test_predict_refuses_a_window_over_the_cap_in_one_line_before_any_frame(tmp_path, capsys):
+    from geonet_infer.cli import main
+    from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
+
+    out = tmp_path / "out"
+    argv = ["predict", str(SAMPLE_FRAMES), "--out", str(out), "--calib", str(SAMPLE_CALIB), "--camera-height", "1.65"]
+    assert main([*argv, "--scale-smoothing", "100000", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        err.startswith("geonet-infer predict: error: scale smoothing window 100000 is over the cap") and "\n" not in err
+    )
+    assert not out.exists()
