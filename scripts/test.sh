@@ -14,11 +14,11 @@ PY=${PYTHON:-python3}
 .venv/bin/mypy
 # Every test, the `slow` ones (> ~20 s on 2 cores) included. The quick run leaves them out:
 #   .venv/bin/python -m pytest -m "not slow"
-# Without arguments, one pytest process per test file: in one process (~720 tests) pytest died of SIGSEGV
-# three times, each at a different, unrelated test late in the run (a native thread left by an earlier test,
-# we think; cause not found), while each file passes on its own. Any failing file fails the run.
-# Two files at a time (TEST_JOBS, default 2), the slowest first: CI must end within 20 minutes, and one
-# file after another took 12.5 minutes of the 17 here (much of a file's time is single-threaded).
+# Without arguments, one pytest process per test file, two at a time (TEST_JOBS, default 2), the slowest
+# first: CI must end within 20 minutes, and much of a file's time is single-threaded. Any failing file fails
+# the run. The whole suite also runs in one process (issue 55: `python -X faulthandler -m pytest -q tests`;
+# what had broken that run was two test files of one name, now a test in test_import_contract.py; the
+# SIGSEGV seen three times before did not recur, see docs/architecture.md).
 if [ $# -eq 0 ]; then
     shopt -s globstar  # tests/ mirrors the package: tests/runtime/<layer>/, tests/training/, tests/export/ ...
     slow=(tests/export/test_from_tf.py tests/export/test_export.py tests/training/test_train.py

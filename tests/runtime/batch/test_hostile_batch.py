@@ -248,20 +248,15 @@ def test_an_actor_that_cannot_load_the_model_fails_each_sequence_and_leaves_no_f
     the actors (an unknown operator, written with onnx): each sequence fails with that reason, exit 1."""
     require_ray()
     onnx = pytest.importorskip("onnx")
-    import dataclasses
-
-    from geonet_infer.core.manifest import file_sha256, write_manifest
     from geonet_infer.models import bundled_models
+    from tests.runtime.core.test_hostile_model import rehash
 
     model = tmp_path / "model"
     shutil.copytree(bundled_models()["small_synth"], model)
     graph = onnx.load(str(model / "depthnet.onnx"))
     graph.graph.node[0].op_type = "GeoNetNoSuchOp"
     onnx.save(graph, str(model / "depthnet.onnx"))
-    manifest = load_manifest(model, verify_files=False)
-    fp32 = {**manifest.graphs["fp32"]}
-    fp32["depthnet"] = dataclasses.replace(fp32["depthnet"], sha256=file_sha256(model / "depthnet.onnx"))
-    write_manifest(dataclasses.replace(manifest, graphs={**manifest.graphs, "fp32": fp32}), model)
+    rehash(model, "depthnet.onnx")
     seqs = make_sequences(tmp_path / "in", ["a", "b"], 2)
     out = tmp_path / "out"
     argv = [*CLI, "batch", *map(str, seqs), "--out", str(out), "--model", str(model), "--tasks", "depth"]

@@ -8,7 +8,6 @@ or ``geonet-infer convert --force`` into the same folder do.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -16,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geonet_infer.core.manifest import file_sha256, load_manifest, write_manifest
 from geonet_infer.models import bundled_models
 from tests.runtime.batch.test_batch import cli, make_sequences
+from tests.runtime.core.test_hostile_model import rehash
 
 onnx = pytest.importorskip("onnx")
 
@@ -32,10 +31,7 @@ def reexport(model: Path, factor: float) -> None:
     init = next(i for i in graph.graph.initializer if len(i.dims) == 4)
     init.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(init) * np.float32(factor), init.name))
     onnx.save(graph, str(path))
-    manifest = load_manifest(model, verify_files=False)
-    fp32 = dict(manifest.graphs["fp32"])
-    fp32["depthnet"] = dataclasses.replace(fp32["depthnet"], sha256=file_sha256(path))
-    write_manifest(dataclasses.replace(manifest, graphs={**manifest.graphs, "fp32": fp32}), model)
+    rehash(model, "depthnet.onnx")
 
 
 @pytest.fixture

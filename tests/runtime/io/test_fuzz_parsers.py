@@ -89,25 +89,15 @@ def _read_all(prefix: Path) -> None:
         reader.tensor(name)
 
 
+@pytest.mark.parametrize("part", ["index", "data-00000-of-00001"])
 @FUZZ
 @given(data=st.data())
-def test_the_checkpoint_index_parses_or_is_refused(tmp_path_factory, checkpoint, data):
-    folder = tmp_path_factory.mktemp("idx")
+def test_checkpoint_files_parse_or_are_refused(tmp_path_factory, checkpoint, part, data):
+    folder = tmp_path_factory.mktemp(part[:5])
     for f in checkpoint.parent.iterdir():
         shutil.copy(f, folder / f.name)
-    index = folder / "model-7.index"
-    index.write_bytes(data.draw(mutated(index.read_bytes())))
-    parses_or_refuses(lambda: _read_all(folder / "model-7"))
-
-
-@FUZZ
-@given(data=st.data())
-def test_the_checkpoint_data_parses_or_is_refused(tmp_path_factory, checkpoint, data):
-    folder = tmp_path_factory.mktemp("dat")
-    for f in checkpoint.parent.iterdir():
-        shutil.copy(f, folder / f.name)
-    shard = folder / "model-7.data-00000-of-00001"
-    shard.write_bytes(data.draw(mutated(shard.read_bytes())))
+    target = folder / f"model-7.{part}"
+    target.write_bytes(data.draw(mutated(target.read_bytes())))
     parses_or_refuses(lambda: _read_all(folder / "model-7"))
 
 
