@@ -12,6 +12,7 @@ when complete, so OUT is either absent or whole, also when two conversions race 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import os
 import shutil
 import sys
@@ -66,25 +67,41 @@ def make_tmp_dir(out: Path) -> Path:
 
 
 def publish(tmp: Path, out: Path, force: bool) -> None:
-    """Rename the finished ``tmp`` onto ``out``. An existing ``out`` is replaced only with ``force``,
-    and then by two renames, so a reader sees the old or the new directory, never a mix."""
-    old = None
-    if out.exists():
-        if not force:
-            raise InputError(
-                out, "already exists (it appeared during the conversion)", "pass --force or choose another"
-            )
-        old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-", dir=out.parent))
-        os.rmdir(old)
-        os.replace(out, old)
+    """Rename the finished ``tmp`` onto ``out``, so a reader sees the old or the new directory, never a mix.
+
+    Without ``force`` an ``out`` that exists (or appeared meanwhile: another conversion to the same name
+    won) is refused. With ``force`` the existing ``out`` is moved aside and removed; when two forced
+    conversions race, each retries until its rename lands (the last one wins, nothing is left over).
+    """
+    aside: list[Path] = []
     try:
-        os.rename(tmp, out)
-    except OSError as exc:  # another writer published first (a race without --force): keep theirs
+        for _ in range(PUBLISH_TRIES):
+            try:
+                os.rename(tmp, out)  # atomic; fails while a (non-empty) out exists
+                return
+            except OSError as exc:
+                if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) and not out.exists():
+                    raise
+                if not force:
+                    raise InputError(
+                        out, "already exists (another conversion wrote it meanwhile)", "pass --force or choose another"
+                    ) from None
+            old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-", dir=out.parent))
+            os.rmdir(old)
+            try:
+                os.replace(out, old)
+                aside.append(old)
+            except FileNotFoundError:  # another forced conversion moved it first: try again
+                continue
         raise InputError(
-            out, f"could not be published ({exc.strerror or exc})", "another conversion wrote it"
-        ) from None
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+            out, f"could not be published after {PUBLISH_TRIES} tries", "other conversions keep replacing it"
+        )
+    finally:
+        for old in aside:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+PUBLISH_TRIES = 20
 
 
 # ------------------------------------------------------------------------------ conversion

@@ -242,13 +242,15 @@ def test_rm_removes_a_converted_model_and_nothing_else(tmp_path):
 
 def test_two_conversions_to_one_name_at_once_leave_one_whole_model(tmp_path):
     """Both run at once; one publishes, the other says the name is taken (exit 2); no temporary folder
-    stays, and the model's files match its manifest's hashes. With --force both succeed, one after the other."""
+    stays, and the model's files match its manifest's hashes. With --force over an existing model, three at
+    once, twice: all succeed (each moves the model aside and retries its rename; a race the one-process run
+    of the suite caught: the second to move it aside found it gone), the last one's model stands whole."""
     from geonet_infer.core.manifest import load_manifest
 
     home = tmp_path / "home"
     env = {**os.environ, "GEONET_INFER_HOME": str(home)}
-    a, b = _pose_release(tmp_path / "a", seed=1), _pose_release(tmp_path / "b", seed=2)
-    for extra in ([], ["--force"]):
+    a, b, c = (_pose_release(tmp_path / name, seed=seed) for name, seed in (("a", 1), ("b", 2), ("c", 3)))
+    for extra, releases in (([], (a, b)), (["--force"], (a, b, c)), (["--force"], (c, b, a))):
         procs = [
             subprocess.Popen(
                 [*GEONET_CLI, "convert", str(p), "--name", "same", "--quiet", *extra],
@@ -257,10 +259,10 @@ def test_two_conversions_to_one_name_at_once_leave_one_whole_model(tmp_path):
                 stderr=subprocess.PIPE,
                 text=True,
             )
-            for p in (a, b)
+            for p in releases
         ]
         codes = sorted(p.wait(timeout=120) for p in procs)
-        assert codes == ([0, 0] if extra else [0, 2]), [p.stderr.read() for p in procs]
+        assert codes == ([0, 0, 0] if extra else [0, 2]), [p.stderr.read() for p in procs]
         assert leftovers(home) == ["same"]
         load_manifest(home / "models" / "same")  # verifies every graph's sha256
 
@@ -413,3 +415,26 @@ def test_a_global_step_that_is_not_one_integer_gives_one_line(tmp_path, step):
     env = {**os.environ, "GEONET_INFER_HOME": str(tmp_path / "home")}
     proc = run(env, "convert", prefix, "--name", "x", "--quiet")
     assert proc.returncode == 2 and "global_step is a int64 tensor of shape" in proc.stderr, proc.stderr
+
+
+def test_a_forced_publish_retries_when_another_conversion_moves_the_model_first(tmp_path, monkeypatch):
+    """The race the one-process run caught, made certain: between seeing the model and moving it aside,
+    another forced conversion moved it (FileNotFoundError): this one retries and publishes."""
+    from geonet_infer.convert import build
+
+    out, tmp = tmp_path / "same", tmp_path / "same.tmp-x"
+    for folder, text in ((out, "old"), (tmp, "new")):
+        folder.mkdir()
+        (folder / "manifest.json").write_text(text)
+    real_replace, raced = os.replace, []
+
+    def replace_after_the_other(src, dst):
+        if not raced:
+            raced.append(True)
+            real_replace(src, tmp_path / "moved_by_the_other")  # the other conversion was first
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(build.os, "replace", replace_after_the_other)
+    build.publish(tmp, out, force=True)
+    assert raced and (out / "manifest.json").read_text() == "new" and not tmp.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["moved_by_the_other", "same"]
