@@ -100,9 +100,9 @@ def torch_reference(sel, scale_normalize: bool):
 
     def reference(graph: str, feed: np.ndarray):
         if "model" not in built:
-            arch = sel.specs["depth"].arch if "depth" in sel.specs else "resnet50"
-            num_source = sel.specs["pose"].num_source if "pose" in sel.specs else 2
-            model = GeoNet(arch, num_source, with_flow="flow" in sel.specs, scale_normalize=scale_normalize).eval()
+            model = GeoNet(
+                sel.arch, sel.seq_length() - 1, with_flow="flow" in sel.specs, scale_normalize=scale_normalize
+            ).eval()
             nets = {"depth": model.depth_net, "pose": model.pose_net, "flow": model.flow_net}
             for kind, spec in sel.specs.items():
                 convert_network(sel.checkpoints[kind], spec, nets[kind])
@@ -123,8 +123,7 @@ def _io_outputs(graph: str, feed: np.ndarray):
 
 def needed_templates(sel, scale_normalize: bool) -> list[tuple[str, str, int, bool]]:
     """(graph, arch, seq_length, scale_normalize) of every template the selected networks need."""
-    arch = sel.specs["depth"].arch if "depth" in sel.specs else "resnet50"
-    seq_length = sel.specs["pose"].num_source + 1 if "pose" in sel.specs else 3
+    arch, seq_length = sel.arch, sel.seq_length()
     wanted = [("rigidflow", "resnet50", 3, False)]
     if "depth" in sel.specs:
         wanted.append(("depthnet", arch, 3, scale_normalize))
@@ -152,10 +151,10 @@ def tf_export(cfg, log=print) -> Path:
     if cfg.eval_synth_dir:
         raise InputError(None, "--eval-synth-dir applies to our own checkpoints", "score converted models with eval")
     sel = select_networks(cfg.from_tf, log=lambda _: None)
-    arch = sel.specs["depth"].arch if "depth" in sel.specs else "resnet50"
+    arch = sel.arch
     if cfg.arch and cfg.arch != arch:
         raise InputError(None, f"the checkpoint's depth_net is {arch}, --arch says {cfg.arch}", "drop --arch")
-    seq_length = sel.specs["pose"].num_source + 1 if "pose" in sel.specs else (cfg.seq_length or 3)
+    seq_length = sel.seq_length(default=cfg.seq_length or 3)
     if cfg.seq_length and cfg.seq_length != seq_length:
         raise InputError(
             None, f"the checkpoint's pose_net takes {seq_length}-frame snippets, --seq-length says {cfg.seq_length}"

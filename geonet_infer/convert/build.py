@@ -129,7 +129,7 @@ def _graphs(cfg: ConvertConfig, sel: Selection) -> list[str]:
     return graphs
 
 
-def _templates(cfg: ConvertConfig, sel: Selection, graphs: list[str], arch: str, seq_length: int) -> dict:
+def _templates(cfg: ConvertConfig, graphs: list[str], arch: str, seq_length: int) -> dict:
     out = {}
     for graph in graphs:
         name = template_name(graph, arch=arch, seq_length=seq_length, sn=cfg.scale_normalize)
@@ -183,9 +183,8 @@ def convert(cfg: ConvertConfig) -> Path:
     started = time.perf_counter()
     sel = select_networks(cfg.checkpoints, cfg.log)
     graphs = _graphs(cfg, sel)
-    arch = sel.specs["depth"].arch if "depth" in sel.specs else "resnet50"
-    seq_length = sel.specs["pose"].num_source + 1 if "pose" in sel.specs else 3
-    templates = _templates(cfg, sel, graphs, arch, seq_length)
+    arch, seq_length = sel.arch, sel.seq_length()
+    templates = _templates(cfg, graphs, arch, seq_length)
     first = next(iter(templates.values())).recipe
     height, width = first["height"], first["width"]
     alpha = templates["rigidflow"].recipe["photometric_alpha"] if "rigidflow" in templates else 0.85

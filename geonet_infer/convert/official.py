@@ -238,6 +238,15 @@ class Selection:
     sources: list  # manifest provenance records, one per checkpoint
     notes: list  # human-readable remarks (also in the manifest)
 
+    @property
+    def arch(self) -> str:
+        """The DepthNet's arch; resnet50 (the ResFlowNet's) when no depth_net is converted."""
+        return self.specs["depth"].arch if "depth" in self.specs else "resnet50"
+
+    def seq_length(self, default: int = 3) -> int:
+        """Frames of a PoseNet snippet; ``default`` when no pose_net is converted."""
+        return self.specs["pose"].num_source + 1 if "pose" in self.specs else default
+
 
 def select_networks(specs: tuple[str, ...] | list[str], log=print) -> Selection:
     """Open every checkpoint, decide which net comes from which, and check their variables.
