@@ -170,6 +170,11 @@ def scale_aligned_pose_error(T: torch.Tensor, T_gt: torch.Tensor) -> torch.Tenso
     scale factor is not differentiated through: it only says which translation the net's own
     scale should have.
 
+    A still snippet (true path under :data:`STILL_PATH`: identity labels, issue 53) has no scale to
+    align; its translation error is the predicted path relative to the mean predicted step of the
+    batch's moving snippets (the net's own unit, not differentiated; :data:`STILL_REF_STEP` when the
+    batch has none), so a still camera learns to predict no motion whatever its depth scale.
+
     Args:
         T: (B, N, 4, 4) predicted motion target -> each source.
         T_gt: (B, N, 4, 4) true motion, all zeros for a snippet without.
@@ -178,8 +183,21 @@ def scale_aligned_pose_error(T: torch.Tensor, T_gt: torch.Tensor) -> torch.Tenso
     """
     has_gt = (T_gt[:, :, 3, 3] != 0).all(dim=1).to(T.dtype)  # (B,)
     t, t_gt = T[..., :3, 3], T_gt[..., :3, 3]  # (B, N, 3)
+    true_path = t_gt.norm(dim=-1).sum(dim=1)  # (B,)
+    still = (true_path < STILL_PATH).to(T.dtype) * has_gt
+    moving = has_gt - still
     scale = ((t * t_gt).sum(dim=(1, 2)) / t.square().sum(dim=(1, 2)).clamp(min=1e-12)).detach()
-    path = t_gt.norm(dim=-1).sum(dim=1).clamp(min=1e-3)
-    translation = (scale.view(-1, 1, 1) * t - t_gt).norm(dim=-1).sum(dim=1) / path
+    aligned = (scale.view(-1, 1, 1) * t - t_gt).norm(dim=-1).sum(dim=1) / true_path.clamp(min=1e-3)
+    predicted_path = t.norm(dim=-1).sum(dim=1)  # (B,)
+    n_steps = t.shape[1]
+    if moving.sum() > 0:
+        ref_step = ((predicted_path * moving).sum() / moving.sum() / n_steps).detach().clamp(min=1e-6)
+    else:
+        ref_step = torch.as_tensor(STILL_REF_STEP, dtype=T.dtype, device=T.device)
+    translation = moving * aligned + still * predicted_path / (n_steps * ref_step)
     rotation = (T[..., :3, :3] - T_gt[..., :3, :3]).flatten(2).norm(dim=-1).mean(dim=1)
     return ((translation + rotation) * has_gt).sum() / has_gt.sum().clamp(min=1.0)
+
+
+STILL_PATH = 1e-6  # a true path shorter than this (metres or unit steps) is a still camera
+STILL_REF_STEP = 0.1  # the bundled PoseNet's step at driving speed, in its own units (docs/models.md)

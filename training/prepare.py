@@ -61,6 +61,7 @@ from geonet_infer.io import (
     write_image,
     write_kitti_poses,
 )
+from training.motion_mix import chosen, parse_motion_mix, static_labels, still_copy, variant_window
 from training.teachers import (
     TEACHER_DEPTHS,
     TEACHER_FLOWS,
@@ -121,6 +122,8 @@ class PrepareConfig:
     crop: tuple[int, int, int, int] | None = None  # video/frames: x, y, w, h kept after undistortion
     static_threshold: float = 1.0  # video/frames: drop a frame whose mean |grey difference| to the
     #                                last kept one is below this (0..255 levels, at H x W); 0 keeps all
+    motion_mix: dict = field(default_factory=dict)  # variant -> probability (training.motion_mix)
+    mix_seed: int = 53  # seed of the motion-mix draws
 
 
 # --------------------------------------------------------------------------- data records
@@ -155,6 +158,7 @@ class Snippet:
     teacher_flow: str | None = None  # label the flow to the next frame with this teacher (training.teachers)
     teacher_pose: str | None = None  # label the motion to the sources with this teacher
     teacher_depth: str | None = None  # label the target's depth with this teacher
+    variant: str = ""  # "" (the normal snippet) or one of training.motion_mix.VARIANTS
 
     @property
     def name(self) -> str:
@@ -580,12 +584,15 @@ def check_frames(seq: Sequence, skips: Skips) -> bool:
     return True
 
 
-def make_snippets(seq: Sequence, seq_length: int, skips: Skips) -> list[Snippet]:
+def make_snippets(
+    seq: Sequence, seq_length: int, skips: Skips, mix: dict[str, float] | None = None, mix_seed: int = 0
+) -> list[Snippet]:
     """All snippets of a sequence: target at the middle, neighbours = adjacent kept frames.
 
     Frames removed as static are simply absent from ``seq.frames`` (neighbours skip them, as in
     the official loader); a gap in the file numbering (missing or unreadable file) ends a run,
-    because frames across it are not consecutive.
+    because frames across it are not consecutive. ``mix`` (variant -> probability) adds the still,
+    slowed and reversed copies of :mod:`training.motion_mix` after each normal snippet.
     """
     half = seq_length // 2
     runs: list[list[Path]] = []
@@ -607,6 +614,16 @@ def make_snippets(seq: Sequence, seq_length: int, skips: Skips) -> list[Snippet]
             flow = seq.flow_dir / f"{tgt.stem}.png" if seq.flow_dir is not None else None
             poses = snippet_motion(seq.poses, window, half) if seq.poses is not None else None
             out.append(Snippet(seq.folder, tgt.stem, window, seq.K, seq.heldout, depth, flow, poses))
+            name = f"{seq.folder} {tgt.stem}"
+            for variant, probability in (mix or {}).items():
+                copy = variant_window(run, i, half, variant)
+                if copy is None or seq.heldout or not chosen(name, variant, probability, mix_seed):
+                    continue
+                # Static and reversed snippets' true motions follow from the window (identity, inverse);
+                # a synthetic flow label is for t -> t+1 only, so a variant keeps none but the still one's.
+                motion = snippet_motion(seq.poses, copy, half) if seq.poses is not None else None
+                snip = Snippet(seq.folder, f"{tgt.stem}_{variant}", copy, seq.K, poses=motion, variant=variant)
+                out.append(snip)
     if not out:
         longest = max((len(r) for r in runs), default=0)
         skips.add(
@@ -638,6 +655,8 @@ def _static_gap(seq: Sequence, prev: int, n: int) -> bool:
 def sample_paths(out: Path, snip: Snippet) -> dict[str, Path]:
     base = out / snip.folder
     paths = {"jpg": base / f"{snip.frame}.jpg", "cam": base / f"{snip.frame}_cam.txt"}
+    if snip.variant == "static":  # its labels are known: zero flow, identity motion; no depth
+        return {**paths, "flow": base / f"{snip.frame}_flow.png", "pose": base / f"{snip.frame}_pose.txt"}
     if snip.depth_path is not None or snip.teacher_depth:
         paths["depth"] = base / f"{snip.frame}_depth.png"
     if snip.flow_path is not None or snip.teacher_flow:
@@ -684,6 +703,9 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
                 (f"frame is {f.shape[1]}x{f.shape[0]} but the target is {w0}x{h0} (mixed resolutions in one snippet)"),
             )
     strip_frames = [resize(f, height, width) for f in frames]
+    if snip.variant == "static":  # a still camera: the sources are noisy, jittered copies of the target
+        half = len(frames) // 2
+        strip_frames = [f if k == half else still_copy(f, snip.name, k) for k, f in enumerate(strip_frames)]
     strip = np.concatenate(strip_frames, axis=1)  # (H, seq*W, 3)
     ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(strip, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     if not ok:
@@ -703,13 +725,15 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
         return "skipped", err.path, err.problem
     half = len(frames) // 2
     poses = snip.poses
-    if snip.teacher_flow:
+    if snip.variant == "static":  # labels known exactly
+        flow, valid, poses = static_labels(len(frames) - 1, height, width)
+    elif snip.teacher_flow:
         label = teacher_flow(strip_frames[half], strip_frames[half + 1], snip.teacher_flow)
         flow, valid = label.flow, label.valid
-    if snip.teacher_pose:
+    if snip.teacher_pose and snip.variant != "static":
         # Full resolution: ORB finds few corners at 128 x 416. None (a failed pair): no pose label.
         poses = teacher_motion(frames, snip.K, half, snip.teacher_pose)
-    if snip.teacher_depth:
+    if snip.teacher_depth and snip.variant != "static":
         # Full resolution, like the pose teacher; None (failed motion, too few pixels): no depth label.
         label = teacher_depth(frames[half], frames[half + 1], snip.K, snip.teacher_depth)
         if label is not None:
@@ -807,7 +831,7 @@ def _check(cfg: PrepareConfig) -> tuple[int, str]:
         )
     if cfg.teacher_pose and cfg.train_pose:
         raise InputError(None, "--teacher-pose and --train-pose both write <frame>_pose.txt", "choose one")
-    if teachers and TEST_DRIVE in Path(cfg.src).resolve().parts:
+    if (teachers or cfg.motion_mix) and TEST_DRIVE in Path(cfg.src).resolve().parts:
         raise InputError(cfg.src, "is the real-data test drive: never train on it", "label other footage")
     if cfg.height < 8 or cfg.width < 8 or cfg.workers < 1:
         raise InputError(
@@ -834,7 +858,12 @@ def collect_snippets(cfg: PrepareConfig, seq_length: int, split: str, skips: Ski
             seq.frames = seq.frames[: cfg.max_frames]
     if cfg.remove_static:
         remove_static_frames(seqs)
-    snippets = [snip for seq in seqs if check_frames(seq, skips) for snip in make_snippets(seq, seq_length, skips)]
+    snippets = [
+        snip
+        for seq in seqs
+        if check_frames(seq, skips)
+        for snip in make_snippets(seq, seq_length, skips, cfg.motion_mix, cfg.mix_seed)
+    ]
     for snip in snippets:
         snip.teacher_flow, snip.teacher_pose, snip.teacher_depth = cfg.teacher_flow, cfg.teacher_pose, cfg.teacher_depth
     return snippets
@@ -1063,7 +1092,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="video/frames: drop frames whose mean grey difference to the last kept one is "
         "below this, in levels of 255 at HxW (default %(default)s; 0 keeps every frame)",
     )
+    p.add_argument(
+        "--motion-mix",
+        type=_motion_mix,
+        default={},
+        metavar="VARIANT=P,...",
+        help="add still (static), twice-as-fast (stride2) and time-reversed (reverse) copies of each "
+        "train/val snippet, each with probability P, e.g. static=0.3,stride2=0.3,reverse=0.3; still copies "
+        "are labelled zero flow and identity motion (training.motion_mix, docs/training.md)",
+    )
+    p.add_argument("--mix-seed", type=int, default=D.mix_seed, help="seed of the --motion-mix draws")
     return p
+
+
+def _motion_mix(text: str) -> dict[str, float]:
+    try:
+        return parse_motion_mix(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _crop(text: str) -> tuple[int, int, int, int]:

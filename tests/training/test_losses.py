@@ -133,3 +133,25 @@ def test_scale_aligned_pose_error_closed_form():
         scale_aligned_pose_error(both, torch.cat([truth, torch.zeros_like(truth)])), torch.tensor(1.0)
     )
     assert scale_aligned_pose_error(sideways, torch.zeros_like(truth)).item() == 0.0
+
+
+def test_a_still_snippet_is_taught_to_predict_no_motion():
+    """Identity labels (a still camera, issue 53): the error is the predicted path over the batch's
+    mean moving step, whatever the scale; zero for a zero prediction; the gradient shrinks t."""
+    from training.losses import STILL_REF_STEP, scale_aligned_pose_error
+
+    moving_truth = torch.stack([_motion(0.0, [0, 0, -1.0]), _motion(0.0, [0, 0, 1.0])])[None]
+    moving_pred = moving_truth.clone()
+    moving_pred[..., :3, 3] *= 0.2  # the net's unit: steps of 0.2
+    still_truth = torch.eye(4).expand(1, 2, 4, 4).clone()
+    still_pred = torch.stack([_motion(0.0, [0, 0, -0.05]), _motion(0.0, [0, 0, 0.05])])[None].requires_grad_()
+    error = scale_aligned_pose_error(torch.cat([moving_pred, still_pred]), torch.cat([moving_truth, still_truth]))
+    # moving snippet: 0 (exact up to scale); still one: path 0.1 over 2 steps of 0.2 -> 0.25; mean of two
+    torch.testing.assert_close(error, torch.tensor(0.125))
+    error.backward()
+    assert still_pred.grad[0, 0, 2, 3] < 0 < still_pred.grad[0, 1, 2, 3]  # descent moves -0.05 and 0.05 toward 0
+    # alone in its batch: the bundled model's step is the unit; a zero prediction has no error
+    torch.testing.assert_close(
+        scale_aligned_pose_error(still_pred.detach(), still_truth), torch.tensor(0.1 / (2 * STILL_REF_STEP))
+    )
+    assert scale_aligned_pose_error(still_truth, still_truth).item() == 0.0

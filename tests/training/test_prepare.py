@@ -275,6 +275,61 @@ def test_kitti_odom_teachers_label_flow_with_dis_and_motion_along_the_official_p
         P.prepare(P.PrepareConfig("frames", image_dir, tmp_path / "o3", teacher_pose="orbvo"))
 
 
+def test_motion_mix_labels_still_slowed_and_reversed_snippets(kitti_odometry, tmp_path):
+    """--motion-mix (issue 53): a still copy is the target three times with a little noise, labelled
+    zero flow and identity motion; the stride-2 copy's true motion is inv(C_{t+-2}) @ C_t and its DIS
+    label goes to t+2; the reversed copy's sources are (t+1, t-1) and its label goes to t-1. Poses are
+    the dev kit's poses/00.txt parsed here with numpy, flows OpenCV DIS computed here."""
+    out = tmp_path / "odom"
+    mix = {"static": 1.0, "stride2": 1.0, "reverse": 1.0}
+    cfg = P.PrepareConfig(
+        "kitti_odom", kitti_odometry, out, seq_length=3, train_pose=True, teacher_flow="dis", motion_mix=mix
+    )
+    res = P.prepare(cfg)
+    names = set(res.train + res.val)
+    assert {"00 000001_static", "00 000001_reverse", "00 000002_stride2", "00 000003_stride2"} <= names
+    assert "00 000001_stride2" not in names  # t-2 would be frame -1
+    rows = np.loadtxt(kitti_odometry / "poses" / "00.txt", max_rows=6).reshape(-1, 3, 4)
+    C = np.tile(np.eye(4), (len(rows), 1, 1))
+    C[:, :3] = rows
+
+    def motion(t: int, s: int) -> np.ndarray:
+        return (np.linalg.inv(C[s]) @ C[t])[:3]
+
+    image_dir = kitti_odometry / "sequences" / "00" / "image_0"
+
+    def small(k: int) -> np.ndarray:
+        grey = cv2.imread(str(image_dir / f"{k:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        return cv2.resize(grey, (416, 128), interpolation=cv2.INTER_AREA)
+
+    def dis(a: int, b: int) -> np.ndarray:
+        return cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(small(a), small(b), None)
+
+    still = cv2.imread(str(out / "00" / "000001_static.jpg"), cv2.IMREAD_GRAYSCALE).astype(float)
+    target, sources = still[:, 416:832], (still[:, :416], still[:, 832:])
+    for source in sources:  # noisy, sub-pixel-shifted copies: close to the target, not equal
+        assert 0.5 < np.abs(source - target).mean() < 6.0
+    assert np.abs(target - small(1)).mean() < 2.0  # the target itself is the real frame (JPEG)
+    flow, valid = read_flow_kitti(out / "00" / "000001_static_flow.png")
+    assert valid.all() and not flow.any()
+    np.testing.assert_allclose(np.loadtxt(out / "00" / "000001_static_pose.txt").reshape(-1, 3, 4), [np.eye(4)[:3]] * 2)
+
+    for name, t, sources, label_to in (("000002_stride2", 2, (0, 4), 4), ("000002_reverse", 2, (3, 1), 1)):
+        written = np.loadtxt(out / "00" / f"{name}_pose.txt").reshape(-1, 3, 4)
+        np.testing.assert_allclose(written, [motion(t, s) for s in sources], atol=1e-6)
+        flow, valid = read_flow_kitti(out / "00" / f"{name}_flow.png")
+        expected = dis(t, label_to)
+        assert 0.3 < valid.mean() and np.abs(flow[valid] - expected[valid]).max() <= 1 / 64
+    # the reversed copy drives backwards: a point ahead of its target is nearer to its first source
+    assert np.loadtxt(out / "00" / "000002_reverse_pose.txt").reshape(-1, 3, 4)[0, 2, 3] < -0.5
+    with pytest.raises(SystemExit):
+        P.build_parser().parse_args(["--kind", "synth", "--src", ".", "--out", "o", "--motion-mix", "pause=0.5"])
+    drive = tmp_path / "kitti_raw_2011_09_26_sfnd"
+    drive.mkdir()
+    with pytest.raises(GeoNetError, match="test drive: never train on it"):
+        P.prepare(P.PrepareConfig("kitti_raw", drive, tmp_path / "o", motion_mix=mix))
+
+
 def test_teachers_never_label_the_test_drive(kitti_raw, tmp_path):
     with pytest.raises(GeoNetError, match="test drive: never train on it"):
         P.prepare(P.PrepareConfig("kitti_raw", kitti_raw, tmp_path / "o", teacher_flow="dis"))
