@@ -21,9 +21,9 @@ CHILD = r"""
 import json, sys
 import numpy as np
 from geonet_infer import load
-from geonet_infer.core.manifest import load_manifest
+from geonet_infer.models.manifest import load_manifest
 from geonet_infer.models import resolve_model
-from geonet_infer.timing import current_rss_mib, peak_rss_mib
+from geonet_infer.engines.timing import current_rss_mib, peak_rss_mib
 
 model, precision, backend = sys.argv[1:4]
 manifest = load_manifest(resolve_model(model))

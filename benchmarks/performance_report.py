@@ -30,14 +30,6 @@ TASK_LABELS = {
     "flow": "flow (one pair)",
     "sequence": "sequence, per frame",
 }
-# (label, bench file key, task, mode, precision, field, target ms) -- issue 9's targets.
-TARGETS = [
-    ("resnet50 int8 depth (graph p50)", "r50", "depth", "graph", "int8", "p50_ms", 19),
-    ("resnet50 int8 flow per pair in a sequence (e2e p50)", "r50", "sequence", "e2e", "int8", "per_pair_p50_ms", 45),
-    ("resnet50 int8 pose (graph p50)", "r50", "pose", "graph", "int8", "p50_ms", 4),
-    ("rigid op (graph p50, fp32)", "r50", "rigid_flow", "graph", "fp32", "p50_ms", 1.5),
-    ("small int8 cascade per frame in a sequence (e2e p50)", "small", "sequence", "e2e", "int8", "p50_ms", 8),
-]
 COMMANDS = """\
 ```bash
 mkdir -p runs/bench
@@ -65,7 +57,10 @@ BACKEND_LABELS = {"onnxruntime": "ORT", "openvino": "OpenVINO", "auto": "auto"}
 
 
 LEVERS = """\
-**Levers tried** (the runs behind them are in issue 9's notes):
+## Levers tried
+
+The runs behind them are in issue 9's notes.
+
 - *OpenVINO for the same ONNX files* (`--backend openvino`, `auto`): adopted as an option; its
   VNNI int8 kernels are where the large INT8 gains above come from. onnxruntime's INT8 graphs
   barely beat its fp32 ones on these nets.
@@ -88,7 +83,7 @@ LEVERS = """\
 
 def isa_of(env: dict) -> str:
     """The ISA line of a bench run (``geonet-infer info``'s), from its record or its cpu_flags (older runs)."""
-    from geonet_infer.cpu import ISA_FLAGS, int8_kernel, isa_line
+    from geonet_infer.engines.cpu import ISA_FLAGS, int8_kernel, isa_line
 
     if env.get("isa"):
         return env["isa"]["line"]
@@ -197,7 +192,7 @@ def report(small: dict, r50: dict, peers: list[str], memory: list[dict] | None =
         [
             "## Method",
             "",
-            "- `geonet-infer bench` (`geonet_infer/timing.py`): warm-up, then all cases of one precision "
+            "- `geonet-infer bench` (`geonet_infer/engines/timing.py`): warm-up, then all cases of one precision "
             "and batch block-interleaved (rotating order, quiet-wait and ≥ 50 ms re-warm before each "
             "block), `perf_counter_ns`, GC off; p50/p90 of the wall time of one synchronous call.",
             "- Engines (`--backend`): *ORT* = onnxruntime, *OpenVINO* = the same ONNX files on OpenVINO's "
@@ -272,46 +267,6 @@ def report(small: dict, r50: dict, peers: list[str], memory: list[dict] | None =
             else ("#" + line if line.startswith("## ") else line)
             for line in text.strip().splitlines()
         ] + [""]
-    data = {"small": small, "r50": r50}
-    L += [
-        "## Distance to the targets (issue 9)",
-        "",
-        "Measured ms per engine, and the distance (measured / target; ≤ 1 = met) of the best engine.",
-        "",
-        "| target | target ms | " + " | ".join(BACKEND_LABELS.values()) + " | best distance |",
-        "|---|---|" + "---|" * (len(BACKEND_LABELS) + 1),
-    ]
-    for label, key, task, mode, precision, field, target in TARGETS:
-        values = {}
-        for backend in BACKEND_LABELS:
-            r = row(data[key], task, mode, precision, backend=backend)
-            values[backend] = r.get(field) if r else None
-        measured = [v for v in values.values() if v is not None]
-        best = f"{min(measured) / target:.2f}×" if measured else "—"
-        L.append(f"| {label} | ≤ {target:g} | {' | '.join(fmt(v) for v in values.values())} | {best} |")
-    # getrusage's peak only rises within a process: only its first predictor has a clean figure.
-    by_model: dict[str, dict[str, float]] = {}
-    for r in memory or []:
-        if r["precision"] == "int8":
-            by_model.setdefault(Path(r["model"]).name, {})[r["backend"]] = r["predictor_over_graph_files"]
-    for name, ratios in by_model.items():
-        cells = [f"{ratios[b]:.2f}×" if b in ratios else "—" for b in BACKEND_LABELS]
-        L.append(
-            f"| {name} int8: (peak − before) / graph files, own process | ≤ 1.5× | {' | '.join(cells)} | "
-            f"{min(ratios.values()):.2f}× |"
-        )
-    for label, d in (("resnet50", r50), ("small", small)):
-        for key, m in d["environment"].get("memory", {}).items():
-            if m.get("first_in_process", True):
-                backend, precision = key.split("/")
-                cells = [
-                    f"{m['peak_rss_mib']:.0f} MiB / {m['graph_files_mib']:.0f} MiB" if b == backend else "—"
-                    for b in BACKEND_LABELS
-                ]
-                L.append(
-                    f"| {label} {precision} peak RSS / graph files (first predictor of the process) | ≤ 1.5× | "
-                    f"{' | '.join(cells)} | {m['peak_rss_over_graph_files']:.2f}× |"
-                )
     L += ["", LEVERS]
     L += ["", "## How the numbers were made", "", COMMANDS, ""]
     return "\n".join(L)

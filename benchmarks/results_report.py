@@ -32,7 +32,7 @@ from geonet_infer.eval import baselines, evaluation  # noqa: E402
 from geonet_infer.eval.datasets import depth_dataset, flow_dataset, pose_dataset, read_heldout  # noqa: E402
 from geonet_infer.eval.metrics import rigid_inverse  # noqa: E402
 from geonet_infer.io import atomic_write, read_image  # noqa: E402
-from geonet_infer.viz import depth_to_color, flow_to_color, side_by_side  # noqa: E402
+from geonet_infer.output.viz import depth_to_color, flow_to_color, side_by_side  # noqa: E402
 
 SHARED = REPO.parent / "shared"  # written into the doc as ../shared/...
 REALDATA = SHARED / "realdata"

@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from benchmarks.real_pose_experiment import _load, figures, write_result
+from experiments.real_pose_experiment import _load, figures, write_result
 from geonet_infer.errors import GeoNetError
 from training.motion_mix import still_copy
 

@@ -77,6 +77,7 @@ IMAGE_NORM = ImageNorm()
 POSE = PoseConvention()
 INTRINSICS = IntrinsicsScaling()
 SAMPLER = Sampler()
+MANIFEST_NAME = "manifest.json"  # every model directory's description (core.manifest_schema reads it)
 REFERENCE_HEIGHT = 128
 REFERENCE_WIDTH = 416
 NUM_SCALES = 4

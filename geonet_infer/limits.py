@@ -42,23 +42,6 @@ def check_batch_size(value, name: str = "batch_size") -> int:
     return check_count(value, name, MAX_BATCH_SIZE, "4 to 16 is plenty on a CPU")
 
 
-def check_threads(value, name: str = "threads") -> int:
-    """Threads per graph: at most the CPUs this process may use (oversubscribed onnxruntime pools spin
-    against each other: 5000 threads ran 300 s for 6 frames and took 100 s to load)."""
-    from geonet_infer.engines import usable_cpus  # here: the limits import nothing heavy
-
-    cpus = usable_cpus()
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise InputError(None, f"{name} must be a positive integer, got {value!r}", f"e.g. {cpus}")
-    if value > cpus:
-        raise InputError(
-            None,
-            f"{name} {value} is more than the {cpus} CPUs this process may use",
-            f"pass {cpus} or fewer (or leave it out: the default is {cpus})",
-        )
-    return value
-
-
 def check_fps(value, name: str = "fps") -> float:
     """A frame rate in (0, :data:`MAX_VIDEO_FPS`]."""
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)

@@ -26,12 +26,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from geonet_infer.convert import quantize as qz  # noqa: E402
 from geonet_infer.core.cascade import InputSpec  # noqa: E402
-from geonet_infer.core.manifest import load_manifest  # noqa: E402
 from geonet_infer.core.predictor import Predictor  # noqa: E402
-from geonet_infer.cpu import isa_line  # noqa: E402
 from geonet_infer.engines import onnxruntime as ort_engine  # noqa: E402
+from geonet_infer.engines.cpu import isa_line  # noqa: E402
 from geonet_infer.io import read_calib_K  # noqa: E402
 from geonet_infer.models import resolve_model  # noqa: E402
+from geonet_infer.models.manifest import load_manifest  # noqa: E402
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES  # noqa: E402
 
 INPUTS = {"depthnet": "image", "posenet": "snippet", "resflownet": "flow_input"}

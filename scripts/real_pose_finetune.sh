@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 32, point 4: fine-tune the bundled DepthNet + PoseNet self-supervised on real footage, export
 # the candidate and score it with `python -m benchmarks.eval_all` against the bundled model's docs/real_eval.json;
-# benchmarks/real_pose_experiment.py applies the shipping rule written before scoring.
+# experiments/real_pose_experiment.py applies the shipping rule written before scoring.
 #
 #   bash scripts/real_pose_finetune.sh            (MINUTES=45 of training by default)
 #   POSE_SUPERVISION=1 INIT=runs/round1_init.pt OUT=runs/real_pose_sup bash scripts/real_pose_finetune.sh
@@ -54,6 +54,6 @@ run $PY -m export --checkpoint "$OUT/combined.pt" --out "$OUT/model" --force --p
     --calib-data data/synth40/seq_0000/image --calib-method percentile --calib-frames 40 --int8-ops "$INT8_OPS"  # as the bundled model
 run $PY -m benchmarks.eval_all --data $REALDATA --model "$OUT/model" --json "$OUT/real_eval.json" \
     --markdown "$OUT/real_eval.md" || true  # exit 1 = a set missing or NaN: the JSON says which
-run $PY -m benchmarks.real_pose_experiment --before docs/real_eval.json --after "$OUT/real_eval.json" \
+run $PY -m experiments.real_pose_experiment --before docs/real_eval.json --after "$OUT/real_eval.json" \
     --candidate "$OUT/model (scripts/real_pose_finetune.sh, MINUTES=$MINUTES POSE_SUPERVISION=$POSE_SUPERVISION)" \
     --round "$([ "$POSE_SUPERVISION" != 0 ] && echo 2 || echo 1)" --out "$OUT/experiment.json"

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 46: fine-tune the bundled ResFlowNet on real footage labelled by a classical teacher (OpenCV DIS
 # flow, forward-backward checked), beside GeoNet's own flow losses; export the candidate and score it with
-# `python -m benchmarks.eval_all` and the held-back clip (benchmarks/teacher_experiment.py applies the shipping
+# `python -m benchmarks.eval_all` and the held-back clip (experiments/teacher_experiment.py applies the shipping
 # rule written before scoring, docs/models.md "Classical-teacher experiment").
 #
 #   bash scripts/teacher_finetune.sh                      prepare + train (CPU) + export + score

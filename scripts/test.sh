@@ -14,9 +14,8 @@ PY=${PYTHON:-python3}
 .venv/bin/mypy
 # Every test, the `slow` ones (> ~20 s on 2 cores) included. The quick run leaves them out:
 #   .venv/bin/python -m pytest -m "not slow"
-# Without arguments, one pytest process per test file, two at a time (TEST_JOBS, default 2), the slowest
-# first: CI must end within 20 minutes, and much of a file's time is single-threaded. Any failing file fails
-# the run. The whole suite also runs in one process (issue 55: `python -X faulthandler -m pytest -q tests`;
+# Without arguments, one pytest process per test file, two at a time, the slowest first
+# (scripts/pytest_files.sh). The whole suite also runs in one process (issue 55: `python -X faulthandler -m pytest -q tests`;
 # what had broken that run was two test files of one name, now a test in test_import_contract.py; the
 # SIGSEGV seen three times before did not recur, see docs/architecture.md).
 if [ $# -eq 0 ]; then
@@ -28,22 +27,8 @@ if [ $# -eq 0 ]; then
     for f in tests/**/test_*.py; do
         [[ " ${slow[*]} " == *" $f "* ]] || files+=("$f")
     done
-    run_file() {  # one file; its output printed in one piece when it ends
-        local log start=$SECONDS status=passed
-        log=$(mktemp)
-        .venv/bin/python -m pytest -q -p no:cacheprovider "$1" >"$log" 2>&1 || status=FAILED
-        printf '%s\nscripts/test.sh: %s %s in %d s\n' "$(cat "$log")" "$1" "$status" $((SECONDS - start))
-        rm -f "$log"
-    }
-    export -f run_file
-    results=$(mktemp)
-    printf '%s\n' "${files[@]}" | xargs -P "${TEST_JOBS:-2}" -I{} bash -c 'run_file "$1"' _ {} | tee "$results"
-    failed=$(grep -E '^scripts/test.sh: .* FAILED in [0-9]+ s$' "$results" | cut -d' ' -f2 | tr '\n' ' ' || true)
-    passed=$(grep -cE '^scripts/test.sh: .* passed in [0-9]+ s$' "$results" || true)
-    rm -f "$results"
-    n=${#files[@]}
-    echo "scripts/test.sh: $passed of $n test files passed${failed:+; failed: $failed}"
-    [ "$passed" -eq "$n" ]
+    PYTEST=".venv/bin/python -m pytest -q -p no:cacheprovider" NAME=scripts/test.sh \
+        bash scripts/pytest_files.sh "${files[@]}"
     exit
 fi
 exec .venv/bin/python -m pytest -q "$@"

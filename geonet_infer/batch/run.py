@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from geonet_infer import __version__, ownership
+from geonet_infer import __version__
 from geonet_infer.batch.local import LocalRunner
 from geonet_infer.batch.ray import RayRunner
 from geonet_infer.batch.units import (
@@ -40,15 +40,16 @@ from geonet_infer.batch.units import (
 )
 from geonet_infer.classical import check_methods, classical_tasks
 from geonet_infer.core.predictor import TASKS, describe_skipped, resolve_tasks
-from geonet_infer.cpu import isa_line
+from geonet_infer.core.tasks import needs_intrinsics
 from geonet_infer.engines import usable_cpus
+from geonet_infer.engines.cpu import isa_line
 from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.camera import ASSUMED_RULE
 from geonet_infer.limits import check_batch_size
+from geonet_infer.output import ownership
 from geonet_infer.output.layout import SUMMARY_NAME
-from geonet_infer.tasks import needs_intrinsics
 
 # ----------------------------------------------------------------------------- the job
 # name -> runner class. A runner has ``start(config, options, n_units, workers, threads, *, manifest,
@@ -72,7 +73,8 @@ class _NoRunner:
 
 
 def _job_lock(out_dir: Path) -> ownership.PidLock:
-    """OUT/.lock for the job's lifetime: the lock predict takes on its OUT (one rule, :mod:`geonet_infer.ownership`)."""
+    """OUT/.lock for the job's lifetime: the lock predict takes on its OUT (one rule,
+    :mod:`geonet_infer.output.ownership`)."""
     return ownership.PidLock(
         out_dir / LOCK_NAME, "another geonet-infer batch job", "wait for it to finish, or pass another --out"
     )
@@ -225,8 +227,8 @@ def run_batch(
     (``"interrupted": true``) when interrupted (Ctrl-C, or SIGTERM turned into it by the CLI);
     a later ``resume=True`` finishes.
     """
-    from geonet_infer.core.manifest import load_manifest, model_notice
     from geonet_infer.models import resolve_model
+    from geonet_infer.models.manifest import load_manifest, model_notice
 
     log = log or (lambda msg: print(msg, file=sys.stderr))
     if engine is not None:  # the 0.x name of ``runner``
@@ -410,7 +412,7 @@ def _sequence_row(result: dict) -> dict:
         "status": result["status"],
         "frames": result["frames"],
         "failures": len(result["failures"]),
-        "check": result.get("check"),  # does the flow explain the next frame? (geonet_infer.check)
+        "check": result.get("check"),  # does the flow explain the next frame? (geonet_infer.core.check)
         "camera": result.get("camera"),  # K at the input resolution and its source file (None: no camera)
         "wall_s": round(result["wall_s"], 3),
     }

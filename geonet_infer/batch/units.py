@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from geonet_infer import __version__, ownership
+from geonet_infer import __version__
 from geonet_infer.batch.inputs import (  # noqa: F401  (re-exported: this module's names before the split)
     _RESERVED,
     CALIB_SEPARATOR,
@@ -43,12 +43,13 @@ from geonet_infer.batch.sizing import (  # noqa: F401  (re-exported: this module
     plan_workers,
     worker_memory_bytes,
 )
-from geonet_infer.core.manifest import file_sha256
 from geonet_infer.core.predictor import TASKS
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write, leftover_temps
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
+from geonet_infer.models.manifest import file_sha256
+from geonet_infer.output import ownership
 from geonet_infer.output.layout import OUTPUT_MARKER
 from geonet_infer.output.predict import predict_to_dir
 
@@ -111,8 +112,8 @@ MODEL_KEYS = ("graphs", "model")  # how a .done names the model: its graphs' sha
 
 def graph_hashes(model: str | None, precision: str) -> dict[str, str]:
     """``precision/graph`` -> sha256 of every graph the run may use (all precisions for ``auto``)."""
-    from geonet_infer.core.manifest import load_manifest
     from geonet_infer.models import resolve_model
+    from geonet_infer.models.manifest import load_manifest
 
     manifest = load_manifest(resolve_model(model), verify_files=False)
     sets = {p: g for p, g in manifest.graphs.items() if precision in (p, "auto")}
@@ -179,7 +180,7 @@ def _mark(folder: Path) -> None:
 
 def discard(folder: Path) -> None:
     """Remove what batch made in a sequence folder: its ``.done``, the files its run listed (the folder's
-    ``.geonet-predict``, :mod:`geonet_infer.ownership`; an older batch's ``.done`` list), then the markers
+    ``.geonet-predict``, :mod:`geonet_infer.output.ownership`; an older batch's ``.done`` list), then the markers
     and the folder if nothing else is left. Files a user added stay, and so does the folder with its
     markers. A folder batch did not make is left alone (GeoNetError) unless it is empty."""
     if not folder.exists():

@@ -14,10 +14,10 @@ import numpy as np
 from geonet_infer.conventions import scale_intrinsics
 from geonet_infer.core.cascade import flow_to_input, graph_intrinsics, run_cascade
 from geonet_infer.core.predictor import Predictor
+from geonet_infer.engines.timing import Case
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.images import list_images, read_image
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
-from geonet_infer.timing import Case
 
 BENCH_TASKS = ("depth", "pose", "rigid_flow", "resflow", "flow", "sequence")
 MODES = ("graph", "e2e")

@@ -12,12 +12,12 @@ import cv2
 import numpy as np
 
 from geonet_infer import __version__
-from geonet_infer.core.manifest import ModelCard, load_manifest
 from geonet_infer.core.predictor import TASK_GRAPHS as MODEL_TASK_GRAPHS  # depth, pose, flow
 from geonet_infer.core.predictor import missing_graphs
-from geonet_infer.cpu import cpu_info, isa_line, proc_flags
 from geonet_infer.engines import ENGINES, check_graphs, usable_cpus
+from geonet_infer.engines.cpu import cpu_info, isa_line, proc_flags
 from geonet_infer.models import bundled_models, resolve_model
+from geonet_infer.models.manifest import ModelCard, load_manifest
 
 CPU_FLAGS = (
     "avx2",
@@ -62,7 +62,7 @@ class Environment:
     providers: list[str]  # onnxruntime execution providers
     platform: str
     cpu: str
-    isa: dict  # geonet_infer.cpu.cpu_info(): the x86 features INT8 depends on, and the INT8 kernel
+    isa: dict  # geonet_infer.engines.cpu.cpu_info(): the x86 features INT8 depends on, and the INT8 kernel
     usable_cpus: int  # affinity mask and cgroup quota (geonet_infer.engines.usable_cpus)
     default_threads: int  # threads per graph when none are given
     bundled_models: list[str]

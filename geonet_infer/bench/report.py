@@ -3,7 +3,7 @@ and the paper's "per example" line."""
 
 from __future__ import annotations
 
-from geonet_infer.timing import Case
+from geonet_infer.engines.timing import Case
 
 
 def result_row(task: str, mode: str, precision: str, backend: str, batch: int, case: Case, extra: dict) -> dict:

@@ -26,7 +26,7 @@ Modes (``--modes``):
   batch 1 only (batched pose/flow run inside ``sequence``).
 
 Inputs are fixed: the bundled sample frames (``geonet_infer.samples``), resized to
-``--input-size``, with their intrinsics scaled alike. Timing: ``geonet_infer.timing``
+``--input-size``, with their intrinsics scaled alike. Timing: ``geonet_infer.engines.timing``
 (warm-up, GC off, block-interleaved over all cases of one precision and batch).
 """
 
@@ -44,16 +44,16 @@ from geonet_infer.bench.environment import Environment, cpu_flags, git_commit, m
 from geonet_infer.bench.report import format_table, paper_line, result_row
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import add_model_args, backend_help
-from geonet_infer.core.manifest import AUTO, MANIFEST_NAME, PRECISION_CHOICES, PRECISIONS, load_manifest
 from geonet_infer.core.predictor import load
-from geonet_infer.engines import BACKENDS, ENGINES, OrtEngine
+from geonet_infer.engines import BACKENDS, ENGINES, OrtEngine, check_threads
+from geonet_infer.engines.timing import current_rss_mib, load_average, peak_rss_mib, time_interleaved
 from geonet_infer.errors import BackendUnavailableError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.images import check_pixels
-from geonet_infer.limits import MAX_BATCH_SIZE, MAX_SEQUENCE_FRAMES, check_batch_size, check_count, check_threads
+from geonet_infer.limits import MAX_BATCH_SIZE, MAX_SEQUENCE_FRAMES, check_batch_size, check_count
 from geonet_infer.models import resolve_model
+from geonet_infer.models.manifest import AUTO, MANIFEST_NAME, PRECISION_CHOICES, PRECISIONS, load_manifest
 from geonet_infer.samples import SAMPLE_FRAMES
-from geonet_infer.timing import current_rss_mib, load_average, peak_rss_mib, time_interleaved
 
 
 def add_parser(sub) -> None:

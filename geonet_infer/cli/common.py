@@ -13,14 +13,13 @@ import numpy as np
 
 from geonet_infer.classical import DIS_PRESET, FLOW_METHODS, POSE_METHODS
 from geonet_infer.core.cascade import RIGID_OPS
-from geonet_infer.core.manifest import PRECISION_CHOICES
 from geonet_infer.core.predictor import Predictor, load
-from geonet_infer.engines import AUTO, BACKENDS, ENGINES
+from geonet_infer.engines import AUTO, BACKENDS, ENGINES, check_threads
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.camera import ASSUMED_RULE
-from geonet_infer.limits import check_threads
 from geonet_infer.models import DEFAULT_MODEL
+from geonet_infer.models.manifest import PRECISION_CHOICES
 
 
 def positive_int(text: str) -> int:

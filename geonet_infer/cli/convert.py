@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
 def _verifier(args: argparse.Namespace):
     from geonet_infer.convert.official import select_networks
     from geonet_infer.convert.verify import verify
-    from geonet_infer.core.manifest import load_manifest
+    from geonet_infer.models.manifest import load_manifest
     from geonet_infer.samples import SAMPLE_FRAMES
 
     frames = args.verify if args.verify is not None else SAMPLE_FRAMES

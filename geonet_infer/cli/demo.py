@@ -13,8 +13,8 @@ from geonet_infer.io.calib import read_camera
 from geonet_infer.io.frames import open_frames
 from geonet_infer.io.images import list_images, read_image, write_image
 from geonet_infer.output.predict import predict_to_dir
+from geonet_infer.output.viz import depth_to_color, flow_to_color, side_by_side
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
-from geonet_infer.viz import depth_to_color, flow_to_color, side_by_side
 
 DEMO_PICTURE = "demo.png"
 PANELS = ("frame", "depth", "flow", "rigid flow", "residual flow")

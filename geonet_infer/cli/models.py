@@ -24,8 +24,8 @@ def add_parser(sub) -> None:
 
 def describe(name: str, path, origin: str) -> dict:
     """One row: what the manifest says of the model, or why it cannot be read."""
-    from geonet_infer.core.manifest import load_manifest
     from geonet_infer.errors import GeoNetError
+    from geonet_infer.models.manifest import load_manifest
 
     row: dict = {"name": name, "origin": origin, "path": str(path)}
     try:

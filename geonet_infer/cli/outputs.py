@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from geonet_infer.core.tasks import TASKS, parse_tasks
 from geonet_infer.errors import InputError
 from geonet_infer.output.layout import COMPACT_OUTPUTS, DEFAULT_OUTPUTS, OUTPUT_NAMES, chosen_outputs, output_tasks
-from geonet_infer.tasks import TASKS, parse_tasks
 
 
 def add_outputs_arg(parser: argparse.ArgumentParser) -> None:

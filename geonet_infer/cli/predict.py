@@ -7,7 +7,6 @@ import re
 import sys
 from pathlib import Path
 
-from geonet_infer.check import SequenceCheck
 from geonet_infer.classical import classical_tasks
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import (
@@ -21,6 +20,7 @@ from geonet_infer.cli.common import (
     stage_table,
 )
 from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
+from geonet_infer.core.check import SequenceCheck
 from geonet_infer.core.predictor import TASKS, describe_skipped
 from geonet_infer.core.scale import MAX_FRAMES_BEFORE_GROUND, MAX_SCALE_HALF_WINDOW, SCALE_HALF_WINDOW
 from geonet_infer.errors import InputError

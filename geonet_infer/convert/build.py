@@ -26,8 +26,8 @@ from geonet_infer.convert import manifest as cmf
 from geonet_infer.convert.official import GRAPH_OF_KIND, SCOPES, Selection, official_conventions, select_networks
 from geonet_infer.convert.onnx_writer import write_graph
 from geonet_infer.convert.templates import TEMPLATES_DIR, Template, initializers, template_name
-from geonet_infer.core.manifest import PRECISIONS, GraphEntry, Provenance, load_manifest, write_manifest
 from geonet_infer.errors import InputError
+from geonet_infer.models.manifest import PRECISIONS, GraphEntry, Provenance, load_manifest, write_manifest
 
 GRAPH_NAMES = ("depthnet", "posenet", "rigidflow", "resflownet")
 KIND_OF_GRAPH = {g: k for k, g in GRAPH_OF_KIND.items()}

@@ -9,8 +9,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from geonet_infer.convert.manifest import FP32_ONLY_GRAPHS, quantization_record
-from geonet_infer.core.manifest import GraphEntry, Quantization, file_sha256
 from geonet_infer.errors import BackendUnavailableError
+from geonet_infer.models.manifest import GraphEntry, Quantization, file_sha256
 
 CONVERT_EXTRA_HINT = "pip install 'geonet-infer[convert]' (it adds the onnx package, which INT8 calibration needs)"
 

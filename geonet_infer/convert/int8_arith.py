@@ -60,7 +60,7 @@ def weights_fit_avx2(w: np.ndarray) -> bool:
 
 def dot_as_onnxruntime_runs_it(a: np.ndarray, w: np.ndarray, kernel: str, precision_mode: bool) -> np.ndarray:
     """The int32 accumulators of onnxruntime's U8S8 convolution on a CPU whose INT8 kernel is ``kernel``
-    (:func:`geonet_infer.cpu.int8_kernel`: "amx_int8", "vnni", "avx2", ...), with or without
+    (:func:`geonet_infer.engines.cpu.int8_kernel`: "amx_int8", "vnni", "avx2", ...), with or without
     ``session.x64quantprecision`` (``precision_mode``)."""
     if kernel != "avx2" or (precision_mode and not weights_fit_avx2(w)):
         return dot_exact(a, w)  # VNNI/AMX, or the remedy's U8U8 kernels

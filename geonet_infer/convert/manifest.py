@@ -1,4 +1,4 @@
-"""Build the manifest of a model directory (schema: ``geonet_infer.core.manifest``), for both writers:
+"""Build the manifest of a model directory (schema: ``geonet_infer.models.manifest``), for both writers:
 ``python -m export`` (torch) and ``geonet-infer convert`` (no torch).
 
 Also the per-graph ``metadata_props`` written into every ONNX file, so a single
@@ -12,7 +12,8 @@ import json
 from pathlib import Path
 
 from geonet_infer import conventions
-from geonet_infer.core.manifest import (
+from geonet_infer.io.atomic import json_safe
+from geonet_infer.models.manifest import (
     SCHEMA_VERSION,
     GraphEntry,
     Manifest,
@@ -21,7 +22,6 @@ from geonet_infer.core.manifest import (
     TensorSpec,
     file_sha256,
 )
-from geonet_infer.io.atomic import json_safe
 
 FP32_ONLY_GRAPHS = ("rigidflow",)  # the geometric op stays fp32: the int8 set's entry is the fp32 file
 

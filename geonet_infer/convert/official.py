@@ -20,8 +20,8 @@ import numpy as np
 
 from geonet_infer import conventions
 from geonet_infer.convert.tf_checkpoint import BundleReader
-from geonet_infer.core.manifest import file_sha256
 from geonet_infer.errors import InputError
+from geonet_infer.models.manifest import file_sha256
 
 KINDS = ("depth", "pose", "flow")
 SCOPES = {"depth": "depth_net", "pose": "pose_net", "flow": "flow_net"}

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer import conventions
-from geonet_infer.core.manifest import MANIFEST_NAME, PRECISIONS, Manifest, check_graph_io
+from geonet_infer.core.int8_safety import int8_unsafe_reason
 from geonet_infer.core.rigid import RigidFlowOp
 from geonet_infer.engines import AUTO, ENGINES, Engine, make_engine, pick_fastest
 from geonet_infer.errors import InputError, ModelError
-from geonet_infer.int8_safety import int8_unsafe_reason
+from geonet_infer.models.manifest import MANIFEST_NAME, PRECISIONS, Manifest, check_graph_io
 
 RIGID_OPS = ("graph", "numpy")  # how the rigid-flow op runs: geonet_infer.core.rigid, or rigidflow.onnx
 
@@ -22,7 +22,7 @@ class GraphSet:
     """One engine per graph of a model directory (sessions made once).
 
     ``precision``: "fp32", "int8", or "auto": per graph, the fastest of the model's precisions that is
-    exact on this CPU (:func:`geonet_infer.int8_safety.int8_unsafe_reason`), timed at load; FP32 is
+    exact on this CPU (:func:`geonet_infer.core.int8_safety.int8_unsafe_reason`), timed at load; FP32 is
     always a candidate, so auto is never slower than FP32 beyond timing noise.
     ``backend``: a name of :data:`geonet_infer.engines.ENGINES`, or "auto" (the faster engine per
     graph, timed here). Every graph's inputs and outputs are checked against the manifest.
@@ -92,7 +92,7 @@ class GraphSet:
 
     def _int8_unsafe(self, name: str, files: dict[str, Path], engines: list[str], warn: bool) -> dict[str, str]:
         """{candidate label: why that engine's INT8 of graph ``name`` is not exact on this CPU}
-        (geonet_infer.int8_safety); labels as :func:`pick_fastest` makes them. Auto skips those
+        (geonet_infer.core.int8_safety); labels as :func:`pick_fastest` makes them. Auto skips those
         candidates (onnxruntime is always exact: its sessions set the remedy); an engine and INT8
         named explicitly run the graph anyway, after one line on stderr."""
         q = self.manifest.quantization

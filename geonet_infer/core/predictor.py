@@ -18,16 +18,10 @@ from typing import Any, overload
 
 import numpy as np
 
-from geonet_infer.classical import (
-    CLASSICAL_GRAPHS,
-    KeptFrames,
-    check_methods,
-    classical_frames,
-    classical_tasks,
-)
+from geonet_infer.classical import CLASSICAL_GRAPHS, check_methods, classical_tasks
 from geonet_infer.core.cascade import run_cascade
+from geonet_infer.core.classical_frames import KeptFrames, classical_frames
 from geonet_infer.core.graphs import GraphSet
-from geonet_infer.core.manifest import PRECISION_CHOICES, Manifest, load_manifest
 from geonet_infer.core.results import DepthResult, FlowResult, FrameResult, PoseResult, SequenceResult
 from geonet_infer.core.scale import (
     SCALE_HALF_WINDOW,
@@ -60,11 +54,12 @@ from geonet_infer.core.task_graphs import (
     require_graphs,
     resolve_tasks,
 )
-from geonet_infer.engines import BACKENDS, usable_cpus
+from geonet_infer.core.tasks import TASKS, needs_intrinsics
+from geonet_infer.engines import BACKENDS, check_threads, usable_cpus
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.limits import MAX_BATCH_SIZE, check_batch_size, check_threads
+from geonet_infer.limits import MAX_BATCH_SIZE, check_batch_size
 from geonet_infer.models import resolve_model
-from geonet_infer.tasks import TASKS, needs_intrinsics
+from geonet_infer.models.manifest import PRECISION_CHOICES, Manifest, load_manifest
 
 __all__ = [
     "STAGES",
@@ -367,7 +362,7 @@ class Predictor:
         instead of the networks (:mod:`geonet_infer.classical`; with DIS, ``rigid_flow`` is the
         DIS flow and ``residual_flow`` None).
         ``check`` (with flow): each frame's ``check`` says whether its flow and rigid flow explain
-        the next frame better than no motion (:mod:`geonet_infer.check`; about 1 ms a frame).
+        the next frame better than no motion (:mod:`geonet_infer.core.check`; about 1 ms a frame).
         A missing graph or a bad request raises here, before any frame is read.
         """
         camera = _camera_keyword(camera, deprecated, "iter_sequence")

@@ -15,7 +15,7 @@ from functools import cached_property
 
 import numpy as np
 
-from geonet_infer.check import FrameCheck, SequenceCheck
+from geonet_infer.core.check import FrameCheck, SequenceCheck
 from geonet_infer.core.points import backproject
 from geonet_infer.errors import InputError
 
@@ -137,7 +137,7 @@ class FrameResult(_Points):
         metric_scale_raw: this frame's own ground-fit factor before smoothing (None: no road found).
         intrinsics: (3, 3) float64 K at the input resolution that was used, or None without a
             camera; :meth:`points` back-projects with it.
-        check: the flow checked against the frames (:class:`~geonet_infer.check.FrameCheck`: does
+        check: the flow checked against the frames (:class:`~geonet_infer.core.check.FrameCheck`: does
             it explain the next frame better than no motion?); None without flow or with the check off.
     """
 

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.check import check_pair
 from geonet_infer.conventions import next_camera_to_world
 from geonet_infer.core.cascade import run_cascade
+from geonet_infer.core.check import check_pair
 from geonet_infer.core.graphs import GraphSet
 from geonet_infer.core.results import FrameResult
 from geonet_infer.core.snippets import snippet_window
@@ -53,7 +53,7 @@ def iter_frames(
     ``batch_size + seq_length // 2`` ahead. With pose or flow a sequence needs 2 frames of one size;
     depth alone runs on any number, each frame at its own size. ``need_depth``: depth is needed
     though not asked for (metric scale).
-    ``check``: each flow is checked against the frames (:mod:`geonet_infer.check`, at the graph size).
+    ``check``: each flow is checked against the frames (:mod:`geonet_infer.core.check`, at the graph size).
     """
     check_batch_size(batch_size)
     with_flow = "flow" in tasks

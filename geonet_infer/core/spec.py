@@ -17,12 +17,12 @@ import cv2
 import numpy as np
 
 from geonet_infer import conventions
-from geonet_infer.check import GREY_WEIGHTS
-from geonet_infer.core.manifest import MANIFEST_NAME, Manifest
+from geonet_infer.core.check import GREY_WEIGHTS
 from geonet_infer.errors import GeoNetError, InputError, ModelError
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.camera import assumed_camera
 from geonet_infer.io.images import read_image
+from geonet_infer.models.manifest import MANIFEST_NAME, Manifest
 
 # What each graph of a model directory must accept and return for this runtime to drive it.
 GRAPH_IO = {

@@ -8,8 +8,8 @@ from collections.abc import Iterable
 from geonet_infer.classical import (
     CLASSICAL_GRAPHS,
 )
+from geonet_infer.core.tasks import TASKS
 from geonet_infer.errors import InputError, ModelError
-from geonet_infer.tasks import TASKS
 
 # The graphs each task needs. A model directory may hold only some (a converted depth or pose
 # release, `python -m export --graphs`). "flow" is GeoNet's full flow; the API's flow methods

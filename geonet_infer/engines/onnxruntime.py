@@ -37,9 +37,9 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from geonet_infer.core.manifest import IoSpec
-from geonet_infer.cpu import cpu_info
+from geonet_infer.engines.cpu import cpu_info
 from geonet_infer.errors import InputError, ModelError
+from geonet_infer.models.manifest import IoSpec
 
 # onnxruntime's kOrtSessionOptionsAvx2PrecisionMode (see the module docstring)
 X64_QUANT_PRECISION = "session.x64quantprecision"

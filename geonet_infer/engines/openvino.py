@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer.core.manifest import IoSpec
 from geonet_infer.errors import BackendUnavailableError, ModelError
+from geonet_infer.models.manifest import IoSpec
 
 
 def _openvino():

@@ -8,7 +8,7 @@ Modules: ``atomic`` (atomic writes, ``.npy``), ``images`` (RGB images, masks, im
 folders), ``png`` (the PNG encoder every writer uses), ``flow`` (KITTI flow PNG, ``.flo``),
 ``depth`` (KITTI depth PNG), ``poses`` (KITTI / TUM trajectories), ``calib`` (calibration
 files, :class:`Camera`), ``frames`` (video / KITTI drive / image-folder frame sources). Colour
-maps live in :mod:`geonet_infer.viz`. Everything public is re-exported here.
+maps live in :mod:`geonet_infer.output.viz`. Everything public is re-exported here.
 
 Encodings (see ``docs/synthetic_data.md``):
 

@@ -1,5 +1,5 @@
 """The protobuf wire format without protobuf: enough to walk ONNX files (their external-data
-fields, :mod:`geonet_infer.core.onnx_check`), to read and write TensorFlow checkpoint records
+fields, :mod:`geonet_infer.models.onnx_check`), to read and write TensorFlow checkpoint records
 (:mod:`geonet_infer.convert.tf_checkpoint`) and to write ONNX graphs (:mod:`geonet_infer.convert.onnx_writer`)."""
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from geonet_infer.core.manifest import MANIFEST_NAME
+from geonet_infer.conventions import MANIFEST_NAME
 from geonet_infer.errors import InputError, ModelError
 
 MODELS_DIR = Path(__file__).resolve().parent

@@ -1,6 +1,6 @@
 """The output folder of ``predict`` (and of each sequence of ``batch``): the ONE description of its files.
 
-What a run lists as its own before writing (:mod:`geonet_infer.ownership`), what the writer writes
+What a run lists as its own before writing (:mod:`geonet_infer.output.ownership`), what the writer writes
 (by each entry's ``--outputs`` name), summary.json's ``outputs`` and ``written``, and ``predict --help``
 are all read off :data:`LAYOUT`.
 """

@@ -8,7 +8,7 @@ from pathlib import Path
 from geonet_infer.errors import InputError
 from geonet_infer.limits import MAX_WORLD_POINTS, check_fps
 from geonet_infer.output.video import VIDEO_CODECS
-from geonet_infer.viz import SteadyScale
+from geonet_infer.output.viz import SteadyScale
 
 DEFAULT_COLOUR_SCALE = "first:8"
 POINT_CLOUDS = ("camera", "world")
@@ -25,7 +25,7 @@ class OutputOptions:
         point_stride: keep every n-th pixel in u and v.
         max_depth: drop points farther than this (depth units: metres with a camera height).
         world_points: points in ``points_world.ply`` at most.
-        colour_scale: "first:N", "running" or "frame" (:class:`geonet_infer.viz.SteadyScale`).
+        colour_scale: "first:N", "running" or "frame" (:class:`geonet_infer.output.viz.SteadyScale`).
         video_out: a side-by-side video (frame | depth | flow) written here (.mp4, .avi).
         video_fps: its frame rate; None = the input's (10 for frame folders).
     """

@@ -7,7 +7,7 @@ Every file is written under a temporary name and renamed, so a reader never sees
 half-written file. A frame that cannot be read, has another size than most of the first
 frames, or for which the model gives NaN/inf is recorded in the summary and skipped; the
 sequence goes on with the next frame. ``exclusive=True`` (the ``predict`` command) also makes
-OUT a folder of one run (:class:`geonet_infer.ownership.OwnedFolder`): a marker
+OUT a folder of one run (:class:`geonet_infer.output.ownership.OwnedFolder`): a marker
 ``OUT/.geonet-predict`` lists the files the run may write, a lock file keeps a second run out,
 and the next run removes exactly the listed files of the previous one before writing.
 """
@@ -27,17 +27,17 @@ from pathlib import Path
 
 import numpy as np
 
-from geonet_infer import __version__, ownership
-from geonet_infer.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
+from geonet_infer import __version__
 from geonet_infer.classical import check_methods, classical_tasks
 from geonet_infer.classical import describe as describe_methods
 from geonet_infer.conventions import KITTI_HEIGHT, KITTI_WIDTH
 from geonet_infer.core.cascade import camera_at
-from geonet_infer.core.manifest import model_notice
+from geonet_infer.core.check import AGREE_PX, METHOD, FrameCheck, SequenceCheck
 from geonet_infer.core.predictor import Predictor
 from geonet_infer.core.results import FrameResult
 from geonet_infer.core.scale import SCALE_HALF_WINDOW, ScaleSmoother, check_metric_request, metric_scale_summary
-from geonet_infer.cpu import isa_line
+from geonet_infer.core.tasks import TASKS, needs_intrinsics
+from geonet_infer.engines.cpu import isa_line
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera, write_kitti_camera
@@ -45,6 +45,8 @@ from geonet_infer.io.camera import assumed_camera
 from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
 from geonet_infer.limits import MAX_HELD_PIXELS, check_batch_size
+from geonet_infer.models.manifest import model_notice
+from geonet_infer.output import ownership
 from geonet_infer.output.clouds import WorldCloud, as_predicted
 from geonet_infer.output.frames import GoodFrames, unusable
 from geonet_infer.output.latency import latency_table, timed
@@ -64,9 +66,8 @@ from geonet_infer.output.layout import (
 )
 from geonet_infer.output.options import OutputOptions
 from geonet_infer.output.video import FOLDER_FPS, VideoOut
+from geonet_infer.output.viz import SteadyScale
 from geonet_infer.output.writer import FrameWriter, Written
-from geonet_infer.tasks import TASKS, needs_intrinsics
-from geonet_infer.viz import SteadyScale
 
 
 def predict_to_dir(
@@ -105,13 +106,13 @@ def predict_to_dir(
         outputs: the --outputs names to write (:data:`geonet_infer.output.layout.OUTPUT_NAMES`); None:
             the default set (:data:`~geonet_infer.output.layout.DEFAULT_OUTPUTS`); ``vis=False`` drops
             the colour maps from either. An output of a task that does not run is not written.
-        exclusive: own ``out_dir`` for this run (:class:`geonet_infer.ownership.OwnedFolder`): refuse a non-empty folder
-            predict did not write or one another predict is writing, remove the previous run's files.
+        exclusive: own ``out_dir`` for this run (:class:`geonet_infer.output.ownership.OwnedFolder`): refuse a
+            non-empty folder predict did not write or one another predict is writing, remove the previous run's files.
         extra_outputs: more files (relative to ``out_dir``) the caller writes there, recorded as
             this run's (``exclusive`` only).
         options: point clouds, the colour scale of the pictures, a result video (:class:`OutputOptions`).
         max_frames: stop after this many good frames (live sources).
-        check: check each flow against the frames (``summary["check"]``, :mod:`geonet_infer.check`).
+        check: check each flow against the frames (``summary["check"]``, :mod:`geonet_infer.core.check`).
         flow_method, pose_method: "network", or "dis" / "orbvo" (:mod:`geonet_infer.classical`).
         scale_smoothing: frames each side over which the camera-height scale is smoothed (0: none).
         claimed_by: (``exclusive``) the marker names of a caller that owns ``out_dir`` and locks it

@@ -11,7 +11,7 @@ import numpy as np
 
 from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import _umask, create_temp
-from geonet_infer.viz import side_by_side
+from geonet_infer.output.viz import side_by_side
 
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}  # what OpenCV's own FFmpeg writes everywhere
 VIDEO_HEIGHT = 256  # panel height of the result video: three panels side by side stay under ~1400 px

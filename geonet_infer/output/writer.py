@@ -20,7 +20,7 @@ from geonet_infer.io.images import write_image
 from geonet_infer.output.clouds import ply_comments
 from geonet_infer.output.layout import DEFAULT_OUTPUTS, POINTS, frame_outputs, frame_path, pattern
 from geonet_infer.output.options import OutputOptions
-from geonet_infer.viz import depth_to_color, flow_to_color
+from geonet_infer.output.viz import depth_to_color, flow_to_color
 
 WRITE_THREADS = 2  # frames written while the next are predicted; colour maps and PNGs are most of the cost
 

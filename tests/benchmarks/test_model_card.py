@@ -24,10 +24,16 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from benchmarks.model_card import main, render_card, sig3
+from benchmarks.markdown import sig3
+from benchmarks.model_card.cli import main
+from benchmarks.model_card.render import render_card
 from export.wrappers import io_spec
 from geonet_infer import conventions
-from geonet_infer.core.manifest import (
+from geonet_infer.core.predictor import Predictor
+from geonet_infer.eval.metrics import depth_floor_share
+from geonet_infer.eval.velodyne import velodyne_to_depth_map
+from geonet_infer.io import read_image
+from geonet_infer.models.manifest import (
     GraphEntry,
     Manifest,
     Provenance,
@@ -37,10 +43,6 @@ from geonet_infer.core.manifest import (
     load_manifest,
     write_manifest,
 )
-from geonet_infer.core.predictor import Predictor
-from geonet_infer.eval.metrics import depth_floor_share
-from geonet_infer.eval.velodyne import velodyne_to_depth_map
-from geonet_infer.io import read_image
 
 ROOT = Path(__file__).resolve().parents[2]
 H, W = 32, 96  # graph size of the stand-in models
@@ -659,7 +661,7 @@ def test_real_section_is_rendered_from_the_eval_all_json(card3, tmp_path, kitti_
     """`--real` renders the JSON of `python -m benchmarks.eval_all` (here on the KITTI object frames) as the card's real
     section and its limitation; an eval-all JSON of other graph files is refused."""
     from benchmarks import eval_all
-    from benchmarks.model_card import recorded_real
+    from benchmarks.model_card.cli import recorded_real
     from geonet_infer.errors import GeoNetError
     from geonet_infer.eval import evaluation
 
@@ -696,9 +698,8 @@ def test_real_section_is_rendered_from_the_eval_all_json(card3, tmp_path, kitti_
 def test_real_pose_experiment_judges_only_snippets_not_trained_on(tmp_path):
     """The rule's pose figure averages the snippets with no trained frame (06 from 31, 01 up to 30 trained),
     worked out by hand on two made-up eval-all results; the card renders the rule and the verdict."""
-    from benchmarks.model_card import _experiment_section
-    from benchmarks.real_pose_experiment import held_out
-    from benchmarks.real_pose_experiment import main as experiment_main
+    from experiments.real_pose_experiment import held_out, render
+    from experiments.real_pose_experiment import main as experiment_main
 
     assert held_out("KITTI odometry 06", "000026") and not held_out("KITTI odometry 06", "000027")
     assert held_out("KITTI odometry 01", "000031") and not held_out("KITTI odometry 01", "000030")
@@ -727,10 +728,10 @@ def test_real_pose_experiment_judges_only_snippets_not_trained_on(tmp_path):
     assert e["after"]["fp32"]["pose_ate_held_out"] == pytest.approx(0.03)
     assert e["after"]["fp32"]["pose_ate_all"] == pytest.approx(0.02)
     assert e["verdict"] == {"pose_improves": True, "validation_not_worse": True, "ship": True}
-    md = "\n".join(_experiment_section({"experiment": e}))
+    md = "\n".join(render([e]))
     assert "**Shipping rule.** Written before any candidate was scored" in md and "**shipped**" in md
     unscored = {"rule": e["rule"], "train_frames": e["train_frames"], "round": 2}
-    two = "\n".join(_experiment_section({"experiments": [e, unscored]}))
+    two = "\n".join(render([e, unscored]))
     assert two.count("**Shipping rule.**") == 2 and "### Round 1" in two and "### Round 2" in two
     assert two.endswith("Not scored yet.\n")  # a round whose rule is written, its candidate not yet scored
     # worse validation depth: not shipped, however much the pose improves

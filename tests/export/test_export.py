@@ -27,11 +27,11 @@ from export.verify import compare_graph
 from export.wrappers import GRAPH_NAMES, build_wrapper, io_spec
 from geonet_infer import conventions
 from geonet_infer.core.cascade import InputSpec
-from geonet_infer.core.manifest import MANIFEST_NAME, Manifest, load_manifest, write_manifest
 from geonet_infer.core.predictor import Predictor
 from geonet_infer.engines.onnxruntime import make_session
 from geonet_infer.errors import GeoNetError
 from geonet_infer.io import list_images, read_calib_K, read_image
+from geonet_infer.models.manifest import MANIFEST_NAME, Manifest, load_manifest, write_manifest
 from tests.conftest import KITTI_RAW, REALDATA
 from training.evaluate import onnx_depth_fn
 from training.losses import LossWeights

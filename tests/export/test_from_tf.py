@@ -180,8 +180,8 @@ def converted(tmp_path_factory):
 def _run(model_dir: Path, precision: str, graph: str, feed: dict) -> dict:
     """One graph as the runtime runs it: its session options turn on onnxruntime's exact INT8
     arithmetic on CPUs without VNNI (plain sessions saturate there: geonet_infer/convert/int8_arith.py)."""
-    from geonet_infer.core.manifest import load_manifest
     from geonet_infer.engines import OrtEngine
+    from geonet_infer.models.manifest import load_manifest
 
     return OrtEngine(load_manifest(model_dir).path(graph, precision), threads=None).run(feed)
 
@@ -285,7 +285,7 @@ def test_manifest_records_sources_and_official_conventions(converted):
     the official conventions; the note that the flow net's own depth/pose were not used."""
     import hashlib
 
-    from geonet_infer.core.manifest import load_manifest
+    from geonet_infer.models.manifest import load_manifest
 
     m = load_manifest(converted["dir"])
     assert (m.arch, m.seq_length, m.height, m.width) == ("resnet50", 5, H, W)

@@ -19,12 +19,12 @@ from geonet_infer.convert.int8_arith import (
     dot_exact,
     int8_kernels,
 )
-from geonet_infer.core.manifest import load_manifest
-from geonet_infer.cpu import cpu_info
 from geonet_infer.engines import onnxruntime as ort_engine
+from geonet_infer.engines.cpu import cpu_info
 from geonet_infer.engines.onnxruntime import X64_QUANT_PRECISION, make_session_options
 from geonet_infer.io import list_images, read_image
 from geonet_infer.models import resolve_model
+from geonet_infer.models.manifest import load_manifest
 from geonet_infer.samples import SAMPLE_FRAMES
 
 
@@ -160,7 +160,7 @@ def test_manifest_records_the_kernels_each_int8_graph_is_exact_on(graph):
 
 
 def test_which_engine_is_exact_on_which_cpu():
-    from geonet_infer.int8_safety import int8_unsafe_reason
+    from geonet_infer.core.int8_safety import int8_unsafe_reason
 
     over, within = {"avx2_u8s8": False}, {"avx2_u8s8": True}
     assert "beyond +-64" in int8_unsafe_reason("openvino", over, "avx2")
@@ -175,7 +175,7 @@ def test_auto_skips_an_engine_inexact_on_an_avx2_cpu(monkeypatch, capsys):
     """On a CPU without VNNI (stubbed), auto keeps OpenVINO off the bundled INT8 graphs (their
     weights pass +-64; OpenVINO's INT8 under qemu Haswell: DepthNet correlation 0.70 -> 0.47) and says
     why in summary.json's per-graph record; --backend openvino runs them after one warning line."""
-    from geonet_infer import int8_safety
+    from geonet_infer.core import int8_safety
     from geonet_infer.core.cascade import GraphSet
     from geonet_infer.engines import OpenVinoEngine
 
@@ -201,7 +201,7 @@ SPR = (
 
 
 def test_isa_from_proc_cpuinfo():
-    from geonet_infer.cpu import _from_proc, int8_kernel, isa_line
+    from geonet_infer.engines.cpu import _from_proc, int8_kernel, isa_line
 
     model, isa = _from_proc(ZEN3)
     assert model == "AMD EPYC 7763 64-Core Processor" and int8_kernel(isa) == "avx2"
@@ -215,7 +215,7 @@ def test_isa_from_proc_cpuinfo():
 def test_isa_follows_cpuid_where_proc_cpuinfo_describes_another_cpu():
     """Under QEMU's user-mode emulation of a Haswell, /proc/cpuinfo is the host's (AMX, VNNI) while
     CPUID says AVX2 only: the INT8 kernel is then the saturating one, and the source says why."""
-    from geonet_infer.cpu import _from_proc, int8_kernel, reconcile
+    from geonet_infer.engines.cpu import _from_proc, int8_kernel, reconcile
 
     _, host = _from_proc(SPR)
     haswell = {"avx2": True, "avx512f": False, "avx512_vnni": False, "avx_vnni": None, "amx_int8": None}

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer.core.manifest import file_sha256, load_manifest
 from geonet_infer.io import list_images
 from geonet_infer.models import bundled_models
+from geonet_infer.models.manifest import file_sha256, load_manifest
 from geonet_infer.samples import SAMPLE_FRAMES
 
 WEIGHTS = Path(__file__).resolve().parents[2] / "weights" / "small_synth.pt"

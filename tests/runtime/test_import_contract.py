@@ -19,7 +19,15 @@ import geonet_infer
 ROOT = Path(__file__).resolve().parents[2]
 RUNTIME = ROOT / "geonet_infer"
 FORBIDDEN = ("torch", "training", "export", "benchmarks")
-TOP_LEVEL = {"geonet_infer", "training", "export", "benchmarks", "tests", "scripts"}  # the repository's packages
+TOP_LEVEL = {
+    "geonet_infer",
+    "training",
+    "export",
+    "benchmarks",
+    "experiments",
+    "tests",
+    "scripts",
+}  # the repository's packages
 
 
 def imported_modules(tree: ast.AST) -> list[tuple[int, str]]:
@@ -41,7 +49,7 @@ def test_the_ast_walk_sees_nested_imports():
 
 def test_no_runtime_module_imports_torch_training_or_export():
     files = sorted(RUNTIME.rglob("*.py"))
-    assert RUNTIME / "predictor.py" in files and len(files) > 20
+    assert RUNTIME / "core" / "predictor.py" in files and len(files) > 20
     bad = [
         f"{f.relative_to(ROOT)}:{line} imports {mod}"
         for f in files
@@ -175,7 +183,7 @@ OFF_THE_RUNTIME_PATH = ("geonet_infer.eval", "geonet_infer.bench", "geonet_infer
 def test_import_geonet_infer_loads_no_eval_bench_batch_or_output_module():
     loaded = modules_loaded_by("import geonet_infer")
     assert "geonet_infer.core.predictor" in loaded  # the check can fail: it sees what the import loads
-    off = [m for m in loaded if m.startswith(OFF_THE_RUNTIME_PATH) or m == "geonet_infer.pipeline"]
+    off = [m for m in loaded if m.startswith(OFF_THE_RUNTIME_PATH)]
     assert not off, off
 
 
@@ -201,9 +209,9 @@ def test_no_import_cycle_anywhere_in_the_repository():
     """training, export, benchmarks, scripts and tests too, imports inside functions included (the
     export cycle build <-> from_tf of issue 42 was two imports inside functions)."""
     graph = import_graph(repository_files())
-    assert {"export.build", "export.from_tf", "training.train", "benchmarks.speed_targets"} <= set(graph)
+    assert {"export.build", "export.from_tf", "training.train", "experiments.speed_targets"} <= set(graph)
     assert "export.source" in graph["export.from_tf"]  # the imports inside functions are seen
-    assert "benchmarks.target_limits" in graph["benchmarks.speed_targets"]  # `import target_limits`
+    assert "experiments.target_limits" in graph["experiments.speed_targets"]  # `import target_limits`
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
@@ -228,7 +236,7 @@ def test_the_core_never_imports_output_batch_eval_or_bench():
     graph = runtime_import_graph()
     core = reachable(graph, "geonet_infer")
     assert {"geonet_infer.core.predictor", "geonet_infer.engines", "geonet_infer.io.frames"} <= core
-    bad = sorted(m for m in core if m.startswith((*OFF_THE_RUNTIME_PATH, "geonet_infer.cli", "geonet_infer.pipeline")))
+    bad = sorted(m for m in core if m.startswith((*OFF_THE_RUNTIME_PATH, "geonet_infer.cli")))
     assert not bad, bad
 
 
@@ -236,7 +244,7 @@ def test_no_module_of_core_reaches_output_batch_eval_or_bench():
     """geonet_infer/core/ (what load() runs), each module and all it imports, statically."""
     graph = runtime_import_graph()
     core = [m for m in graph if m.startswith("geonet_infer.core.")]
-    assert {"geonet_infer.core.predictor", "geonet_infer.core.cascade", "geonet_infer.core.manifest"} <= set(core)
+    assert {"geonet_infer.core.predictor", "geonet_infer.core.cascade", "geonet_infer.core.graphs"} <= set(core)
     bad = {
         m: sorted(r for r in reachable(graph, m) if r.startswith((*OFF_THE_RUNTIME_PATH, "geonet_infer.cli")))
         for m in core
@@ -250,3 +258,51 @@ def test_no_two_test_files_share_a_name():
     tests = Path(__file__).resolve().parents[1]
     names = [p.name for p in tests.rglob("test_*.py")]
     assert sorted({n for n in names if names.count(n) > 1}) == []
+
+
+# The floors of the runtime, top first (docs/architecture.md): a module imports only its own floor and the
+# floors above it. The shared modules and the package itself are the top floor; the package's __init__
+# (the API's front door) is the one module that may import from below.
+FLOORS = (
+    ("geonet_infer", "geonet_infer.errors", "geonet_infer.conventions", "geonet_infer.limits"),
+    ("geonet_infer.io",),
+    ("geonet_infer.models", "geonet_infer.samples"),  # model directories (manifest, graph checks, names); data
+    ("geonet_infer.engines",),
+    ("geonet_infer.classical",),
+    ("geonet_infer.core",),
+    ("geonet_infer.output",),
+    ("geonet_infer.batch",),
+    ("geonet_infer.eval",),
+    ("geonet_infer.bench",),
+    ("geonet_infer.convert",),
+    ("geonet_infer.cli",),
+)
+
+
+def floor_of(module: str) -> int:
+    """The floor of ``module``: the floor naming it or the package it is in (the longest match)."""
+    matches = [(len(name), k) for k, names in enumerate(FLOORS) for name in names
+               if module == name or (name != "geonet_infer" and module.startswith(name + "."))]  # fmt: skip
+    if not matches:
+        raise AssertionError(f"{module} is in no floor: add it to FLOORS (or move it into one)")
+    return max(matches)[1]
+
+
+def test_the_package_top_holds_only_the_shared_modules_and_the_floors():
+    top = sorted(p.name for p in RUNTIME.glob("*.py"))
+    assert top == ["__init__.py", "conventions.py", "errors.py", "limits.py"]
+    assert floor_of("geonet_infer.core.check") == 5 and floor_of("geonet_infer.conventions") == 0
+
+
+def test_no_import_runs_back_up_a_floor():
+    """Issue 56: each module imports only modules of its own floor or the floors above it (every import
+    counts, also inside functions), so a floor can be read without the floors below it."""
+    graph = runtime_import_graph()
+    up = {
+        f"{module} -> {imported}"
+        for module, imports in graph.items()
+        if module != "geonet_infer"
+        for imported in imports
+        if floor_of(imported) > floor_of(module)
+    }
+    assert not up, sorted(up)

@@ -503,7 +503,7 @@ def test_engine_is_the_deprecated_name_of_runner(tmp_path, capfd):
 
 
 def test_run_batch_runs_flow_for_an_input_without_intrinsics_with_the_assumed_ones(tmp_path):
-    """The needs-K rule (geonet_infer.tasks) is applied once, by run_batch: one note names the inputs
+    """The needs-K rule (geonet_infer.core.tasks) is applied once, by run_batch: one note names the inputs
     without a calibration, and each sequence's summary records the assumed intrinsics."""
     from geonet_infer.batch import run_batch
     from geonet_infer.io.camera import ASSUMED_FOCAL_PER_WIDTH

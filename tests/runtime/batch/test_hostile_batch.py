@@ -22,7 +22,7 @@ from geonet_infer import batch as batch_mod
 from geonet_infer.batch import MARKER_NAME
 from geonet_infer.batch import local as batch_local
 from geonet_infer.batch import run as batch_run
-from geonet_infer.core.manifest import load_manifest
+from geonet_infer.models.manifest import load_manifest
 from tests.runtime.batch.test_batch import CLI, FRAMES, SAMPLE_CALIB, _wait_for, cli, make_sequences, require_ray
 
 DEPTH = ["--tasks", "depth", "--no-progress", "--no-vis"]

@@ -1,4 +1,4 @@
-"""`geonet-infer bench` and geonet_infer.timing: JSON schema, every task, statistics, bad input.
+"""`geonet-infer bench` and geonet_infer.engines.timing: JSON schema, every task, statistics, bad input.
 
 Runs the bundled model with 2 timed calls per case, so it checks wiring, never speed: no
 wall-clock threshold is asserted anywhere. int8 plumbing uses a model directory in tmp_path
@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer import timing
 from geonet_infer.bench.cases import BENCH_TASKS, MODES
 from geonet_infer.cli import main
+from geonet_infer.engines import timing
 
 PKG = Path(geonet_infer.__file__).resolve().parent
 MODEL_DIR = PKG / "models" / "small_synth"
@@ -261,7 +261,7 @@ def test_int8_on_a_model_without_int8_exits_2(capsys, tmp_path):
     assert rc == 2 and "int8" in err and "manifest.json" in err and len(err.strip().splitlines()) == 1
 
 
-# ----------------------------------------------------------------------------- geonet_infer.timing
+# ----------------------------------------------------------------------------- geonet_infer.engines.timing
 def test_summarize_matches_numpy():
     rng = np.random.default_rng(0)
     ns = rng.integers(1_000_000, 50_000_000, size=101)

@@ -21,7 +21,7 @@ import pytest
 import geonet_infer
 from geonet_infer.cli import demo as demo_cli
 from geonet_infer.cli import main
-from geonet_infer.core.manifest import MANIFEST_NAME, file_sha256
+from geonet_infer.models.manifest import MANIFEST_NAME, file_sha256
 from tests.runtime.cli.test_cli import sample_folder
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -137,7 +137,7 @@ def test_card_from_json_writes_the_manifest_scores_and_renders_the_same_card(
     tmp_path, capsys, monkeypatch, card, unscored
 ):
     pytest.importorskip("benchmarks.model_card")
-    from benchmarks.model_card import main as card_main
+    from benchmarks.model_card.cli import main as card_main
 
     model = tmp_path / "small_synth"
     shutil.copytree(unscored, model)
@@ -159,7 +159,7 @@ def test_card_from_json_writes_the_manifest_scores_and_renders_the_same_card(
 
 def test_card_from_json_refuses_numbers_of_other_graphs(tmp_path, capsys, card, unscored):
     pytest.importorskip("benchmarks.model_card")
-    from benchmarks.model_card import main as card_main
+    from benchmarks.model_card.cli import main as card_main
 
     other = dict(card, model=dict(card["model"], files=[dict(f, sha256="0" * 64) for f in card["model"]["files"]]))
     (tmp_path / "other.json").write_text(json.dumps(other))
@@ -205,7 +205,7 @@ def test_a_malformed_model_card_is_one_line_exit_2(tmp_path, capsys, unscored):
 
 
 def test_the_notice_is_for_synthetic_only_models_and_models_no_better_than_their_real_baseline():
-    from geonet_infer.core.manifest import ModelCard
+    from geonet_infer.models.manifest import ModelCard
 
     def card(synthetic_only: bool, value: float) -> ModelCard:
         real = {"task": "depth", "metric": "AbsRel", "data": "KITTI", "value": value, "baseline": "constant depth",

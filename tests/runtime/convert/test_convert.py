@@ -149,7 +149,7 @@ def test_int8_conversion_follows_the_fp32_reference(converted):
     corr = float(np.corrcoef(ref, got)[0, 1])
     err = float(np.abs(ref - got).mean() / (ref.max() - ref.min()))
     assert corr > INT8_MIN_CORRELATION and err < INT8_MAX_ERROR, (corr, err)
-    from geonet_infer.core.manifest import load_manifest
+    from geonet_infer.models.manifest import load_manifest
 
     quant = load_manifest(converted["home"] / "models" / "depth_int8").quantization
     assert quant.calibration_intrinsics.endswith("sequences/00/calib.txt (KITTI, P0)"), quant.calibration_intrinsics
@@ -245,7 +245,7 @@ def test_two_conversions_to_one_name_at_once_leave_one_whole_model(tmp_path):
     stays, and the model's files match its manifest's hashes. With --force over an existing model, three at
     once, twice: all succeed (each moves the model aside and retries its rename; a race the one-process run
     of the suite caught: the second to move it aside found it gone), the last one's model stands whole."""
-    from geonet_infer.core.manifest import load_manifest
+    from geonet_infer.models.manifest import load_manifest
 
     home = tmp_path / "home"
     env = {**os.environ, "GEONET_INFER_HOME": str(home)}

@@ -1,4 +1,4 @@
-"""The output check (geonet_infer.check): flows known right pass, flows known wrong are flagged.
+"""The output check (geonet_infer.core.check): flows known right pass, flows known wrong are flagged.
 
 Golden values are independent of the code under test: pairs made with numpy (a grey-level ramp
 shifted by whole pixels, whose errors are closed-form) or with ``cv2.warpAffine`` (a known affine
@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer.check import AGREE_PX, FrameCheck, SequenceCheck, check_pair
 from geonet_infer.cli import main
+from geonet_infer.core.check import AGREE_PX, FrameCheck, SequenceCheck, check_pair
 from geonet_infer.eval.baselines import dis_flow
 from geonet_infer.io import read_camera
 

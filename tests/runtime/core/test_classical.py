@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import geonet_infer
-from geonet_infer.classical import _euler_xyz, step_length
+from geonet_infer.classical import euler_xyz, step_length
 from geonet_infer.cli import main
 from geonet_infer.eval import baselines, evaluation, metrics
 from geonet_infer.eval.datasets import load_dataset
@@ -90,7 +90,7 @@ def test_euler_angles_are_the_pose_vectors_convention():
     frames = list_images(SAMPLE_FRAMES)[: predictor.seq_length]
     pose = predictor.pose(frames)
     for matrix, vector in zip(pose.matrices, pose.vectors):
-        np.testing.assert_allclose(_euler_xyz(matrix[:3, :3]), vector[3:], atol=1e-5)
+        np.testing.assert_allclose(euler_xyz(matrix[:3, :3]), vector[3:], atol=1e-5)
 
 
 def test_api_methods_replace_flow_and_poses_with_the_evals_code():

@@ -20,7 +20,7 @@ import pytest
 import geonet_infer
 from geonet_infer import GeoNetError
 from geonet_infer.cli import main as cli_main
-from geonet_infer.core.manifest import load_manifest
+from geonet_infer.models.manifest import load_manifest
 
 MODEL_DIR = Path(geonet_infer.__file__).resolve().parent / "models" / "small_synth"
 SAMPLE = MODEL_DIR.parents[1] / "samples" / "synth_seq"

@@ -1,6 +1,6 @@
 """`--precision auto` (issue 45): per graph, the fastest of the model's precisions that is exact on
 this CPU, timed at load. The timings are replaced by fixed numbers here (speed is measured in
-`benchmarks/precision_auto.py`, never asserted), so the choice itself is what is tested."""
+`experiments/precision_auto.py`, never asserted), so the choice itself is what is tested."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 
 import geonet_infer
 import geonet_infer.engines as engines
-from geonet_infer import GeoNetError, int8_safety
+from geonet_infer import GeoNetError
+from geonet_infer.core import int8_safety
 from geonet_infer.engines import OpenVinoEngine
 from geonet_infer.io import read_camera
 from geonet_infer.io.images import list_images

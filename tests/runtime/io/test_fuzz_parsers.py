@@ -22,13 +22,13 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from geonet_infer.convert.tf_checkpoint import BundleReader, write_checkpoint  # noqa: E402
-from geonet_infer.core.manifest import load_manifest  # noqa: E402
 from geonet_infer.errors import GeoNetError  # noqa: E402
 from geonet_infer.io.calib import read_calib_file, read_camera  # noqa: E402
 from geonet_infer.io.depth import read_depth_kitti, write_depth_kitti  # noqa: E402
 from geonet_infer.io.flow import read_flow_kitti, write_flow_kitti  # noqa: E402
 from geonet_infer.io.poses import read_kitti_poses, read_tum_poses  # noqa: E402
 from geonet_infer.models import bundled_models  # noqa: E402
+from geonet_infer.models.manifest import load_manifest  # noqa: E402
 
 EXAMPLES = 300
 MEMORY_BOUND = 256 * 2**20

@@ -21,7 +21,7 @@ import geonet_infer
 from geonet_infer.cli import main
 from geonet_infer.core.points import backproject, write_ply
 from geonet_infer.io import read_camera
-from geonet_infer.viz import SteadyScale, depth_to_color
+from geonet_infer.output.viz import SteadyScale, depth_to_color
 from tests.conftest import GEONET_CLI
 
 DASHCAM_VIDEO = "test_video.mp4"

@@ -1,4 +1,4 @@
-"""geonet_infer.viz: Middlebury flow colours, depth colour maps, side-by-side panels."""
+"""geonet_infer.output.viz: Middlebury flow colours, depth colour maps, side-by-side panels."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from geonet_infer import viz
+from geonet_infer.output import viz
 
 
 # ---------------------------------------------------------------------------- visualisation
