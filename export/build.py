@@ -29,10 +29,10 @@ from geonet_infer.convert import manifest as cmf
 from geonet_infer.convert import quantize as qz
 from geonet_infer.convert.build import make_tmp_dir, publish
 from geonet_infer.convert.int8 import quantize_directory
-from geonet_infer.core.manifest import PRECISIONS, load_manifest, write_manifest
 from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io import IMAGE_SUFFIXES, list_images
 from geonet_infer.io.atomic import json_safe
+from geonet_infer.models.manifest import PRECISIONS, load_manifest, write_manifest
 from training.checkpoint import load_weights, model_from_checkpoint, trained_by
 from training.config import ARCHS
 

@@ -10,7 +10,7 @@ from pathlib import Path
 from export.wrappers import io_spec
 from geonet_infer.bench.environment import git_commit
 from geonet_infer.convert import manifest as cmf
-from geonet_infer.core.manifest import GraphEntry, Provenance, file_sha256
+from geonet_infer.models.manifest import GraphEntry, Provenance, file_sha256
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from geonet_infer.core.manifest import SIZE_MULTIPLE
 from geonet_infer.errors import InputError
+from geonet_infer.models.manifest import SIZE_MULTIPLE
 
 
 @dataclass

@@ -41,8 +41,8 @@ import onnx
 import torch
 
 from export.wrappers import IOSpec
-from geonet_infer.core.manifest import BATCH_AXIS
 from geonet_infer.io.protobuf import encode_varint
+from geonet_infer.models.manifest import BATCH_AXIS
 
 OPSET = 18
 TRACE_BATCH = 2
