@@ -30,7 +30,10 @@ protocols, and print a table in the paper's column order (JSON with every item v
          vectors scaled).
   pose   ATE on 5-frame snippets with the paper's alignment (first positions matched, one
          least-squares scale): the paper's value divides by N, not √N (a quirk kept for
-         comparability: it is NOT an RMSE), so the true RMSE is printed beside it.
+         comparability: it is NOT an RMSE), so the true RMSE is printed beside it. Where the
+         snippets follow each other frame by frame, also the whole trajectory as evo scores it:
+         each snippet's first step chained, then APE RMSE after a Sim(3) (Umeyama) alignment
+         and RPE per frame (evo_ape / evo_rpe -as); --trajectories DIR writes the files.
 
 --method: model (the ONNX model, --model/--precision) or a baseline that needs no model:
   depth: constant            flow: dis (DIS medium + ultrafast), dis-medium, dis-ultrafast, zero
@@ -165,6 +168,14 @@ def add_parser(sub) -> None:
     )
     parser.add_argument("--json", type=Path, default=None, help="also write every result and item here")
     parser.add_argument("--markdown", type=Path, default=None, help="also write the printed tables here")
+    parser.add_argument(
+        "--trajectories",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="pose: write the true and each method's chained trajectory here (gt_kitti.txt, <method>_kitti.txt "
+        "and _tum.txt), for evo: evo_ape kitti DIR/gt_kitti.txt DIR/model_kitti.txt -as",
+    )
     parser.set_defaults(run=run)
 
 
@@ -221,11 +232,22 @@ def run(args: argparse.Namespace) -> int:
         elif args.task == "flow":
             result = evaluation.evaluate_flow(fn, dataset, method=label, intrinsics=K)
         else:
-            result = evaluation.evaluate_pose(fn, dataset, method=label)
+            result = evaluation.evaluate_pose(fn, dataset, method=label, trajectories=args.trajectories)
         results.append((label, result))
     print(evaluation.format_table(results))
     if args.task == "depth":  # the same mask for every method: print it once
         print(evaluation.ground_truth_line(results[0][1]["ground_truth"]))
+    for label, result in results:
+        whole = result.get("trajectory")
+        if whole and "not_scored" in whole:
+            print(f"{label}: whole trajectory ({whole['frames']} frames): not scored: {whole['not_scored']}")
+        elif whole:
+            print(
+                f"{label}: whole trajectory ({whole['frames']} frames, chained): APE {whole['ape_rmse']:.4f} "
+                f"RMSE after Sim(3) alignment, RPE {whole['rpe_rmse']:.4f} per frame (as evo -as)"
+            )
+            if "files" in whole:
+                print(f"  evo_ape kitti {whole['files']['gt_kitti']} {whole['files']['kitti']} -as")
     for note in dataset.notes:
         print(f"note: {note}")
     for label, result in results:

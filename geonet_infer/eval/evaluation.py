@@ -45,7 +45,7 @@ from geonet_infer.eval.adapters import (  # noqa: F401  (re-exported: this modul
     snippet_from_pose_calls,
 )
 from geonet_infer.eval.datasets import SNIPPET, Dataset, layout_class
-from geonet_infer.io import read_image
+from geonet_infer.io import read_image, write_kitti_poses, write_tum_poses
 from geonet_infer.io.atomic import atomic_write, json_safe
 
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0
@@ -345,13 +345,25 @@ def ate_rows(gt_xyz: np.ndarray, pred_xyz: np.ndarray) -> dict:
     }
 
 
-def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", observe: Callable | None = None) -> dict:
-    """Snippet ATE (paper's alignment and ÷N) and true RMSE, mean and std over snippets.
+def evaluate_pose(
+    fn: Callable,
+    dataset: Dataset,
+    *,
+    method: str = "model",
+    observe: Callable | None = None,
+    trajectories: Path | None = None,
+) -> dict:
+    """Snippet ATE (paper's alignment and ÷N) and true RMSE, mean and std over snippets; and, where the
+    snippets follow each other frame by frame, the whole trajectory (:func:`whole_trajectory`) scored as
+    evo scores it: APE RMSE after a Sim(3) alignment and RPE per frame (``result["trajectory"]``).
 
     ``observe(item, gt_poses, pred_poses, row)`` sees each snippet (both in first-frame coordinates).
+    ``trajectories``: a folder to write the true and the chained trajectory into, KITTI and TUM files
+    (``gt_kitti.txt``, ``<method>_kitti.txt``, ``gt_tum.txt``, ``<method>_tum.txt``; time = frame index),
+    the files ``evo_ape kitti gt_kitti.txt model_kitti.txt -as`` reads.
     """
     keys = [k for _, k, _ in COLUMNS["pose"]]
-    rows, errors = [], []
+    rows, errors, preds = [], [], []
     for item in dataset.items:
         frames = _read_frames(item.frames)
         K = item.intrinsics() if getattr(fn, "needs_intrinsics", False) else None
@@ -369,6 +381,7 @@ def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", obse
             rows.append(row | _nan_row(keys) | info)
             continue
         gt = gt_snippet(item.gt_c2w)
+        preds.append(pred)
         rows.append(row | ate_rows(gt[:, :3, 3], pred[:, :3, 3]) | info)
         if observe is not None:
             observe(item, gt, pred, rows[-1])
@@ -378,7 +391,60 @@ def evaluate_pose(fn: Callable, dataset: Dataset, *, method: str = "model", obse
         "ate_snippet": "sqrt(Σ|e|²)/N: the paper's value (divides by N, not sqrt(N): NOT an RMSE)",
         "ate_rmse_true": "sqrt(Σ|e|²/N) after the same alignment",
     }
-    return _result("pose", method, dataset, settings, rows, errors, std=True)
+    result = _result("pose", method, dataset, settings, rows, errors, std=True)
+    whole = whole_trajectory(dataset.items, preds) if not errors else None
+    if whole is not None:
+        gt_c2w, est_c2w, names = whole
+        try:
+            _, scale = metrics.align_sim3(gt_c2w, est_c2w)
+        except InputError as err:  # a path standing still (identity poses) has no Sim(3) to fit
+            result["trajectory"] = {"frames": len(names), "not_scored": err.problem}
+            return result
+        result["trajectory"] = {
+            "frames": len(names),
+            "ape_rmse": metrics.ape_rmse(gt_c2w, est_c2w),
+            "rpe_rmse": metrics.rpe_translation_rmse(gt_c2w, est_c2w),
+            "sim3_scale": scale,
+            "chaining": "each snippet's first step (frame 1 in frame 0's coordinates), the last snippet's whole",
+            "alignment": "Sim(3), Umeyama over every position (evo -as); errors of the translation part",
+        }
+        if trajectories is not None:
+            result["trajectory"]["files"] = write_trajectories(Path(trajectories), method, gt_c2w, est_c2w)
+    return result
+
+
+def whole_trajectory(items: list, preds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, list[str]] | None:
+    """The snippets' frames as one trajectory: (true camera-to-world (N, 4, 4), the predicted one chained
+    from each snippet's first step and the last snippet's poses, frame names); None unless every snippet
+    starts one frame after the one before (``--stride 1`` over one run of frames)."""
+    if not items or len(items) != len(preds):
+        return None
+    for a, b in zip(items, items[1:]):
+        if a.frames[1] != b.frames[0]:
+            return None
+    est = [np.eye(4)]
+    for pred in preds[:-1]:
+        est.append(est[-1] @ pred[1])
+    start = est[-1]
+    est += [start @ p for p in preds[-1][1:]]
+    gt = [item.gt_c2w[0] for item in items] + list(items[-1].gt_c2w[1:])
+    names = [Path(item.frames[0]).stem for item in items] + [Path(f).stem for f in items[-1].frames[1:]]
+    return np.array(gt, np.float64), np.array(est, np.float64), names
+
+
+def write_trajectories(folder: Path, method: str, gt_c2w: np.ndarray, est_c2w: np.ndarray) -> dict[str, str]:
+    """The true and the predicted trajectory as KITTI and TUM pose files (time = frame index); returns
+    {"gt_kitti": path, "kitti": path, "gt_tum": ..., "tum": ...}."""
+    folder.mkdir(parents=True, exist_ok=True)
+    times = np.arange(len(gt_c2w), dtype=np.float64)
+    stem = "".join(c if c.isalnum() or c in "-." else "_" for c in method)
+    files = {}
+    for key, name, poses in (("gt_", "gt", gt_c2w), ("", stem, est_c2w)):
+        files[f"{key}kitti"] = str(folder / f"{name}_kitti.txt")
+        files[f"{key}tum"] = str(folder / f"{name}_tum.txt")
+        write_kitti_poses(files[f"{key}kitti"], poses)
+        write_tum_poses(files[f"{key}tum"], times, poses)
+    return files
 
 
 EVALUATORS = {"depth": evaluate_depth, "flow": evaluate_flow, "pose": evaluate_pose}

@@ -293,6 +293,57 @@ def ate_rmse_true(gt_xyz, pred_xyz):
     return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
 
 
+def umeyama_sim3(src_xyz, dst_xyz):
+    """Scale s, rotation R and translation t with dst ≈ s R src + t, least squares (Umeyama, PAMI 1991;
+    the alignment of evo's ``-as``).
+
+    src_xyz, dst_xyz: (N, 3) matched positions, N >= 3 and not all on one point.
+    Returns (s, R (3, 3), t (3,)).
+    """
+    src, dst = np.asarray(src_xyz, np.float64), np.asarray(dst_xyz, np.float64)
+    mu_src, mu_dst = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - mu_src, dst - mu_dst
+    var_src = np.mean(np.sum(a**2, axis=1))
+    if len(src) < 3 or var_src <= 0:
+        raise InputError(None, f"cannot align {len(src)} positions that do not spread", "score a longer trajectory")
+    U, D, Vt = np.linalg.svd(b.T @ a / len(src))
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1  # a reflection is not a rotation
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / var_src)
+    return s, R, mu_dst - s * R @ mu_src
+
+
+def align_sim3(gt_c2w, est_c2w):
+    """``est_c2w`` (N, 4, 4) camera-to-world moved onto ``gt_c2w`` by the Sim(3) that best maps its
+    positions onto the true ones (:func:`umeyama_sim3`): positions s R p + t, rotations R R_i.
+    Returns (aligned (N, 4, 4), s)."""
+    s, R, t = umeyama_sim3(est_c2w[:, :3, 3], gt_c2w[:, :3, 3])
+    aligned = np.array(est_c2w, np.float64, copy=True)
+    aligned[:, :3, :3] = R @ aligned[:, :3, :3]
+    aligned[:, :3, 3] = (s * (R @ aligned[:, :3, 3].T)).T + t
+    return aligned, s
+
+
+def ape_rmse(gt_c2w, est_c2w) -> float:
+    """Absolute position error of a whole trajectory after a Sim(3) alignment (evo's ``evo_ape ... -as``,
+    translation part): sqrt(mean_i ||p_i - p_gt_i||^2), in the ground truth's units."""
+    aligned, _ = align_sim3(gt_c2w, est_c2w)
+    return float(np.sqrt(np.mean(np.sum((aligned[:, :3, 3] - gt_c2w[:, :3, 3]) ** 2, axis=1))))
+
+
+def rpe_translation_rmse(gt_c2w, est_c2w) -> float:
+    """Relative pose error per frame after the same Sim(3) alignment (evo's ``evo_rpe ... -as``, delta 1
+    frame, translation part): the RMSE over consecutive pairs of the translation of
+    inv(inv(G_i) G_i+1) inv(E_i) E_i+1."""
+    aligned, _ = align_sim3(gt_c2w, est_c2w)
+    gt_steps = rigid_inverse(gt_c2w[:-1]) @ gt_c2w[1:]
+    est_steps = rigid_inverse(aligned[:-1]) @ aligned[1:]
+    errors = rigid_inverse(gt_steps) @ est_steps
+    return float(np.sqrt(np.mean(np.sum(errors[:, :3, 3] ** 2, axis=1))))
+
+
 def snippet_poses_to_global(T_tgt_to_src, target_index=None):
     """Poses of every snippet frame in the FIRST frame's coordinates (official dump_pose_seq_TUM).
 

@@ -68,6 +68,29 @@ class SequenceLayout:
         return None
 
 
+    def frame_times(self, names: list[str]) -> np.ndarray | None:
+        """The recording times in seconds of the frames named ``names`` (file stems), from the dataset's own
+        table (KITTI odometry ``times.txt`` by frame number, EuRoC ``data.csv`` in ns, TUM ``rgb.txt``),
+        so that a TUM pose file lines up with the dataset's ground truth; None where a frame is not in
+        the table or the layout has none."""
+        if self.times is None:
+            return None
+        try:
+            lines = self.times.read_text(encoding="utf-8", errors="replace").splitlines()
+            rows = [line.replace(",", " ").split() for line in lines if line.strip() and not line.startswith("#")]
+            if self.kind == "kitti_odometry":
+                table = {f"{k:06d}": float(row[0]) for k, row in enumerate(rows)}
+            elif self.kind == "euroc":
+                table = {Path(row[1]).stem: int(row[0]) / 1e9 for row in rows if len(row) >= 2}
+            else:  # tum_rgbd: "time rgb/<name>.png"
+                table = {Path(row[1]).stem: float(row[0]) for row in rows if len(row) >= 2}
+        except (OSError, ValueError, IndexError):
+            return None  # a damaged table: frame indices as times, as for a folder of frames
+        if not all(name in table for name in names):
+            return None
+        return np.array([table[name] for name in names], np.float64)
+
+
 def find_up(folder: Path, names: tuple[str, ...], levels: int = 2) -> Path | None:
     """The first of ``folder`` and its ``levels`` parents that holds every file in ``names``.
 

@@ -208,6 +208,7 @@ def _predict(
     totals: dict[str, float] = defaultdict(float)
     sizes: dict[str, int] = defaultdict(int)  # bytes written per layout pattern
     poses: list[np.ndarray] = []
+    pose_names: list[str] = []
     done = 0
     scales: dict[str, list] = {"frames": [], "raw": [], "smoothed": []}
     checks: list[tuple[str, FrameCheck]] = []
@@ -246,6 +247,7 @@ def _predict(
             with timed(totals, "world_cloud"):
                 world.add(result, *written.points)
         poses.append(result.camera_to_world)
+        pose_names.append(result.name)
         if result.metric_scale is not None:
             scales["frames"].append(result.name)
             scales["raw"].append(result.metric_scale_raw)
@@ -338,8 +340,10 @@ def _predict(
         reason = f"{source.location}: truncated: {truncated}"
         frames.failures += [{"frame": name, "reason": reason} for name in getattr(source, "missing", ())]
     if "pose" in tasks and "poses" in outputs and poses:
-        fps = getattr(source, "fps", None)
-        stamps = np.arange(len(poses)) / fps if fps else np.arange(len(poses), dtype=np.float64)
+        fps, layout = getattr(source, "fps", None), getattr(source, "layout", None)
+        stamps = None if layout is None else layout.frame_times(pose_names)  # the dataset's own times
+        if stamps is None:
+            stamps = np.arange(len(poses)) / fps if fps else np.arange(len(poses), dtype=np.float64)
         write_kitti_poses(out_dir / POSE_FILES[0], np.stack(poses))
         write_tum_poses(out_dir / POSE_FILES[1], stamps, np.stack(poses))
     totals["finish"] += (time.perf_counter() - finish) * 1e3

@@ -92,6 +92,38 @@ def test_tum_rgbd_takes_the_tables_camera_by_its_name(tmp_path):
     assert open_frames(unnamed / "rgb").kind == "tum_rgbd" and open_frames(unnamed).own_camera() is None
 
 
+def test_each_layout_gives_its_frames_recording_times(tmp_path, require_real):
+    """Issue 59: predict's poses_tum.txt carries the dataset's own times, so that evo associates it with
+    the dataset's ground truth. Golden: the times written into the tables here, and EuRoC's file names
+    (nanoseconds)."""
+    seq = _odometry(tmp_path / "odom", colour=4, grey=0)
+    layout = find_layout(seq)
+    np.testing.assert_allclose(layout.frame_times(["000001", "000003"]), [0.1, 0.3])
+    assert layout.frame_times(["000009"]) is None  # not in times.txt: the caller falls back to indices
+    tum = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    files = _frames(tum / "rgb", 2)
+    (tum / "rgb.txt").write_text(
+        "# timestamp filename\n" + "".join(f"1305031102.{i}75 rgb/{f.name}\n" for i, f in enumerate(files))
+    )
+    np.testing.assert_allclose(find_layout(tum).frame_times([f.stem for f in files]), [1305031102.075, 1305031102.175])
+    euroc = require_real("euroc_v1_01_micro")
+    names = sorted(p.stem for p in (euroc / "mav0" / "cam0" / "data").glob("*.png"))
+    np.testing.assert_array_equal(find_layout(euroc).frame_times(names), [int(n) / 1e9 for n in names])
+    (seq / "times.txt").write_text("not a time\n")
+    assert find_layout(seq).frame_times(["000000"]) is None
+
+
+def test_predict_writes_euroc_times_into_poses_tum(require_real, tmp_path):
+    euroc = require_real("euroc_v1_01_micro")
+    out = tmp_path / "out"
+    from geonet_infer.output.predict import predict_to_dir
+
+    predict_to_dir(geonet_infer.load(), open_frames(euroc), out, tasks=("pose",), max_frames=4, progress=False)
+    times = np.loadtxt(out / "poses_tum.txt")[:, 0]
+    names = sorted(p.stem for p in (euroc / "mav0" / "cam0" / "data").glob("*.png"))[:4]
+    np.testing.assert_allclose(times, [int(n) / 1e9 for n in names], rtol=0, atol=1e-6)
+
+
 def test_a_plain_folder_has_no_layout(tmp_path):
     _frames(tmp_path / "frames", 2, ".jpg")
     assert find_layout(tmp_path / "frames") is None and open_frames(tmp_path / "frames").own_camera() is None
