@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install --quiet --upgrade pip >/dev/null
-.venv/bin/python -m pip install --quiet -e '.[train,dev,ray,openvino,tf]'
+.venv/bin/python -m pip install --quiet -e '.[train,dev,ray,openvino,tf,viz]'
 # Lint and format first: cheap, and a failure names the file and line.
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .

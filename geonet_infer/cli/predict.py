@@ -187,6 +187,15 @@ def add_parser(sub) -> None:
         "at the input's frame rate, and read back to count its frames; an existing FILE is replaced only "
         "when an earlier run into the same --out wrote it",
     )
+    extra.add_argument(
+        "--rerun",
+        type=Path,
+        default=None,
+        metavar="FILE.rrd",
+        help="also write a rerun recording (frame, depth, flow, the camera and its path, a point cloud, the "
+        "output check's errors, and a layout), to open with `rerun FILE.rrd`; needs the [viz] extra "
+        "(pip install 'geonet-infer[viz]'). An existing FILE outside --out is refused",
+    )
     parser.add_argument(
         "--no-check",
         action="store_true",
@@ -204,6 +213,10 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.rerun is not None:  # before anything is loaded: one line naming the extra
+        from geonet_infer.output.rerun_recording import require_rerun
+
+        require_rerun()
     tasks, outputs = tasks_and_outputs(args)
     check_batch_size(args.batch_size, "--batch-size")
     if args.scale_smoothing is not None and args.camera_height is None:
@@ -222,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
         world_points=args.world_points,
         colour_scale=args.colour_scale,
         video_out=args.video_out,
+        rerun=args.rerun,
         video_fps=args.fps,
     )
     camera = camera_from_args(args, source, lambda msg: print(f"geonet-infer predict: note: {msg}", file=sys.stderr))

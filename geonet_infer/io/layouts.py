@@ -67,7 +67,6 @@ class SequenceLayout:
             return Camera(K, coeffs, TUM_SIZE, source, "calibration file").validate()
         return None
 
-
     def frame_times(self, names: list[str]) -> np.ndarray | None:
         """The recording times in seconds of the frames named ``names`` (file stems), from the dataset's own
         table (KITTI odometry ``times.txt`` by frame number, EuRoC ``data.csv`` in ns, TUM ``rgb.txt``),

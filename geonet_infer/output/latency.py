@@ -25,6 +25,7 @@ SEQUENTIAL = (
     "colour_scale",  # the pictures' steady colour scale, from the first frames (--colour-scale)
     "write_wait",  # blocked on the writer threads (their queue is full)
     "video",  # encoding the --video-out frames
+    "rerun",  # logging the --rerun recording
     "world_cloud",  # placing the points of --point-cloud world and writing points_world.ply
     "finish",  # camera.txt and the pose files
 )

@@ -28,6 +28,7 @@ class OutputOptions:
         colour_scale: "first:N", "running" or "frame" (:class:`geonet_infer.output.viz.SteadyScale`).
         video_out: a side-by-side video (frame | depth | flow) written here (.mp4, .avi).
         video_fps: its frame rate; None = the input's (10 for frame folders).
+        rerun: a rerun recording (.rrd) of the run written here (:mod:`geonet_infer.output.rerun_recording`).
     """
 
     point_cloud: str | None = None
@@ -37,6 +38,7 @@ class OutputOptions:
     colour_scale: str = DEFAULT_COLOUR_SCALE
     video_out: Path | None = None
     video_fps: float | None = None
+    rerun: Path | None = None
 
     def __post_init__(self):
         if self.point_cloud not in (None, *POINT_CLOUDS):

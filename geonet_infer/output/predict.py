@@ -65,6 +65,7 @@ from geonet_infer.output.layout import (
     written_summary,
 )
 from geonet_infer.output.options import OutputOptions
+from geonet_infer.output.rerun_recording import RerunRecording, check_rerun_path, require_rerun
 from geonet_infer.output.video import FOLDER_FPS, VideoOut
 from geonet_infer.output.viz import SteadyScale
 from geonet_infer.output.writer import FrameWriter, Written
@@ -145,6 +146,9 @@ def predict_to_dir(
         raise InputError(
             source.path, "a world point cloud needs poses", "keep pose in --tasks, or use --point-cloud camera"
         )
+    if options.rerun is not None:
+        require_rerun()
+        check_rerun_path(Path(options.rerun), out_dir)
     video = None if options.video_out is None else Path(options.video_out)
     video_in_out = video is not None and ownership.inside(video, out_dir)  # symlinks resolved
     if video is not None and not exclusive and video.exists():
@@ -163,6 +167,8 @@ def predict_to_dir(
     files = run_files(tasks, options.point_cloud, camera is not None, chosen) | set(extra_outputs)
     if video is not None and video_in_out:
         files.add(os.path.relpath(ownership.real(video), ownership.real(out_dir)))
+    if options.rerun is not None and ownership.inside(Path(options.rerun), out_dir):
+        files.add(os.path.relpath(ownership.real(Path(options.rerun)), ownership.real(out_dir)))
     files |= set().union(*(frame_files(name, tasks, chosen, options.point_cloud) for name in names))
     inputs = tuple(getattr(source, "files", None) or ([Path(source.path)] if source.kind == "video" else []))
     outside = video if video is not None and not video_in_out else None
@@ -220,7 +226,7 @@ def _predict(
 
     bar = tqdm(total=len(source) or None, unit="frame", desc=source.name, disable=not progress, leave=False)
     keep = None
-    if options.point_cloud or options.video_out is not None:  # the pictures are needed after prediction
+    if options.point_cloud or options.video_out is not None or options.rerun is not None:  # frames kept
         keep = functools.partial(as_predicted, camera)
     one_size = bool({"pose", "flow"} & set(tasks))  # depth alone needs no snippets: photos of any size
     frames = GoodFrames(source, bar, check_camera, max_frames, keep, one_size)
@@ -233,6 +239,7 @@ def _predict(
     video = None
     if options.video_out is not None:
         video = VideoOut(Path(options.video_out), options.video_fps or getattr(source, "fps", None) or FOLDER_FPS)
+    recording = None if options.rerun is None else RerunRecording(Path(options.rerun))
 
     def record(result: FrameResult, rgb: np.ndarray | None, written: Written) -> None:
         nonlocal done
@@ -243,6 +250,9 @@ def _predict(
         if video is not None and rgb is not None:
             with timed(totals, "video"):
                 video.write(rgb, written.pictures)
+        if recording is not None:
+            with timed(totals, "rerun"):
+                recording.frame(result, rgb)
         if world is not None and rgb is not None and written.points is not None:
             with timed(totals, "world_cloud"):
                 world.add(result, *written.points)
@@ -326,6 +336,9 @@ def _predict(
         if video is not None:
             with timed(totals, "video"):
                 video.close(keep=done > 0 and sys.exc_info()[0] is None)
+        if recording is not None:
+            with timed(totals, "rerun"):
+                recording.close(keep=done > 0 and sys.exc_info()[0] is None)
     if owned is not None and video is not None and video.frames:
         owned.video_written(video.path)
     if world is not None:
@@ -377,6 +390,9 @@ def _predict(
             "units": "metres" if camera_height is not None else "relative scale",
         },
         "video": None if video is None else {"path": str(options.video_out), "frames": video.frames, "fps": video.fps},
+        "rerun": None
+        if recording is None
+        else {"path": str(options.rerun), "frames": recording.frames, "bytes": recording.bytes},
         "model": {
             "dir": str(predictor.model_dir),
             "arch": predictor.manifest.arch,
