@@ -17,6 +17,9 @@ def result_row(task: str, mode: str, precision: str, backend: str, batch: int, c
         row = stats.as_dict()
         row["per_item_p50_ms"] = stats.p50_ms / batch
     row["first_call_ms"] = case.first_call_ms
+    # every timed call in ms, in the unit of the row (per frame for sequence): `geonet-infer report` draws them
+    per_unit = 1.0 / extra["frames"] if task == "sequence" else 1.0
+    row["samples_ms"] = [round(ns / 1e6 * per_unit, 4) for ns in case.samples_ns]
     return {"task": task, "mode": mode, "precision": precision, "backend": backend, "batch": batch, **row, **extra}
 
 

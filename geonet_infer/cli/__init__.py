@@ -28,6 +28,7 @@ COMMANDS = {
     "eval": "accuracy against ground truth (model or baselines), paper's tables",
     "convert": "the authors' released TensorFlow checkpoints -> a model by name (no torch, no TensorFlow)",
     "models": "the models a name reaches: bundled and converted; `models rm NAME`",
+    "report": "one offline HTML page of a predict output (check, path, pairs) or a bench JSON",
 }
 EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, EXIT_OS_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 

@@ -280,6 +280,10 @@ def run(args: argparse.Namespace) -> int:
     check = None if summary["check"] is None else SequenceCheck.from_dict(summary["check"])
     if check is not None:
         print(f"check: {check.line()}")
+    if summary.get("rerun"):
+        rrd = summary["rerun"]
+        print(f"rerun: {rrd['path']} ({rrd['frames']} frames); open it with `rerun {rrd['path']}`")
+    print(f"to look at it: geonet-infer report {args.out}   (one HTML page; the [viz] extra)")
     if summary["model_notice"] and not args.quiet:
         print(f"geonet-infer predict: note: {predictor.model_dir.name}: {summary['model_notice']}", file=sys.stderr)
     if check is not None and check.warning():
