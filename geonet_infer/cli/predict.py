@@ -127,6 +127,14 @@ def add_parser(sub) -> None:
         action="store_true",
         help="skip the depth colour maps and flow colour wheels (the data files only; much faster writes)",
     )
+    parser.add_argument(
+        "--output-size",
+        choices=("input", "network"),
+        default="input",
+        help="input (default): depth and flow resized to the frames' size; network: left at the network's "
+        "size (e.g. 416x128, flow in its pixels), nothing interpolated and a fraction of the bytes to write; "
+        "summary.json's output_size gives the scale to the input. The networks' methods only",
+    )
     live = parser.add_argument_group("live sources")
     live.add_argument(
         "--source",
@@ -236,6 +244,7 @@ def run(args: argparse.Namespace) -> int:
         colour_scale=args.colour_scale,
         video_out=args.video_out,
         rerun=args.rerun,
+        output_size=args.output_size,
         video_fps=args.fps,
     )
     camera = camera_from_args(args, source, lambda msg: print(f"geonet-infer predict: note: {msg}", file=sys.stderr))

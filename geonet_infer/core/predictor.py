@@ -120,6 +120,20 @@ def load(
     return Predictor(resolve_model(model), precision=precision, threads=threads, backend=backend, rigid_op=rigid_op)
 
 
+OUTPUT_SIZES = ("input", "network")
+
+
+def check_output_size(output_size: str, flow_method: str = "network", pose_method: str = "network") -> None:
+    if output_size not in OUTPUT_SIZES:
+        raise InputError(None, f"unknown output size {output_size!r}", f"choose one of {', '.join(OUTPUT_SIZES)}")
+    if output_size == "network" and (flow_method, pose_method) != ("network", "network"):
+        raise InputError(
+            None,
+            "--output-size network keeps the networks' outputs at their size; DIS and ORB-VO work at the input's",
+            "use --output-size input with --flow-method dis or --pose-method orbvo",
+        )
+
+
 class Predictor:
     """GeoNet depth, pose and flow for one model directory.
 
@@ -336,6 +350,7 @@ class Predictor:
         flow_method: str = "network",
         pose_method: str = "network",
         scale_smoothing: int = SCALE_HALF_WINDOW,
+        output_size: str = "input",
         **deprecated: Any,
     ) -> Iterator[FrameResult]:
         """Stream a whole sequence: yields one :class:`FrameResult` per frame, in order.
@@ -363,9 +378,13 @@ class Predictor:
         DIS flow and ``residual_flow`` None).
         ``check`` (with flow): each frame's ``check`` says whether its flow and rigid flow explain
         the next frame better than no motion (:mod:`geonet_infer.core.check`; about 1 ms a frame).
+        ``output_size="network"``: depth and flow stay at the network's size (flow in its pixels, each
+        result's ``intrinsics`` K scaled to that size): no interpolation, a fraction of the bytes to write;
+        the network's own methods only (DIS and ORB-VO work at the input's size).
         A missing graph or a bad request raises here, before any frame is read.
         """
         camera = _camera_keyword(camera, deprecated, "iter_sequence")
+        check_output_size(output_size, flow_method, pose_method)
         check_batch_size(batch_size)
         check_methods(flow_method, pose_method)
         asked = tuple(tasks)
@@ -393,6 +412,7 @@ class Predictor:
             tasks=tuple(t for t in tasks if t not in classical),
             need_depth=camera_height is not None or "pose" in classical,
             check=check,
+            output_size=output_size,
         )
         if camera_height is not None:
             metric_camera = camera

@@ -43,6 +43,7 @@ def iter_frames(
     tasks: tuple[str, ...],
     need_depth: bool = False,
     check: bool = False,
+    output_size: str = "input",
 ) -> Iterator[FrameResult]:
     """A sequence in the model's own (relative) scale, one :class:`FrameResult` per frame, in order.
 
@@ -54,6 +55,8 @@ def iter_frames(
     depth alone runs on any number, each frame at its own size. ``need_depth``: depth is needed
     though not asked for (metric scale).
     ``check``: each flow is checked against the frames (:mod:`geonet_infer.core.check`, at the graph size).
+    ``output_size``: "input" (depth and flow resized to each frame's size, K as given) or "network" (left at
+    the graph's size, flow in graph pixels, ``intrinsics`` K scaled to that size: nothing is interpolated).
     """
     check_batch_size(batch_size)
     with_flow = "flow" in tasks
@@ -131,11 +134,13 @@ def iter_frames(
             )
         results = []
         no_flow: tuple[np.ndarray | None, Callable[[], np.ndarray] | None] = (None, None)
+        graph_size = (spec.height, spec.width)
         with timer.stage("postprocess"):
             for j, t in enumerate(batch):
-                at = sizes[t][0]  # the frame's own size (one size for a sequence with pose or flow)
+                # the frame's own size (one size for a sequence with pose or flow), or the network's
+                at = graph_size if output_size == "network" else sizes[t][0]
                 depth, disp = (None, None) if disparity is None else disparity_to_input(disparity[j], at)
-                flows = flows_to_input(parts, j, size) if t in paired and with_flow else no_flow
+                flows = flows_to_input(parts, j, at) if t in paired and with_flow else no_flow
                 pose_next = parts["pose_matrix"][j].astype(np.float64) if t in paired else None
                 vector = parts["pose"][j] if t in paired else None
                 results.append((t, depth, disp, pose_next, vector, flows))
@@ -155,6 +160,8 @@ def iter_frames(
         share = timer.result(1.0 / len(batch))
         for t, depth, disp, pose_next, vector, flows in results:
             at_cam = sizes[t][1]
+            if at_cam is not None and output_size == "network":
+                at_cam = camera_at(at_cam, graph_size)  # K where the outputs are
             yield FrameResult(
                 index=t,
                 name=frame_names.pop(t),
@@ -163,7 +170,7 @@ def iter_frames(
                 camera_to_world=pose_world.copy(),
                 pose_to_next=pose_next,
                 pose_vector_to_next=vector,
-                undistorted=bool(at_cam and at_cam.has_distortion),
+                undistorted=bool(sizes[t][1] and sizes[t][1].has_distortion),
                 timings_ms=dict(share),
                 flow=flows[0],
                 rigid_flow_at_input=flows[1],

@@ -29,6 +29,8 @@ class OutputOptions:
         video_out: a side-by-side video (frame | depth | flow) written here (.mp4, .avi).
         video_fps: its frame rate; None = the input's (10 for frame folders).
         rerun: a rerun recording (.rrd) of the run written here (:mod:`geonet_infer.output.rerun_recording`).
+        output_size: "input" (depth and flow at each frame's size) or "network" (at the network's size,
+            nothing interpolated; the scale to the input is in summary.json's ``output_size``).
     """
 
     point_cloud: str | None = None
@@ -39,6 +41,7 @@ class OutputOptions:
     video_out: Path | None = None
     video_fps: float | None = None
     rerun: Path | None = None
+    output_size: str = "input"
 
     def __post_init__(self):
         if self.point_cloud not in (None, *POINT_CLOUDS):
@@ -53,5 +56,7 @@ class OutputOptions:
             raise InputError(None, str(err), "e.g. --colour-scale first:8") from None
         if self.video_out is not None and Path(self.video_out).suffix.lower() not in VIDEO_CODECS:
             raise InputError(self.video_out, "unsupported video suffix", f"use one of {' '.join(VIDEO_CODECS)}")
+        if self.output_size not in ("input", "network"):
+            raise InputError(None, f"unknown output size {self.output_size!r}", "choose input or network")
         if self.video_fps is not None:
             check_fps(self.video_fps, "video frame rate (--fps)")

@@ -25,6 +25,7 @@ from collections import defaultdict
 from collections.abc import Collection
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from geonet_infer import __version__
@@ -190,6 +191,21 @@ def predict_to_dir(
 VIDEO_CLAIM = 256  # frame names of a video claimed before it is decoded (then more as it decodes)
 
 
+def _output_size(mode: str, input_hw: tuple[int, int] | None, network_hw: tuple[int, int]) -> dict:
+    """summary.json's record of where depth and flow are: their size, and how to scale them to the input
+    (flow u, v and pixel coordinates x multiply by ``to_input``)."""
+    if mode == "input" or input_hw is None:
+        return {"mode": mode, "size": None if input_hw is None else [input_hw[1], input_hw[0]], "to_input": [1.0, 1.0]}
+    (h, w), (H, W) = network_hw, input_hw
+    return {"mode": mode, "size": [w, h], "to_input": [W / w, H / h]}
+
+
+def _at_size(keep, size: tuple[int, int], frame):
+    """The kept frame resized to (W, H) (``--output-size network``)."""
+    rgb = keep(frame)
+    return rgb if rgb is None or rgb.shape[1::-1] == size else cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+
+
 def _predict(
     predictor: Predictor,
     source: FrameSource,
@@ -228,6 +244,8 @@ def _predict(
     keep = None
     if options.point_cloud or options.video_out is not None or options.rerun is not None:  # frames kept
         keep = functools.partial(as_predicted, camera)
+        if options.output_size == "network":  # pictures, point colours and video at the outputs' size
+            keep = functools.partial(_at_size, keep, (predictor.spec.width, predictor.spec.height))
     one_size = bool({"pose", "flow"} & set(tasks))  # depth alone needs no snippets: photos of any size
     frames = GoodFrames(source, bar, check_camera, max_frames, keep, one_size)
     colours = SteadyScale(options.colour_scale)
@@ -293,6 +311,7 @@ def _predict(
             flow_method=methods[0],
             pose_method=methods[1],
             scale_smoothing=methods[2],
+            output_size=options.output_size,
         )
         for result in results:
             with timed(totals, "finite_check"):
@@ -412,6 +431,7 @@ def _predict(
             "undistorted": camera.has_distortion,
         },
         "image_size": None if frames.size is None else [frames.size[1], frames.size[0]],
+        "output_size": _output_size(options.output_size, frames.size, predictor.spec.size),
         "methods": describe_methods(tasks, methods[0], methods[1]),
         "metric_scale": None if camera_height is None else metric_scale_summary(camera_height, methods[2], scales),
         "check": check_summary(checks, predictor) if check and "flow" in tasks else None,
