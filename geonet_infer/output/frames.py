@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import itertools
+import queue
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -13,6 +15,65 @@ from geonet_infer.core.results import FrameResult
 from geonet_infer.io.frames import Frame, FrameSource
 
 SIZE_VOTE_FRAMES = 8  # the sequence's frame size is the one most of its first frames have
+READ_AHEAD = 4  # frames decoded ahead by the reader thread (issue 54): decoding overlaps the networks
+
+
+class ReadAhead:
+    """``frames`` iterated by a thread of its own, up to ``depth`` ahead (OpenCV decodes without the GIL,
+    so a frame is decoded while the networks run on the one before). The same items in the same order;
+    an exception of the source is raised here, where the frame it stopped would have come. ``close()``
+    stops the thread, which closes the source (a camera or stream is released by the thread that read it).
+    """
+
+    _END = object()
+
+    def __init__(self, frames: Iterator[Frame], depth: int = READ_AHEAD):
+        self.items: queue.Queue = queue.Queue(maxsize=depth)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._read, args=(frames,), name="geonet-read-ahead", daemon=True)
+        self.thread.start()
+
+    def _read(self, frames: Iterator[Frame]) -> None:
+        try:
+            for frame in frames:
+                if not self._put(frame):
+                    return
+            self._put(self._END)
+        except BaseException as exc:  # noqa: BLE001 -- handed to the consumer, raised there
+            self._put(exc)
+        finally:
+            if hasattr(frames, "close"):
+                frames.close()
+
+    def _put(self, item) -> bool:
+        while not self.stop.is_set():
+            try:
+                self.items.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self
+
+    def __next__(self) -> Frame:
+        item = self.items.get()
+        if item is self._END:
+            self.items.put(self._END)  # every later next() ends too
+            raise StopIteration
+        if isinstance(item, BaseException):
+            raise item
+        return item
+
+    def close(self) -> None:
+        self.stop.set()
+        while self.thread.is_alive():
+            try:
+                self.items.get(timeout=0.1)  # let a blocked put see the stop
+            except queue.Empty:
+                pass
+        self.thread.join()
 
 
 class GoodFrames:
@@ -44,7 +105,7 @@ class GoodFrames:
         self.failures: list[dict] = []
         self.size: tuple[int, int] | None = None
         self.skipped_before: dict[str, list[str]] = {}  # good frame -> bad frames right before it
-        self.read_ms = 0.0  # time spent reading and decoding the source's frames
+        self.read_ms = 0.0  # time the main thread waited for the reader thread's next frame
 
     def _timed(self, frames: Iterator[Frame]) -> Iterator[Frame]:
         """``frames``, the time each takes to come (read and decoded) added to ``read_ms``."""
@@ -61,7 +122,7 @@ class GoodFrames:
                 frames.close()  # a camera or stream is released now
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        frames = self._timed(iter(self.source))
+        frames = self._timed(ReadAhead(iter(self.source)))
         head = list(itertools.islice(frames, SIZE_VOTE_FRAMES))
         sizes = Counter(frame.rgb.shape[:2] for frame in head if frame.ok and frame.rgb is not None)
         if sizes:
