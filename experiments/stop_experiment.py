@@ -136,6 +136,66 @@ def verdict(before: dict, after: dict, scored_before: dict, scored_after: dict) 
     return {**checks, "ship": all(checks.values())}
 
 
+ROWS = (  # (label, where, key): where is "before"/"after" (eval-all figures) or a scored block
+    ("real validation depth AbsRel (rule 1)", "figures", "validation_abs_rel"),
+    ("KITTI 2015 000010 flow EPE-noc, px (rule 2; zero flow 8.90)", "figures", "EPE noc: KITTI 2015 flow 000010"),
+    ("real pose ATE, snippets not trained on (rule 3)", "figures", "pose_ate_held_out"),
+    ("held-back clip: pairs where flow is no better than no motion (rule 4)", "holdback", "flow_no_better"),
+    ("still clip: median step / moving median step (rule 5, at most 1/3)", "still", "still_to_moving"),
+    ("test drive depth AbsRel (not for choosing)", "figures", "test drive AbsRel"),
+)
+DRIVE_ROWS = (
+    ("pairs", "pairs"),
+    ("flow no better than no motion", "flow_no_better"),
+    ("rigid flow no better than no motion", "rigid_no_better"),
+    ("median flow error", "median_flow_error"),
+    ("median rigid-flow error", "median_rigid_error"),
+    ("median no-motion error", "median_still_error"),
+    ("median step", "median_step"),
+    ("stopped quarter's step / median step", "stopped_step_ratio"),
+)
+
+
+def _cell(value) -> str:
+    if value is None:
+        return "–"
+    return str(value) if isinstance(value, int) else f"{value:.3g}"
+
+
+def render(rounds: list[dict]) -> list[str]:
+    """The model card's section "Stop experiment (issue 53)", from the JSON rounds."""
+    L = ["## Stop experiment (issue 53)", ""]
+    for e in rounds:
+        L += [f"**Shipping rule.** {e['rule']}", "", e.get("notes", ""), ""]
+        if "verdict" not in e:
+            L += ["Not scored yet.", ""]
+            continue
+        scored = e["scored"]
+        L += ["| | bundled FP32 | candidate FP32 |", "|---|---|---|"]
+        for label, where, key in ROWS:
+            if where == "figures":
+                b, a = e["before"].get(key), e["after"].get(key)
+            elif where == "holdback":
+                b, a = scored["bundled"]["holdback"][key], scored["candidate"]["holdback"][key]
+            else:
+                b, a = scored["bundled"][key], scored["candidate"][key]
+            L.append(f"| {label} | {_cell(b)} | {_cell(a)} |")
+        L += [
+            "",
+            "The output check on the KITTI test drive (reported, not judged; frames 10–77 are the issue's acceptance):",
+            "",
+        ]
+        L += ["| | bundled, frames 0–9 | candidate, frames 0–9 | bundled, frames 10–77 | candidate, frames 10–77 |",
+              "|---|---|---|---|---|"]  # fmt: skip
+        for label, key in DRIVE_ROWS:
+            cells = [_cell(scored[m][d][key]) for d in ("drive 0-9", "drive 10-77") for m in ("bundled", "candidate")]
+            L.append(f"| {label} | {cells[0]} | {cells[1]} | {cells[2]} | {cells[3]} |")
+        v = e["verdict"]
+        checks = ", ".join(f"{k.replace('_', ' ')}: {'yes' if ok else 'no'}" for k, ok in v.items() if k != "ship")
+        L += ["", f"Verdict: {checks}: the candidate is **{'shipped' if v['ship'] else 'not shipped'}**.", ""]
+    return L
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.stop_experiment", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip

@@ -159,7 +159,7 @@ def iter_frames(
                     )
         share = timer.result(1.0 / len(batch))
         for t, depth, disp, pose_next, vector, flows in results:
-            at_cam = sizes[t][1]
+            frame_cam = at_cam = sizes[t][1]
             if at_cam is not None and output_size == "network":
                 at_cam = camera_at(at_cam, graph_size)  # K where the outputs are
             yield FrameResult(
@@ -170,7 +170,7 @@ def iter_frames(
                 camera_to_world=pose_world.copy(),
                 pose_to_next=pose_next,
                 pose_vector_to_next=vector,
-                undistorted=bool(sizes[t][1] and sizes[t][1].has_distortion),
+                undistorted=frame_cam is not None and frame_cam.has_distortion,
                 timings_ms=dict(share),
                 flow=flows[0],
                 rigid_flow_at_input=flows[1],
