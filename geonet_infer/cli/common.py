@@ -18,6 +18,7 @@ from geonet_infer.engines import AUTO, BACKENDS, ENGINES, check_threads
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.camera import ASSUMED_RULE
+from geonet_infer.io.frames import FrameSource, open_frames, open_stdin, open_stream
 from geonet_infer.models import DEFAULT_MODEL
 from geonet_infer.models.manifest import PRECISION_CHOICES
 
@@ -228,3 +229,24 @@ def sigterm_as_interrupt() -> Iterator[None]:
     finally:
         if not received:
             signal.signal(signal.SIGTERM, previous)
+
+
+def open_source(args: argparse.Namespace) -> FrameSource:
+    """predict's frames: INPUT, '-' with --stdin-frames, or --source (here, beside the camera and model from
+    ``args``, so that ``args`` goes down from cli/predict.py and does not come back)."""
+    if args.source is not None:
+        if args.input is not None:
+            raise InputError(args.input, "INPUT and --source both given", "pass one of them")
+        return open_stream(args.source)
+    if args.input is None and args.stdin_frames is None:
+        raise InputError(
+            None, "no input", "pass INPUT (a video, a folder of frames), '-' with --stdin-frames, or --source"
+        )
+    if args.input is None or str(args.input) == "-":  # --stdin-frames alone also reads stdin
+        if args.stdin_frames is None:
+            raise InputError("-", "raw frames on stdin need their size", "pass --stdin-frames WxH, e.g. 1280x720")
+        width, height = args.stdin_frames
+        return open_stdin(width, height, fps=args.fps)
+    if args.stdin_frames is not None:
+        raise InputError(args.input, "--stdin-frames is for INPUT '-'", "drop --stdin-frames, or pipe the frames in")
+    return open_frames(args.input)

@@ -15,6 +15,7 @@ from geonet_infer.cli.common import (
     add_model_args,
     camera_from_args,
     load_predictor,
+    open_source,
     positive_int,
     sigterm_as_interrupt,
     stage_table,
@@ -24,7 +25,6 @@ from geonet_infer.core.check import SequenceCheck
 from geonet_infer.core.predictor import TASKS, describe_skipped
 from geonet_infer.core.scale import MAX_FRAMES_BEFORE_GROUND, MAX_SCALE_HALF_WINDOW, SCALE_HALF_WINDOW
 from geonet_infer.errors import InputError
-from geonet_infer.io.frames import FrameSource, open_frames, open_stdin, open_stream
 from geonet_infer.limits import (
     MAX_BATCH_SIZE,
     MAX_COLOUR_SCALE_FRAMES,
@@ -229,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     check_batch_size(args.batch_size, "--batch-size")
     if args.scale_smoothing is not None and args.camera_height is None:
         raise InputError(None, "--scale-smoothing smooths the metric scale", "pass --camera-height METRES with it")
-    source = _open_source(args)
+    source = open_source(args)
     if source.kind == "image":  # one photo: depth, the task that needs no sequence
         tasks = tasks or ("depth",)
         if set(tasks) & {"pose", "flow"}:
@@ -319,23 +319,3 @@ def _size(text: str) -> tuple[int, int]:
     if not (re.fullmatch(r"[0-9]+", width) and re.fullmatch(r"[0-9]+", height)):
         raise argparse.ArgumentTypeError(f"expected WxH, e.g. 1280x720, got {text!r}")
     return int(width), int(height)
-
-
-def _open_source(args: argparse.Namespace) -> FrameSource:
-    """INPUT, '-' with --stdin-frames, or --source."""
-    if args.source is not None:
-        if args.input is not None:
-            raise InputError(args.input, "INPUT and --source both given", "pass one of them")
-        return open_stream(args.source)
-    if args.input is None and args.stdin_frames is None:
-        raise InputError(
-            None, "no input", "pass INPUT (a video, a folder of frames), '-' with --stdin-frames, or --source"
-        )
-    if args.input is None or str(args.input) == "-":  # --stdin-frames alone also reads stdin
-        if args.stdin_frames is None:
-            raise InputError("-", "raw frames on stdin need their size", "pass --stdin-frames WxH, e.g. 1280x720")
-        width, height = args.stdin_frames
-        return open_stdin(width, height, fps=args.fps)
-    if args.stdin_frames is not None:
-        raise InputError(args.input, "--stdin-frames is for INPUT '-'", "drop --stdin-frames, or pipe the frames in")
-    return open_frames(args.input)
