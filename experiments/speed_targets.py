@@ -33,14 +33,16 @@ import sys
 import tempfile
 from pathlib import Path
 
-import target_limits
-from identical_outputs import REPO, revision_tree
-from memory import CHILD as MEMORY_CHILD
-from predict_fps import OUTPUTS, one_run
-from speed_milestones import SPEED_TARGETS, speed_target_values, target_distance
-from target_limits import median_ms
+# its siblings (experiments/) and the re-run tools it times with (benchmarks/) import by name, as a script or -m
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1] / "benchmarks")]
+import target_limits  # noqa: E402
+from identical_outputs import REPO, revision_tree  # noqa: E402
+from memory import CHILD as MEMORY_CHILD  # noqa: E402
+from predict_fps import OUTPUTS, one_run  # noqa: E402
+from speed_milestones import SPEED_TARGETS, speed_target_values, target_distance  # noqa: E402
+from target_limits import median_ms  # noqa: E402
 
-from geonet_infer.models import resolve_model
+from geonet_infer.models import resolve_model  # noqa: E402
 
 SECTION = "## Speed targets"
 

@@ -182,7 +182,9 @@ def test_auto_skips_an_engine_inexact_on_an_avx2_cpu(monkeypatch, capsys):
     monkeypatch.setattr(int8_safety, "cpu_info", lambda: {"int8_kernel": "avx2"})
     manifest = load_manifest(resolve_model())
     graphs = GraphSet(manifest, "int8", "auto", 1)
-    assert {run["engine"] for name, run in graphs.runs.items()} == {"onnxruntime"}
+    # the INT8 graphs; rigidflow runs FP32 (quantization.fp32_graphs), where auto may time OpenVINO faster
+    int8_graphs = [name for name in graphs.runs if name not in manifest.quantization.fp32_graphs]
+    assert int8_graphs and {graphs.runs[name]["engine"] for name in int8_graphs} == {"onnxruntime"}
     if not OpenVinoEngine.available():
         return
     assert "skipped openvino: openvino INT8 without VNNI" in graphs.runs["depthnet"]["why"]
