@@ -22,7 +22,7 @@ if [ $# -eq 0 ]; then
     shopt -s globstar  # tests/ mirrors the package: tests/runtime/<layer>/, tests/training/, tests/export/ ...
     slow=(tests/export/test_from_tf.py tests/export/test_export.py tests/training/test_train.py
           tests/export/test_convert_templates.py tests/export/test_partial_models.py tests/runtime/batch/test_batch.py
-          tests/runtime/convert/test_convert.py tests/training/test_adapt.py)
+          tests/runtime/convert/test_convert.py tests/training/test_adapt.py tests/test_readme.py)
     files=("${slow[@]}")
     for f in tests/**/test_*.py; do
         [[ " ${slow[*]} " == *" $f "* ]] || files+=("$f")

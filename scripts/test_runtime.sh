@@ -24,8 +24,8 @@ if [ $# -gt 0 ]; then
 fi
 # One process per file, two at a time, the slowest first (scripts/pytest_files.sh): CI's 20 minutes.
 shopt -s globstar
-slow=(tests/runtime/batch/test_batch.py tests/runtime/convert/test_convert.py tests/runtime/output/test_hostile_predict.py
-      tests/runtime/cli/test_cli.py tests/runtime/test_readme.py)
+slow=(tests/runtime/batch/test_batch.py tests/runtime/convert/test_convert.py tests/runtime/batch/test_hostile_batch.py
+      tests/runtime/output/test_hostile_predict.py tests/runtime/cli/test_cli.py)
 files=("${slow[@]}")
 for f in tests/runtime/**/test_*.py; do
     [[ " ${slow[*]} " == *" $f "* ]] || files+=("$f")

@@ -114,7 +114,8 @@ def test_eval_pose_whole_trajectory_equals_evo_ape_on_its_files(evo, tmp_path, k
     """`geonet-infer eval pose --trajectories DIR`: the APE it prints is evo_ape's on the files it wrote."""
     out = tmp_path / "traj"
     cmd = [sys.executable, "-m", "geonet_infer.cli", "eval", "pose", "--data",
-           str(kitti_odometry_06 / "sequences" / "06"), "--method", "model,orb-vo", "--trajectories", str(out),
+           str(kitti_odometry_06 / "sequences" / "06"), "--method", "model,orb-vo", "--limit", "20",
+           "--trajectories", str(out),
            "--json", str(tmp_path / "eval.json")]  # fmt: skip
     run = subprocess.run(cmd, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr

@@ -1,5 +1,6 @@
 """The README's "Use it" section runs as written (issue 56): every shell command of its blocks and its
-Python block, from a folder with ``../shared`` beside it, as a newcomer would paste them.
+Python block, from a folder with ``../shared`` beside it, as a newcomer would paste them. (Here, not in
+tests/runtime/: the whole suite runs it once; the runtime-only run would run it a second time.)
 
 ``pip install`` lines are left out (the suite runs in an installed environment). The converter's line
 reads ``~/Downloads/geonet_depthnet/model``: HOME points at a temporary folder holding a random-weight
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 
