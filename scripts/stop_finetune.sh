@@ -65,10 +65,6 @@ if want flow; then
         --save-every 200 --log-every 20
 fi
 
-if want finish; then
-    run $PY -m training.checkpoint --weights-only "$OUT/flow/last.pt" "$OUT/combined.pt"
-    run $PY -m export --checkpoint "$OUT/combined.pt" --out "$OUT/model" --force --precision fp32,int8 \
-        --calib-data data/synth40/seq_0000/image --calib-method percentile --calib-frames 40 --int8-ops "$INT8_OPS"
-    run $PY -m benchmarks.eval_all --data "$REALDATA" --model "$OUT/model" --json "$OUT/real_eval.json" \
-        --markdown "$OUT/real_eval.md" || true  # exit 1 = a set missing or NaN: the JSON says which
+if want finish; then  # the classical-teacher round's finish: combine, export FP32 + INT8, eval_all
+    OUT="$OUT" INT8_OPS="$INT8_OPS" REALDATA="$REALDATA" PY="$PY" bash scripts/teacher_finetune.sh finish
 fi
