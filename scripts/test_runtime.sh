@@ -11,8 +11,9 @@ rm -rf "$VENV" build
 "$PY" -m venv "$VENV"
 "$VENV/bin/python" -m pip install --quiet --upgrade pip >/dev/null
 # onnx: the hostile-model tests write broken graphs with it, and it is the [convert] extra (INT8); hypothesis fuzzes
-# the parsers. Test tools: the runtime imports neither.
-"$VENV/bin/python" -m pip install --quiet . pytest pypng onnx hypothesis
+# the parsers; evo is the trajectory tests' yardstick. Test tools: the runtime imports none of them. The viz,
+# openvino and ray extras: their tests run here (scripts/test.sh runs tests/runtime only here).
+"$VENV/bin/python" -m pip install --quiet '.[viz,openvino,ray]' pytest pypng onnx hypothesis evo
 rm -rf build
 "$VENV/bin/python" -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)" \
     || { echo "torch is installed in the runtime venv: the runtime must not need it"; exit 1; }

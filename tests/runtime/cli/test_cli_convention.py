@@ -61,6 +61,7 @@ def _id(case) -> str:
     return module if module != "geonet_infer.cli" else f"geonet-infer {argv[0]}"
 
 
+@pytest.mark.train_extra
 @pytest.mark.parametrize("case", CASES, ids=[_id(c) for c in CASES])
 def test_bad_input_exits_2_with_one_line_naming_it(case, tmp_path):
     if not case[0].startswith("geonet_infer") and importlib.util.find_spec("torch") is None:

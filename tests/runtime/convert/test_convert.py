@@ -352,6 +352,7 @@ def test_verify_says_plainly_when_tensorflow_is_missing(tmp_path):
     assert "not verified: posenet (no reference: install TensorFlow" in proc.stdout
 
 
+@pytest.mark.train_extra
 def test_verify_compares_with_the_official_tensorflow_graph(tmp_path):
     pytest.importorskip("tensorflow")
     env = {**os.environ, "GEONET_INFER_HOME": str(tmp_path / "home")}

@@ -390,6 +390,7 @@ def test_an_interrupted_batch_summary_counts_sequences_done_on_disk_with_their_f
 
 
 # ----------------------------------------------------------------------------- 17, 19, 22: export (needs torch)
+@pytest.mark.train_extra
 def test_calibration_frames_the_runtime_refuses_are_refused(tmp_path):
     pytest.importorskip("torch")
     from geonet_infer.convert.quantize import load_frames
@@ -401,6 +402,7 @@ def test_calibration_frames_the_runtime_refuses_are_refused(tmp_path):
     refused(lambda: load_frames(folder, 128, 416, 10), "000000.png", "1x1")
 
 
+@pytest.mark.train_extra
 def test_export_calib_frames_negative_is_a_count_error_not_a_folder_mixup(tmp_path, capsys):
     pytest.importorskip("torch")
     from export.__main__ import main as export_main
@@ -412,6 +414,7 @@ def test_export_calib_frames_negative_is_a_count_error_not_a_folder_mixup(tmp_pa
     assert "positive number of frames" in err and "different folders" not in err
 
 
+@pytest.mark.train_extra
 def test_export_from_tf_path_with_glob_characters_reads(tmp_path):
     """TensorFlow's reader took the prefix as a glob pattern; ours opens such a path as it is."""
     pytest.importorskip("torch")

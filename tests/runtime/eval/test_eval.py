@@ -709,6 +709,7 @@ def test_intrinsics_needed_for_model_flow_without_calibration(require_real, tmp_
 
 
 # ----------------------------------------------------------------------------- checkpoints, same code path
+@pytest.mark.train_extra
 def test_training_evaluate_scores_a_checkpoint_through_the_shared_loops(tmp_path):
     torch = pytest.importorskip("torch")
     from training.checkpoint import save_checkpoint
