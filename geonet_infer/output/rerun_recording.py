@@ -11,20 +11,21 @@ On the ``frame`` time line, under ``world/`` (x right, y down, z forward: the fi
 A blueprint saved in the file lays out a 3-D view, the frame, depth and flow, and the check's series.
 rerun-sdk is the ``[viz]`` extra; without it :func:`require_rerun` says what to install. The file is
 written under a temporary name beside its place and renamed when the recording is closed (a file whose
-stream was only flushed has no footer and does not read back), so no half-written file is left.
+stream was only flushed has no footer and does not read back; :func:`geonet_infer.io.atomic.atomic_write`), so
+no half-written file is left.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
-import tempfile
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 
 from geonet_infer.errors import InputError
+from geonet_infer.io.atomic import atomic_write
+from geonet_infer.output import ownership
 from geonet_infer.output.viz import flow_to_color
 
 INSTALL = "pip install 'geonet-infer[viz]' (rerun-sdk)"
@@ -50,8 +51,7 @@ def check_rerun_path(path: Path, out_dir: Path) -> None:
         raise InputError(path, "a rerun recording must end in .rrd", "e.g. --rerun drive.rrd")
     if not path.parent.is_dir():
         raise InputError(path.parent, "folder not found", "create it first")
-    inside = Path(os.path.realpath(path)).is_relative_to(os.path.realpath(out_dir))
-    if path.exists() and not inside:
+    if path.exists() and not ownership.inside(path, out_dir):
         raise InputError(path, "exists: predict does not overwrite a file it did not write", "choose a new name")
 
 
@@ -70,17 +70,20 @@ def blueprint(rr: ModuleType):
     )
 
 
+class RecordingDropped(Exception):
+    """Ends the recording's atomic write without keeping the file (no frame, or the run failed)."""
+
+
 class RerunRecording:
     """One predict run's recording; :meth:`frame` per result, :meth:`close` at the end."""
 
     def __init__(self, path: Path, point_stride: int = POINT_STRIDE):
         rr = require_rerun()
         self.rr, self.path, self.point_stride = rr, Path(path), point_stride
-        handle, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=self.path.parent)
-        os.close(handle)
-        self.tmp = Path(tmp)
+        self._write = contextlib.ExitStack()  # the temp file of atomic_write: renamed in close(keep=True)
+        tmp = self._write.enter_context(atomic_write(self.path))
         self.stream = rr.RecordingStream(APPLICATION_ID)
-        self.stream.save(self.tmp, default_blueprint=blueprint(rr))
+        self.stream.save(tmp, default_blueprint=blueprint(rr))
         self.frames = 0
         self.bytes = 0
 
@@ -120,13 +123,10 @@ class RerunRecording:
         with contextlib.suppress(Exception):
             self.stream.disconnect()
         if keep and self.frames:
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(self.tmp, 0o666 & ~umask)  # mkstemp's 0600 -> what a new file gets
-            os.replace(self.tmp, self.path)
+            self._write.close()  # atomic_write renames the temp onto the path, with a new file's mode
             self.bytes = self.path.stat().st_size
-        else:
-            self.tmp.unlink(missing_ok=True)
+        else:  # atomic_write removes its temp when its body ends in an exception
+            self._write.__exit__(RecordingDropped, RecordingDropped(), None)
 
 
 def record_sequence(path: str | Path, results, frames=None, point_stride: int = POINT_STRIDE) -> Path:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import builtins
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -60,7 +61,7 @@ def test_the_drive_report_is_one_offline_page_that_chromium_renders(drive_output
     assert "calib_cam_to_cam.txt" in text  # the intrinsics' source
     # the negative case: the same figures with plotly.js from its CDN render nothing without a network
     cdn = tmp_path / "cdn.html"
-    starts = [k for k in range(len(text)) if text.startswith("<script", k)]
+    starts = [m.start() for m in re.finditer("<script", text)]
     start = max(starts, key=lambda k: text.index("</script>", k) - k)  # the longest script: plotly.js
     library = text[start : text.index("</script>", start) + len("</script>")]
     assert len(library) > 2**20

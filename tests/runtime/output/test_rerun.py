@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from geonet_infer.errors import InputError
+from geonet_infer.io.atomic import leftover_temps
 
 
 def read_back(path: Path) -> dict[str, dict[int, dict]]:
@@ -57,7 +58,7 @@ def test_the_drive_recording_reads_back_with_every_frame_and_predicts_poses(kitt
         np.testing.assert_allclose(translation, poses[f, :, 3], rtol=1e-6, atol=1e-6)  # float32 precision
         np.testing.assert_allclose(rotation, poses[f, :, :3], rtol=1e-6, atol=1e-6)
     summary = (out / "summary.json").read_text()
-    assert '"rerun"' in summary and not list(tmp_path.glob(".drive.rrd.*"))  # renamed into place
+    assert '"rerun"' in summary and not leftover_temps(rrd)  # renamed into place
 
 
 def test_without_rerun_sdk_one_line_names_the_extra(monkeypatch, tmp_path, capsys):
@@ -107,3 +108,12 @@ def test_the_api_records_a_sequence(tmp_path, kitti_raw):
     path = record_sequence(tmp_path / "api.rrd", results, frames)
     rows = read_back(path)
     assert sorted(rows["/world/camera"]) == [0, 1, 2, 3] and len(rows["/world/camera/image/depth"]) == 4
+
+
+def test_a_recording_without_frames_leaves_nothing(tmp_path):
+    pytest.importorskip("rerun", reason="rerun-sdk is the [viz] extra")
+    from geonet_infer.output.rerun_recording import RerunRecording
+
+    recording = RerunRecording(tmp_path / "empty.rrd")
+    recording.close(keep=True)  # no frame was logged: nothing to keep
+    assert list(tmp_path.iterdir()) == []
