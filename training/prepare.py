@@ -702,9 +702,9 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
                 p,
                 (f"frame is {f.shape[1]}x{f.shape[0]} but the target is {w0}x{h0} (mixed resolutions in one snippet)"),
             )
+    half = len(frames) // 2
     strip_frames = [resize(f, height, width) for f in frames]
     if snip.variant == "static":  # a still camera: the sources are noisy, jittered copies of the target
-        half = len(frames) // 2
         strip_frames = [f if k == half else still_copy(f, snip.name, k) for k, f in enumerate(strip_frames)]
     strip = np.concatenate(strip_frames, axis=1)  # (H, seq*W, 3)
     ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(strip, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
@@ -723,7 +723,6 @@ def write_snippet(snip: Snippet, out: Path, height: int, width: int) -> tuple[st
             flow, valid = resize_flow_gt(flow, valid, (height, width))
     except GeoNetError as err:
         return "skipped", err.path, err.problem
-    half = len(frames) // 2
     poses = snip.poses
     if snip.variant == "static":  # labels known exactly
         flow, valid, poses = static_labels(len(frames) - 1, height, width)
