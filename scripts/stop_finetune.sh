@@ -5,11 +5,17 @@
 #   rigid: DepthNet/PoseNet from the bundled weights, pose loss against the official odometry poses
 #          and the still copies' identity (--pose-supervision), the synthetic scenes mixed in;
 #   flow:  ResFlowNet on top, flow loss against DIS labels and the still copies' zero flow;
-# export FP32 + INT8 as the bundled model and score (benchmarks/stop_experiment.py applies the rule
+# export FP32 + INT8 as the bundled model and score (experiments/stop_experiment.py applies the rule
 # written before scoring; docs/models.md "Stop experiment").
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
+#   OUT=runs/stop2 bash scripts/stop_finetune.sh   round 2 (the default); ROUND=1 for round 1's settings
+#
+# Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
+# Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
+# signal, and round 1's depth got worse), flow supervision 3 (round 1's flow still lost to no motion on
+# most real pairs), 25 min rigid + 45 min flow.
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -18,8 +24,14 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} DEVICE=${DEVICE:-auto}
-POSE_SUPERVISION=${POSE_SUPERVISION:-10} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
+ROUND=${ROUND:-2} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+if [ "$ROUND" = 1 ]; then
+    RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
+    RIGID_FLAGS=()
+else
+    RIGID_MINUTES=${RIGID_MINUTES:-25} FLOW_MINUTES=${FLOW_MINUTES:-45} FLOW_SUPERVISION=${FLOW_SUPERVISION:-3}
+    RIGID_FLAGS=(--freeze-depth)
+fi
 RIGID_LR=${RIGID_LR:-5e-5} FLOW_LR=${FLOW_LR:-1e-4}
 OUT=${OUT:-runs/stop} INIT=${INIT:-weights/small_synth.pt} INT8_OPS=${INT8_OPS:-Conv,Relu,Add,MaxPool}
 REALDATA=${REALDATA:-../shared/realdata} CLIPS=${CLIPS:-../shared/realdata/udacity_dashcam}
@@ -49,7 +61,7 @@ fi
 
 if want rigid; then
     run $PY -m training.train --stage rigid --arch small --device "$DEVICE" --bn-momentum 0.01 --num-workers 0 \
-        --mask-out-of-view --automask --lr "$RIGID_LR" --pose-supervision "$POSE_SUPERVISION" \
+        --mask-out-of-view --automask "${RIGID_FLAGS[@]}" --lr "$RIGID_LR" --pose-supervision "$POSE_SUPERVISION" \
         --data-dir data/s_odom --extra-data-dir data/s_odom --extra-data-dir data/s_udacity \
         --extra-data-dir data/s_udacity_guess --extra-data-dir data/synth40_pose --init-checkpoint "$INIT" \
         --out-dir "$OUT/rigid" --max-steps 100000 --max-minutes "$RIGID_MINUTES" --val-every 1000000 \

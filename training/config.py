@@ -34,6 +34,7 @@ class TrainConfig:
     num_workers: int = 2
     augment: bool = True
     share_color_gain: bool = False
+    freeze_depth: bool = False  # stage rigid: train PoseNet alone, DepthNet kept as initialised
     bn_momentum: float = 1e-3
     mask_out_of_view: bool = False  # deviation: rigid loss ignores pixels warped from outside the source
     automask: bool = False  # deviation: rigid loss ignores pixels the unwarped source already explains
@@ -128,6 +129,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--share-color-gain",
         action="store_true",
         help="one colour gain for all frames of a sample (the official code draws one per frame)",
+    )
+    p.add_argument(
+        "--freeze-depth",
+        action="store_true",
+        help="stage rigid: train PoseNet alone and keep DepthNet as --init-checkpoint has it (its batch-norm "
+        "statistics too)",
     )
     p.add_argument(
         "--bn-momentum",

@@ -130,6 +130,21 @@ def test_flow_stage_freezes_rigid_nets(synth_prepared, tmp_path):
     assert model_from_checkpoint(load_checkpoint(flow["last"])).flow_net is not None
 
 
+def test_freeze_depth_trains_posenet_alone(synth_prepared, tmp_path):
+    """--freeze-depth (issue 53): stage rigid leaves DepthNet's weights and batch-norm statistics as initialised."""
+    first = train(config(synth_prepared, tmp_path / "a", max_steps=1), progress=False)
+    frozen = train(
+        config(synth_prepared, tmp_path / "b", max_steps=3, freeze_depth=True, init_checkpoint=str(first["last"])),
+        progress=False,
+    )
+    before = load_checkpoint(first["last"])["model"]
+    after = load_checkpoint(frozen["last"])["model"]
+    depth = [k for k in before if k.startswith("depth_net.")]
+    assert depth and all(torch.equal(before[k], after[k]) for k in depth)
+    pose = [k for k in before if k.startswith("pose_net.") and before[k].dim() == 4]
+    assert any(not torch.equal(before[k], after[k]) for k in pose)
+
+
 def test_init_checkpoint_fine_tunes_from_a_checkpoint_or_a_weights_file(synth_prepared, tmp_path):
     """--init-checkpoint starts from given weights with a fresh optimizer (lr 0: weights stay put)."""
     from training.checkpoint import WEIGHTS_FORMAT, load_checkpoint, save_weights
