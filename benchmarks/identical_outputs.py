@@ -9,6 +9,7 @@ byte for byte (depth .npy, colour maps, KITTI flow PNGs, pose files).
 
     python benchmarks/identical_outputs.py --against 3c9be22
     python benchmarks/identical_outputs.py --against 3c9be22 --cases kitti_depth_metric
+    python benchmarks/identical_outputs.py --against c56716d --after-args "--mode latency"   (this checkout's only)
 
 Exit 0 when every case is identical, 1 otherwise (the differing files are listed).
 """
@@ -19,6 +20,7 @@ import argparse
 import contextlib
 import json
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -112,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--against", required=True, help="git revision to compare with (e.g. the last release)")
     parser.add_argument("--cases", default=",".join(CASES), help=f"comma list of {','.join(CASES)}")
+    parser.add_argument("--after-args", default="", help="more predict arguments for this checkout's runs")
     args = parser.parse_args(argv)
     cases = args.cases.split(",")
     unknown = [c for c in cases if c not in CASES]
@@ -124,9 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     ):
         for case in cases:
             outs = {}
-            for label, tree in (("before", old_tree), ("after", REPO)):
+            for label, tree, more in (("before", old_tree, []), ("after", REPO, shlex.split(args.after_args))):
                 outs[label] = Path(tmp) / f"{case}_{label}"
-                run_predict(tree, CASES[case], outs[label])
+                run_predict(tree, CASES[case] + more, outs[label])
             diffs = compare(outs["before"], outs["after"], (old_tree, REPO))
             n_files = sum(1 for p in outs["after"].rglob("*") if p.is_file())
             print(f"{case}: {'identical' if not diffs else 'DIFFERENT'} ({n_files} files)")

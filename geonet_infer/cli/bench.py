@@ -69,7 +69,7 @@ def add_parser(sub) -> None:
         "the needed graph; --iters < 1) -> one line on stderr, exit 2.",
         conflict_handler="resolve",
     )
-    add_model_args(parser)
+    add_model_args(parser, mode="latency")
     group = parser.add_argument_group("benchmark")
     # Replaces add_model_args' single --precision (conflict_handler="resolve").
     group.add_argument(
@@ -289,12 +289,18 @@ def run(args: argparse.Namespace) -> int:
             rss_before = current_rss_mib()
             t0 = time.perf_counter()
             predictor = load(
-                plan["model_dir"], precision=precision, threads=args.threads, backend=backend, rigid_op=args.rigid_op
+                plan["model_dir"],
+                precision=precision,
+                threads=args.threads,
+                backend=backend,
+                rigid_op=args.rigid_op,
+                mode=args.mode,
             )
             load_s = time.perf_counter() - t0
             rss_loaded = current_rss_mib()
             graphs_mib = manifest.files_mib(precision)
             env.setdefault("threads", predictor.threads)
+            env.setdefault("mode", {"name": predictor.mode, "workers": predictor.workers})
             ort_engines = [predictor.graph_set.engine(n) for n, e in predictor.engines.items() if e == OrtEngine.name]
             if ort_engines:
                 env.setdefault("session_options", ort_engines[0].describe())
@@ -344,7 +350,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"geonet-infer bench: {model['dir']} (arch {model['arch']}, graphs {manifest.height}x{manifest.width}"
         f"{', RANDOM WEIGHTS' if manifest.random_init else ''}); e2e input {env['input_size'][0]}x"
-        f"{env['input_size'][1]}; {env.get('threads')} threads; {env['cpu']} ({cpus} usable CPUs)"
+        f"{env['input_size'][1]}; {env.get('threads')} threads, {args.mode} mode; {env['cpu']} ({cpus} usable CPUs)"
     )
     print(f"isa: {env['isa']['line']}")
     print(

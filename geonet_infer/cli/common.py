@@ -13,7 +13,7 @@ import numpy as np
 
 from geonet_infer.classical import DIS_PRESET, FLOW_METHODS, POSE_METHODS
 from geonet_infer.core.cascade import RIGID_OPS
-from geonet_infer.core.predictor import Predictor, load
+from geonet_infer.core.predictor import MODES, Predictor, load
 from geonet_infer.engines import AUTO, BACKENDS, ENGINES, check_threads
 from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
@@ -44,11 +44,15 @@ def backend_help() -> str:
 
 
 def add_model_args(
-    parser: argparse.ArgumentParser, threads: bool = True, rigid_op: bool = True, precision: bool = True
+    parser: argparse.ArgumentParser,
+    threads: bool = True,
+    rigid_op: bool = True,
+    precision: bool = True,
+    mode: str | None = None,
 ) -> None:
     """--model, --precision (unless ``precision=False``: the caller runs every precision), --backend and
-    (unless ``threads=False``: batch has per-worker threads) --threads, and (unless ``rigid_op=False``)
-    --rigid-op."""
+    (unless ``threads=False``: batch has per-worker threads) --threads, (unless ``rigid_op=False``)
+    --rigid-op, and with ``mode`` (its default) --mode."""
     group = parser.add_argument_group("model")
     group.add_argument(
         "--model",
@@ -73,11 +77,20 @@ def add_model_args(
     if rigid_op:
         group.add_argument(
             "--rigid-op",
-            default=RIGID_OPS[0],
             choices=RIGID_OPS,
+            default=RIGID_OPS[0],
             help="how the weightless rigid-flow op runs: 'graph' (rigidflow.onnx on --backend, the "
-            "reference) or 'numpy' (numpy + OpenCV, about twice as fast; flows within 2e-4 px of the "
+            "reference) or 'numpy' (numpy + OpenCV, about 1.5x as fast; flows within 2e-4 px of the "
             "graph's) (default: graph)",
+        )
+    if mode:
+        group.add_argument(
+            "--mode",
+            default=mode,
+            choices=MODES,
+            help="how the CPUs are spent: 'latency' (one graph call at a time on every thread) or 'throughput' "
+            "(as many batches of the sequence computed at once as there are threads, one thread each; the "
+            f"same graph calls, the same outputs to float rounding) (default: {mode})",
         )
     if threads:
         group.add_argument(
@@ -98,6 +111,7 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
         threads=args.threads,
         backend=args.backend,
         rigid_op=getattr(args, "rigid_op", RIGID_OPS[0]),
+        mode=getattr(args, "mode", "latency"),
     )
 
 
@@ -195,7 +209,10 @@ def stage_table(per_frame_ms: dict[str, float], frames: int, overlapped: dict[st
     width = max([len(s) for s, _ in rows + more] + [5])
 
     def line(stage: str, ms: float) -> str:
-        meaning = f"  ({MEANINGS[stage]})" if stage in MEANINGS else ""
+        meaning = MEANINGS.get(
+            stage, "cascade threads, overlapped: not in the total" if stage.startswith("workers_") else ""
+        )
+        meaning = f"  ({meaning})" if meaning else ""
         return f"  {stage:<{width}}  {ms:8.2f}{meaning}"
 
     lines = [f"per-frame latency (mean over {frames} frames)", f"  {'stage':<{width}}  {'ms':>8}"]

@@ -86,7 +86,7 @@ def add_parser(sub) -> None:
     parser.add_argument(
         "--out", type=Path, required=True, help="output folder: new, empty, or an earlier predict's (created)"
     )
-    add_model_args(parser)
+    add_model_args(parser, mode="throughput")
     add_camera_args(parser)
     add_method_args(parser)
     parser.add_argument(

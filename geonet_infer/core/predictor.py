@@ -101,6 +101,7 @@ def load(
     threads: int | None = None,
     backend: str = "onnxruntime",
     rigid_op: str = "graph",
+    mode: str = "latency",
 ) -> Predictor:
     """Load a model: None = the bundled default, a bundled name, or a model directory.
 
@@ -109,15 +110,29 @@ def load(
         precision: "fp32", "int8" (quantised ConvNets; the rigid-flow op stays fp32), or "auto": per
             graph, the fastest of the model's precisions that is exact on this CPU, timed at load with
             the engines ``backend`` allows (``Predictor.graph_set.runs`` says what each graph runs).
-        threads: intra-op threads per graph; None = the CPUs this process may use.
+        threads: the CPUs to use; None = the CPUs this process may use. In latency mode each graph call
+            runs on all of them; in throughput mode as many batches of a sequence are computed at once, one
+            thread each.
         backend: "onnxruntime", "openvino" (extra ``geonet-infer[openvino]``) or "auto"
             (times both on each graph at load, keeps the faster; see :mod:`geonet_infer.engines`).
         rigid_op: "graph" (default: ``rigidflow.onnx`` on ``backend``, the reference) or "numpy"
-            (the weightless rigid-flow op in numpy + OpenCV, :mod:`geonet_infer.core.rigid`: about twice
+            (the weightless rigid-flow op in numpy + OpenCV, :mod:`geonet_infer.core.rigid`: about 1.5x
             as fast; flows agree with the graph's to 2e-4 px, so a KITTI flow PNG may differ by
             one 1/64 px step in a few values).
+        mode: "latency" (one graph call at a time on every thread) or "throughput" (a sequence's batches
+            computed at once, one thread each: more frames per second on a multi-core CPU). The same graph
+            calls either way: the same outputs to float rounding. See :data:`MODES`.
     """
-    return Predictor(resolve_model(model), precision=precision, threads=threads, backend=backend, rigid_op=rigid_op)
+    return Predictor(
+        resolve_model(model), precision=precision, threads=threads, backend=backend, rigid_op=rigid_op, mode=mode
+    )
+
+
+# How a Predictor spends its CPUs (issue 54). Recorded in summary.json and bench's JSON.
+MODES = {
+    "latency": "one call at a time, every graph on all threads (single calls, bench's latency figures)",
+    "throughput": "a sequence's batches computed at once, one graph call per thread (video jobs)",
+}
 
 
 OUTPUT_SIZES = ("input", "network")
@@ -149,6 +164,7 @@ class Predictor:
         manifest: Manifest | None = None,
         backend: str = "onnxruntime",
         rigid_op: str = "graph",
+        mode: str = "latency",
     ):
         if precision not in PRECISION_CHOICES:
             raise InputError(None, f"unknown precision {precision!r}", f"choose one of {', '.join(PRECISION_CHOICES)}")
@@ -158,10 +174,17 @@ class Predictor:
         self.model_dir = Path(self.manifest.root or model_dir)
         self.precision = precision
         self.spec = InputSpec.from_manifest(self.manifest)
+        if mode not in MODES:
+            raise InputError(None, f"unknown mode {mode!r}", f"choose one of {', '.join(MODES)}")
         self.threads = usable_cpus() if threads is None else check_threads(threads)
         self.backend = backend
+        self.mode = mode
+        # throughput: one thread per graph call, as many sequence batches in flight as threads
+        self.workers = self.threads if mode == "throughput" else 1
         # One engine per graph; for benchmarks and export's INT8 calibration (geonet_infer.core.cascade).
-        self.graph_set = GraphSet(self.manifest, precision, backend, self.threads, rigid_op)
+        self.graph_set = GraphSet(
+            self.manifest, precision, backend, 1 if mode == "throughput" else self.threads, rigid_op
+        )
 
     @property
     def graphs(self) -> tuple[str, ...]:
@@ -181,6 +204,7 @@ class Predictor:
     def __repr__(self) -> str:
         return (
             f"Predictor({str(self.model_dir)!r}, precision={self.precision!r}, threads={self.threads}, "
+            f"mode={self.mode!r}, "
             f"backend={self.backend!r}, arch={self.manifest.arch!r}, size={self.spec.height}x{self.spec.width})"
         )
 
@@ -413,6 +437,7 @@ class Predictor:
             need_depth=camera_height is not None or "pose" in classical,
             check=check,
             output_size=output_size,
+            workers=self.workers,
         )
         if camera_height is not None:
             metric_camera = camera

@@ -5,6 +5,8 @@ wait for the writer, encode the result video, ...): those stages add up to the w
 no stage timed is shown as ``untimed``. The writer threads (pictures, PNG encoding, file writes,
 point clouds) run while the main thread goes on: their time is shown apart, as overlapped, and is
 not part of the sum; the main thread's share of it is ``write_wait`` (blocked on a full queue).
+In throughput mode the cascade runs on threads of its own too: its stages are shown apart as
+``workers_<stage>``, and the main thread's share is ``cascade_wait``.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ SEQUENTIAL = (
     *CLASSICAL_STAGES,
     "finite_check",  # every output checked finite (and depth not degenerate) before it is written
     "colour_scale",  # the pictures' steady colour scale, from the first frames (--colour-scale)
+    "cascade_wait",  # throughput mode: waiting for the cascade threads' next batch
     "write_wait",  # blocked on the writer threads (their queue is full)
     "video",  # encoding the --video-out frames
     "rerun",  # logging the --rerun recording
@@ -32,6 +35,7 @@ SEQUENTIAL = (
 OVERLAPPED = ("write", "write_cpu")  # the writer threads: wall time and CPU time, alongside the others
 MEANINGS = {
     "write_wait": "main thread blocked on the writer",
+    "cascade_wait": "main thread waiting for the cascade threads",
     "untimed": "not timed by a stage",
     "total": "wall time per frame",
     "write": "writer threads, overlapped: not in the total",
@@ -52,10 +56,12 @@ def timed(totals: dict[str, float], stage: str) -> Iterator[None]:
 def latency_table(totals: dict[str, float], frames: int, wall_s: float) -> tuple[dict, dict]:
     """(``timings_ms_per_frame``, ``overlapped_ms_per_frame``) from the run's summed ms per stage.
 
-    The first adds up: its stages plus ``untimed`` are ``total``, the wall time per frame."""
+    The first adds up: its stages plus ``untimed`` are ``total``, the wall time per frame; the cascade
+    threads' ``workers_<stage>`` (throughput mode) are overlapped."""
     n = max(frames, 1)
     sequential = {s: totals[s] / n for s in SEQUENTIAL if totals.get(s)}
     wall = wall_s * 1e3 / n
     sequential["untimed"] = wall - sum(sequential.values())
     sequential["total"] = wall
-    return sequential, {s: totals[s] / n for s in OVERLAPPED if totals.get(s)}
+    workers = {s: ms / n for s, ms in totals.items() if s.startswith("workers_") and ms}
+    return sequential, {**workers, **{s: totals[s] / n for s in OVERLAPPED if totals.get(s)}}

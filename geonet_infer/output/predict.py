@@ -419,6 +419,8 @@ def _predict(
             "graphs": predictor.graph_set.runs,  # per graph: engine, precision and why
             "isa": isa_line(),
             "threads": predictor.threads,
+            "mode": predictor.mode,  # latency | throughput (geonet_infer.core.predictor.MODES)
+            "workers": predictor.workers,  # sequence batches computed at once
             "graph_size": [predictor.spec.height, predictor.spec.width],
             "random_init": predictor.manifest.random_init,
         },

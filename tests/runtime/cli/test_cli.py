@@ -66,7 +66,10 @@ def run_cli(capture, *argv) -> tuple[int, str, str]:
 def test_predict_folder_writes_the_layout_and_matches_the_api(tmp_path, capsys, predictor):
     folder = sample_folder(tmp_path)
     out = tmp_path / "out"
-    rc, stdout, stderr = run_cli(capsys, "predict", folder, "--out", out, "--calib", SAMPLE_CALIB, "--no-progress")
+    # latency mode: the API's default, the same graph calls bit for bit (throughput: tests/runtime/core/test_modes.py)
+    rc, stdout, stderr = run_cli(
+        capsys, "predict", folder, "--out", out, "--calib", SAMPLE_CALIB, "--no-progress", "--mode", "latency"
+    )
     assert rc == 0, stderr
     names = [f"{i:06d}" for i in range(5)]
     assert stems(out / "depth", "*.npy") == names and stems(out / "depth", "*.png") == names

@@ -7,12 +7,15 @@ import json
 import pytest
 
 from geonet_infer.cli import main
+from geonet_infer.engines import usable_cpus
 from geonet_infer.samples import SAMPLE_CALIB, SAMPLE_FRAMES
 
 
-def test_the_stage_table_adds_up_to_the_wall_time_and_states_the_overlap(tmp_path, capsys):
+@pytest.mark.parametrize("mode", ["latency", "throughput"])
+def test_the_stage_table_adds_up_to_the_wall_time_and_states_the_overlap(tmp_path, capsys, mode):
     out = tmp_path / "out"
-    argv = ["predict", SAMPLE_FRAMES, "--out", out, "--calib", SAMPLE_CALIB, "--no-progress", "--quiet"]
+    argv = ["predict", SAMPLE_FRAMES, "--out", out, "--calib", SAMPLE_CALIB, "--no-progress", "--quiet", "--mode", mode]
+    argv += ["--threads", "2"] if mode == "throughput" and usable_cpus() >= 2 else []
     more = ["--camera-height", "1.65", "--video-out", out / "video.mp4", "--point-cloud", "world"]
     assert main([str(a) for a in [*argv, *more, "--point-stride", "8"]]) == 0
     printed = capsys.readouterr().out
@@ -22,10 +25,11 @@ def test_the_stage_table_adds_up_to_the_wall_time_and_states_the_overlap(tmp_pat
     # (that the stages plus "untimed" add up to "total" holds by construction: latency_table, tested below)
     assert table["total"] == pytest.approx(wall, rel=1e-9)  # the total is the run's wall time per frame
     assert table["untimed"] >= 0  # the stages are the main thread's, one after another: never more than the wall
+    cascade = ("depthnet", "posenet")
+    parallel = summary["model"]["workers"] > 1  # throughput mode: the cascade on threads of its own, apart
     stages = (
         "read",
-        "depthnet",
-        "posenet",
+        *(("cascade_wait",) if parallel else cascade),
         "ground_fit",
         "finite_check",
         "colour_scale",
@@ -36,6 +40,8 @@ def test_the_stage_table_adds_up_to_the_wall_time_and_states_the_overlap(tmp_pat
     for stage in stages:
         assert table[stage] > 0, stage  # every stage that costs time is in the table
     assert "write" not in table and overlapped["write"] > 0 and overlapped["write_cpu"] > 0
+    for stage in cascade if parallel else ():
+        assert stage not in table and overlapped[f"workers_{stage}"] > 0
     lines = {line.split()[0]: line for line in printed.splitlines() if line.startswith("  ")}
     assert "overlapped: not in the total" in lines["write"]
     assert "wall time per frame" in lines["total"] and f"{table['total']:.2f}" in lines["total"]
