@@ -29,9 +29,13 @@ class GraphSet:
     ``rigid_op``: "graph" runs ``rigidflow.onnx`` on ``backend`` like the other graphs; "numpy" runs
     the weightless op with :class:`geonet_infer.core.rigid.RigidFlowOp` (about 1.5x as fast, within
     2e-4 px of the graph) where the manifest's sampler is the one it implements.
+    ``threads`` per graph call; ``streams``: graph calls made at once from as many Python threads
+    (throughput mode, :class:`geonet_infer.engines.Engine`).
     """
 
-    def __init__(self, manifest: Manifest, precision: str, backend: str, threads: int, rigid_op: str = "graph"):
+    def __init__(
+        self, manifest: Manifest, precision: str, backend: str, threads: int, rigid_op: str = "graph", streams: int = 1
+    ):
         if rigid_op not in RIGID_OPS:
             raise InputError(None, f"unknown rigid_op {rigid_op!r}", f"choose one of {', '.join(RIGID_OPS)}")
         self.manifest = manifest
@@ -55,14 +59,14 @@ class GraphSet:
             unsafe = self._int8_unsafe(name, files, engines, warn=backend != AUTO and precision != AUTO)
             if backend == AUTO or len(files) > 1:
                 engine, self.backend_choice[name] = pick_fastest(
-                    files if precision == AUTO else files[precision], threads, unsafe, engines
+                    files if precision == AUTO else files[precision], threads, unsafe, engines, streams
                 )
                 chosen_precision = self.backend_choice[name].get("precision", precision)
                 why = "auto: fastest " + ("exact engine and precision" if len(files) > 1 else "installed engine")
                 why += " at load"
             else:
                 (chosen_precision, path), *_ = files.items()
-                engine = make_engine(path, backend, threads)
+                engine = make_engine(path, backend, threads, streams)
                 why = f"backend {backend}"
                 if precision == AUTO:
                     why += f"; precision auto: {chosen_precision} is the model's only {name}"

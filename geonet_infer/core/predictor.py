@@ -183,7 +183,7 @@ class Predictor:
         self.workers = self.threads if mode == "throughput" else 1
         # One engine per graph; for benchmarks and export's INT8 calibration (geonet_infer.core.cascade).
         self.graph_set = GraphSet(
-            self.manifest, precision, backend, 1 if mode == "throughput" else self.threads, rigid_op
+            self.manifest, precision, backend, self.threads // self.workers, rigid_op, streams=self.workers
         )
 
     @property

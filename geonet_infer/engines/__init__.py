@@ -21,7 +21,7 @@ library itself::
         cls.requires        # "the OpenVINO runtime": what is missing when available() is False
         cls.summary         # the engine in --backend's help text
 
-and an engine (``make_engine(path, name, threads)`` or ``pick_fastest(path, threads)``) has
+and an engine (``make_engine(path, name, threads, streams)`` or ``pick_fastest(path, threads, streams=)``) has
 ``name``, ``input_names``, ``output_names``, ``run(feeds)``, ``io()``, ``input_shapes()``
 and ``describe()`` (:class:`Engine`).
 
@@ -40,7 +40,7 @@ Adding an engine is one new module plus one registry line. A TensorRT engine, sa
         @staticmethod
         def version() -> str | None: ...
 
-        def __init__(self, path, threads):  # raise BackendUnavailableError(None, ..., install_hint)
+        def __init__(self, path, threads, streams=1):  # raise BackendUnavailableError(None, ..., install_hint)
             ...                             # when not available(); ModelError for a bad file
         # run / io / input_shapes / describe as in the Engine protocol
 
@@ -137,7 +137,9 @@ class Engine(Protocol):
     input_names: list[str]
     output_names: list[str]
 
-    def __init__(self, path: str | Path, threads: int | None) -> None: ...
+    def __init__(self, path: str | Path, threads: int | None, streams: int = 1) -> None:
+        """``threads`` per call; ``streams``: calls the engine runs at once from as many Python threads
+        (throughput mode; onnxruntime sessions take concurrent calls as they are)."""
 
     @staticmethod
     def available() -> bool: ...
@@ -166,7 +168,7 @@ BACKENDS = (*ENGINES, AUTO)  # what load(backend=) and --backend accept
 REFERENCE_MARGIN = 0.05
 
 
-def make_engine(path: str | Path, backend: str, threads: int | None) -> Engine:
+def make_engine(path: str | Path, backend: str, threads: int | None, streams: int = 1) -> Engine:
     """The engine ``backend`` (a key of :data:`ENGINES`) for one graph file.
 
     Raises InputError for an unknown name, BackendUnavailableError (from the engine) when its
@@ -174,7 +176,7 @@ def make_engine(path: str | Path, backend: str, threads: int | None) -> Engine:
     """
     if backend not in ENGINES:
         raise InputError(None, f"unknown backend {backend!r}", f"choose one of {', '.join(BACKENDS)}")
-    return ENGINES[backend](path, threads)
+    return ENGINES[backend](path, threads, streams)
 
 
 def timing_feeds(engine: Engine, seed: int = 0) -> dict[str, np.ndarray]:
@@ -208,8 +210,10 @@ def pick_fastest(
     threads: int | None,
     skip: dict[str, str] | None = None,
     engines: list[str] | None = None,
+    streams: int = 1,
 ) -> tuple[Engine, dict]:
     """The fastest engine for one graph on this machine (batch 1), and the record behind the choice.
+    ``streams``: what each engine is made with (:class:`Engine`); the timing is one call at a time.
 
     ``files``: the graph's file, or {precision: file} (``precision="auto"``: the precision is chosen
     too; the first precision is the reference). ``engines``: the engine names to consider (default:
@@ -233,7 +237,7 @@ def pick_fastest(
         for engine in names
     }
     (first_engine, first_precision), *others = labels
-    fallback = ENGINES[first_engine](by_precision[first_precision], threads)
+    fallback = ENGINES[first_engine](by_precision[first_precision], threads, streams)
     skipped = sorted({f"{e} not installed" for e, _ in others if not ENGINES[e].available()})
     skipped += [f"{labels[c]}: {skip[labels[c]]}" for c in others if ENGINES[c[0]].available() and labels[c] in skip]
     others = [c for c in others if ENGINES[c[0]].available() and labels[c] not in skip]
@@ -245,7 +249,7 @@ def pick_fastest(
         return fallback, record(first_engine, first_precision, reason="; ".join(skipped))
     try:
         candidates = {labels[first_engine, first_precision]: fallback}
-        candidates.update({labels[e, p]: ENGINES[e](by_precision[p], threads) for e, p in others})
+        candidates.update({labels[e, p]: ENGINES[e](by_precision[p], threads, streams) for e, p in others})
         feeds = timing_feeds(fallback)
         cases = [Case(label, partial(engine.run, feeds)) for label, engine in candidates.items()]
         # interleaved blocks, so all see the same background load; no quiet-wait at load time

@@ -166,7 +166,8 @@ class OrtEngine:
     def version() -> str | None:
         return ort.__version__
 
-    def __init__(self, path: str | Path, threads: int | None):
+    def __init__(self, path: str | Path, threads: int | None, streams: int = 1):
+        del streams  # a session takes concurrent calls as it is
         self.path = Path(path)
         self.session = make_session(self.path, make_session_options(threads=threads))
         self.input_names = [i.name for i in self.session.get_inputs()]

@@ -52,7 +52,7 @@ class OpenVinoEngine:
         ov = _openvino()
         return None if ov is None else ov.__version__
 
-    def __init__(self, path: str | Path, threads: int | None):
+    def __init__(self, path: str | Path, threads: int | None, streams: int = 1):
         ov = _openvino()
         if ov is None:
             raise BackendUnavailableError(
@@ -74,9 +74,11 @@ class OpenVinoEngine:
             ) from exc
         self.input_names = [p.get_any_name() for p in self.model.inputs]
         self.output_names = [p.get_any_name() for p in self.model.outputs]
-        self.config = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32", "NUM_STREAMS": "1"}
+        # streams > 1 (throughput mode): as many infer requests run at once, each on `threads` threads; with one
+        # stream, requests from several Python threads wait for each other (measured: 1.0x, against 1.9x)
+        self.config = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32", "NUM_STREAMS": str(streams)}
         if threads is not None:
-            self.config["INFERENCE_NUM_THREADS"] = str(threads)
+            self.config["INFERENCE_NUM_THREADS"] = str(threads * streams)
         self._compiled: dict[tuple, tuple] = {}  # input shapes -> (compiled model, output ports)
         self._compile_lock = threading.Lock()
         self._local = threading.local()  # .requests: input shapes -> this thread's infer request

@@ -23,6 +23,7 @@ from geonet_infer.engines import (
     make_engine,
     pick_fastest,
     timing_feeds,
+    usable_cpus,
 )
 from geonet_infer.io import read_camera
 from geonet_infer.io.images import list_images
@@ -75,6 +76,21 @@ def test_openvino_compiles_each_batch_size_once(sequence):
         np.testing.assert_allclose(result.depth, single, rtol=1e-4)
     engine = predictor.graph_set.engine("depthnet")
     assert sorted(k[0][0] for k in engine._compiled) == [1, 3]
+
+
+@needs_openvino
+def test_openvino_in_throughput_mode_runs_one_stream_per_worker_and_keeps_the_results(sequence, ort_fp32):
+    """Throughput mode calls a graph from several threads at once: OpenVINO needs a stream for each (with one,
+    the calls wait for each other), each stream one thread."""
+    frames, camera = sequence
+    workers = min(2, usable_cpus())
+    predictor = geonet_infer.load(precision="fp32", backend="openvino", mode="throughput", threads=workers)
+    predictor.predict_sequence(frames, camera=camera)  # compiles
+    props = predictor.graph_set.engine("depthnet").describe()["properties"]
+    assert (props["NUM_STREAMS"], props["INFERENCE_NUM_THREADS"]) == (str(workers), str(workers))
+    _assert_close(
+        ort_fp32, predictor.predict_sequence(frames, camera=camera), depth_rtol=1e-4, flow_atol=1e-2, pose_atol=1e-5
+    )
 
 
 @needs_openvino
@@ -141,7 +157,7 @@ class _FakeEngine:
     def version() -> str | None:
         return "0"
 
-    def __init__(self, path, threads):
+    def __init__(self, path, threads, streams=1):
         self.ort = OrtEngine(path, threads)
         self.input_names, self.output_names = self.ort.input_names, self.ort.output_names
 
