@@ -134,7 +134,7 @@ def test_freeze_depth_trains_posenet_alone(synth_prepared, tmp_path):
     """--freeze-depth (issue 53): stage rigid leaves DepthNet's weights and batch-norm statistics as initialised."""
     first = train(config(synth_prepared, tmp_path / "a", max_steps=1), progress=False)
     frozen = train(
-        config(synth_prepared, tmp_path / "b", max_steps=3, freeze_depth=True, init_checkpoint=str(first["last"])),
+        config(synth_prepared, tmp_path / "b", max_steps=2, freeze_depth=True, init_checkpoint=str(first["last"])),
         progress=False,
     )
     before = load_checkpoint(first["last"])["model"]
