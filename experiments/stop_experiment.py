@@ -62,10 +62,11 @@ STILL_FRAMES = 12
 
 
 def predict(model: str | Path, source: Path, out: Path, calib: Path, precision: str = "fp32") -> dict:
-    """``geonet-infer predict`` as a user runs it (poses and flow written, the check on)."""
+    """``geonet-infer predict`` as a user runs it (poses and flow written, the check on), in latency mode: round
+    1's graph calls."""
     cmd = [sys.executable, "-m", "geonet_infer.cli", "predict", str(source), "--out", str(out), "--model",
            str(model), "--precision", precision, "--calib", str(calib), "--outputs", "poses,flow-png",
-           "--no-progress", "--quiet", "--mode", "latency"]  # fmt: skip  (latency: round 1's graph calls)
+           "--no-progress", "--quiet", "--mode", "latency"]  # fmt: skip
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     return json.loads((out / "summary.json").read_text())
 
