@@ -1,7 +1,7 @@
 """Issue 53: does the model see a stop? The rule (written before any candidate was scored) and its verdict.
 
     python -m experiments.stop_experiment --out docs/stop_experiment.json                  the rule alone
-    python -m experiments.stop_experiment --round 2 --out docs/stop_experiment_round2.json ...   round 2
+    python -m experiments.stop_experiment --round 2 --out docs/stop_experiment_round2.json ...   round 2 (3 alike)
     python -m experiments.stop_experiment --out docs/stop_experiment.json \\
         --before-model geonet_infer/models/small_synth --before docs/real_eval.json \\
         --after-model runs/stop/model --after runs/stop/real_eval.json                     scored
@@ -54,6 +54,12 @@ NOTES[2] = (  # written before round 2 was scored, with the same rule
     "(`--freeze-depth`: the still copies give it no photometric signal, and round 1's depth got worse), "
     "`--flow-supervision 3` (round 1's flow still lost to no motion on most real pairs), 25 minutes rigid and "
     "45 minutes flow on the same 2 cores, the same data and motion mix."
+)
+NOTES[3] = (  # written before round 3 was scored, with the same rule
+    "Round 3 (`OUT=runs/stop3 bash scripts/stop_finetune.sh`): round 2's frozen DepthNet, without the "
+    "time-reversed snippets (held-out pose got worse in rounds 1 and 2 while the stops were learnt), round 1's "
+    "`--flow-supervision 1` (round 2's 3 made the held-out flow worse), 20 minutes rigid and 20 minutes flow "
+    "on the same 2 cores."
 )
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"

@@ -10,12 +10,16 @@
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
-#   OUT=runs/stop2 bash scripts/stop_finetune.sh   round 2 (the default); ROUND=1 for round 1's settings
+#   OUT=runs/stop3 bash scripts/stop_finetune.sh   round 3 (the default); ROUND=1 or 2 for those rounds' settings
 #
 # Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
 # Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
 # signal, and round 1's depth got worse), flow supervision 3 (round 1's flow still lost to no motion on
 # most real pairs), 25 min rigid + 45 min flow.
+# Round 3: round 2's frozen depth without the time-reversed snippets (held-out pose got worse in rounds 1
+# and 2 while the stops were learnt: are reversed snippets what confuses PoseNet?), round 1's flow
+# supervision 1 (round 2's 3 made held-out flow worse), 20 + 20 min. The same prepared folders, their
+# train.txt without the *_reverse samples (data/*_norev).
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -24,14 +28,18 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-2} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-3} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
-else
+elif [ "$ROUND" = 2 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-25} FLOW_MINUTES=${FLOW_MINUTES:-45} FLOW_SUPERVISION=${FLOW_SUPERVISION:-3}
     RIGID_FLAGS=(--freeze-depth)
+else
+    RIGID_MINUTES=${RIGID_MINUTES:-20} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
+    RIGID_FLAGS=(--freeze-depth) REAL=_norev
 fi
+REAL=${REAL:-}  # the real folders' suffix: _norev = their train.txt without the time-reversed samples
 RIGID_LR=${RIGID_LR:-5e-5} FLOW_LR=${FLOW_LR:-1e-4}
 OUT=${OUT:-runs/stop} INIT=${INIT:-weights/small_synth.pt} INT8_OPS=${INT8_OPS:-Conv,Relu,Add,MaxPool}
 REALDATA=${REALDATA:-../shared/realdata} CLIPS=${CLIPS:-../shared/realdata/udacity_dashcam}
@@ -53,6 +61,11 @@ if want prepare; then
     [ -f data/s_udacity_guess/train.txt ] || run $PY -m training.prepare --kind video --src data/t_clips_guess \
         --calib "$CLIPS/intrinsics_960x540_GUESS_UNVERIFIED.txt" --crop 0,215,960,295 --out data/s_udacity_guess \
         --teacher-flow dis --val-fraction 0 --motion-mix "$MIX"
+    for d in s_odom s_udacity s_udacity_guess; do  # the same samples without the time-reversed ones
+        mkdir -p "data/${d}_norev"
+        for x in "data/$d"/*; do [ "$(basename "$x")" = train.txt ] || ln -sfn "$(realpath "$x")" "data/${d}_norev/"; done
+        grep -v "_reverse$" "data/$d/train.txt" > "data/${d}_norev/train.txt"
+    done
     [ -f data/synth40/seq_0039/poses.txt ] || run $PY -m training.synth --out data/synth40 --sequences 40 \
         --frames 40 --seed 2026 --workers 1
     [ -f data/synth40_pose/heldout.txt ] || run $PY -m training.prepare --kind synth --src data/synth40 \
@@ -62,8 +75,8 @@ fi
 if want rigid; then
     run $PY -m training.train --stage rigid --arch small --device "$DEVICE" --bn-momentum 0.01 --num-workers 0 \
         --mask-out-of-view --automask "${RIGID_FLAGS[@]}" --lr "$RIGID_LR" --pose-supervision "$POSE_SUPERVISION" \
-        --data-dir data/s_odom --extra-data-dir data/s_odom --extra-data-dir data/s_udacity \
-        --extra-data-dir data/s_udacity_guess --extra-data-dir data/synth40_pose --init-checkpoint "$INIT" \
+        --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$REAL" \
+        --extra-data-dir "data/s_udacity_guess$REAL" --extra-data-dir data/synth40_pose --init-checkpoint "$INIT" \
         --out-dir "$OUT/rigid" --max-steps 100000 --max-minutes "$RIGID_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20
 fi
@@ -71,7 +84,7 @@ fi
 if want flow; then
     run $PY -m training.checkpoint --combine "$OUT/rigid/last.pt" "$INIT" "$OUT/rigid_combined.pt"
     run $PY -m training.train --stage flow --arch small --device "$DEVICE" --num-workers 0 \
-        --data-dir data/s_udacity --extra-data-dir data/s_udacity_guess --extra-data-dir data/s_odom \
+        --data-dir "data/s_udacity$REAL" --extra-data-dir "data/s_udacity_guess$REAL" --extra-data-dir "data/s_odom$REAL" \
         --init-checkpoint "$OUT/rigid_combined.pt" --out-dir "$OUT/flow" --flow-supervision "$FLOW_SUPERVISION" \
         --lr "$FLOW_LR" --batch-size 4 --max-steps 100000 --max-minutes "$FLOW_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20
