@@ -46,16 +46,17 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def trainable_modules(model: GeoNet, stage: str, freeze_depth: bool = False) -> list[torch.nn.Module]:
-    if stage == "flow":
+def trainable_modules(model: GeoNet, cfg: TrainConfig) -> list[torch.nn.Module]:
+    """The nets the stage trains (``--freeze-depth``: stage rigid without DepthNet)."""
+    if cfg.stage == "flow":
         return [model.flow_net]
-    return [model.pose_net] if freeze_depth else [model.depth_net, model.pose_net]
+    return [model.pose_net] if cfg.freeze_depth else [model.depth_net, model.pose_net]
 
 
-def set_modes(model: GeoNet, stage: str, training: bool, freeze_depth: bool = False) -> None:
+def set_modes(model: GeoNet, cfg: TrainConfig, training: bool) -> None:
     """Only the stage's own nets use batch statistics; frozen nets use moving averages."""
     model.eval()
-    for module in trainable_modules(model, stage, freeze_depth):
+    for module in trainable_modules(model, cfg):
         module.train(training)
 
 
@@ -145,7 +146,7 @@ def to_device(batch: dict, device: torch.device) -> tuple:
 def validate(model: GeoNet, cfg: TrainConfig, val_set: SequenceDataset | None, device: torch.device) -> dict:
     if val_set is None or len(val_set) == 0:
         return {}
-    set_modes(model, cfg.stage, training=False, freeze_depth=cfg.freeze_depth)
+    set_modes(model, cfg, training=False)
     loader = make_loader(val_set, cfg.batch_size, shuffle=False, seed=cfg.seed)
     sums: dict[str, float] = {}
     count = 0
@@ -155,7 +156,7 @@ def validate(model: GeoNet, cfg: TrainConfig, val_set: SequenceDataset | None, d
         for name, value in stage_loss(model, cfg.stage, *to_device(batch, device)).terms.items():
             sums[name] = sums.get(name, 0.0) + value
         count += 1
-    set_modes(model, cfg.stage, training=True, freeze_depth=cfg.freeze_depth)
+    set_modes(model, cfg, training=True)
     return {f"val_{k}": v / count for k, v in sums.items()}
 
 
@@ -287,7 +288,7 @@ class Trainer:
         if cfg.sync_bn:
             distributed.convert_sync_bn(model)
         model = model.to(rt.device, memory_format=torch.channels_last if cfg.channels_last else torch.preserve_format)
-        trainable = trainable_modules(model, cfg.stage, cfg.freeze_depth)
+        trainable = trainable_modules(model, cfg)
         params = [p for m in trainable for p in m.parameters() if p.requires_grad]
         frozen = [m for m in (model.depth_net, model.pose_net, model.flow_net) if m is not None and m not in trainable]
         for module in frozen:
@@ -334,7 +335,7 @@ class Trainer:
         steps_per_epoch = len(self.sampler) // cfg.batch_size
         self.epoch = self.step // steps_per_epoch
         batches = epoch_loader(self.train_set, self.sampler, cfg, self.epoch, skip_batches=self.step % steps_per_epoch)
-        set_modes(self.model, cfg.stage, training=True, freeze_depth=cfg.freeze_depth)
+        set_modes(self.model, cfg, training=True)
         bar = tqdm(
             total=cfg.max_steps,
             initial=self.step,

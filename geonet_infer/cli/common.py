@@ -201,7 +201,7 @@ def stage_table(per_frame_ms: dict[str, float], frames: int, overlapped: dict[st
     """A plain-text table of the mean ms per frame of each stage that ran: summary.json's
     ``timings_ms_per_frame`` (they add up to its total, the wall time per frame), then its
     ``overlapped_ms_per_frame`` apart (:mod:`geonet_infer.output.latency`)."""
-    from geonet_infer.output.latency import MEANINGS
+    from geonet_infer.output.latency import meaning
 
     rows = [(s, ms) for s, ms in per_frame_ms.items() if s != "total" and ms and round(ms, 2)]
     rows.append(("total", per_frame_ms.get("total", sum(ms for _, ms in rows))))
@@ -209,11 +209,8 @@ def stage_table(per_frame_ms: dict[str, float], frames: int, overlapped: dict[st
     width = max([len(s) for s, _ in rows + more] + [5])
 
     def line(stage: str, ms: float) -> str:
-        meaning = MEANINGS.get(
-            stage, "cascade threads, overlapped: not in the total" if stage.startswith("workers_") else ""
-        )
-        meaning = f"  ({meaning})" if meaning else ""
-        return f"  {stage:<{width}}  {ms:8.2f}{meaning}"
+        said = meaning(stage)
+        return f"  {stage:<{width}}  {ms:8.2f}{f'  ({said})' if said else ''}"
 
     lines = [f"per-frame latency (mean over {frames} frames)", f"  {'stage':<{width}}  {'ms':>8}"]
     return "\n".join(lines + [line(s, ms) for s, ms in rows + more])

@@ -21,6 +21,7 @@ from geonet_infer.core.graphs import GraphSet
 from geonet_infer.core.results import FrameResult
 from geonet_infer.core.snippets import snippet_window
 from geonet_infer.core.spec import (
+    CASCADE_THREADS,
     ImageLike,
     InputSpec,
     Intrinsics,
@@ -96,7 +97,6 @@ def iter_frames(
         graphs,
         spec,
         run_depth=need_depth or "depth" in tasks or flow_task,
-        run_pose=run_pose,
         with_flow=flow_task,
         check=check and flow_task,
         output_size=output_size,
@@ -131,7 +131,7 @@ def iter_frames(
 
 def _timings(batch: _Batch, workers: int) -> dict[str, float]:
     """A frame's share of its batch's stage times. With several workers the cascade's stages ran on their
-    threads, beside this one's: they are named ``workers_<stage>`` and left out of ``total``."""
+    threads, beside this one's: they are named :data:`CASCADE_THREADS` + stage and left out of ``total``."""
     share = 1.0 / len(batch.frames)
     if workers == 1:
         merged = StageTimer()
@@ -140,7 +140,7 @@ def _timings(batch: _Batch, workers: int) -> dict[str, float]:
                 merged.ms[stage] += ms
         return merged.result(share)
     return {
-        **{f"workers_{stage}": ms * share for stage, ms in batch.timer.ms.items()},
+        **{CASCADE_THREADS + stage: ms * share for stage, ms in batch.timer.ms.items()},
         **batch.read_timer.result(share),
     }
 
@@ -250,7 +250,6 @@ def _compute(
     batch: _Batch,
     *,
     run_depth: bool,
-    run_pose: bool,
     with_flow: bool,
     check: bool,
     output_size: str,

@@ -230,6 +230,8 @@ ImageLike = np.ndarray | str | Path
 Intrinsics = np.ndarray | Sequence[Sequence[float]] | Camera
 # "read" .. "check" are timed here; "write" by pipeline.predict_to_dir (saving outputs).
 STAGES = ("read", "preprocess", "depthnet", "posenet", "rigidflow", "resflownet", "postprocess", "check", "write")
+# throughput mode: a stage that ran on the cascade threads, beside the caller's, is named with this prefix
+CASCADE_THREADS = "workers_"
 
 
 class StageTimer:

@@ -16,7 +16,7 @@ import time
 from collections.abc import Iterator
 
 from geonet_infer.classical import CLASSICAL_STAGES
-from geonet_infer.core.spec import STAGES
+from geonet_infer.core.spec import CASCADE_THREADS, STAGES
 
 # the main thread's stages, in table order
 SEQUENTIAL = (
@@ -43,6 +43,13 @@ MEANINGS = {
 }
 
 
+def meaning(stage: str) -> str:
+    """What a row of the latency table is, where it needs saying ("" otherwise)."""
+    if stage.startswith(CASCADE_THREADS):
+        return "cascade threads, overlapped: not in the total"
+    return MEANINGS.get(stage, "")
+
+
 @contextlib.contextmanager
 def timed(totals: dict[str, float], stage: str) -> Iterator[None]:
     """Add the block's wall time (ms) to ``totals[stage]``."""
@@ -63,5 +70,5 @@ def latency_table(totals: dict[str, float], frames: int, wall_s: float) -> tuple
     wall = wall_s * 1e3 / n
     sequential["untimed"] = wall - sum(sequential.values())
     sequential["total"] = wall
-    workers = {s: ms / n for s, ms in totals.items() if s.startswith("workers_") and ms}
+    workers = {s: ms / n for s, ms in totals.items() if s.startswith(CASCADE_THREADS) and ms}
     return sequential, {**workers, **{s: totals[s] / n for s in OVERLAPPED if totals.get(s)}}
