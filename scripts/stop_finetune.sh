@@ -10,7 +10,7 @@
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
-#   OUT=runs/stop3 bash scripts/stop_finetune.sh   round 3 (the default); ROUND=1 or 2 for those rounds' settings
+#   OUT=runs/stop4 bash scripts/stop_finetune.sh   round 4 (the default); ROUND=1, 2 or 3 for those rounds' settings
 #
 # Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
 # Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
@@ -20,6 +20,12 @@
 # and 2 while the stops were learnt: are reversed snippets what confuses PoseNet?), round 1's flow
 # supervision 1 (round 2's 3 made held-out flow worse), 20 + 20 min. The same prepared folders, their
 # train.txt without the *_reverse samples (data/*_norev).
+# Round 4: rounds 1-3 lost held-out pose to step-length jitter (experiments/stop_diagnosis.py): the
+# scale-aligned pose loss fits one scale per snippet, so nothing taught how fast the camera moves.
+# Round 2's data (stops were best learnt there) and frozen depth, plus --pose-speed 10 (one unit for
+# the run); the odometry snippets, the only ones with true poses, listed 5 times; the synthetic scenes
+# left out (another camera scale than the odometry rig's, which one unit cannot serve); round 3's flow
+# stage (flow supervision 1). 25 + 20 min.
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -28,16 +34,19 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-3} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-4} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
 elif [ "$ROUND" = 2 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-25} FLOW_MINUTES=${FLOW_MINUTES:-45} FLOW_SUPERVISION=${FLOW_SUPERVISION:-3}
     RIGID_FLAGS=(--freeze-depth)
-else
+elif [ "$ROUND" = 3 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-20} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth) REAL=_norev
+else
+    RIGID_MINUTES=${RIGID_MINUTES:-25} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
+    RIGID_FLAGS=(--freeze-depth --pose-speed 10)
 fi
 REAL=${REAL:-}  # the real folders' suffix: _norev = their train.txt without the time-reversed samples
 RIGID_LR=${RIGID_LR:-5e-5} FLOW_LR=${FLOW_LR:-1e-4}
@@ -73,10 +82,15 @@ if want prepare; then
 fi
 
 if want rigid; then
+    if [ "$ROUND" -ge 4 ]; then  # one rig with true poses (see round 4 above)
+        POSED=(--extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL")
+    else
+        POSED=(--extra-data-dir data/synth40_pose)
+    fi
     run $PY -m training.train --stage rigid --arch small --device "$DEVICE" --bn-momentum 0.01 --num-workers 0 \
         --mask-out-of-view --automask "${RIGID_FLAGS[@]}" --lr "$RIGID_LR" --pose-supervision "$POSE_SUPERVISION" \
         --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$REAL" \
-        --extra-data-dir "data/s_udacity_guess$REAL" --extra-data-dir data/synth40_pose --init-checkpoint "$INIT" \
+        --extra-data-dir "data/s_udacity_guess$REAL" "${POSED[@]}" --init-checkpoint "$INIT" \
         --out-dir "$OUT/rigid" --max-steps 100000 --max-minutes "$RIGID_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20
 fi

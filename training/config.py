@@ -196,6 +196,16 @@ def build_parser() -> argparse.ArgumentParser:
         "or synthetic data prepared with --train-pose; others keep only the self-supervised loss). Not in GeoNet",
     )
     p.add_argument(
+        "--pose-speed",
+        type=float,
+        default=d.weights.pose_speed,
+        metavar="W",
+        help="stage rigid, with --pose-supervision: add W x the speed error, each moving snippet's "
+        "predicted path against its true one under one unit for the whole run (the scale-aligned "
+        "error fits one per snippet, so it never teaches how fast the camera moves). Use it where "
+        "every sample with true poses comes from one camera rig. Not in GeoNet",
+    )
+    p.add_argument(
         "--device",
         default=d.device,
         help="auto (CUDA if present, else CPU), cpu, cuda or cuda:N; under torchrun each rank "
@@ -226,5 +236,6 @@ def config_from_args(argv=None) -> TrainConfig:
         depth_supervision=args.pop("depth_supervision"),
         flow_supervision=args.pop("flow_supervision"),
         pose_supervision=args.pop("pose_supervision"),
+        pose_speed=args.pop("pose_speed"),
     )
     return TrainConfig(**args, weights=weights)

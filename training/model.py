@@ -28,12 +28,15 @@ from training.geometry import (
 )
 from training.losses import (
     LossWeights,
+    SpeedUnit,
     edge_aware_smoothness,
     flow_endpoint_error,
     masked_mean,
+    path_lengths,
     photometric_error,
     scale_aligned_pose_error,
     scale_invariant_log_error,
+    speed_error,
 )
 from training.networks import DepthNet, PoseNet, ResFlowNet
 
@@ -157,6 +160,7 @@ class GeoNet(nn.Module):
         self.pose_net = PoseNet(num_source, arch=pose_arch, bn_momentum=bn_momentum)
         flow_arch = "small" if arch == "small" else "resnet50"
         self.flow_net = ResFlowNet(flow_arch, bn_momentum=bn_momentum) if with_flow else None
+        self.speed_unit = SpeedUnit()  # a plain attribute: not in the state dict, re-learnt on resume
 
     # ----------------------------------------------------------------- rigid
     def rigid_forward(
@@ -213,7 +217,8 @@ class GeoNet(nn.Module):
         synthetic scenes), the target's depth at every scale, upsampled to H x W, also pays the
         scale-invariant log error against it (a deviation from GeoNet, for pre-training).
         With ``weights.pose_supervision`` > 0 and ``pose_gt`` (B, N, 4, 4) true motion target ->
-        sources (zeros = none), PoseNet also pays the scale-aligned pose error against it.
+        sources (zeros = none), PoseNet also pays the scale-aligned pose error against it, and with
+        ``weights.pose_speed`` > 0 the speed error under the run's unit (:func:`speed_error`).
         """
         w = self.weights
         out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
@@ -245,6 +250,11 @@ class GeoNet(nn.Module):
             T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
             terms["pose_supervised"] = w.pose_supervision * scale_aligned_pose_error(T, pose_gt)
             total = total + terms["pose_supervised"]
+            if w.pose_speed > 0:
+                paths = path_lengths(T, pose_gt)
+                unit = self.speed_unit.update(*paths).to(T.device)
+                terms["pose_speed"] = w.pose_speed * speed_error(*paths, unit)
+                total = total + terms["pose_speed"]
         return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(

@@ -155,3 +155,33 @@ def test_a_still_snippet_is_taught_to_predict_no_motion():
         scale_aligned_pose_error(still_pred.detach(), still_truth), torch.tensor(0.1 / (2 * STILL_REF_STEP))
     )
     assert scale_aligned_pose_error(still_truth, still_truth).item() == 0.0
+
+
+def test_speed_error_sees_the_jitter_the_scale_aligned_error_forgives():
+    """Issue 53, round 4: two snippets at the same true speed, predicted at 0.1 and 0.2 per step. Each is
+    exact up to its own scale (scale-aligned error 0); under one unit for both the speeds disagree."""
+    from training.losses import SpeedUnit, path_lengths, scale_aligned_pose_error, speed_error
+
+    truth = torch.stack([_motion(0.0, [0, 0, -1.0]), _motion(0.0, [0, 0, 1.0])])[None].repeat(2, 1, 1, 1)
+    pred = truth.clone()
+    pred[0, :, :3, 3] *= 0.1
+    pred[1, :, :3, 3] *= 0.2
+    assert scale_aligned_pose_error(pred, truth).item() < 1e-6
+    paths = path_lengths(pred, truth)
+    torch.testing.assert_close(paths[0], torch.tensor([0.2, 0.4]))
+    torch.testing.assert_close(paths[1], torch.tensor([2.0, 2.0]))
+    # unit 10 (true metres per predicted unit): errors |2 - 2| / 2 = 0 and |4 - 2| / 2 = 1 -> mean 0.5
+    torch.testing.assert_close(speed_error(*paths, torch.tensor(10.0)), torch.tensor(0.5))
+    # the run's unit from this batch: least squares sum(t p) / sum(p^2) = (0.4 + 0.8) / (0.04 + 0.16) = 6
+    unit = SpeedUnit(momentum=0.9)
+    torch.testing.assert_close(unit.update(*paths), torch.tensor(6.0))
+    # a second batch at exactly 10 moves it a tenth of the way: 0.9 * 6 + 0.1 * 10 = 6.4
+    slow = truth.clone()
+    slow[..., :3, 3] *= 0.1
+    torch.testing.assert_close(unit.update(*path_lengths(slow, truth)), torch.tensor(6.4))
+    # still snippets (identity truth) and snippets without truth (zeros) neither count nor move the unit
+    others = torch.cat([torch.eye(4).expand(1, 2, 4, 4), torch.zeros(1, 2, 4, 4)])
+    still_paths = path_lengths(pred, others)
+    assert still_paths[2].sum().item() == 0.0
+    assert speed_error(*still_paths, torch.tensor(10.0)).item() == 0.0
+    torch.testing.assert_close(unit.update(*still_paths), torch.tensor(6.4))

@@ -3,6 +3,7 @@ weights only, devices and bad input are named."""
 
 import io
 import json
+import math
 import random
 import shutil
 from pathlib import Path
@@ -24,6 +25,7 @@ from training.checkpoint import (
     set_rng_state,
 )
 from training.config import TrainConfig, config_from_args
+from training.losses import LossWeights
 from training.train import main, train
 
 H, W = 64, 208  # CI-sized real frames: a quarter of the 128x416 pixels
@@ -457,6 +459,21 @@ def test_rigid_supervision_learns_synthetic_truth(synth_prepared, tmp_path, trut
     assert f"val_{truth}_supervised" in rows[-1]
     plain = train(config(synth_prepared, tmp_path / "plain", max_steps=1), progress=False)
     assert f"{truth}_supervised" not in read_log(plain["log"])[-1]
+
+
+def test_pose_speed_is_a_logged_term_off_by_default(synth_prepared, tmp_path):
+    """--pose-speed (issue 53, round 4) beside --pose-supervision: its term is logged, finite and
+    non-negative; off by default, and absent from the log then."""
+    supervised = prepare_with_truth(synth_prepared, tmp_path / "prepared", train_pose=True)
+    cfg = config_from_args(["--data-dir", str(supervised), "--pose-supervision", "1", "--pose-speed", "3"])
+    assert cfg.weights.pose_speed == 3.0 and config_from_args([]).weights.pose_speed == 0.0
+    result = train(config(supervised, tmp_path / "run", max_steps=4, weights=cfg.weights), progress=False)
+    rows = read_log(result["log"])
+    assert all(math.isfinite(r["pose_speed"]) and r["pose_speed"] >= 0 for r in rows if "pose_speed" in r)
+    assert any("pose_speed" in r for r in rows)
+    plain = LossWeights(pose_supervision=1.0)
+    result = train(config(supervised, tmp_path / "plain", max_steps=1, weights=plain), progress=False)
+    assert "pose_speed" not in read_log(result["log"])[-1]
 
 
 def test_flow_supervision_learns_synthetic_flow(synth_prepared, tmp_path):
