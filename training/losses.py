@@ -164,7 +164,9 @@ def scale_invariant_log_error(depth: torch.Tensor, depth_gt: torch.Tensor) -> to
     return (torch.sqrt(variance + 1e-8) * has_gt).sum() / has_gt.sum().clamp(min=1.0)
 
 
-def scale_aligned_pose_error(T: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor:
+def scale_aligned_pose_error(
+    T: torch.Tensor, T_gt: torch.Tensor, still_ref_step: torch.Tensor | None = None
+) -> torch.Tensor:
     """Error of predicted snippet motions against true ones, blind to the monocular scale.
 
     Per snippet, the predicted translations are scaled by the least-squares factor onto the true
@@ -177,10 +179,13 @@ def scale_aligned_pose_error(T: torch.Tensor, T_gt: torch.Tensor) -> torch.Tenso
     align; its translation error is the predicted path relative to the mean predicted step of the
     batch's moving snippets (the net's own unit, not differentiated; :data:`STILL_REF_STEP` when the
     batch has none), so a still camera learns to predict no motion whatever its depth scale.
+    ``still_ref_step`` (the run's mean moving step, :class:`SpeedUnit`) replaces both: a batch of still
+    snippets alone then does not pull every step toward the fixed constant (round 4's scale collapse).
 
     Args:
         T: (B, N, 4, 4) predicted motion target -> each source.
         T_gt: (B, N, 4, 4) true motion, all zeros for a snippet without.
+        still_ref_step: scalar tensor or None.
     Returns:
         scalar mean over the snippets that have true poses; 0 when none has.
     """
@@ -193,7 +198,9 @@ def scale_aligned_pose_error(T: torch.Tensor, T_gt: torch.Tensor) -> torch.Tenso
     aligned = (scale.view(-1, 1, 1) * t - t_gt).norm(dim=-1).sum(dim=1) / true_path.clamp(min=1e-3)
     predicted_path = t.norm(dim=-1).sum(dim=1)  # (B,)
     n_steps = t.shape[1]
-    if moving.sum() > 0:
+    if still_ref_step is not None:
+        ref_step = still_ref_step.to(T.dtype).clamp(min=1e-6)
+    elif moving.sum() > 0:
         ref_step = ((predicted_path * moving).sum() / moving.sum() / n_steps).detach().clamp(min=1e-6)
     else:
         ref_step = torch.as_tensor(STILL_REF_STEP, dtype=T.dtype, device=T.device)
@@ -237,19 +244,28 @@ def speed_error(
 
 
 class SpeedUnit:
-    """The run's unit for :func:`speed_error`: a running mean of the least-squares factor
-    ``Σ(true·predicted) / Σ(predicted²)`` over each batch's moving snippets (the first batch sets it)."""
+    """The run's unit for :func:`speed_error` and the reference a still snippet is measured against:
+    running means (the first batch sets them) over each batch's moving snippets of the least-squares
+    factor ``Σ(true·predicted) / Σ(predicted²)`` and of the predicted path."""
 
     def __init__(self, momentum: float = 0.9):
         self.momentum = momentum
-        self.value: float | None = None
+        self.unit: float | None = None
+        self.path: float | None = None
 
-    def update(self, predicted_path: torch.Tensor, true_path: torch.Tensor, moving: torch.Tensor) -> torch.Tensor:
+    def _blend(self, old: float | None, new: float) -> float:
+        return new if old is None else self.momentum * old + (1 - self.momentum) * new
+
+    def update(
+        self, predicted_path: torch.Tensor, true_path: torch.Tensor, moving: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(unit, mean moving path): 1.0 and None until a batch has a moving snippet."""
         p, t = predicted_path.detach() * moving, true_path.detach() * moving
         if moving.sum() > 0:
-            batch = float((p * t).sum() / p.square().sum().clamp(min=1e-12))
-            self.value = batch if self.value is None else self.momentum * self.value + (1 - self.momentum) * batch
-        return torch.as_tensor(self.value if self.value is not None else 1.0, dtype=predicted_path.dtype)
+            self.unit = self._blend(self.unit, float((p * t).sum() / p.square().sum().clamp(min=1e-12)))
+            self.path = self._blend(self.path, float(p.sum() / moving.sum()))
+        unit = torch.as_tensor(self.unit if self.unit is not None else 1.0, dtype=predicted_path.dtype)
+        return unit, None if self.path is None else torch.as_tensor(self.path, dtype=predicted_path.dtype)
 
 
 STILL_PATH = 1e-6  # a true path shorter than this (metres or unit steps) is a still camera

@@ -218,7 +218,8 @@ class GeoNet(nn.Module):
         scale-invariant log error against it (a deviation from GeoNet, for pre-training).
         With ``weights.pose_supervision`` > 0 and ``pose_gt`` (B, N, 4, 4) true motion target ->
         sources (zeros = none), PoseNet also pays the scale-aligned pose error against it, and with
-        ``weights.pose_speed`` > 0 the speed error under the run's unit (:func:`speed_error`).
+        ``weights.pose_speed`` > 0 the speed error under the run's unit (:func:`speed_error`), a still
+        snippet then measured against the run's mean moving step (:class:`SpeedUnit`).
         """
         w = self.weights
         out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
@@ -248,13 +249,15 @@ class GeoNet(nn.Module):
             total = total + terms["depth_supervised"]
         if w.pose_supervision > 0 and pose_gt is not None:
             T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
-            terms["pose_supervised"] = w.pose_supervision * scale_aligned_pose_error(T, pose_gt)
-            total = total + terms["pose_supervised"]
+            still_ref_step = None
             if w.pose_speed > 0:
                 paths = path_lengths(T, pose_gt)
-                unit = self.speed_unit.update(*paths).to(T.device)
-                terms["pose_speed"] = w.pose_speed * speed_error(*paths, unit)
-                total = total + terms["pose_speed"]
+                unit, moving_path = self.speed_unit.update(*paths)
+                terms["pose_speed"] = w.pose_speed * speed_error(*paths, unit.to(T.device))
+                still_ref_step = None if moving_path is None else moving_path.to(T.device) / N
+            pose_error = scale_aligned_pose_error(T, pose_gt, still_ref_step=still_ref_step)
+            terms["pose_supervised"] = w.pose_supervision * pose_error
+            total = total + terms["pose_supervised"] + terms.get("pose_speed", 0.0)
         return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(

@@ -172,16 +172,36 @@ def test_speed_error_sees_the_jitter_the_scale_aligned_error_forgives():
     torch.testing.assert_close(paths[1], torch.tensor([2.0, 2.0]))
     # unit 10 (true metres per predicted unit): errors |2 - 2| / 2 = 0 and |4 - 2| / 2 = 1 -> mean 0.5
     torch.testing.assert_close(speed_error(*paths, torch.tensor(10.0)), torch.tensor(0.5))
-    # the run's unit from this batch: least squares sum(t p) / sum(p^2) = (0.4 + 0.8) / (0.04 + 0.16) = 6
-    unit = SpeedUnit(momentum=0.9)
-    torch.testing.assert_close(unit.update(*paths), torch.tensor(6.0))
-    # a second batch at exactly 10 moves it a tenth of the way: 0.9 * 6 + 0.1 * 10 = 6.4
+    # the run's unit from this batch: least squares sum(t p) / sum(p^2) = (0.4 + 0.8) / (0.04 + 0.16) = 6;
+    # its mean moving path (0.2 + 0.4) / 2 = 0.3
+    run = SpeedUnit(momentum=0.9)
+    unit, path = run.update(*paths)
+    torch.testing.assert_close((unit, path), (torch.tensor(6.0), torch.tensor(0.3)))
+    # a second batch at exactly 10 (paths 0.2) moves both a tenth of the way: 6.4 and 0.29
     slow = truth.clone()
     slow[..., :3, 3] *= 0.1
-    torch.testing.assert_close(unit.update(*path_lengths(slow, truth)), torch.tensor(6.4))
+    unit, path = run.update(*path_lengths(slow, truth))
+    torch.testing.assert_close((unit, path), (torch.tensor(6.4), torch.tensor(0.29)))
     # still snippets (identity truth) and snippets without truth (zeros) neither count nor move the unit
     others = torch.cat([torch.eye(4).expand(1, 2, 4, 4), torch.zeros(1, 2, 4, 4)])
     still_paths = path_lengths(pred, others)
     assert still_paths[2].sum().item() == 0.0
     assert speed_error(*still_paths, torch.tensor(10.0)).item() == 0.0
-    torch.testing.assert_close(unit.update(*still_paths), torch.tensor(6.4))
+    torch.testing.assert_close(run.update(*still_paths), (torch.tensor(6.4), torch.tensor(0.29)))
+    assert SpeedUnit().update(*still_paths) == (torch.tensor(1.0), None)
+
+
+def test_a_still_batch_is_measured_against_the_runs_step():
+    """Round 4's scale collapse: a batch of still snippets alone was measured against the constant
+    STILL_REF_STEP, which shrinks every step whatever the net's unit; given the run's step it is not."""
+    from training.losses import STILL_REF_STEP, scale_aligned_pose_error
+
+    still_truth = torch.eye(4).expand(1, 2, 4, 4).clone()
+    still_pred = torch.stack([_motion(0.0, [0, 0, -0.05]), _motion(0.0, [0, 0, 0.05])])[None]
+    torch.testing.assert_close(
+        scale_aligned_pose_error(still_pred, still_truth), torch.tensor(0.1 / (2 * STILL_REF_STEP))
+    )
+    # the run's step 0.5: path 0.1 over 2 steps of 0.5
+    torch.testing.assert_close(
+        scale_aligned_pose_error(still_pred, still_truth, still_ref_step=torch.tensor(0.5)), torch.tensor(0.1)
+    )
