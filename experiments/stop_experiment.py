@@ -82,6 +82,14 @@ NOTES[5] = (  # written before round 5 was scored, with the same rule
     "against the run's mean moving step (`training.losses.SpeedUnit`), 25 minutes rigid and 20 minutes flow on "
     "the same 2 cores."
 )
+NOTES[6] = (  # written before round 6 was scored, with the same rule
+    "Round 6 (`OUT=runs/stop6 bash scripts/stop_finetune.sh`): every round lost steady driving's step lengths and "
+    "directions (docs/stop_diagnosis.md), where the bundled PoseNet is best. Round 3's settings (frozen DepthNet, "
+    "the synthetic scenes, flow supervision 1, 20 minutes rigid and 20 minutes flow) plus `--pose-keep 10`: on "
+    "the snippets without true poses PoseNet is held to the bundled one's motion, while the still copies "
+    "(identity poses) teach the stops; the dashcam folders without their stride-2 and reversed samples "
+    "(`data/*_plain`), the odometry folder without its reversed ones."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

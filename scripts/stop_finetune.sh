@@ -10,7 +10,7 @@
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
-#   OUT=runs/stop5 bash scripts/stop_finetune.sh   round 5 (the default); ROUND=1 to 4 for those rounds' settings
+#   OUT=runs/stop6 bash scripts/stop_finetune.sh   round 6 (the default); ROUND=1 to 5 for those rounds' settings
 #
 # Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
 # Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
@@ -30,6 +30,12 @@
 # step, which shrinks every step) and it unlearnt the stops.
 # Round 5: round 4 with that fixed (training.losses.SpeedUnit: a still snippet is measured against the
 # run's mean moving step); the same flags (the fix is in the code after commit ca0e6d6).
+# Round 6: every round lost steady driving's step lengths and directions (docs/stop_diagnosis.md), where
+# the bundled PoseNet is best. Round 3 (frozen depth, synthetic scenes, flow supervision 1, 20 + 20 min)
+# plus --pose-keep 10: on the snippets without true poses (moving footage) PoseNet is held to the bundled
+# one's motion; the still copies (identity poses) teach the stops. The dashcam folders without the
+# stride-2 and reversed samples (data/*_plain: the bundled motion of a stride-1 snippet is what to keep,
+# not of a doubled or reversed one); the odometry folder without the reversed ones (data/s_odom_norev).
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -38,7 +44,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-5} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-6} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -48,11 +54,15 @@ elif [ "$ROUND" = 2 ]; then
 elif [ "$ROUND" = 3 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-20} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth) REAL=_norev
-else
+elif [ "$ROUND" -le 5 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-25} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth --pose-speed 10)
+else
+    RIGID_MINUTES=${RIGID_MINUTES:-20} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
+    RIGID_FLAGS=(--freeze-depth --pose-keep 10) REAL=_norev CLIPS_REAL=_plain
 fi
 REAL=${REAL:-}  # the real folders' suffix: _norev = their train.txt without the time-reversed samples
+CLIPS_REAL=${CLIPS_REAL:-$REAL}  # the dashcam folders' in stage rigid: _plain = without stride-2 and reversed
 RIGID_LR=${RIGID_LR:-5e-5} FLOW_LR=${FLOW_LR:-1e-4}
 OUT=${OUT:-runs/stop} INIT=${INIT:-weights/small_synth.pt} INT8_OPS=${INT8_OPS:-Conv,Relu,Add,MaxPool}
 REALDATA=${REALDATA:-../shared/realdata} CLIPS=${CLIPS:-../shared/realdata/udacity_dashcam}
@@ -75,9 +85,14 @@ if want prepare; then
         --calib "$CLIPS/intrinsics_960x540_GUESS_UNVERIFIED.txt" --crop 0,215,960,295 --out data/s_udacity_guess \
         --teacher-flow dis --val-fraction 0 --motion-mix "$MIX"
     for d in s_odom s_udacity s_udacity_guess; do  # the same samples without the time-reversed ones
-        mkdir -p "data/${d}_norev"
-        for x in "data/$d"/*; do [ "$(basename "$x")" = train.txt ] || ln -sfn "$(realpath "$x")" "data/${d}_norev/"; done
+        mkdir -p "data/${d}_norev" "data/${d}_plain"  # _plain: nor the stride-2 ones
+        for x in "data/$d"/*; do
+            [ "$(basename "$x")" = train.txt ] && continue
+            ln -sfn "$(realpath "$x")" "data/${d}_norev/"
+            ln -sfn "$(realpath "$x")" "data/${d}_plain/"
+        done
         grep -v "_reverse$" "data/$d/train.txt" > "data/${d}_norev/train.txt"
+        grep -v -e "_reverse$" -e "_stride2$" "data/$d/train.txt" > "data/${d}_plain/train.txt"
     done
     [ -f data/synth40/seq_0039/poses.txt ] || run $PY -m training.synth --out data/synth40 --sequences 40 \
         --frames 40 --seed 2026 --workers 1
@@ -86,15 +101,15 @@ if want prepare; then
 fi
 
 if want rigid; then
-    if [ "$ROUND" -ge 4 ]; then  # one rig with true poses (see round 4 above)
+    if [ "$ROUND" = 4 ] || [ "$ROUND" = 5 ]; then  # one rig with true poses (see round 4 above)
         POSED=(--extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL")
     else
         POSED=(--extra-data-dir data/synth40_pose)
     fi
     run $PY -m training.train --stage rigid --arch small --device "$DEVICE" --bn-momentum 0.01 --num-workers 0 \
         --mask-out-of-view --automask "${RIGID_FLAGS[@]}" --lr "$RIGID_LR" --pose-supervision "$POSE_SUPERVISION" \
-        --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$REAL" \
-        --extra-data-dir "data/s_udacity_guess$REAL" "${POSED[@]}" --init-checkpoint "$INIT" \
+        --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$CLIPS_REAL" \
+        --extra-data-dir "data/s_udacity_guess$CLIPS_REAL" "${POSED[@]}" --init-checkpoint "$INIT" \
         --out-dir "$OUT/rigid" --max-steps 100000 --max-minutes "$RIGID_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20
 fi

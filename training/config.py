@@ -206,6 +206,15 @@ def build_parser() -> argparse.ArgumentParser:
         "every sample with true poses comes from one camera rig. Not in GeoNet",
     )
     p.add_argument(
+        "--pose-keep",
+        type=float,
+        default=d.weights.pose_keep,
+        metavar="W",
+        help="stage rigid: add W x the difference between PoseNet's motions and those of the PoseNet it "
+        "started from (--init-checkpoint) on the samples without true poses, so fine-tuning on still "
+        "copies keeps how the starting net drives. Not with --resume. Not in GeoNet",
+    )
+    p.add_argument(
         "--device",
         default=d.device,
         help="auto (CUDA if present, else CPU), cpu, cuda or cuda:N; under torchrun each rank "
@@ -237,5 +246,6 @@ def config_from_args(argv=None) -> TrainConfig:
         flow_supervision=args.pop("flow_supervision"),
         pose_supervision=args.pop("pose_supervision"),
         pose_speed=args.pop("pose_speed"),
+        pose_keep=args.pop("pose_keep"),
     )
     return TrainConfig(**args, weights=weights)

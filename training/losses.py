@@ -39,6 +39,9 @@ class LossWeights:
     # Not in GeoNet (0 = off): weight of the speed error (:func:`speed_error`): each moving snippet's
     # predicted path against its true one under one unit for the whole run, not one per snippet.
     pose_speed: float = 0.0
+    # Not in GeoNet (0 = off): weight of the pull toward the starting PoseNet on snippets without true
+    # poses (:func:`pose_keep_error`), so fine-tuning for the stops keeps how it drives.
+    pose_keep: float = 0.0
 
 
 def _mean_3x3(x: torch.Tensor) -> torch.Tensor:
@@ -266,6 +269,28 @@ class SpeedUnit:
             self.path = self._blend(self.path, float(p.sum() / moving.sum()))
         unit = torch.as_tensor(self.unit if self.unit is not None else 1.0, dtype=predicted_path.dtype)
         return unit, None if self.path is None else torch.as_tensor(self.path, dtype=predicted_path.dtype)
+
+
+def pose_keep_error(T: torch.Tensor, T_start: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+    """How far the predicted motions moved from the starting PoseNet's, on the snippets in ``keep``.
+
+    Issue 53, round 6: every stop round made the steps of steady driving worse, in length and in
+    direction (docs/stop_diagnosis.md), where the bundled PoseNet was best. On the snippets without true
+    poses (moving footage; the still copies carry identity poses and learn to stop) this error holds the
+    net to the starting one's motion: the translation difference relative to the starting path, plus the
+    chordal rotation difference ``||R - R_start||_F``.
+
+    Args:
+        T, T_start: (B, N, 4, 4) predicted and starting motions target -> each source.
+        keep: (B,) 1.0 for the snippets to hold, 0.0 for the others.
+    Returns:
+        scalar mean over the kept snippets; 0 when none is.
+    """
+    t, t_start = T[..., :3, 3], T_start[..., :3, 3]
+    start_path = t_start.norm(dim=-1).sum(dim=1).clamp(min=1e-3)
+    translation = (t - t_start).norm(dim=-1).sum(dim=1) / start_path
+    rotation = (T[..., :3, :3] - T_start[..., :3, :3]).flatten(2).norm(dim=-1).mean(dim=1)
+    return ((translation + rotation) * keep).sum() / keep.sum().clamp(min=1.0)
 
 
 STILL_PATH = 1e-6  # a true path shorter than this (metres or unit steps) is a still camera

@@ -7,6 +7,7 @@ rows ``[i*B, (i+1)*B)``), and the target is tiled ``N`` times to match.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import torch
@@ -34,6 +35,7 @@ from training.losses import (
     masked_mean,
     path_lengths,
     photometric_error,
+    pose_keep_error,
     scale_aligned_pose_error,
     scale_invariant_log_error,
     speed_error,
@@ -161,6 +163,13 @@ class GeoNet(nn.Module):
         flow_arch = "small" if arch == "small" else "resnet50"
         self.flow_net = ResFlowNet(flow_arch, bn_momentum=bn_momentum) if with_flow else None
         self.speed_unit = SpeedUnit()  # a plain attribute: not in the state dict, re-learnt on resume
+        self.start_pose_net: PoseNet | None = None  # set by keep_pose_of; never in the state dict
+
+    def keep_pose_of(self, pose_net: PoseNet) -> None:
+        """Hold a frozen copy of ``pose_net`` for ``weights.pose_keep`` (bypassing nn.Module's registration,
+        so checkpoints and exports never see it)."""
+        start = copy.deepcopy(pose_net).eval().requires_grad_(False)
+        object.__setattr__(self, "start_pose_net", start)
 
     # ----------------------------------------------------------------- rigid
     def rigid_forward(
@@ -219,7 +228,9 @@ class GeoNet(nn.Module):
         With ``weights.pose_supervision`` > 0 and ``pose_gt`` (B, N, 4, 4) true motion target ->
         sources (zeros = none), PoseNet also pays the scale-aligned pose error against it, and with
         ``weights.pose_speed`` > 0 the speed error under the run's unit (:func:`speed_error`), a still
-        snippet then measured against the run's mean moving step (:class:`SpeedUnit`).
+        snippet then measured against the run's mean moving step (:class:`SpeedUnit`). With
+        ``weights.pose_keep`` > 0 and :meth:`keep_pose_of` called, the snippets without true poses pay
+        :func:`pose_keep_error` against the starting PoseNet.
         """
         w = self.weights
         out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
@@ -258,6 +269,17 @@ class GeoNet(nn.Module):
             pose_error = scale_aligned_pose_error(T, pose_gt, still_ref_step=still_ref_step)
             terms["pose_supervised"] = w.pose_supervision * pose_error
             total = total + terms["pose_supervised"] + terms.get("pose_speed", 0.0)
+        if w.pose_keep > 0 and self.start_pose_net is not None:
+            with torch.no_grad():
+                pose_input = torch.cat([IMAGE_NORM.apply(target), IMAGE_NORM.apply(sources).flatten(1, 2)], dim=1)
+                start = self.start_pose_net(pose_input)
+            T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
+            T_start = pose_vec_to_mat(start.flatten(0, 1)).view(*start.shape[:2], 4, 4)
+            no_truth = torch.ones(B, dtype=T.dtype, device=T.device)
+            if pose_gt is not None:
+                no_truth = 1.0 - (pose_gt[:, :, 3, 3] != 0).all(dim=1).to(T.dtype)
+            terms["pose_keep"] = w.pose_keep * pose_keep_error(T, T_start, no_truth)
+            total = total + terms["pose_keep"]
         return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(

@@ -101,6 +101,13 @@ def check_options(cfg: TrainConfig, device: torch.device) -> None:
         raise InputError(
             None, f"--amp fp16 needs a CUDA device, this run is on {device}", "use --amp bf16 or --amp off on the CPU"
         )
+    if cfg.weights.pose_keep > 0 and (cfg.resume or not cfg.init_checkpoint or cfg.stage != "rigid"):
+        raise InputError(
+            None,
+            "--pose-keep holds PoseNet to the one it starts from: "
+            "it needs stage rigid and --init-checkpoint, not --resume",
+            "start a new run from the weights to keep (--init-checkpoint)",
+        )
     if cfg.stage == "flow" and not (cfg.init_checkpoint or cfg.resume):
         raise InputError(None, "stage flow needs --init-checkpoint", "pass the last.pt of a stage rigid run")
 
@@ -288,6 +295,8 @@ class Trainer:
         if cfg.sync_bn:
             distributed.convert_sync_bn(model)
         model = model.to(rt.device, memory_format=torch.channels_last if cfg.channels_last else torch.preserve_format)
+        if cfg.weights.pose_keep > 0:
+            model.keep_pose_of(model.pose_net)
         trainable = trainable_modules(model, cfg)
         params = [p for m in trainable for p in m.parameters() if p.requires_grad]
         frozen = [m for m in (model.depth_net, model.pose_net, model.flow_net) if m is not None and m not in trainable]

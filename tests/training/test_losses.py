@@ -205,3 +205,24 @@ def test_a_still_batch_is_measured_against_the_runs_step():
     torch.testing.assert_close(
         scale_aligned_pose_error(still_pred, still_truth, still_ref_step=torch.tensor(0.5)), torch.tensor(0.1)
     )
+
+
+def test_pose_keep_error_closed_form():
+    """Issue 53, round 6: zero for the starting motion; a 0.1 sideways offset on both steps of a
+    2-unit path is 0.2 / 2; a rotation of theta adds 2 sqrt(2) sin(theta / 2); unkept snippets add nothing."""
+    from training.losses import pose_keep_error
+
+    start = torch.stack([_motion(0.0, [0, 0, -1.0]), _motion(0.0, [0, 0, 1.0])])[None]
+    keep = torch.ones(1)
+    assert pose_keep_error(start, start, keep).item() == 0.0
+    shifted = start.clone()
+    shifted[..., 0, 3] += 0.1
+    torch.testing.assert_close(pose_keep_error(shifted, start, keep), torch.tensor(0.1))
+    theta = 0.1
+    turned = torch.stack([_motion(theta, [0, 0, -1.0]), _motion(theta, [0, 0, 1.0])])[None]
+    torch.testing.assert_close(pose_keep_error(turned, start, keep), 2 * 2**0.5 * torch.sin(torch.tensor(theta / 2)))
+    both = torch.cat([shifted, turned])
+    torch.testing.assert_close(
+        pose_keep_error(both, torch.cat([start, start]), torch.tensor([1.0, 0.0])), torch.tensor(0.1)
+    )
+    assert pose_keep_error(shifted, start, torch.zeros(1)).item() == 0.0

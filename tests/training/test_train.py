@@ -26,7 +26,7 @@ from training.checkpoint import (
 )
 from training.config import TrainConfig, config_from_args
 from training.losses import LossWeights
-from training.train import main, train
+from training.train import check_options, main, train
 
 H, W = 64, 208  # CI-sized real frames: a quarter of the 128x416 pixels
 SH, SW = 32, 96  # synthetic frames: only the mechanics are under test
@@ -133,18 +133,35 @@ def test_flow_stage_freezes_rigid_nets(synth_prepared, tmp_path):
 
 
 def test_freeze_depth_trains_posenet_alone(synth_prepared, tmp_path):
-    """--freeze-depth (issue 53): stage rigid leaves DepthNet's weights and batch-norm statistics as initialised."""
+    """--freeze-depth (issue 53): stage rigid leaves DepthNet's weights and batch-norm statistics as
+    initialised. With --pose-keep (round 6) beside it: the pull toward the starting PoseNet is logged,
+    and the frozen copy it is measured against never reaches the checkpoint."""
     first = train(config(synth_prepared, tmp_path / "a", max_steps=1), progress=False)
+    keep = LossWeights(pose_keep=1.0)
+    init = str(first["last"])
     frozen = train(
-        config(synth_prepared, tmp_path / "b", max_steps=2, freeze_depth=True, init_checkpoint=str(first["last"])),
+        config(synth_prepared, tmp_path / "b", max_steps=2, freeze_depth=True, init_checkpoint=init, weights=keep),
         progress=False,
     )
     before = load_checkpoint(first["last"])["model"]
     after = load_checkpoint(frozen["last"])["model"]
+    assert set(after) == set(before)
     depth = [k for k in before if k.startswith("depth_net.")]
     assert depth and all(torch.equal(before[k], after[k]) for k in depth)
     pose = [k for k in before if k.startswith("pose_net.") and before[k].dim() == 4]
     assert any(not torch.equal(before[k], after[k]) for k in pose)
+    rows = read_log(frozen["log"])
+    assert all(math.isfinite(r["pose_keep"]) and r["pose_keep"] >= 0 for r in rows if "val_total" not in r)
+    assert cfg_refused(config(synth_prepared, tmp_path / "c", weights=keep, resume=init))
+    assert cfg_refused(config(synth_prepared, tmp_path / "d", weights=keep))
+
+
+def cfg_refused(cfg: TrainConfig) -> bool:
+    try:
+        check_options(cfg, torch.device("cpu"))
+    except GeoNetError:
+        return True
+    return False
 
 
 def test_init_checkpoint_fine_tunes_from_a_checkpoint_or_a_weights_file(synth_prepared, tmp_path):
