@@ -72,7 +72,8 @@ NOTES[4] = (  # written before round 4 was scored, with the same rule
     "on the same 2 cores."
 ) + (  # added after it ran, before anything was scored
     " **Stopped after its rigid stage, not scored** (22 minutes, 1,328 steps): on its own training snippets "
-    "(`data/s_odom`, no scored set) the PoseNet's mean path had shrunk from 0.19 to 0.046 and a still copy's path "
+    "(`data/s_odom`, no scored set; `python -m experiments.stop_training_snippets runs/stop4/rigid/last.pt`, its "
+    "last checkpoint, step 1,200) the PoseNet's mean path had shrunk from 0.19 to 0.046 and a still copy's path "
     "was back to 0.65 of a moving one's (0.01 after rounds 2 and 3). A batch holding still copies but no moving "
     "snippet with true poses, frequent once the synthetic scenes were left out, measured the still copies "
     "against a constant step, which shrinks every step whatever the net's unit. Fixed for round 5."
