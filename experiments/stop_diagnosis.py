@@ -124,8 +124,13 @@ def flow_figures(model: Path) -> dict:
     return out
 
 
+def _row(label: str, values: list[float], fmt: str) -> str:
+    return f"| {label} | " + " | ".join(format(v, fmt) for v in values) + " |"
+
+
 def markdown(result: dict) -> str:
     names = list(result["models"])
+    models = [result["models"][n] for n in names]
     L = ["# Why the stop rounds lost held-out pose and flow (issue 53)", "", f"`{result['command']}`", ""]
     L += ["## Pose, odometry snippets no model trained on", ""]
     L += ["| sequence | figure | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
@@ -138,25 +143,25 @@ def markdown(result: dict) -> str:
     )
     for seq in SEQUENCES:
         for key, label in rows:
-            cells = [f"{result['models'][n]['pose'][seq][key]:.4g}" for n in names]
             L.append(
-                f"| {seq} ({result['models'][names[0]]['pose'][seq]['snippets']}) | {label} | "
-                + " | ".join(cells)
-                + " |"
+                _row(
+                    f"{seq} ({models[0]['pose'][seq]['snippets']}) | {label}",
+                    [m["pose"][seq][key] for m in models],
+                    ".4g",
+                )
             )
     constant = result["constant_step"]
     per_sequence = ", ".join(f"{s} {constant[s]:.4f}" for s in SEQUENCES)
     L += ["", f"Constant forward step, no model: ATE {constant['all held out']:.4f} over all; {per_sequence}.", ""]
     L += [f"## Directions or lengths? ATE over all held-out snippets, lengths swapped with {names[0]}'s", ""]
     L += ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
-    for key, label in (("own", "own steps"), ("own_dirs_ref_lengths", f"own directions, {names[0]}'s lengths"),
-                       ("ref_dirs_own_lengths", f"{names[0]}'s directions, own lengths"),
-                       ("own_dirs_unit_lengths", "own directions, equal lengths")):  # fmt: skip
-        L.append(
-            f"| {label} | "
-            + " | ".join(f"{result['models'][n]['pose']['all held out'][key]:.4f}" for n in names)
-            + " |"
-        )
+    swaps = (
+        ("own", "own steps"),
+        ("own_dirs_ref_lengths", f"own directions, {names[0]}'s lengths"),
+        ("ref_dirs_own_lengths", f"{names[0]}'s directions, own lengths"),
+        ("own_dirs_unit_lengths", "own directions, equal lengths"),
+    )
+    L += [_row(label, [m["pose"]["all held out"][key] for m in models], ".4f") for key, label in swaps]
     L += ["", "## KITTI 2015 flow 000010 (non-occluded)", ""]
     L += ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     flows = (
@@ -165,9 +170,7 @@ def markdown(result: dict) -> str:
         ("rigid_epe_noc", "rigid flow EPE, px"),
         ("rigid_length_ratio", "rigid flow length / truth's (median)"),
     )
-    for key, label in flows:
-        cells = " | ".join(f"{result['models'][n]['flow'][key]:.3g}" for n in names)
-        L.append(f"| {label} | {cells} |")
+    L += [_row(label, [m["flow"][key] for m in models], ".3g") for key, label in flows]
     return "\n".join(L) + "\n"
 
 

@@ -68,6 +68,41 @@ class TrainConfig:
         return cls(**d)
 
 
+WEIGHT_FLAGS = (  # the LossWeights set from the command line, each `--NAME W`: (field, help)
+    (
+        "depth_supervision",
+        "stage rigid: add W x the scale-invariant log-depth error against the ground truth of "
+        "samples that have it (synthetic data prepared with --train-depth; real samples have none "
+        "and keep only the self-supervised loss). Not in GeoNet: supervised synthetic pre-training",
+    ),
+    (
+        "flow_supervision",
+        "stage flow: add W x the end-point error of the full flow target -> next frame "
+        "against the ground truth of samples that have it (synthetic data prepared with "
+        "--train-flow; others keep only the self-supervised loss). Not in GeoNet",
+    ),
+    (
+        "pose_supervision",
+        "stage rigid: add W x the scale-aligned pose error (translation relative to the path "
+        "length + chordal rotation) against the true motion of samples that have it (KITTI odometry "
+        "or synthetic data prepared with --train-pose; others keep only the self-supervised loss). Not in GeoNet",
+    ),
+    (
+        "pose_speed",
+        "stage rigid, with --pose-supervision: add W x the speed error, each moving snippet's "
+        "predicted path against its true one under one unit for the whole run (the scale-aligned "
+        "error fits one per snippet, so it never teaches how fast the camera moves). Use it where "
+        "every sample with true poses comes from one camera rig. Not in GeoNet",
+    ),
+    (
+        "pose_keep",
+        "stage rigid: add W x the difference between PoseNet's motions and those of the PoseNet it "
+        "started from (--init-checkpoint) on the samples without true poses, so fine-tuning on still "
+        "copies keeps how the starting net drives. Not with --resume. Not in GeoNet",
+    ),
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m training.train",
@@ -168,52 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="official option behind its released model_sn (not in the paper): divide each "
         "predicted disparity map by its spatial mean before warping and smoothness",
     )
-    p.add_argument(
-        "--depth-supervision",
-        type=float,
-        default=d.weights.depth_supervision,
-        metavar="W",
-        help="stage rigid: add W x the scale-invariant log-depth error against the ground truth of "
-        "samples that have it (synthetic data prepared with --train-depth; real samples have none "
-        "and keep only the self-supervised loss). Not in GeoNet: supervised synthetic pre-training",
-    )
-    p.add_argument(
-        "--flow-supervision",
-        type=float,
-        default=d.weights.flow_supervision,
-        metavar="W",
-        help="stage flow: add W x the end-point error of the full flow target -> next frame "
-        "against the ground truth of samples that have it (synthetic data prepared with "
-        "--train-flow; others keep only the self-supervised loss). Not in GeoNet",
-    )
-    p.add_argument(
-        "--pose-supervision",
-        type=float,
-        default=d.weights.pose_supervision,
-        metavar="W",
-        help="stage rigid: add W x the scale-aligned pose error (translation relative to the path "
-        "length + chordal rotation) against the true motion of samples that have it (KITTI odometry "
-        "or synthetic data prepared with --train-pose; others keep only the self-supervised loss). Not in GeoNet",
-    )
-    p.add_argument(
-        "--pose-speed",
-        type=float,
-        default=d.weights.pose_speed,
-        metavar="W",
-        help="stage rigid, with --pose-supervision: add W x the speed error, each moving snippet's "
-        "predicted path against its true one under one unit for the whole run (the scale-aligned "
-        "error fits one per snippet, so it never teaches how fast the camera moves). Use it where "
-        "every sample with true poses comes from one camera rig. Not in GeoNet",
-    )
-    p.add_argument(
-        "--pose-keep",
-        type=float,
-        default=d.weights.pose_keep,
-        metavar="W",
-        help="stage rigid: add W x the difference between PoseNet's motions and those of the PoseNet it "
-        "started from (--init-checkpoint) on the samples without true poses, so fine-tuning on still "
-        "copies keeps how the starting net drives. Not with --resume. Not in GeoNet",
-    )
+    for name, text in WEIGHT_FLAGS:
+        flag = "--" + name.replace("_", "-")
+        p.add_argument(flag, type=float, default=getattr(d.weights, name), metavar="W", help=text)
     p.add_argument(
         "--device",
         default=d.device,
@@ -241,11 +233,5 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(argv=None) -> TrainConfig:
     args = vars(build_parser().parse_args(argv))
-    weights = LossWeights(
-        depth_supervision=args.pop("depth_supervision"),
-        flow_supervision=args.pop("flow_supervision"),
-        pose_supervision=args.pop("pose_supervision"),
-        pose_speed=args.pop("pose_speed"),
-        pose_keep=args.pop("pose_keep"),
-    )
+    weights = LossWeights(**{name: args.pop(name) for name, _ in WEIGHT_FLAGS})
     return TrainConfig(**args, weights=weights)

@@ -167,6 +167,11 @@ def scale_invariant_log_error(depth: torch.Tensor, depth_gt: torch.Tensor) -> to
     return (torch.sqrt(variance + 1e-8) * has_gt).sum() / has_gt.sum().clamp(min=1.0)
 
 
+def has_true_pose(T_gt: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: the snippets of ``T_gt`` (B, N, 4, 4) that carry true motions (all zeros = none)."""
+    return (T_gt[:, :, 3, 3] != 0).all(dim=1)
+
+
 def scale_aligned_pose_error(
     T: torch.Tensor, T_gt: torch.Tensor, still_ref_step: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -192,7 +197,7 @@ def scale_aligned_pose_error(
     Returns:
         scalar mean over the snippets that have true poses; 0 when none has.
     """
-    has_gt = (T_gt[:, :, 3, 3] != 0).all(dim=1).to(T.dtype)  # (B,)
+    has_gt = has_true_pose(T_gt).to(T.dtype)  # (B,)
     t, t_gt = T[..., :3, 3], T_gt[..., :3, 3]  # (B, N, 3)
     true_path = t_gt.norm(dim=-1).sum(dim=1)  # (B,)
     still = (true_path < STILL_PATH).to(T.dtype) * has_gt
@@ -219,7 +224,7 @@ def path_lengths(T: torch.Tensor, T_gt: torch.Tensor) -> tuple[torch.Tensor, tor
     Args:
         T, T_gt: (B, N, 4, 4) as in :func:`scale_aligned_pose_error` (T_gt all zeros = no truth).
     """
-    has_gt = (T_gt[:, :, 3, 3] != 0).all(dim=1).to(T.dtype)
+    has_gt = has_true_pose(T_gt).to(T.dtype)
     true_path = T_gt[..., :3, 3].norm(dim=-1).sum(dim=1)
     moving = has_gt * (true_path >= STILL_PATH).to(T.dtype)
     return T[..., :3, 3].norm(dim=-1).sum(dim=1), true_path, moving

@@ -32,6 +32,7 @@ from training.losses import (
     SpeedUnit,
     edge_aware_smoothness,
     flow_endpoint_error,
+    has_true_pose,
     masked_mean,
     path_lengths,
     photometric_error,
@@ -258,8 +259,11 @@ class GeoNet(nn.Module):
             )
             terms["depth_supervised"] = w.depth_supervision * depth_loss
             total = total + terms["depth_supervised"]
-        if w.pose_supervision > 0 and pose_gt is not None:
+        supervise_pose = w.pose_supervision > 0 and pose_gt is not None
+        keep_pose = w.pose_keep > 0 and self.start_pose_net is not None
+        if supervise_pose or keep_pose:  # the motions (B, N, 4, 4), once for both terms
             T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
+        if supervise_pose:
             still_ref_step = None
             if w.pose_speed > 0:
                 paths = path_lengths(T, pose_gt)
@@ -269,15 +273,14 @@ class GeoNet(nn.Module):
             pose_error = scale_aligned_pose_error(T, pose_gt, still_ref_step=still_ref_step)
             terms["pose_supervised"] = w.pose_supervision * pose_error
             total = total + terms["pose_supervised"] + terms.get("pose_speed", 0.0)
-        if w.pose_keep > 0 and self.start_pose_net is not None:
+        if keep_pose:
             with torch.no_grad():
                 pose_input = torch.cat([IMAGE_NORM.apply(target), IMAGE_NORM.apply(sources).flatten(1, 2)], dim=1)
                 start = self.start_pose_net(pose_input)
-            T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
             T_start = pose_vec_to_mat(start.flatten(0, 1)).view(*start.shape[:2], 4, 4)
             no_truth = torch.ones(B, dtype=T.dtype, device=T.device)
             if pose_gt is not None:
-                no_truth = 1.0 - (pose_gt[:, :, 3, 3] != 0).all(dim=1).to(T.dtype)
+                no_truth = 1.0 - has_true_pose(pose_gt).to(T.dtype)
             terms["pose_keep"] = w.pose_keep * pose_keep_error(T, T_start, no_truth)
             total = total + terms["pose_keep"]
         return StageLoss(total, _as_floats(**terms, total=total))
