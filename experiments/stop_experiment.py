@@ -91,6 +91,12 @@ NOTES[6] = (  # written before round 6 was scored, with the same rule
     "(identity poses) teach the stops; the dashcam folders without their stride-2 and reversed samples "
     "(`data/*_plain`), the odometry folder without its reversed ones."
 )
+NOTES[7] = (  # written before round 7 was scored, with the same rule
+    "Round 7 (`OUT=runs/stop7 bash scripts/stop_finetune.sh`): round 6 passed rules 1-3 but kept the bundled "
+    "blindness to stops (still clip 0.86; on its training snippets a still copy's step was 0.80 of a moving "
+    "one's): at weight 10 the keep term outweighed the still copies. Round 6's settings with `--pose-keep 2`, "
+    "its flow stage given its full 20 minutes (round 6's had 165 steps beside the CI rehearsal)."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")
