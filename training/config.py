@@ -100,6 +100,12 @@ WEIGHT_FLAGS = (  # the LossWeights set from the command line, each `--NAME W`: 
         "started from (--init-checkpoint) on the samples without true poses, so fine-tuning on still "
         "copies keeps how the starting net drives. Not with --resume. Not in GeoNet",
     ),
+    (
+        "pose_keep_shape",
+        "stage rigid: as --pose-keep, but on the motion's shape only: each snippet's translations "
+        "divided by its path length, so step directions and length ratios are held and its speed is "
+        "free for the still copies to teach. Not with --resume. Not in GeoNet",
+    ),
 )
 
 

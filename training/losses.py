@@ -42,6 +42,9 @@ class LossWeights:
     # Not in GeoNet (0 = off): weight of the pull toward the starting PoseNet on snippets without true
     # poses (:func:`pose_keep_error`), so fine-tuning for the stops keeps how it drives.
     pose_keep: float = 0.0
+    # Not in GeoNet (0 = off): the same pull on the motion's shape only (``pose_keep_error(...,
+    # scale_free=True)``): step directions and length ratios held, each snippet's speed free.
+    pose_keep_shape: float = 0.0
 
 
 def _mean_3x3(x: torch.Tensor) -> torch.Tensor:
@@ -276,7 +279,9 @@ class SpeedUnit:
         return unit, None if self.path is None else torch.as_tensor(self.path, dtype=predicted_path.dtype)
 
 
-def pose_keep_error(T: torch.Tensor, T_start: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+def pose_keep_error(
+    T: torch.Tensor, T_start: torch.Tensor, keep: torch.Tensor, scale_free: bool = False
+) -> torch.Tensor:
     """How far the predicted motions moved from the starting PoseNet's, on the snippets in ``keep``.
 
     Issue 53, round 6: every stop round made the steps of steady driving worse, in length and in
@@ -285,14 +290,25 @@ def pose_keep_error(T: torch.Tensor, T_start: torch.Tensor, keep: torch.Tensor) 
     net to the starting one's motion: the translation difference relative to the starting path, plus the
     chordal rotation difference ``||R - R_start||_F``.
 
+    ``scale_free`` (round 8) compares the motion's shape only: each snippet's translations divided by its
+    own path length, the predicted and the starting ones alike, so a snippet's speed stays free (the
+    still copies and the photometric loss set it) while its step directions and the ratio of its step
+    lengths are held: what the scale-aligned snippet ATE measures. Round 7's term held the speed too,
+    and with it the starting net's blindness to stops.
+
     Args:
         T, T_start: (B, N, 4, 4) predicted and starting motions target -> each source.
         keep: (B,) 1.0 for the snippets to hold, 0.0 for the others.
+        scale_free: compare translations each normalised by its snippet's path.
     Returns:
         scalar mean over the kept snippets; 0 when none is.
     """
     t, t_start = T[..., :3, 3], T_start[..., :3, 3]
     start_path = t_start.norm(dim=-1).sum(dim=1).clamp(min=1e-3)
+    if scale_free:
+        t = t / t.norm(dim=-1).sum(dim=1).clamp(min=1e-3)[:, None, None]
+        t_start = t_start / start_path[:, None, None]
+        start_path = torch.ones_like(start_path)
     translation = (t - t_start).norm(dim=-1).sum(dim=1) / start_path
     rotation = (T[..., :3, :3] - T_start[..., :3, :3]).flatten(2).norm(dim=-1).mean(dim=1)
     return ((translation + rotation) * keep).sum() / keep.sum().clamp(min=1.0)

@@ -230,8 +230,8 @@ class GeoNet(nn.Module):
         sources (zeros = none), PoseNet also pays the scale-aligned pose error against it, and with
         ``weights.pose_speed`` > 0 the speed error under the run's unit (:func:`speed_error`), a still
         snippet then measured against the run's mean moving step (:class:`SpeedUnit`). With
-        ``weights.pose_keep`` > 0 and :meth:`keep_pose_of` called, the snippets without true poses pay
-        :func:`pose_keep_error` against the starting PoseNet.
+        ``weights.pose_keep`` (or ``pose_keep_shape``) > 0 and :meth:`keep_pose_of` called, the snippets
+        without true poses pay :func:`pose_keep_error` (scale-free) against the starting PoseNet.
         """
         w = self.weights
         out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
@@ -260,7 +260,7 @@ class GeoNet(nn.Module):
             terms["depth_supervised"] = w.depth_supervision * depth_loss
             total = total + terms["depth_supervised"]
         supervise_pose = w.pose_supervision > 0 and pose_gt is not None
-        keep_pose = w.pose_keep > 0 and self.start_pose_net is not None
+        keep_pose = (w.pose_keep > 0 or w.pose_keep_shape > 0) and self.start_pose_net is not None
         if supervise_pose or keep_pose:  # the motions (B, N, 4, 4), once for both terms
             T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
         if supervise_pose:
@@ -281,8 +281,11 @@ class GeoNet(nn.Module):
             no_truth = torch.ones(B, dtype=T.dtype, device=T.device)
             if pose_gt is not None:
                 no_truth = 1.0 - has_true_pose(pose_gt).to(T.dtype)
-            terms["pose_keep"] = w.pose_keep * pose_keep_error(T, T_start, no_truth)
-            total = total + terms["pose_keep"]
+            if w.pose_keep > 0:
+                terms["pose_keep"] = w.pose_keep * pose_keep_error(T, T_start, no_truth)
+            if w.pose_keep_shape > 0:
+                terms["pose_keep_shape"] = w.pose_keep_shape * pose_keep_error(T, T_start, no_truth, scale_free=True)
+            total = total + terms.get("pose_keep", 0.0) + terms.get("pose_keep_shape", 0.0)
         return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(

@@ -96,15 +96,20 @@ def autocast_nets(model: GeoNet, device_type: str, dtype: torch.dtype) -> None:
         net.forward = forward  # an instance attribute: parameters and state_dict keys unchanged
 
 
+def keeps_pose(cfg: TrainConfig) -> bool:
+    """Whether a pose-keep term (--pose-keep, --pose-keep-shape) needs the starting PoseNet held."""
+    return cfg.weights.pose_keep > 0 or cfg.weights.pose_keep_shape > 0
+
+
 def check_options(cfg: TrainConfig, device: torch.device) -> None:
     if cfg.amp == "fp16" and device.type != "cuda":
         raise InputError(
             None, f"--amp fp16 needs a CUDA device, this run is on {device}", "use --amp bf16 or --amp off on the CPU"
         )
-    if cfg.weights.pose_keep > 0 and (cfg.resume or not cfg.init_checkpoint or cfg.stage != "rigid"):
+    if keeps_pose(cfg) and (cfg.resume or not cfg.init_checkpoint or cfg.stage != "rigid"):
         raise InputError(
             None,
-            "--pose-keep holds PoseNet to the one it starts from: "
+            "--pose-keep and --pose-keep-shape hold PoseNet to the one it starts from: "
             "it needs stage rigid and --init-checkpoint, not --resume",
             "start a new run from the weights to keep (--init-checkpoint)",
         )
@@ -295,7 +300,7 @@ class Trainer:
         if cfg.sync_bn:
             distributed.convert_sync_bn(model)
         model = model.to(rt.device, memory_format=torch.channels_last if cfg.channels_last else torch.preserve_format)
-        if cfg.weights.pose_keep > 0:
+        if keeps_pose(cfg):
             model.keep_pose_of(model.pose_net)
         trainable = trainable_modules(model, cfg)
         params = [p for m in trainable for p in m.parameters() if p.requires_grad]

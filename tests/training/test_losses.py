@@ -226,3 +226,20 @@ def test_pose_keep_error_closed_form():
         pose_keep_error(both, torch.cat([start, start]), torch.tensor([1.0, 0.0])), torch.tensor(0.1)
     )
     assert pose_keep_error(shifted, start, torch.zeros(1)).item() == 0.0
+
+
+def test_pose_keep_error_scale_free_closed_form():
+    """Issue 53, round 8: the shape-only pull ignores each snippet's speed (a motion 3x as fast, or a
+    tenth as fast, costs nothing) but not its directions: the first step turned from -z to +x on a
+    path of 2 units moves its normalised translation from (0, 0, -1/2) to (1/2, 0, 0), |.| = sqrt(2)/2."""
+    from training.losses import pose_keep_error
+
+    start = torch.stack([_motion(0.0, [0, 0, -1.0]), _motion(0.0, [0, 0, 1.0])])[None]
+    keep = torch.ones(1)
+    for speed in (3.0, 0.1):
+        faster = start.clone()
+        faster[..., :3, 3] *= speed
+        assert pose_keep_error(faster, start, keep, scale_free=True).item() < 1e-6
+        assert pose_keep_error(faster, start, keep).item() > 0.5  # round 6's term holds the speed
+    sideways = torch.stack([_motion(0.0, [3.0, 0, 0]), _motion(0.0, [0, 0, 3.0])])[None]  # and 3x as fast
+    torch.testing.assert_close(pose_keep_error(sideways, start, keep, scale_free=True), torch.tensor(2**0.5 / 2))
