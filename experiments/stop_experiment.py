@@ -107,6 +107,13 @@ NOTES[8] = (  # written before round 8 was scored, with the same rule
     "directions and length ratios, what the scale-aligned held-out ATE measures), each snippet's speed left to "
     "the still copies and the photometric loss."
 )
+NOTES[9] = (  # written before round 9 was scored, with the same rule
+    "Round 9 (`OUT=runs/stop9 bash scripts/stop_finetune.sh`): round 7 kept the bundled step directions "
+    "(docs/stop_diagnosis.md: its held-out ATE with equal step lengths 0.0235, bundled 0.0255) and lost rule 3 "
+    "to step-length jitter alone; round 8's shape-only keep term learnt the stops (still clip 0.18). Round 7's "
+    "settings (`--pose-keep 2`, the dashcam folders without stride-2 and reversed samples) plus "
+    "`--pose-keep-shape 10`, 15 minutes rigid and 15 minutes flow."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")
