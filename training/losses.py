@@ -46,6 +46,11 @@ class LossWeights:
     # scale_free=True)``): step directions and length ratios held, each snippet's speed free.
     pose_keep_shape: float = 0.0
 
+    @property
+    def keeps_pose(self) -> bool:
+        """Whether a pose-keep term is on, so the starting PoseNet must be held (:meth:`GeoNet.keep_pose_of`)."""
+        return self.pose_keep > 0 or self.pose_keep_shape > 0
+
 
 def _mean_3x3(x: torch.Tensor) -> torch.Tensor:
     # TF 'SAME' average pooling: border windows average only the real pixels.
@@ -306,10 +311,10 @@ def pose_keep_error(
     t, t_start = T[..., :3, 3], T_start[..., :3, 3]
     start_path = t_start.norm(dim=-1).sum(dim=1).clamp(min=1e-3)
     if scale_free:
-        t = t / t.norm(dim=-1).sum(dim=1).clamp(min=1e-3)[:, None, None]
-        t_start = t_start / start_path[:, None, None]
-        start_path = torch.ones_like(start_path)
-    translation = (t - t_start).norm(dim=-1).sum(dim=1) / start_path
+        path = t.norm(dim=-1).sum(dim=1).clamp(min=1e-3)
+        translation = (t / path[:, None, None] - t_start / start_path[:, None, None]).norm(dim=-1).sum(dim=1)
+    else:
+        translation = (t - t_start).norm(dim=-1).sum(dim=1) / start_path
     rotation = (T[..., :3, :3] - T_start[..., :3, :3]).flatten(2).norm(dim=-1).mean(dim=1)
     return ((translation + rotation) * keep).sum() / keep.sum().clamp(min=1.0)
 

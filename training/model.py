@@ -260,7 +260,7 @@ class GeoNet(nn.Module):
             terms["depth_supervised"] = w.depth_supervision * depth_loss
             total = total + terms["depth_supervised"]
         supervise_pose = w.pose_supervision > 0 and pose_gt is not None
-        keep_pose = (w.pose_keep > 0 or w.pose_keep_shape > 0) and self.start_pose_net is not None
+        keep_pose = w.keeps_pose and self.start_pose_net is not None
         if supervise_pose or keep_pose:  # the motions (B, N, 4, 4), once for both terms
             T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
         if supervise_pose:

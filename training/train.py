@@ -96,17 +96,12 @@ def autocast_nets(model: GeoNet, device_type: str, dtype: torch.dtype) -> None:
         net.forward = forward  # an instance attribute: parameters and state_dict keys unchanged
 
 
-def keeps_pose(cfg: TrainConfig) -> bool:
-    """Whether a pose-keep term (--pose-keep, --pose-keep-shape) needs the starting PoseNet held."""
-    return cfg.weights.pose_keep > 0 or cfg.weights.pose_keep_shape > 0
-
-
 def check_options(cfg: TrainConfig, device: torch.device) -> None:
     if cfg.amp == "fp16" and device.type != "cuda":
         raise InputError(
             None, f"--amp fp16 needs a CUDA device, this run is on {device}", "use --amp bf16 or --amp off on the CPU"
         )
-    if keeps_pose(cfg) and (cfg.resume or not cfg.init_checkpoint or cfg.stage != "rigid"):
+    if cfg.weights.keeps_pose and (cfg.resume or not cfg.init_checkpoint or cfg.stage != "rigid"):
         raise InputError(
             None,
             "--pose-keep and --pose-keep-shape hold PoseNet to the one it starts from: "
@@ -300,7 +295,7 @@ class Trainer:
         if cfg.sync_bn:
             distributed.convert_sync_bn(model)
         model = model.to(rt.device, memory_format=torch.channels_last if cfg.channels_last else torch.preserve_format)
-        if keeps_pose(cfg):
+        if cfg.weights.keeps_pose:
             model.keep_pose_of(model.pose_net)
         trainable = trainable_modules(model, cfg)
         params = [p for m in trainable for p in m.parameters() if p.requires_grad]
