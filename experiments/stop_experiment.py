@@ -114,6 +114,14 @@ NOTES[9] = (  # written before round 9 was scored, with the same rule
     "settings (`--pose-keep 2`, the dashcam folders without stride-2 and reversed samples) plus "
     "`--pose-keep-shape 10`, 15 minutes rigid and 15 minutes flow."
 )
+NOTES[10] = (  # written before round 10 was scored, with the same rule
+    "Round 10 (`OUT=runs/stop10 bash scripts/stop_finetune.sh`): round 9 did not cure round 7's step-length "
+    "jitter (06: 3.9 % spread within a 5-frame snippet; round 7 3.5 %, bundled 1.6 %, truth 0.2 %), the one "
+    "thing round 7 lost rule 3 to. Round 7's settings (`--pose-keep 2`, the dashcam folders without stride-2 "
+    "and reversed samples, 20 + 20 minutes) plus the new `--pose-steady 10`: every snippet pays the spread of "
+    "its step lengths around their mean (`training.losses.steady_speed_error`), since a car's speed barely "
+    "changes over three frames, moving or standing."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

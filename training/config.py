@@ -106,6 +106,11 @@ WEIGHT_FLAGS = (  # the LossWeights set from the command line, each `--NAME W`: 
         "divided by its path length, so step directions and length ratios are held and its speed is "
         "free for the still copies to teach. Not with --resume. Not in GeoNet",
     ),
+    (
+        "pose_steady",
+        "stage rigid: add W x the spread of each snippet's step lengths relative to its mean step "
+        "(the speed barely changes within a snippet; no truth needed). Not in GeoNet",
+    ),
 )
 
 

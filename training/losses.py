@@ -45,6 +45,9 @@ class LossWeights:
     # Not in GeoNet (0 = off): the same pull on the motion's shape only (``pose_keep_error(...,
     # scale_free=True)``): step directions and length ratios held, each snippet's speed free.
     pose_keep_shape: float = 0.0
+    # Not in GeoNet (0 = off): weight of :func:`steady_speed_error`, the spread of a snippet's step
+    # lengths (the camera's speed barely changes within a snippet).
+    pose_steady: float = 0.0
 
     @property
     def keeps_pose(self) -> bool:
@@ -321,3 +324,33 @@ def pose_keep_error(
 
 STILL_PATH = 1e-6  # a true path shorter than this (metres or unit steps) is a still camera
 STILL_REF_STEP = 0.1  # the bundled PoseNet's step at driving speed, in its own units (docs/models.md)
+
+
+def steady_speed_error(T: torch.Tensor, reference_step: torch.Tensor | None = None) -> torch.Tensor:
+    """How unevenly a snippet's steps are predicted: mean over the steps of ``|step - mean step|``,
+    divided by the larger of the snippet's mean step and ``reference_step``; mean over the batch.
+
+    Issue 53, round 10: the stop rounds lost the held-out snippet ATE to step-length jitter (06: a
+    5-frame snippet's steps spread 3.5 % against 0.2 % in the truth, docs/stop_diagnosis.md), and the
+    scale-aligned errors never see it within a snippet. Within a snippet of a few frames a car's speed
+    barely changes, whether it drives, creeps or stands; no truth is needed, so every snippet pays it.
+    ``reference_step`` (a typical moving step, not differentiated) keeps a still snippet's relative
+    spread of near-zero steps from counting as much as a moving one's.
+
+    Args:
+        T: (B, N, 4, 4) motions target -> each source, sources in temporal order around the target
+            (``geonet_infer.core.snippets.snippet_indices``: N / 2 before it, N / 2 after it).
+        reference_step: scalar, or None (the snippet's own mean step alone).
+    Returns:
+        scalar.
+    """
+    t = T[..., :3, 3]
+    k = t.shape[1] // 2
+    # The camera's positions in time order, the target's (the origin) between the sources'.
+    positions = torch.cat([t[:, :k], torch.zeros_like(t[:, :1]), t[:, k:]], dim=1)
+    steps = (positions[:, 1:] - positions[:, :-1]).norm(dim=-1)  # (B, N)
+    mean_step = steps.mean(dim=1, keepdim=True)
+    scale = mean_step.detach()
+    if reference_step is not None:
+        scale = scale.clamp(min=float(reference_step))
+    return ((steps - mean_step).abs().mean(dim=1, keepdim=True) / scale.clamp(min=1e-6)).mean()

@@ -40,6 +40,7 @@ from training.losses import (
     scale_aligned_pose_error,
     scale_invariant_log_error,
     speed_error,
+    steady_speed_error,
 )
 from training.networks import DepthNet, PoseNet, ResFlowNet
 
@@ -231,7 +232,8 @@ class GeoNet(nn.Module):
         ``weights.pose_speed`` > 0 the speed error under the run's unit (:func:`speed_error`), a still
         snippet then measured against the run's mean moving step (:class:`SpeedUnit`). With
         ``weights.pose_keep`` (or ``pose_keep_shape``) > 0 and :meth:`keep_pose_of` called, the snippets
-        without true poses pay :func:`pose_keep_error` (scale-free) against the starting PoseNet.
+        without true poses pay :func:`pose_keep_error` (scale-free) against the starting PoseNet. With
+        ``weights.pose_steady`` > 0 every snippet pays :func:`steady_speed_error`.
         """
         w = self.weights
         out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
@@ -261,7 +263,7 @@ class GeoNet(nn.Module):
             total = total + terms["depth_supervised"]
         supervise_pose = w.pose_supervision > 0 and pose_gt is not None
         keep_pose = w.keeps_pose and self.start_pose_net is not None
-        if supervise_pose or keep_pose:  # the motions (B, N, 4, 4), once for both terms
+        if supervise_pose or keep_pose or w.pose_steady > 0:  # the motions (B, N, 4, 4), once for every term
             T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
         if supervise_pose:
             still_ref_step = None
@@ -286,6 +288,11 @@ class GeoNet(nn.Module):
             if w.pose_keep_shape > 0:
                 terms["pose_keep_shape"] = w.pose_keep_shape * pose_keep_error(T, T_start, no_truth, scale_free=True)
             total = total + terms.get("pose_keep", 0.0) + terms.get("pose_keep_shape", 0.0)
+        if w.pose_steady > 0:
+            # Half the batch's median step: the still copies (under half a batch) stay below it.
+            reference_step = 0.5 * T[..., :3, 3].norm(dim=-1).mean(dim=1).median().detach()
+            terms["pose_steady"] = w.pose_steady * steady_speed_error(T, reference_step)
+            total = total + terms["pose_steady"]
         return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(

@@ -243,3 +243,24 @@ def test_pose_keep_error_scale_free_closed_form():
         assert pose_keep_error(faster, start, keep).item() > 0.5  # round 6's term holds the speed
     sideways = torch.stack([_motion(0.0, [3.0, 0, 0]), _motion(0.0, [0, 0, 3.0])])[None]  # and 3x as fast
     torch.testing.assert_close(pose_keep_error(sideways, start, keep, scale_free=True), torch.tensor(2**0.5 / 2))
+
+
+def test_steady_speed_error_closed_form():
+    """Issue 53, round 10: steps taken in time order around the target. A constant 1-unit step costs
+    nothing, moving or standing; steps of 1 and 3 (previous frame 1 behind, next frame 3 ahead) spread
+    1 from their mean 2, so the error is 1 / 2 of its own mean step, and 1 / 10 against a reference step
+    of 10; a still snippet of near-zero steps pays little against a moving reference."""
+    from training.losses import steady_speed_error
+
+    steady = torch.stack([_motion(0.0, [0, 0, -1.0]), _motion(0.0, [0, 0, 1.0])])[None]
+    assert steady_speed_error(steady).item() < 1e-6
+    uneven = torch.stack([_motion(0.0, [0, 0, -1.0]), _motion(0.0, [0, 0, 3.0])])[None]
+    torch.testing.assert_close(steady_speed_error(uneven), torch.tensor(0.5))
+    torch.testing.assert_close(steady_speed_error(uneven, torch.tensor(10.0)), torch.tensor(0.1))
+    seq5 = torch.stack(
+        [_motion(0.0, [0, 0, -2.0]), _motion(0.0, [0, 0, -1.0]), _motion(0.0, [0, 0, 1.0]), _motion(0.0, [0, 0, 2.0])]
+    )[None]  # four steps of 1
+    assert steady_speed_error(seq5).item() < 1e-6
+    still = uneven.clone()
+    still[..., :3, 3] *= 1e-3
+    assert steady_speed_error(still, torch.tensor(1.0)).item() < 1e-3

@@ -134,11 +134,11 @@ def test_flow_stage_freezes_rigid_nets(synth_prepared, tmp_path):
 
 def test_freeze_depth_trains_posenet_alone(synth_prepared, tmp_path):
     """--freeze-depth (issue 53): stage rigid leaves DepthNet's weights and batch-norm statistics as
-    initialised. With --pose-keep and --pose-keep-shape (rounds 6-8) beside it: both pulls toward the
-    starting PoseNet are logged, and the frozen copy they are measured against never reaches the
+    initialised. With --pose-keep and --pose-keep-shape (rounds 6-8) and --pose-steady (round 10) beside
+    it: both pulls toward the starting PoseNet and the step spread are logged, and the frozen copy they are measured against never reaches the
     checkpoint; either one alone is refused without --init-checkpoint or with --resume."""
     first = train(config(synth_prepared, tmp_path / "a", max_steps=1), progress=False)
-    keep = LossWeights(pose_keep=1.0, pose_keep_shape=1.0)
+    keep = LossWeights(pose_keep=1.0, pose_keep_shape=1.0, pose_steady=1.0)
     init = str(first["last"])
     frozen = train(
         config(synth_prepared, tmp_path / "b", max_steps=2, freeze_depth=True, init_checkpoint=init, weights=keep),
@@ -152,7 +152,7 @@ def test_freeze_depth_trains_posenet_alone(synth_prepared, tmp_path):
     pose = [k for k in before if k.startswith("pose_net.") and before[k].dim() == 4]
     assert any(not torch.equal(before[k], after[k]) for k in pose)
     rows = read_log(frozen["log"])
-    for term in ("pose_keep", "pose_keep_shape"):
+    for term in ("pose_keep", "pose_keep_shape", "pose_steady"):
         assert all(math.isfinite(r[term]) and r[term] >= 0 for r in rows if "val_total" not in r)
     shape_only = LossWeights(pose_keep_shape=1.0)
     assert cfg_refused(config(synth_prepared, tmp_path / "c", weights=keep, resume=init))
