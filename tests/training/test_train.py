@@ -135,8 +135,9 @@ def test_flow_stage_freezes_rigid_nets(synth_prepared, tmp_path):
 def test_freeze_depth_trains_posenet_alone(synth_prepared, tmp_path):
     """--freeze-depth (issue 53): stage rigid leaves DepthNet's weights and batch-norm statistics as
     initialised. With --pose-keep and --pose-keep-shape (rounds 6-8) and --pose-steady (round 10) beside
-    it: both pulls toward the starting PoseNet and the step spread are logged, and the frozen copy they are measured against never reaches the
-    checkpoint; either one alone is refused without --init-checkpoint or with --resume."""
+    it: both pulls toward the starting PoseNet and the step spread are logged, and the frozen copy the
+    pulls are measured against never reaches the checkpoint; either pull alone is refused without
+    --init-checkpoint or with --resume."""
     first = train(config(synth_prepared, tmp_path / "a", max_steps=1), progress=False)
     keep = LossWeights(pose_keep=1.0, pose_keep_shape=1.0, pose_steady=1.0)
     init = str(first["last"])
