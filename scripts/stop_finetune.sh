@@ -10,7 +10,7 @@
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
-#   OUT=runs/stop10 bash scripts/stop_finetune.sh  round 10 (the default); ROUND=1 to 9 for those rounds' settings
+#   OUT=runs/stop11 bash scripts/stop_finetune.sh  round 11 (the default); ROUND=1 to 10 for those rounds' settings
 #
 # Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
 # Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
@@ -52,6 +52,10 @@
 # Round 10: round 9 did not cure round 7's step-length jitter (06: 3.9 % spread, round 7 3.5 %, bundled
 # 1.6 %). Round 7 plus --pose-steady 10: every snippet pays the spread of its step lengths, since the speed
 # barely changes over three frames (training.losses.steady_speed_error).
+# Round 11: every round's flow stage stopped while its supervised flow error was still falling (about 900
+# steps of batch 4 in 20 minutes; the paper trains ResFlowNet for 400k). No rigid stage: round 10's whole
+# model (BASE) with its ResFlowNet trained on for FLOW_STEPS more steps, the same data and losses, bounded
+# by steps rather than minutes so that a pause for a benchmark (kill -STOP) does not shorten it.
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -60,7 +64,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-10} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-11} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -79,6 +83,9 @@ elif [ "$ROUND" -le 7 ]; then
 elif [ "$ROUND" = 8 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-20} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10) REAL=_norev
+elif [ "$ROUND" = 11 ]; then
+    FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-2400}
+    BASE=${BASE:-runs/stop10} REAL=_norev RIGID_FLAGS=()
 elif [ "$ROUND" = 9 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-15} FLOW_MINUTES=${FLOW_MINUTES:-15} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth --pose-keep 2 --pose-keep-shape 10) REAL=_norev CLIPS_REAL=_plain
@@ -86,6 +93,7 @@ else
     RIGID_MINUTES=${RIGID_MINUTES:-20} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth --pose-keep 2 --pose-steady 10) REAL=_norev CLIPS_REAL=_plain
 fi
+FLOW_STEPS=${FLOW_STEPS:-100000} BASE=${BASE:-}  # BASE: a finished round whose whole model the flow stage continues
 REAL=${REAL:-}  # the real folders' suffix: _norev = their train.txt without the time-reversed samples
 CLIPS_REAL=${CLIPS_REAL:-$REAL}  # the dashcam folders' in stage rigid: _plain = without stride-2 and reversed
 RIGID_LR=${RIGID_LR:-5e-5} FLOW_LR=${FLOW_LR:-1e-4}
@@ -125,7 +133,7 @@ if want prepare; then
         --out data/synth40_pose --heldout 4 --workers 1 --train-pose
 fi
 
-if want rigid; then
+if want rigid && [ -z "$BASE" ]; then
     if [ "$ROUND" = 4 ] || [ "$ROUND" = 5 ]; then  # one rig with true poses (see round 4 above)
         POSED=(--extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL")
     else
@@ -140,11 +148,15 @@ if want rigid; then
 fi
 
 if want flow; then
-    run $PY -m training.checkpoint --combine "$OUT/rigid/last.pt" "$INIT" "$OUT/rigid_combined.pt"
+    if [ -n "$BASE" ]; then
+        cp "$BASE/combined.pt" "$OUT/rigid_combined.pt"  # the flow stage trains ResFlowNet alone
+    else
+        run $PY -m training.checkpoint --combine "$OUT/rigid/last.pt" "$INIT" "$OUT/rigid_combined.pt"
+    fi
     run $PY -m training.train --stage flow --arch small --device "$DEVICE" --num-workers 0 \
         --data-dir "data/s_udacity$REAL" --extra-data-dir "data/s_udacity_guess$REAL" --extra-data-dir "data/s_odom$REAL" \
         --init-checkpoint "$OUT/rigid_combined.pt" --out-dir "$OUT/flow" --flow-supervision "$FLOW_SUPERVISION" \
-        --lr "$FLOW_LR" --batch-size 4 --max-steps 100000 --max-minutes "$FLOW_MINUTES" --val-every 1000000 \
+        --lr "$FLOW_LR" --batch-size 4 --max-steps "$FLOW_STEPS" --max-minutes "$FLOW_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20
 fi
 
