@@ -17,6 +17,11 @@ from geonet_infer.errors import InputError
 # Frames per network batch: memory grows with it, speed does not past a few (batch 100000
 # held 4.85 GB on 312 frames). Also the most images one Predictor.depth() call takes.
 MAX_BATCH_SIZE = 64
+# The default frames per network batch (predict, batch, the Predictor's sequence calls). One: on the
+# 2-core Intel Xeon of docs/performance.md larger batches were no faster in either mode (predict in
+# throughput mode: 15.5 frames/s at 1, 15.4 at 2, 15.7 at 4, run-to-run spread 14-17) and held more
+# (peak RSS 318, 375, 496 MiB): every intermediate of DepthNet and ResFlowNet grows with the batch (issue 54).
+DEFAULT_BATCH_SIZE = 1
 # "--colour-scale first:N" holds N frames' results until the scale is fixed; beyond a few dozen
 # the median does not change, the memory does ("first:1000000" held 2.65 GB on 312 KITTI frames).
 MAX_COLOUR_SCALE_FRAMES = 64

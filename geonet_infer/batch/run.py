@@ -47,7 +47,7 @@ from geonet_infer.errors import InputError
 from geonet_infer.io.atomic import atomic_write
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.camera import ASSUMED_RULE
-from geonet_infer.limits import check_batch_size
+from geonet_infer.limits import DEFAULT_BATCH_SIZE, check_batch_size
 from geonet_infer.output import ownership
 from geonet_infer.output.layout import SUMMARY_NAME
 
@@ -198,7 +198,7 @@ def run_batch(
     precision: str = "fp32",
     backend: str = "onnxruntime",
     tasks: tuple[str, ...] | None = None,
-    batch_size: int = 4,
+    batch_size: int = DEFAULT_BATCH_SIZE,
     camera: Camera | None = None,
     vis: bool = True,
     outputs: Collection[str] | None = None,

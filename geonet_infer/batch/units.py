@@ -48,6 +48,7 @@ from geonet_infer.errors import GeoNetError, InputError
 from geonet_infer.io.atomic import atomic_write, leftover_temps
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.frames import FrameSource, open_frames
+from geonet_infer.limits import DEFAULT_BATCH_SIZE
 from geonet_infer.models.manifest import file_sha256
 from geonet_infer.output import ownership
 from geonet_infer.output.layout import OUTPUT_MARKER
@@ -69,7 +70,7 @@ class BatchConfig:
     backend: str = "onnxruntime"
     threads: int = 1
     tasks: tuple[str, ...] = TASKS
-    batch_size: int = 4
+    batch_size: int = DEFAULT_BATCH_SIZE
     camera: Camera | None = None
     vis: bool = True  # depth colour maps and flow colour wheels
     outputs: tuple[str, ...] | None = None  # --outputs names (geonet_infer.output.layout); None: the default

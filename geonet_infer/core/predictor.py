@@ -57,7 +57,7 @@ from geonet_infer.core.task_graphs import (
 from geonet_infer.core.tasks import TASKS, needs_intrinsics
 from geonet_infer.engines import BACKENDS, check_threads, usable_cpus
 from geonet_infer.errors import GeoNetError, InputError
-from geonet_infer.limits import MAX_BATCH_SIZE, check_batch_size
+from geonet_infer.limits import DEFAULT_BATCH_SIZE, MAX_BATCH_SIZE, check_batch_size
 from geonet_infer.models import resolve_model
 from geonet_infer.models.manifest import PRECISION_CHOICES, Manifest, load_manifest
 
@@ -365,7 +365,7 @@ class Predictor:
         frames: Iterable[ImageLike],
         camera: Intrinsics | None = None,
         *,
-        batch_size: int = 4,
+        batch_size: int = DEFAULT_BATCH_SIZE,
         names: Sequence[str] | None = None,
         with_flow: bool = True,
         camera_height: float | None = None,
@@ -455,7 +455,7 @@ class Predictor:
         frames: Iterable[ImageLike],
         camera: Intrinsics | None = None,
         *,
-        batch_size: int = 4,
+        batch_size: int = DEFAULT_BATCH_SIZE,
         camera_height: float | None = None,
         check: bool = True,
         flow_method: str = "network",

@@ -45,7 +45,7 @@ from geonet_infer.io.calib import Camera, write_kitti_camera
 from geonet_infer.io.camera import assumed_camera
 from geonet_infer.io.frames import FrameSource
 from geonet_infer.io.poses import write_kitti_poses, write_tum_poses
-from geonet_infer.limits import MAX_HELD_PIXELS, check_batch_size
+from geonet_infer.limits import DEFAULT_BATCH_SIZE, MAX_HELD_PIXELS, check_batch_size
 from geonet_infer.models.manifest import model_notice
 from geonet_infer.output import ownership
 from geonet_infer.output.clouds import WorldCloud, as_predicted
@@ -78,7 +78,7 @@ def predict_to_dir(
     out_dir: str | Path,
     camera: Camera | None = None,
     tasks: tuple[str, ...] | None = TASKS,
-    batch_size: int = 4,
+    batch_size: int = DEFAULT_BATCH_SIZE,
     progress: bool = True,
     camera_height: float | None = None,
     vis: bool = True,
@@ -421,6 +421,7 @@ def _predict(
             "threads": predictor.threads,
             "mode": predictor.mode,  # latency | throughput (geonet_infer.core.predictor.MODES)
             "workers": predictor.workers,  # sequence batches computed at once
+            "batch_size": batch_size,  # frames per graph call: memory grows with it (geonet_infer.limits)
             "graph_size": [predictor.spec.height, predictor.spec.width],
             "random_init": predictor.manifest.random_init,
         },

@@ -81,11 +81,12 @@ def test_predict_and_bench_record_the_mode(tmp_path):
     out = tmp_path / "out"
     cli = [sys.executable, "-m", "geonet_infer.cli"]
     subprocess.run(
-        [*cli, "predict", str(DRIVE), "--out", str(out), "--max-frames", "4", "--no-progress", "--quiet", "--no-vis"],
+        [*cli, "predict", str(DRIVE), "--out", str(out), "--max-frames", "4", "--no-progress", "--quiet", "--no-vis",
+         "--batch-size", "3"],
         check=True,
-    )
+    )  # fmt: skip
     model = json.loads((out / "summary.json").read_text())["model"]
-    assert (model["mode"], model["workers"]) == ("throughput", gi.engines.usable_cpus())
+    assert (model["mode"], model["workers"], model["batch_size"]) == ("throughput", gi.engines.usable_cpus(), 3)
     assert model["graphs"]["rigidflow"]["engine"] == "onnxruntime"
     bench = tmp_path / "bench.json"
     subprocess.run(
