@@ -16,6 +16,7 @@ from geonet_infer.batch import (
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import (
     ESTIMATE,
+    add_batch_size_arg,
     add_camera_args,
     add_method_args,
     add_model_args,
@@ -26,7 +27,6 @@ from geonet_infer.cli.common import (
 from geonet_infer.cli.outputs import add_outputs_arg, tasks_and_outputs
 from geonet_infer.engines import usable_cpus
 from geonet_infer.errors import InputError
-from geonet_infer.limits import DEFAULT_BATCH_SIZE, MAX_BATCH_SIZE
 from geonet_infer.output.layout import SUMMARY_NAME
 
 HELP = f"""\
@@ -133,13 +133,7 @@ def add_parser(sub) -> None:
         help="comma list of depth,pose,flow (default: every task the model can do; flow needs intrinsics: --calib, "
         "--intrinsics, or a KITTI drive's own calibration)",
     )
-    parser.add_argument(
-        "--batch-size",
-        type=positive_int,
-        default=DEFAULT_BATCH_SIZE,
-        help=f"frames per DepthNet/PoseNet/ResFlowNet batch, at most {MAX_BATCH_SIZE}; larger batches hold "
-        f"more memory and measured no faster (default: {DEFAULT_BATCH_SIZE})",
-    )
+    add_batch_size_arg(parser)
     add_outputs_arg(parser)
     parser.add_argument(
         "--no-vis",

@@ -19,6 +19,7 @@ from geonet_infer.errors import InputError
 from geonet_infer.io.calib import Camera, read_camera
 from geonet_infer.io.camera import ASSUMED_RULE
 from geonet_infer.io.frames import FrameSource, open_frames, open_stdin, open_stream
+from geonet_infer.limits import DEFAULT_BATCH_SIZE, MAX_BATCH_SIZE
 from geonet_infer.models import DEFAULT_MODEL
 from geonet_infer.models.manifest import PRECISION_CHOICES
 
@@ -31,6 +32,17 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
     return value
+
+
+def add_batch_size_arg(parser: argparse.ArgumentParser) -> None:
+    """--batch-size, as predict and batch take it (the default and the bound: :mod:`geonet_infer.limits`)."""
+    parser.add_argument(
+        "--batch-size",
+        type=positive_int,
+        default=DEFAULT_BATCH_SIZE,
+        help=f"frames per DepthNet/PoseNet/ResFlowNet batch, at most {MAX_BATCH_SIZE}; larger batches hold "
+        f"more memory and measured no faster (default: {DEFAULT_BATCH_SIZE})",
+    )
 
 
 def backend_help() -> str:

@@ -10,6 +10,7 @@ from pathlib import Path
 from geonet_infer.classical import classical_tasks
 from geonet_infer.cli import COMMANDS
 from geonet_infer.cli.common import (
+    add_batch_size_arg,
     add_camera_args,
     add_method_args,
     add_model_args,
@@ -26,8 +27,6 @@ from geonet_infer.core.predictor import TASKS, describe_skipped
 from geonet_infer.core.scale import MAX_FRAMES_BEFORE_GROUND, MAX_SCALE_HALF_WINDOW, SCALE_HALF_WINDOW
 from geonet_infer.errors import InputError
 from geonet_infer.limits import (
-    DEFAULT_BATCH_SIZE,
-    MAX_BATCH_SIZE,
     MAX_COLOUR_SCALE_FRAMES,
     MAX_VIDEO_FPS,
     MAX_WORLD_POINTS,
@@ -96,13 +95,7 @@ def add_parser(sub) -> None:
         help=f"comma list of {','.join(TASKS)} (default: every task the model's graphs can do, the others "
         "named in one line and in summary.json; flow needs intrinsics)",
     )
-    parser.add_argument(
-        "--batch-size",
-        type=positive_int,
-        default=DEFAULT_BATCH_SIZE,
-        help=f"frames per DepthNet/PoseNet/ResFlowNet batch, at most {MAX_BATCH_SIZE}; larger batches hold "
-        f"more memory and measured no faster (default: {DEFAULT_BATCH_SIZE})",
-    )
+    add_batch_size_arg(parser)
     parser.add_argument(
         "--camera-height",
         type=float,
