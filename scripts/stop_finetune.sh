@@ -83,15 +83,15 @@ elif [ "$ROUND" -le 7 ]; then
 elif [ "$ROUND" = 8 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-20} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10) REAL=_norev
-elif [ "$ROUND" = 11 ]; then
-    FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-2400}
-    BASE=${BASE:-runs/stop10} REAL=_norev RIGID_FLAGS=()
 elif [ "$ROUND" = 9 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-15} FLOW_MINUTES=${FLOW_MINUTES:-15} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth --pose-keep 2 --pose-keep-shape 10) REAL=_norev CLIPS_REAL=_plain
-else
+elif [ "$ROUND" = 10 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-20} FLOW_MINUTES=${FLOW_MINUTES:-20} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=(--freeze-depth --pose-keep 2 --pose-steady 10) REAL=_norev CLIPS_REAL=_plain
+else  # 11: no rigid stage (BASE set), so no rigid settings
+    FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-2400}
+    BASE=${BASE:-runs/stop10} REAL=_norev
 fi
 FLOW_STEPS=${FLOW_STEPS:-100000} BASE=${BASE:-}  # BASE: a finished round whose whole model the flow stage continues
 REAL=${REAL:-}  # the real folders' suffix: _norev = their train.txt without the time-reversed samples
@@ -149,7 +149,7 @@ fi
 
 if want flow; then
     if [ -n "$BASE" ]; then
-        cp "$BASE/combined.pt" "$OUT/rigid_combined.pt"  # the flow stage trains ResFlowNet alone
+        run cp "$BASE/combined.pt" "$OUT/rigid_combined.pt"  # the flow stage trains ResFlowNet alone
     else
         run $PY -m training.checkpoint --combine "$OUT/rigid/last.pt" "$INIT" "$OUT/rigid_combined.pt"
     fi
