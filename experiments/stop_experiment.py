@@ -129,6 +129,13 @@ NOTES[11] = (  # written before round 11 was scored, with the same rule
     "PoseNet unchanged here, so rule 3 stays as round 10 left it) with its ResFlowNet trained on for 2,400 more "
     "steps on the same data and losses, bounded by steps so that pauses for benchmarks do not shorten it."
 )
+NOTES[12] = (  # written before round 12 was scored, with the same rule
+    "Round 12 (`OUT=runs/stop12 bash scripts/stop_finetune.sh`): round 11's longer flow stage fitted the dashcam "
+    "camera (held-back clip 17 -> 6 pairs) and lost KITTI's (2015 000010 7.23 -> 9.53); 97 % of every flow "
+    "stage's samples were dashcam ones (71 odometry samples of 2,285). Round 10's whole model with its ResFlowNet "
+    "trained 1,200 more steps on the same folders, the KITTI odometry one listed 15 times (about a third of the "
+    "samples from KITTI's camera), bounded by steps."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")
