@@ -326,6 +326,22 @@ STILL_PATH = 1e-6  # a true path shorter than this (metres or unit steps) is a s
 STILL_REF_STEP = 0.1  # the bundled PoseNet's step at driving speed, in its own units (docs/models.md)
 
 
+def snippet_steps(T: torch.Tensor) -> torch.Tensor:
+    """(B, N, 4, 4) motions target -> each source, sources in temporal order around the target ->
+    (B, N) lengths of the camera's steps between consecutive frames of each snippet."""
+    t = T[..., :3, 3]
+    k = t.shape[1] // 2
+    # The camera's positions in time order, the target's (the origin) between the sources'.
+    positions = torch.cat([t[:, :k], torch.zeros_like(t[:, :1]), t[:, k:]], dim=1)
+    return (positions[:, 1:] - positions[:, :-1]).norm(dim=-1)
+
+
+def batch_reference_step(T: torch.Tensor) -> torch.Tensor:
+    """:func:`steady_speed_error`'s ``reference_step`` for a batch: half the median of the snippets' mean
+    steps, not differentiated (the still copies, under half a batch, stay below it). (B, N, 4, 4) -> scalar."""
+    return 0.5 * snippet_steps(T).mean(dim=1).median().detach()
+
+
 def steady_speed_error(T: torch.Tensor, reference_step: torch.Tensor | None = None) -> torch.Tensor:
     """How unevenly a snippet's steps are predicted: mean over the steps of ``|step - mean step|``,
     divided by the larger of the snippet's mean step and ``reference_step``; mean over the batch.
@@ -344,11 +360,7 @@ def steady_speed_error(T: torch.Tensor, reference_step: torch.Tensor | None = No
     Returns:
         scalar.
     """
-    t = T[..., :3, 3]
-    k = t.shape[1] // 2
-    # The camera's positions in time order, the target's (the origin) between the sources'.
-    positions = torch.cat([t[:, :k], torch.zeros_like(t[:, :1]), t[:, k:]], dim=1)
-    steps = (positions[:, 1:] - positions[:, :-1]).norm(dim=-1)  # (B, N)
+    steps = snippet_steps(T)
     mean_step = steps.mean(dim=1, keepdim=True)
     scale = mean_step.detach()
     if reference_step is not None:

@@ -30,6 +30,7 @@ from training.geometry import (
 from training.losses import (
     LossWeights,
     SpeedUnit,
+    batch_reference_step,
     edge_aware_smoothness,
     flow_endpoint_error,
     has_true_pose,
@@ -289,9 +290,7 @@ class GeoNet(nn.Module):
                 terms["pose_keep_shape"] = w.pose_keep_shape * pose_keep_error(T, T_start, no_truth, scale_free=True)
             total = total + terms.get("pose_keep", 0.0) + terms.get("pose_keep_shape", 0.0)
         if w.pose_steady > 0:
-            # Half the batch's median step: the still copies (under half a batch) stay below it.
-            reference_step = 0.5 * T[..., :3, 3].norm(dim=-1).mean(dim=1).median().detach()
-            terms["pose_steady"] = w.pose_steady * steady_speed_error(T, reference_step)
+            terms["pose_steady"] = w.pose_steady * steady_speed_error(T, batch_reference_step(T))
             total = total + terms["pose_steady"]
         return StageLoss(total, _as_floats(**terms, total=total))
 

@@ -264,3 +264,20 @@ def test_steady_speed_error_closed_form():
     still = uneven.clone()
     still[..., :3, 3] *= 1e-3
     assert steady_speed_error(still, torch.tensor(1.0)).item() < 1e-3
+
+
+def test_batch_reference_step_is_half_the_median_snippet_step():
+    """The reference of --pose-steady: half the median over the batch of each snippet's mean step between
+    consecutive frames, for 3- and 5-frame snippets alike (5 frames 2 units apart: 1, not the 1.5 of the
+    mean distance from the target, which the term used before and which equals the step for 3 frames only)."""
+    from training.losses import batch_reference_step
+
+    def snippet(step: float, n_sources: int) -> torch.Tensor:
+        k = n_sources // 2
+        offsets = [-(k - i) for i in range(k)] + [i + 1 for i in range(k)]
+        return torch.stack([_motion(0.0, [0, 0, step * o]) for o in offsets])
+
+    seq3 = torch.stack([snippet(s, 2) for s in (1.0, 2.0, 4.0)])  # mean steps 1, 2, 4: median 2
+    torch.testing.assert_close(batch_reference_step(seq3), torch.tensor(1.0))
+    seq5 = torch.stack([snippet(2.0, 4)] * 3)
+    torch.testing.assert_close(batch_reference_step(seq5), torch.tensor(1.0))
