@@ -80,9 +80,10 @@ def main(argv: list[str] | None = None) -> int:
 def one_malloc_arena() -> bool:
     """Every thread of this process allocates from glibc's main arena, as ``MALLOC_ARENA_MAX=1`` would.
 
-    By default glibc gives a thread that meets another in malloc an arena of its own (up to 8 per
-    core), and each arena keeps the pages its thread freed: predict's reader, cascade and writer
-    threads allocate and free frame-sized arrays. On the 2-core Intel Xeon of docs/performance.md
+    By default glibc gives each thread that allocates an arena of its own (up to 8 per core), and
+    each arena keeps the pages its thread freed: predict's reader, cascade and writer threads
+    allocate and free frame-sized arrays. Set after the command's imports (their threads keep the
+    arenas they already have), before any of predict's threads start. On the 2-core Intel Xeon of docs/performance.md
     ("One malloc arena"), predict's peak RSS 316 -> 275 MiB with all outputs and
     266 -> 232 with --no-vis, no slower (system time 1.0 -> 0.8 s). Called by the CLI only, which owns
     its process (a program using the API keeps its own allocator settings); a user's own
