@@ -21,24 +21,19 @@ import json
 import os
 import shlex
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from identical_outputs import REPO, revision_tree
+from identical_outputs import REPO, revision_tree, run_cli
 
 PRECISIONS = ("fp32", "int8")
 
 
 def one_run(tree: Path, args: list[str], out: Path) -> dict[str, float]:
     """bench's p50 ms per frame of the e2e sequence task, per precision."""
-    env = {**os.environ, "PYTHONPATH": str(tree)}
-    cmd = [sys.executable, "-m", "geonet_infer.cli", "bench", "--tasks", "sequence", "--modes", "e2e"]
-    cmd += ["--precision", ",".join(PRECISIONS), "--quiet", "--json", str(out), *args]
-    done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)  # cwd: `python -m` imports the tree
-    if done.returncode != 0:
-        raise SystemExit(f"{tree}: bench {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
+    bench = ["bench", "--tasks", "sequence", "--modes", "e2e", "--precision", ",".join(PRECISIONS), "--quiet"]
+    run_cli(tree, [*bench, "--json", str(out), *args])
     rows = json.loads(out.read_text())["results"]
     return {row["precision"]: row["per_item_p50_ms"] for row in rows}  # sequence rows: per frame
 

@@ -42,13 +42,19 @@ CASES = {  # name -> predict arguments after INPUT (all on the KITTI drive, cali
 PER_RUN_KEYS = {"timings_ms_per_frame", "overlapped_ms_per_frame", "wall_s", "frames_per_s"}
 
 
-def run_predict(tree: Path, args: list[str], out: Path) -> None:
+def run_cli(tree: Path, args: list[str]) -> None:
+    """``geonet-infer ARGS`` with the package of ``tree`` (a checkout or a revision's worktree)."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
-    cmd = [sys.executable, "-m", "geonet_infer.cli", "predict", str(KITTI), "--out", str(out), "--no-progress", *args]
     # cwd = the tree: `python -m` puts the working directory first on sys.path
-    done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+    done = subprocess.run(
+        [sys.executable, "-m", "geonet_infer.cli", *args], cwd=tree, env=env, capture_output=True, text=True
+    )
     if done.returncode != 0:
-        raise SystemExit(f"{tree}: predict {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
+        raise SystemExit(f"{tree}: {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
+
+
+def run_predict(tree: Path, args: list[str], out: Path) -> None:
+    run_cli(tree, ["predict", str(KITTI), "--out", str(out), "--no-progress", *args])
 
 
 @contextlib.contextmanager

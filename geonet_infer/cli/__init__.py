@@ -12,7 +12,6 @@ refused a read or write (permission, disk full, read-only; one line naming the p
 from __future__ import annotations
 
 import argparse
-import ctypes
 import importlib
 import os
 import sys
@@ -91,6 +90,8 @@ def one_malloc_arena() -> bool:
     """
     if os.environ.get("MALLOC_ARENA_MAX") or not _glibc():
         return False
+    import ctypes  # here, not at the top: `import geonet_infer.cli` stays as light as it was
+
     try:
         return bool(ctypes.CDLL(None).mallopt(M_ARENA_MAX, 1))
     except (AttributeError, OSError):  # a libc without mallopt
