@@ -136,6 +136,17 @@ NOTES[12] = (  # written before round 12 was scored, with the same rule
     "trained 1,200 more steps on the same folders, the KITTI odometry one listed 15 times (about a third of the "
     "samples from KITTI's camera), bounded by steps."
 )
+NOTES[13] = (  # written before round 13 was trained or scored, with the same rule
+    "Round 13 (`OUT=runs/stop13 bash scripts/stop_finetune.sh`): no round's PoseNet measured speed, only "
+    "stillness: on held-out KITTI odometry (`python -m experiments.stop_speed_probe`), frames t-2, t, t+2 gave "
+    "0.96-1.07 times the step of t-1, t, t+1 for round 12 and 1.03-1.05 for the bundled model (truth 2.0), "
+    "so the drive's creeping pairs got a cruising step. Round 12's whole model with PoseNet trained 2,000 "
+    "steps, DepthNet frozen, plus the new `--pose-stride 5` (each stride2 copy's translations against twice "
+    "those of its target's normal snippet, the same augmentation; `training.losses.stride_ratio_error`), the "
+    "dashcam folders with their stride2 copies, `--pose-keep-shape 10` instead of `--pose-keep 2` (which held "
+    "stride2 copies to the speed-blind starting motion) and round 10's `--pose-steady 10`; then round 12's "
+    "flow stage (the odometry folder 15 times) for 600 steps from round 12's ResFlowNet."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

@@ -10,7 +10,7 @@
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
-#   OUT=runs/stop12 bash scripts/stop_finetune.sh  round 12 (the default); ROUND=1 to 11 for those rounds' settings
+#   OUT=runs/stop13 bash scripts/stop_finetune.sh  round 13 (the default); ROUND=1 to 12 for those rounds' settings
 #
 # Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
 # Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
@@ -60,6 +60,14 @@
 # KITTI's (2015 000010 7.23 -> 9.53): 97 % of every flow stage's samples were dashcam ones (71 odometry
 # samples of 2,285). Round 10's whole model (BASE) with its ResFlowNet trained 1,200 more steps on the
 # same folders, the odometry one listed 15 times (about a third of the samples from KITTI's camera).
+# Round 13: no round's PoseNet measured speed, only stillness: on held-out KITTI odometry, frames t-2, t,
+# t+2 gave 0.96-1.22 times the step of t-1, t, t+1 (2 in the truth; experiments/stop_speed_probe.py), so
+# the drive's creeping pairs got a cruising step. Round 12's whole model (INIT) with PoseNet trained
+# RIGID_STEPS steps, DepthNet frozen, plus --pose-stride 5: each stride2 copy's translations against twice
+# those of its target's normal snippet (training.losses.stride_ratio_error). The dashcam folders with their
+# stride2 copies (_norev), --pose-keep-shape 10 instead of --pose-keep 2 (which held every snippet,
+# stride2 copies too, to the speed-blind starting motion), --pose-steady 10 as round 10; then round 12's
+# flow stage (ResFlowNet from INIT, the odometry folder 15 times) for FLOW_STEPS steps.
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -68,7 +76,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-12} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-13} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -96,10 +104,15 @@ elif [ "$ROUND" = 10 ]; then
 elif [ "$ROUND" = 11 ]; then  # no rigid stage (BASE set), so no rigid settings
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-2400}
     BASE=${BASE:-runs/stop10} REAL=_norev
-else  # 12: as 11, the odometry folder 15 times in the flow stage
+elif [ "$ROUND" = 12 ]; then  # as 11, the odometry folder 15 times in the flow stage
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-1200}
     BASE=${BASE:-runs/stop10} REAL=_norev ODOM_REPEAT=15
+else  # 13: PoseNet taught speed ratios on round 12's model, then round 12's flow stage
+    RIGID_MINUTES=${RIGID_MINUTES:-600} RIGID_STEPS=${RIGID_STEPS:-2000} INIT=${INIT:-runs/stop12/combined.pt}
+    FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-600}
+    RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride 5) REAL=_norev ODOM_REPEAT=15
 fi
+RIGID_STEPS=${RIGID_STEPS:-100000}
 FLOW_STEPS=${FLOW_STEPS:-100000} BASE=${BASE:-}  # BASE: a finished round whose whole model the flow stage continues
 ODOM_REPEAT=${ODOM_REPEAT:-1}  # times the odometry folder is listed in the flow stage
 REAL=${REAL:-}  # the real folders' suffix: _norev = their train.txt without the time-reversed samples
@@ -151,7 +164,7 @@ if want rigid && [ -z "$BASE" ]; then
         --mask-out-of-view --automask "${RIGID_FLAGS[@]}" --lr "$RIGID_LR" --pose-supervision "$POSE_SUPERVISION" \
         --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$CLIPS_REAL" \
         --extra-data-dir "data/s_udacity_guess$CLIPS_REAL" "${POSED[@]}" --init-checkpoint "$INIT" \
-        --out-dir "$OUT/rigid" --max-steps 100000 --max-minutes "$RIGID_MINUTES" --val-every 1000000 \
+        --out-dir "$OUT/rigid" --max-steps "$RIGID_STEPS" --max-minutes "$RIGID_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20
 fi
 

@@ -111,6 +111,13 @@ WEIGHT_FLAGS = (  # the LossWeights set from the command line, each `--NAME W`: 
         "stage rigid: add W x the spread of each snippet's step lengths relative to its mean step "
         "(the speed barely changes within a snippet; no truth needed). Not in GeoNet",
     ),
+    (
+        "pose_stride",
+        "stage rigid: add W x the log-ratio error of each stride2 copy's translations against twice "
+        "those of its target's normal snippet, loaded beside it with the same augmentation (teaches "
+        "how fast, not only whether, the camera moves; no truth needed; data prepared with "
+        "--motion-mix ...stride2=P...). Not in GeoNet",
+    ),
 )
 
 

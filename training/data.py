@@ -158,6 +158,11 @@ class SequenceDataset(Dataset):
         ``pose_gt``     float32 (N_src, 4, 4): true motion target -> each source (POSE
                         convention, metres), with ``load_pose`` (all zeros without
                         ``<frame>_pose.txt``). Augmentation (scale, crop, colour) leaves it as is.
+        ``twin_target``, ``twin_sources``, ``has_twin`` with ``load_twins``: for a ``stride2`` copy
+                        (``<frame>_stride2``, ``training.motion_mix``) whose normal snippet
+                        ``<frame>`` is in the folder, that snippet's frames under the same
+                        augmentation and ``has_twin`` True; otherwise the sample's own frames and
+                        False (batches mix both). For ``GeoNet.rigid_loss``'s stride term.
 
     Augmentation (``augment=True`` and split "train" only) draws once per sample from an RNG
     seeded by (seed, epoch, index), so an item is reproducible whatever worker loads it; call
@@ -178,6 +183,7 @@ class SequenceDataset(Dataset):
         load_depth: bool = False,
         load_flow: bool = False,
         load_pose: bool = False,
+        load_twins: bool = False,
     ):
         if split not in SPLITS:
             raise InputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
@@ -193,6 +199,7 @@ class SequenceDataset(Dataset):
         self.load_depth = load_depth or split == "heldout"
         self.load_flow = load_flow
         self.load_pose = load_pose
+        self.load_twins = load_twins
         self.epoch = 0
 
         if not self.root.is_dir():
@@ -281,22 +288,44 @@ class SequenceDataset(Dataset):
             raise InputError(path, f"{len(poses)} poses, expected one per source ({self.seq_length - 1})", PREPARE_CMD)
         return poses.astype(np.float32)
 
+    def _twin_of(self, name: str) -> str | None:
+        """The normal snippet of a ``stride2`` copy's target, if the folder holds it."""
+        folder, frame = name.split(" ")
+        base = frame.removesuffix("_stride2")
+        if base == frame or not (self.root / folder / f"{base}.jpg").is_file():
+            return None
+        return f"{folder} {base}"
+
+    def _split(self, frames: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """(seq_length, H, W, 3) -> target (3, H, W), sources (N_src, 3, H, W) in temporal order."""
+        chw = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))
+        order = snippet_indices(self.seq_length // 2, self.seq_length, self.seq_length)  # [target] + sources
+        return chw[order[0]], chw[order[1:]]
+
     def __getitem__(self, index: int) -> dict:
         name = self.names[index]
         frames, K = self.load_frames(name)
         depth = self.load_depth_gt(name) if self.load_depth else None
         flow = self.load_flow_gt(name) if self.load_flow else None
+        twin = self._twin_of(name) if self.load_twins else None
+        twin_frames = None if twin is None else self.load_frames(twin)[0]
         if self.augment:
-            rng = np.random.default_rng([self.seed, self.epoch, index])
-            frames, K, depth, flow = augment(frames, K, rng, self.share_color_gain, depth, flow)
-        chw = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))  # (N, 3, H, W)
-        order = snippet_indices(self.seq_length // 2, self.seq_length, self.seq_length)  # [target] + sources
+            draws = [self.seed, self.epoch, index]
+            if twin_frames is not None:  # the same draws: only the frames' speed differs
+                twin_frames = augment(twin_frames, K, np.random.default_rng(draws), self.share_color_gain)[0]
+            frames, K, depth, flow = augment(frames, K, np.random.default_rng(draws), self.share_color_gain, depth, flow)
+        target, sources = self._split(frames)
         item = {
-            "target": chw[order[0]],
-            "sources": chw[order[1:]],
+            "target": target,
+            "sources": sources,
             "intrinsics": torch.from_numpy(K.astype(np.float32)),
             "name": name,
         }
+        if self.load_twins:
+            item["twin_target"], item["twin_sources"] = (target, sources) if twin_frames is None else self._split(
+                twin_frames
+            )
+            item["has_twin"] = torch.tensor(twin_frames is not None)
         if depth is None and self.load_depth and self.split != "heldout":
             depth = np.zeros((self.height, self.width), np.float32)  # batches mix samples with and without
         if depth is not None:

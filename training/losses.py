@@ -6,6 +6,7 @@ All images here are network-range ([-1, 1]); the SSIM constants tuned for
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -48,6 +49,9 @@ class LossWeights:
     # Not in GeoNet (0 = off): weight of :func:`steady_speed_error`, the spread of a snippet's step
     # lengths (the camera's speed barely changes within a snippet).
     pose_steady: float = 0.0
+    # Not in GeoNet (0 = off): weight of :func:`stride_ratio_error`, each ``stride2`` copy's translations
+    # against twice those of its target's normal snippet (needs samples prepared with --motion-mix).
+    pose_stride: float = 0.0
 
     @property
     def keeps_pose(self) -> bool:
@@ -366,3 +370,25 @@ def steady_speed_error(T: torch.Tensor, reference_step: torch.Tensor | None = No
     if reference_step is not None:
         scale = scale.clamp(min=float(reference_step))
     return ((steps - mean_step).abs().mean(dim=1, keepdim=True) / scale.clamp(min=1e-6)).mean()
+
+
+def stride_ratio_error(T_fast: torch.Tensor, T_slow: torch.Tensor, ratio: float = 2.0) -> torch.Tensor:
+    """How far the translations of a sped-up snippet are from ``ratio`` times those of the same target's
+    normal snippet: mean over sources of ``(log |t_fast| - log |t_slow| - log ratio)^2``.
+
+    Issue 53, round 13: every stop round's PoseNet told a still snippet from a moving one but not a fast
+    one from a slow one (held-out KITTI odometry: frames t-2, t, t+2 gave 0.96-1.22 times the step of
+    t-1, t, t+1, against 2 in the truth), so the drive's creeping pairs got a cruising step. The
+    ``stride2`` copies of ``training.prepare --motion-mix`` hold t-2, t, t+2; paired with the normal
+    snippet of the same target (same augmentation), the ratio of their steps needs no truth. Logs make
+    the term scale-free, so it fixes no speed of its own.
+
+    Args:
+        T_fast: (B, N, 4, 4) motions target -> sources of the stride-``ratio`` snippets.
+        T_slow: (B, N, 4, 4) the same targets' stride-1 snippets.
+    Returns:
+        scalar.
+    """
+    fast = T_fast[..., :3, 3].norm(dim=-1).clamp(min=1e-6).log()
+    slow = T_slow[..., :3, 3].norm(dim=-1).clamp(min=1e-6).log()
+    return ((fast - slow - math.log(ratio)) ** 2).mean()

@@ -42,6 +42,7 @@ from training.losses import (
     scale_invariant_log_error,
     speed_error,
     steady_speed_error,
+    stride_ratio_error,
 )
 from training.networks import DepthNet, PoseNet, ResFlowNet
 
@@ -222,6 +223,9 @@ class GeoNet(nn.Module):
         K,
         depth_gt: torch.Tensor | None = None,
         pose_gt: torch.Tensor | None = None,
+        twin_target: torch.Tensor | None = None,
+        twin_sources: torch.Tensor | None = None,
+        has_twin: torch.Tensor | None = None,
     ) -> StageLoss:
         """Stage 1: rigid warping + disparity smoothness, summed over scales.
 
@@ -234,7 +238,10 @@ class GeoNet(nn.Module):
         snippet then measured against the run's mean moving step (:class:`SpeedUnit`). With
         ``weights.pose_keep`` (or ``pose_keep_shape``) > 0 and :meth:`keep_pose_of` called, the snippets
         without true poses pay :func:`pose_keep_error` (scale-free) against the starting PoseNet. With
-        ``weights.pose_steady`` > 0 every snippet pays :func:`steady_speed_error`.
+        ``weights.pose_steady`` > 0 every snippet pays :func:`steady_speed_error`. With
+        ``weights.pose_stride`` > 0 and the twins of ``SequenceDataset(load_twins=True)``
+        (``twin_target`` (B, 3, H, W), ``twin_sources`` (B, N, 3, H, W), ``has_twin`` (B,) bool), each
+        ``stride2`` copy pays :func:`stride_ratio_error` against its normal snippet.
         """
         w = self.weights
         out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
@@ -292,6 +299,16 @@ class GeoNet(nn.Module):
         if w.pose_steady > 0:
             terms["pose_steady"] = w.pose_steady * steady_speed_error(T, batch_reference_step(T))
             total = total + terms["pose_steady"]
+        if w.pose_stride > 0 and has_twin is not None and bool(has_twin.any()):
+            rows = has_twin.nonzero().squeeze(1)
+            slow_input = torch.cat(
+                [IMAGE_NORM.apply(twin_target[rows]), IMAGE_NORM.apply(twin_sources[rows]).flatten(1, 2)], dim=1
+            )
+            slow = self.pose_net(slow_input)
+            T_slow = pose_vec_to_mat(slow.flatten(0, 1)).view(*slow.shape[:2], 4, 4)
+            T_fast = pose_vec_to_mat(out.poses[rows].flatten(0, 1)).view(len(rows), -1, 4, 4)
+            terms["pose_stride"] = w.pose_stride * stride_ratio_error(T_fast, T_slow)
+            total = total + terms["pose_stride"]
         return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(

@@ -139,10 +139,13 @@ def epoch_loader(dataset: TrainSet, sampler: DistributedSampler, cfg: TrainConfi
     )
 
 
+TRUTH_KEYS = ("depth_gt", "pose_gt", "flow_gt", "twin_target", "twin_sources", "has_twin")
+
+
 def to_device(batch: dict, device: torch.device) -> tuple:
     """-> (target, sources, K, truth or None): the stage loss's arguments; truth holds the
-    batch's ground truth by name (depth_gt, pose_gt, flow_gt: those the run loads)."""
-    truth = {k: batch[k].to(device, non_blocking=True) for k in ("depth_gt", "pose_gt", "flow_gt") if k in batch}
+    batch's ground truth by name (depth_gt, pose_gt, flow_gt, the stride twins: those the run loads)."""
+    truth = {k: batch[k].to(device, non_blocking=True) for k in TRUTH_KEYS if k in batch}
     return (
         *(batch[k].to(device, non_blocking=True) for k in ("target", "sources", "intrinsics")),
         truth or None,
@@ -219,6 +222,7 @@ class Trainer:
         self.load_depth = cfg.stage == "rigid" and cfg.weights.depth_supervision > 0
         self.load_flow = cfg.stage == "flow" and cfg.weights.flow_supervision > 0
         self.load_pose = cfg.stage == "rigid" and cfg.weights.pose_supervision > 0
+        self.load_twins = cfg.stage == "rigid" and cfg.weights.pose_stride > 0
         seed_everything(cfg.seed)
         self.train_set, self.sampler = self._train_data()
         self.val_set = self._val_data() if rt.is_main else None
@@ -249,6 +253,7 @@ class Trainer:
                     load_depth=self.load_depth,
                     load_flow=self.load_flow,
                     load_pose=self.load_pose,
+                    load_twins=self.load_twins,
                 )
                 for k, root in enumerate([cfg.data_dir, *cfg.extra_data_dirs])
             ]
@@ -283,6 +288,7 @@ class Trainer:
             load_depth=self.load_depth,
             load_flow=self.load_flow,
             load_pose=self.load_pose,
+            load_twins=self.load_twins,
         )
 
     def _build_model(self) -> tuple[GeoNet, torch.optim.Optimizer, torch.amp.GradScaler]:
