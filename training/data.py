@@ -313,7 +313,9 @@ class SequenceDataset(Dataset):
             draws = [self.seed, self.epoch, index]
             if twin_frames is not None:  # the same draws: only the frames' speed differs
                 twin_frames = augment(twin_frames, K, np.random.default_rng(draws), self.share_color_gain)[0]
-            frames, K, depth, flow = augment(frames, K, np.random.default_rng(draws), self.share_color_gain, depth, flow)
+            frames, K, depth, flow = augment(
+                frames, K, np.random.default_rng(draws), self.share_color_gain, depth, flow
+            )
         target, sources = self._split(frames)
         item = {
             "target": target,
@@ -322,8 +324,8 @@ class SequenceDataset(Dataset):
             "name": name,
         }
         if self.load_twins:
-            item["twin_target"], item["twin_sources"] = (target, sources) if twin_frames is None else self._split(
-                twin_frames
+            item["twin_target"], item["twin_sources"] = (
+                (target, sources) if twin_frames is None else self._split(twin_frames)
             )
             item["has_twin"] = torch.tensor(twin_frames is not None)
         if depth is None and self.load_depth and self.split != "heldout":

@@ -325,3 +325,32 @@ def test_make_loader_is_seeded(tmp_path):
     batch = next(iter(D.make_loader(ds, 4, shuffle=False, seed=0)))
     assert batch["target"].shape == (4, 3, 16, 24) and batch["sources"].shape == (4, 2, 3, 16, 24)
     assert batch["intrinsics"].shape == (4, 3, 3)
+
+
+def test_stride2_copies_load_their_normal_snippet_under_the_same_augmentation(tmp_path):
+    """load_twins (--pose-stride): a ``_stride2`` sample carries its target's normal snippet, augmented with
+    the same draws. Both hold the same target frame, so after the same scale, crop and colour the two
+    targets are equal to the byte; the twin's sources are its own (t-1, t+1), not the stride-2 ones. A
+    sample without a twin (a normal one, or a stride2 copy whose normal snippet is missing) says so."""
+    rng = np.random.default_rng(0)
+    t_minus2, t_minus1, t, t_plus1, t_plus2 = (rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(5))
+    K = K0
+    (tmp_path / "s").mkdir()
+    for frame, frames in (("000004", [t_minus1, t, t_plus1]), ("000004_stride2", [t_minus2, t, t_plus2]),
+                          ("000009_stride2", [t_minus2, t, t_plus2])):  # fmt: skip
+        # PNG bytes under the .jpg name (OpenCV reads by content): the frames stay exact
+        ok, png = cv2.imencode(".png", cv2.cvtColor(np.concatenate(frames, axis=1), cv2.COLOR_RGB2BGR))
+        (tmp_path / "s" / f"{frame}.jpg").write_bytes(png.tobytes())
+        (tmp_path / "s" / f"{frame}_cam.txt").write_text(f"{K[0, 0]},0.,{K[0, 2]},0.,{K[1, 1]},{K[1, 2]},0.,0.,1.")
+    write_lists(tmp_path, ["s 000004", "s 000004_stride2", "s 000009_stride2"])
+    for epoch in range(3):  # several draws of scale, crop and colour
+        ds = D.SequenceDataset(tmp_path, "train", augment=True, seed=epoch, load_twins=True)
+        ds.set_epoch(epoch)
+        normal, fast, orphan = ds[0], ds[1], ds[2]
+        assert fast["has_twin"] and not normal["has_twin"] and not orphan["has_twin"]
+        torch.testing.assert_close(fast["twin_target"], fast["target"], rtol=0, atol=0)
+        plain = D.SequenceDataset(tmp_path, "train", augment=False, load_twins=True)[1]
+        for k, frame in enumerate((t_minus1, t_plus1)):  # unaugmented: the twin's sources are t-1 and t+1
+            torch.testing.assert_close(plain["twin_sources"][k], torch.from_numpy(frame).permute(2, 0, 1) / 255.0)
+        assert not torch.equal(fast["twin_sources"], fast["sources"])
+    assert "has_twin" not in D.SequenceDataset(tmp_path, "train")[1]  # only when asked

@@ -1,3 +1,5 @@
+import math
+
 import torch
 
 from training.losses import dssim, edge_aware_smoothness, flow_endpoint_error, masked_mean, photometric_error, ssim
@@ -281,3 +283,22 @@ def test_batch_reference_step_is_half_the_median_snippet_step():
     torch.testing.assert_close(batch_reference_step(seq3), torch.tensor(1.0))
     seq5 = torch.stack([snippet(2.0, 4)] * 3)
     torch.testing.assert_close(batch_reference_step(seq5), torch.tensor(1.0))
+
+
+def test_stride_ratio_error_is_zero_at_twice_the_step_and_log_squared_off_it():
+    """--pose-stride: a stride-2 snippet whose translations are twice its twin's pays 0 whatever the rotation
+    and direction; the same step pays (log 2)^2 (a speed-blind PoseNet); three times pays (log 1.5)^2;
+    the mean is over snippets and sources."""
+    from training.losses import stride_ratio_error
+
+    def snippet(step: float, angle: float = 0.0) -> torch.Tensor:
+        return torch.stack([_motion(angle, [0.1 * step, 0, -step]), _motion(-angle, [0, 0.2 * step, step])])
+
+    slow = torch.stack([snippet(0.7), snippet(1.3)])
+    torch.testing.assert_close(
+        stride_ratio_error(torch.stack([snippet(1.4, 0.3), snippet(2.6)]), slow), torch.tensor(0.0)
+    )
+    blind = stride_ratio_error(slow.clone(), slow)
+    torch.testing.assert_close(blind, torch.tensor(math.log(2.0) ** 2))
+    mixed = stride_ratio_error(torch.stack([snippet(1.4), snippet(3.9)]), slow)  # 2x and 3x
+    torch.testing.assert_close(mixed, torch.tensor(math.log(1.5) ** 2 / 2))

@@ -611,3 +611,27 @@ def test_loader_workers_come_from_a_forkserver_and_a_hang_is_an_error(monkeypatc
         next(batches)
     del batches
     assert data.make_loader(_StallingDataset(), batch_size=1, shuffle=False).timeout == 0  # in-process: no timer
+
+
+def test_pose_stride_term_trains_posenet_on_the_stride2_rows_only(tmp_path):
+    """--pose-stride (round 13): with twins in the batch, rigid_loss logs ``pose_stride`` and its gradient
+    reaches PoseNet; DepthNet gets none from it (the term sees translations only); a batch without any
+    twin has no such term."""
+    from training.checkpoint import build_model
+
+    torch.manual_seed(0)
+    cfg = config(tmp_path, tmp_path / "o", weights=LossWeights(pose_stride=1.0))
+    model = build_model(cfg)
+    B, h, w = 2, 64, 192
+    target, sources = torch.rand(B, 3, h, w), torch.rand(B, 2, 3, h, w)
+    K = torch.tensor([[100.0, 0, w / 2], [0, 100.0, h / 2], [0, 0, 1]]).expand(B, 3, 3)
+    twins = {"twin_target": target.clone(), "twin_sources": torch.rand(B, 2, 3, h, w)}
+    loss = model.rigid_loss(target, sources, K, **twins, has_twin=torch.tensor([True, False]))
+    assert "pose_stride" in loss.terms and math.isfinite(loss.terms["pose_stride"])
+    model.weights = LossWeights(pose_stride=1.0, rigid_warp=0.0, disp_smooth=0.0)  # the stride term alone
+    only = model.rigid_loss(target, sources, K, **twins, has_twin=torch.tensor([True, False]))
+    only.total.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.pose_net.parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.depth_net.parameters())
+    none = model.rigid_loss(target, sources, K, **twins, has_twin=torch.tensor([False, False]))
+    assert "pose_stride" not in none.terms
