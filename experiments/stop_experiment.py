@@ -147,6 +147,15 @@ NOTES[13] = (  # written before round 13 was trained or scored, with the same ru
     "stride2 copies to the speed-blind starting motion) and round 10's `--pose-steady 10`; then round 12's "
     "flow stage (the odometry folder 15 times) for 600 steps from round 12's ResFlowNet."
 )
+NOTES[14] = (  # written before round 14 was trained or scored, with the same rule
+    "Round 14 (`OUT=runs/stop14 bash scripts/stop_finetune.sh`): round 13 was stopped after its rigid stage, "
+    "not scored: on its training snippets stride 2 / stride 1 rose only from 1.08 to 1.17 on the KITTI odometry "
+    "ones (1.68 on the dashcam ones), and its twins had gone through PoseNet in a call of their own, a row or "
+    "two normalised by their own batch-norm statistics (which also fed the running ones), so what it learnt "
+    "was not what PoseNet does at inference. Round 13's settings with the twins in the batch's own PoseNet "
+    "call and the odometry folder listed 5 times in the rigid stage (KITTI's camera), 2,000 rigid steps, "
+    "then round 12's flow stage for 600 steps from round 12's ResFlowNet."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

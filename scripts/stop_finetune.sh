@@ -10,7 +10,7 @@
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
-#   OUT=runs/stop13 bash scripts/stop_finetune.sh  round 13 (the default); ROUND=1 to 12 for those rounds' settings
+#   OUT=runs/stop14 bash scripts/stop_finetune.sh  round 14 (the default); ROUND=1 to 13 for those rounds' settings
 #
 # Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
 # Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
@@ -68,6 +68,14 @@
 # stride2 copies (_norev), --pose-keep-shape 10 instead of --pose-keep 2 (which held every snippet,
 # stride2 copies too, to the speed-blind starting motion), --pose-steady 10 as round 10; then round 12's
 # flow stage (ResFlowNet from INIT, the odometry folder 15 times) for FLOW_STEPS steps.
+# Stopped after its rigid stage, not scored: on its training snippets (experiments.stop_training_snippets)
+# stride 2 / stride 1 rose only from 1.08 to 1.17 on the odometry ones (the dashcam ones: 1.68, eval mode),
+# and the twins had gone through PoseNet in a call of their own, a row or two normalised by their own
+# batch-norm statistics (which also fed the running ones), so the ratio it learnt was not the one PoseNet
+# gives at inference.
+# Round 14: round 13 with the twins in the batch's own PoseNet call (GeoNet.rigid_forward's
+# extra_pose_input) and the odometry folder listed 5 times in the rigid stage (KITTI's camera: its stride2
+# copies a larger share of the twins).
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -76,7 +84,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-13} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-14} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -107,11 +115,13 @@ elif [ "$ROUND" = 11 ]; then  # no rigid stage (BASE set), so no rigid settings
 elif [ "$ROUND" = 12 ]; then  # as 11, the odometry folder 15 times in the flow stage
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-1200}
     BASE=${BASE:-runs/stop10} REAL=_norev ODOM_REPEAT=15
-else  # 13: PoseNet taught speed ratios on round 12's model, then round 12's flow stage
+else  # 13, 14: PoseNet taught speed ratios on round 12's model, then round 12's flow stage
     RIGID_MINUTES=${RIGID_MINUTES:-600} RIGID_STEPS=${RIGID_STEPS:-2000} INIT=${INIT:-runs/stop12/combined.pt}
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-600}
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride 5) REAL=_norev ODOM_REPEAT=15
+    [ "$ROUND" = 13 ] || RIGID_ODOM_REPEAT=5
 fi
+RIGID_ODOM_REPEAT=${RIGID_ODOM_REPEAT:-2}  # times the odometry folder is listed in the rigid stage
 RIGID_STEPS=${RIGID_STEPS:-100000}
 FLOW_STEPS=${FLOW_STEPS:-100000} BASE=${BASE:-}  # BASE: a finished round whose whole model the flow stage continues
 ODOM_REPEAT=${ODOM_REPEAT:-1}  # times the odometry folder is listed in the flow stage
@@ -160,9 +170,11 @@ if want rigid && [ -z "$BASE" ]; then
     else
         POSED=(--extra-data-dir data/synth40_pose)
     fi
+    RIGID_ODOM=()  # the odometry folder again, beside --data-dir
+    for _ in $(seq 2 "$RIGID_ODOM_REPEAT"); do RIGID_ODOM+=(--extra-data-dir "data/s_odom$REAL"); done
     run $PY -m training.train --stage rigid --arch small --device "$DEVICE" --bn-momentum 0.01 --num-workers 0 \
         --mask-out-of-view --automask "${RIGID_FLAGS[@]}" --lr "$RIGID_LR" --pose-supervision "$POSE_SUPERVISION" \
-        --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$CLIPS_REAL" \
+        --data-dir "data/s_odom$REAL" "${RIGID_ODOM[@]}" --extra-data-dir "data/s_udacity$CLIPS_REAL" \
         --extra-data-dir "data/s_udacity_guess$CLIPS_REAL" "${POSED[@]}" --init-checkpoint "$INIT" \
         --out-dir "$OUT/rigid" --max-steps "$RIGID_STEPS" --max-minutes "$RIGID_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20

@@ -115,6 +115,7 @@ class RigidOutputs:
     bwd_warp: list  # target warped to each source
     fwd_error: list  # (N*B, 3, H_s, W_s)
     bwd_error: list
+    extra_poses: torch.Tensor | None = None  # (B_extra, N, 6): PoseNet on rigid_forward's extra_pose_input
 
 
 @dataclass
@@ -177,7 +178,11 @@ class GeoNet(nn.Module):
 
     # ----------------------------------------------------------------- rigid
     def rigid_forward(
-        self, target: torch.Tensor, sources: torch.Tensor, K: torch.Tensor
+        self,
+        target: torch.Tensor,
+        sources: torch.Tensor,
+        K: torch.Tensor,
+        extra_pose_input: torch.Tensor | None = None,
     ) -> tuple[RigidOutputs, list, list]:
         """Depth of every frame, poses, and rigid warps at every scale.
 
@@ -185,6 +190,10 @@ class GeoNet(nn.Module):
             target: (B, 3, H, W) in [0, 1].
             sources: (B, N, 3, H, W) in [0, 1], temporal order.
             K: (B, 3, 3) intrinsics at H x W.
+            extra_pose_input: (B_extra, 3 (1 + N), H, W) more snippets for PoseNet alone (network range,
+                target first), run in the same call as the batch's so that in training they share its
+                batch-norm statistics (a separate call of a row or two would normalise them otherwise
+                and feed the running statistics); their poses come back as ``extra_poses``.
         Returns:
             (outputs, target pyramid tiled N times, source pyramid), images network-range.
         """
@@ -195,14 +204,18 @@ class GeoNet(nn.Module):
         disp = self.depth_net(torch.cat([target_n, source_rows], dim=0))
         if self.scale_normalize:
             disp = [normalize_disparity_scale(d) for d in disp]
-        poses = self.pose_net(torch.cat([target_n, sources_n.flatten(1, 2)], dim=1))
+        pose_input = torch.cat([target_n, sources_n.flatten(1, 2)], dim=1)
+        if extra_pose_input is not None:
+            pose_input = torch.cat([pose_input, extra_pose_input], dim=0)
+        poses = self.pose_net(pose_input)
+        poses, extra_poses = poses[:B], (poses[B:] if extra_pose_input is not None else None)
 
         T_fwd = pose_vec_to_mat(poses.transpose(0, 1).reshape(N * B, 6))
         T_bwd = invert_rigid(T_fwd)
         K_rows = K.repeat(N, 1, 1)
         target_pyr = image_pyramid(target_n.repeat(N, 1, 1, 1))
         source_pyr = image_pyramid(source_rows)
-        out = RigidOutputs(disp, poses, [], [], [], [], [], [])
+        out = RigidOutputs(disp, poses, [], [], [], [], [], [], extra_poses)
         for s in range(NUM_SCALES):
             depth_s = 1.0 / disp[s]
             K_s = intrinsics_at_scale(K_rows, s)
@@ -244,7 +257,16 @@ class GeoNet(nn.Module):
         ``stride2`` copy pays :func:`stride_ratio_error` against its normal snippet.
         """
         w = self.weights
-        out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
+        twin_rows = None
+        if w.pose_stride > 0 and has_twin is not None and bool(has_twin.any()):
+            twin_rows = has_twin.nonzero().squeeze(1)
+            twin_input = torch.cat(
+                [IMAGE_NORM.apply(twin_target[twin_rows]), IMAGE_NORM.apply(twin_sources[twin_rows]).flatten(1, 2)],
+                dim=1,
+            )
+        out, target_pyr, source_pyr = self.rigid_forward(
+            target, sources, K, extra_pose_input=None if twin_rows is None else twin_input
+        )
         N = self.num_source
         B = target.shape[0]
         rigid_warp_loss = disp_smooth_loss = 0.0
@@ -299,14 +321,10 @@ class GeoNet(nn.Module):
         if w.pose_steady > 0:
             terms["pose_steady"] = w.pose_steady * steady_speed_error(T, batch_reference_step(T))
             total = total + terms["pose_steady"]
-        if w.pose_stride > 0 and has_twin is not None and bool(has_twin.any()):
-            rows = has_twin.nonzero().squeeze(1)
-            slow_input = torch.cat(
-                [IMAGE_NORM.apply(twin_target[rows]), IMAGE_NORM.apply(twin_sources[rows]).flatten(1, 2)], dim=1
-            )
-            slow = self.pose_net(slow_input)
+        if twin_rows is not None:
+            slow = out.extra_poses
             T_slow = pose_vec_to_mat(slow.flatten(0, 1)).view(*slow.shape[:2], 4, 4)
-            T_fast = pose_vec_to_mat(out.poses[rows].flatten(0, 1)).view(len(rows), -1, 4, 4)
+            T_fast = pose_vec_to_mat(out.poses[twin_rows].flatten(0, 1)).view(len(twin_rows), -1, 4, 4)
             terms["pose_stride"] = w.pose_stride * stride_ratio_error(T_fast, T_slow)
             total = total + terms["pose_stride"]
         return StageLoss(total, _as_floats(**terms, total=total))

@@ -617,6 +617,7 @@ def test_pose_stride_term_trains_posenet_on_the_stride2_rows_only(tmp_path):
     """--pose-stride (round 13): with twins in the batch, rigid_loss logs ``pose_stride`` and its gradient
     reaches PoseNet; DepthNet gets none from it (the term sees translations only); a batch without any
     twin has no such term."""
+    from geonet_infer.conventions import IMAGE_NORM
     from training.checkpoint import build_model
 
     torch.manual_seed(0)
@@ -635,3 +636,16 @@ def test_pose_stride_term_trains_posenet_on_the_stride2_rows_only(tmp_path):
     assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.depth_net.parameters())
     none = model.rigid_loss(target, sources, K, **twins, has_twin=torch.tensor([False, False]))
     assert "pose_stride" not in none.terms
+    # The twins go through PoseNet in the batch's own call (round 13 ran them alone: a row or two under its
+    # own batch-norm statistics, which also fed the running ones): in training mode their poses are those
+    # of the joint batch, not of a call of their own.
+    model.train()
+    twin_input = IMAGE_NORM.apply(torch.cat([twins["twin_target"][:1], twins["twin_sources"][:1].flatten(1, 2)], dim=1))
+    out, _, _ = model.rigid_forward(target, sources, K, extra_pose_input=twin_input)
+    with torch.no_grad():
+        main_input = IMAGE_NORM.apply(torch.cat([target, sources.flatten(1, 2)], dim=1))
+        joint = model.pose_net(torch.cat([main_input, twin_input]))
+        alone = model.pose_net(twin_input)
+    torch.testing.assert_close(out.extra_poses.detach(), joint[B:])
+    torch.testing.assert_close(out.poses.detach(), joint[:B])
+    assert not torch.allclose(out.extra_poses.detach(), alone, atol=1e-4)
