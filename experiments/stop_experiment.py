@@ -156,6 +156,12 @@ NOTES[14] = (  # written before round 14 was trained or scored, with the same ru
     "call and the odometry folder listed 5 times in the rigid stage (KITTI's camera), 2,000 rigid steps, "
     "then round 12's flow stage for 600 steps from round 12's ResFlowNet."
 )
+NOTES[15] = (  # written before round 15 was trained or scored, with the same rule
+    "Round 15 (`OUT=runs/stop15 bash scripts/stop_finetune.sh`): round 14 (rules 1, 2, 4, 5 met; rule 3 lost "
+    "to step-length spread) measured speed only partly (held-out KITTI odometry stride 2 / stride 1 1.21-1.33, "
+    "truth 2), and its test-drive flow still lost to no motion on 53 of 67 pairs. Round 14's settings with "
+    "`--pose-stride 20` instead of 5: 2,000 rigid steps from round 12's model, then 600 flow steps."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")
