@@ -182,7 +182,8 @@ class GeoNet(nn.Module):
         target: torch.Tensor,
         sources: torch.Tensor,
         K: torch.Tensor,
-        extra_pose_input: torch.Tensor | None = None,
+        extra_target: torch.Tensor | None = None,
+        extra_sources: torch.Tensor | None = None,
     ) -> tuple[RigidOutputs, list, list]:
         """Depth of every frame, poses, and rigid warps at every scale.
 
@@ -190,10 +191,10 @@ class GeoNet(nn.Module):
             target: (B, 3, H, W) in [0, 1].
             sources: (B, N, 3, H, W) in [0, 1], temporal order.
             K: (B, 3, 3) intrinsics at H x W.
-            extra_pose_input: (B_extra, 3 (1 + N), H, W) more snippets for PoseNet alone (network range,
-                target first), run in the same call as the batch's so that in training they share its
-                batch-norm statistics (a separate call of a row or two would normalise them otherwise
-                and feed the running statistics); their poses come back as ``extra_poses``.
+            extra_target, extra_sources: (B_extra, 3, H, W) and (B_extra, N, 3, H, W) in [0, 1], more
+                snippets for PoseNet alone, run in the same call as the batch's so that in training they
+                share its batch-norm statistics (a separate call of a row or two would normalise them
+                otherwise and feed the running statistics); their poses come back as ``extra_poses``.
         Returns:
             (outputs, target pyramid tiled N times, source pyramid), images network-range.
         """
@@ -204,11 +205,12 @@ class GeoNet(nn.Module):
         disp = self.depth_net(torch.cat([target_n, source_rows], dim=0))
         if self.scale_normalize:
             disp = [normalize_disparity_scale(d) for d in disp]
-        pose_input = torch.cat([target_n, sources_n.flatten(1, 2)], dim=1)
-        if extra_pose_input is not None:
-            pose_input = torch.cat([pose_input, extra_pose_input], dim=0)
-        poses = self.pose_net(pose_input)
-        poses, extra_poses = poses[:B], (poses[B:] if extra_pose_input is not None else None)
+        pose_target, pose_sources = target_n, sources_n
+        if extra_target is not None:  # appended rows: one call, one set of batch statistics
+            pose_target = torch.cat([target_n, IMAGE_NORM.apply(extra_target)])
+            pose_sources = torch.cat([sources_n, IMAGE_NORM.apply(extra_sources)])
+        poses = self.pose_net(torch.cat([pose_target, pose_sources.flatten(1, 2)], dim=1))
+        poses, extra_poses = poses[:B], (poses[B:] if extra_target is not None else None)
 
         T_fwd = pose_vec_to_mat(poses.transpose(0, 1).reshape(N * B, 6))
         T_bwd = invert_rigid(T_fwd)
@@ -260,13 +262,11 @@ class GeoNet(nn.Module):
         twin_rows = None
         if w.pose_stride > 0 and has_twin is not None and bool(has_twin.any()):
             twin_rows = has_twin.nonzero().squeeze(1)
-            twin_input = torch.cat(
-                [IMAGE_NORM.apply(twin_target[twin_rows]), IMAGE_NORM.apply(twin_sources[twin_rows]).flatten(1, 2)],
-                dim=1,
+            out, target_pyr, source_pyr = self.rigid_forward(
+                target, sources, K, extra_target=twin_target[twin_rows], extra_sources=twin_sources[twin_rows]
             )
-        out, target_pyr, source_pyr = self.rigid_forward(
-            target, sources, K, extra_pose_input=None if twin_rows is None else twin_input
-        )
+        else:
+            out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
         N = self.num_source
         B = target.shape[0]
         rigid_warp_loss = disp_smooth_loss = 0.0

@@ -641,7 +641,9 @@ def test_pose_stride_term_trains_posenet_on_the_stride2_rows_only(tmp_path):
     # of the joint batch, not of a call of their own.
     model.train()
     twin_input = IMAGE_NORM.apply(torch.cat([twins["twin_target"][:1], twins["twin_sources"][:1].flatten(1, 2)], dim=1))
-    out, _, _ = model.rigid_forward(target, sources, K, extra_pose_input=twin_input)
+    out, _, _ = model.rigid_forward(
+        target, sources, K, extra_target=twins["twin_target"][:1], extra_sources=twins["twin_sources"][:1]
+    )
     with torch.no_grad():
         main_input = IMAGE_NORM.apply(torch.cat([target, sources.flatten(1, 2)], dim=1))
         joint = model.pose_net(torch.cat([main_input, twin_input]))
