@@ -162,6 +162,18 @@ NOTES[15] = (  # written before round 15 was trained or scored, with the same ru
     "truth 2), and its test-drive flow still lost to no motion on 53 of 67 pairs. Round 14's settings with "
     "`--pose-stride 20` instead of 5: 2,000 rigid steps from round 12's model, then 600 flow steps."
 )
+NOTES[16] = (  # written before round 16 was trained or scored, with the same rule
+    "Round 16 (`OUT=runs/stop16 bash scripts/stop_finetune.sh`): rounds 14 and 15 lost held-out pose (rule 3) "
+    "to step-length spread, and it is all between PoseNet calls: on held-out KITTI odometry round 14's two "
+    "steps of one call agree within 0.6 % (06) while one step measured by two neighbouring calls differs by "
+    "12 % (the bundled model 2.5 %; `python -m experiments.stop_overlap_jitter weights/small_synth.pt "
+    "weights/stop_round14.pt`). Round 14's whole model (`weights/stop_round14.pt`) with PoseNet trained 2,000 "
+    "more steps under round 14's flags plus the new `--pose-overlap 20` (each snippet's step t -> t+1 against "
+    "the same step in the next target's snippet, same augmentation, in the batch's PoseNet call; "
+    "`training.losses.overlap_step_error`), and a new synthetic folder in both stages: 22 stop-and-go "
+    "sequences (`training.synth --traffic queue`: the camera stops and crawls while the vehicles beside it move "
+    "on; exact poses, exact flow); then 600 flow steps from round 14's ResFlowNet."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

@@ -10,7 +10,7 @@
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
-#   OUT=runs/stop15 bash scripts/stop_finetune.sh  round 15 (the default); ROUND=1 to 14 for those rounds' settings
+#   OUT=runs/stop16 bash scripts/stop_finetune.sh  round 16 (the default); ROUND=1 to 15 for those rounds' settings
 #
 # Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
 # Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
@@ -78,6 +78,14 @@
 # copies a larger share of the twins).
 # Round 15: round 14 measured speed only partly (held-out stride 2 / stride 1 1.21-1.33, truth 2) and its
 # drive flow still lost to no motion on 53 of 67 pairs; round 14 with --pose-stride 20 instead of 5.
+# Round 16: rounds 14 and 15 lost held-out pose to step-length spread, and it is all between calls
+# (experiments/stop_overlap_jitter.py: round 14's two steps of one call agree within 0.6 %, one step
+# measured by neighbouring calls differs by 12 %; the bundled model 2.5 %). Round 14's whole model (INIT)
+# with PoseNet trained on with --pose-overlap 20 (each snippet's step t -> t+1 against the same step in
+# the next target's snippet, in the batch's PoseNet call) beside round 14's flags, and a new synthetic
+# folder in both stages: stop-and-go queues (training.synth --traffic queue: the camera stops and
+# crawls while the vehicles beside it move on; exact poses for the rigid stage, exact flow for the flow
+# stage), the nearest our generator gets to the issue's "traffic that moves while the camera does not".
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -86,7 +94,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-15} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-16} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -117,13 +125,19 @@ elif [ "$ROUND" = 11 ]; then  # no rigid stage (BASE set), so no rigid settings
 elif [ "$ROUND" = 12 ]; then  # as 11, the odometry folder 15 times in the flow stage
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-1200}
     BASE=${BASE:-runs/stop10} REAL=_norev ODOM_REPEAT=15
-else  # 13-15: PoseNet taught speed ratios on round 12's model, then round 12's flow stage
+elif [ "$ROUND" -le 15 ]; then  # 13-15: PoseNet taught speed ratios on round 12's model, then round 12's flow stage
     RIGID_MINUTES=${RIGID_MINUTES:-600} RIGID_STEPS=${RIGID_STEPS:-2000} INIT=${INIT:-runs/stop12/combined.pt}
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-600}
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride "$([ "$ROUND" = 15 ] && echo 20 || echo 5)")
     REAL=_norev ODOM_REPEAT=15
     [ "$ROUND" = 13 ] || RIGID_ODOM_REPEAT=5
+else  # 16: round 14's model, neighbouring calls held to one speed, the stop-and-go synthetic queues
+    RIGID_MINUTES=${RIGID_MINUTES:-600} RIGID_STEPS=${RIGID_STEPS:-2000} INIT=${INIT:-weights/stop_round14.pt}
+    FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-600}
+    RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride 5 --pose-overlap 20)
+    REAL=_norev ODOM_REPEAT=15 RIGID_ODOM_REPEAT=5 QUEUE=(--extra-data-dir data/synth_queue_pose)
 fi
+QUEUE=("${QUEUE[@]}")  # the stop-and-go synthetic folder in both stages (round 16 on), else nothing
 RIGID_ODOM_REPEAT=${RIGID_ODOM_REPEAT:-2}  # times the odometry folder is listed in the rigid stage
 RIGID_STEPS=${RIGID_STEPS:-100000}
 FLOW_STEPS=${FLOW_STEPS:-100000} BASE=${BASE:-}  # BASE: a finished round whose whole model the flow stage continues
@@ -165,6 +179,10 @@ if want prepare; then
         --frames 40 --seed 2026 --workers 1
     [ -f data/synth40_pose/heldout.txt ] || run $PY -m training.prepare --kind synth --src data/synth40 \
         --out data/synth40_pose --heldout 4 --workers 1 --train-pose
+    [ -f data/synth_queue/seq_0023/poses.txt ] || run $PY -m training.synth --out data/synth_queue \
+        --sequences 24 --frames 40 --seed 2028 --traffic queue --workers 1
+    [ -f data/synth_queue_pose/heldout.txt ] || run $PY -m training.prepare --kind synth --src data/synth_queue \
+        --out data/synth_queue_pose --heldout 2 --workers 1 --train-pose --train-flow
 fi
 
 if want rigid && [ -z "$BASE" ]; then
@@ -178,7 +196,7 @@ if want rigid && [ -z "$BASE" ]; then
     run $PY -m training.train --stage rigid --arch small --device "$DEVICE" --bn-momentum 0.01 --num-workers 0 \
         --mask-out-of-view --automask "${RIGID_FLAGS[@]}" --lr "$RIGID_LR" --pose-supervision "$POSE_SUPERVISION" \
         --data-dir "data/s_odom$REAL" "${RIGID_ODOM[@]}" --extra-data-dir "data/s_udacity$CLIPS_REAL" \
-        --extra-data-dir "data/s_udacity_guess$CLIPS_REAL" "${POSED[@]}" --init-checkpoint "$INIT" \
+        --extra-data-dir "data/s_udacity_guess$CLIPS_REAL" "${POSED[@]}" "${QUEUE[@]}" --init-checkpoint "$INIT" \
         --out-dir "$OUT/rigid" --max-steps "$RIGID_STEPS" --max-minutes "$RIGID_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20
 fi
@@ -192,7 +210,7 @@ if want flow; then
     ODOM=()
     for _ in $(seq "$ODOM_REPEAT"); do ODOM+=(--extra-data-dir "data/s_odom$REAL"); done
     run $PY -m training.train --stage flow --arch small --device "$DEVICE" --num-workers 0 \
-        --data-dir "data/s_udacity$REAL" --extra-data-dir "data/s_udacity_guess$REAL" "${ODOM[@]}" \
+        --data-dir "data/s_udacity$REAL" --extra-data-dir "data/s_udacity_guess$REAL" "${ODOM[@]}" "${QUEUE[@]}" \
         --init-checkpoint "$OUT/rigid_combined.pt" --out-dir "$OUT/flow" --flow-supervision "$FLOW_SUPERVISION" \
         --lr "$FLOW_LR" --batch-size 4 --max-steps "$FLOW_STEPS" --max-minutes "$FLOW_MINUTES" --val-every 1000000 \
         --save-every 200 --log-every 20

@@ -118,6 +118,13 @@ WEIGHT_FLAGS = (  # the LossWeights set from the command line, each `--NAME W`: 
         "how fast, not only whether, the camera moves; no truth needed; data prepared with "
         "--motion-mix ...stride2=P...). Not in GeoNet",
     ),
+    (
+        "pose_overlap",
+        "stage rigid: add W x the squared log-ratio of the step t -> t+1 as two overlapping snippets "
+        "give it: each snippet's (t-1, t, t+1) and the next target's (t, t+1, t+2), loaded beside it "
+        "with the same augmentation (the speed of neighbouring calls agrees; no truth needed). Not in "
+        "GeoNet",
+    ),
 )
 
 

@@ -163,6 +163,11 @@ class SequenceDataset(Dataset):
                         ``<frame>`` is in the folder, that snippet's frames under the same
                         augmentation and ``has_twin`` True; otherwise the sample's own frames and
                         False (batches mix both). For ``GeoNet.rigid_loss``'s stride term.
+        ``next_target``, ``next_sources``, ``has_next`` with ``load_next``: for a plain snippet
+                        (``<frame>`` of digits) whose next target's snippet (``<frame + 1>``) is in
+                        the same split, that snippet's frames under the same augmentation and
+                        ``has_next`` True; otherwise the sample's own frames and False. For
+                        ``GeoNet.rigid_loss``'s overlap term.
 
     Augmentation (``augment=True`` and split "train" only) draws once per sample from an RNG
     seeded by (seed, epoch, index), so an item is reproducible whatever worker loads it; call
@@ -184,6 +189,7 @@ class SequenceDataset(Dataset):
         load_flow: bool = False,
         load_pose: bool = False,
         load_twins: bool = False,
+        load_next: bool = False,
     ):
         if split not in SPLITS:
             raise InputError(None, f"unknown split {split!r}", f"choose one of {', '.join(SPLITS)}")
@@ -200,6 +206,7 @@ class SequenceDataset(Dataset):
         self.load_flow = load_flow
         self.load_pose = load_pose
         self.load_twins = load_twins
+        self.load_next = load_next
         self.epoch = 0
 
         if not self.root.is_dir():
@@ -209,6 +216,7 @@ class SequenceDataset(Dataset):
             hint = ("only --kind synth writes held-out samples; " + PREPARE_CMD) if split == "heldout" else PREPARE_CMD
             raise InputError(list_path, f"no {split}.txt in the dataset folder", hint)
         self.names = read_list(list_path)
+        self._listed = set(self.names)
         if not self.names:
             raise InputError(
                 list_path, f"the {split} split is empty", "prepare more data or a larger --val-fraction; " + PREPARE_CMD
@@ -296,6 +304,15 @@ class SequenceDataset(Dataset):
             return None
         return f"{folder} {base}"
 
+    def _next_of(self, name: str) -> str | None:
+        """The snippet of the next target in the same folder, if this split lists it (so a held-out
+        or other split's snippet is never loaded)."""
+        folder, frame = name.split(" ")
+        if not frame.isdigit():  # motion-mix copies (_static, _stride2, _reverse) have no neighbour
+            return None
+        following = f"{folder} {int(frame) + 1:0{len(frame)}d}"
+        return following if following in self._listed else None
+
     def _split(self, frames: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """(seq_length, H, W, 3) -> target (3, H, W), sources (N_src, 3, H, W) in temporal order."""
         chw = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))
@@ -309,10 +326,15 @@ class SequenceDataset(Dataset):
         flow = self.load_flow_gt(name) if self.load_flow else None
         twin = self._twin_of(name) if self.load_twins else None
         twin_frames = None if twin is None else self.load_frames(twin)[0]
+        following = self._next_of(name) if self.load_next else None
+        next_frames = None if following is None else self.load_frames(following)[0]
         if self.augment:
             draws = [self.seed, self.epoch, index]
-            if twin_frames is not None:  # the same draws: only the frames' speed differs
+            # the partners get the same draws: only the frames' speed (twin) or time (next) differs
+            if twin_frames is not None:
                 twin_frames = augment(twin_frames, K, np.random.default_rng(draws), self.share_color_gain)[0]
+            if next_frames is not None:
+                next_frames = augment(next_frames, K, np.random.default_rng(draws), self.share_color_gain)[0]
             frames, K, depth, flow = augment(
                 frames, K, np.random.default_rng(draws), self.share_color_gain, depth, flow
             )
@@ -328,6 +350,11 @@ class SequenceDataset(Dataset):
                 (target, sources) if twin_frames is None else self._split(twin_frames)
             )
             item["has_twin"] = torch.tensor(twin_frames is not None)
+        if self.load_next:
+            item["next_target"], item["next_sources"] = (
+                (target, sources) if next_frames is None else self._split(next_frames)
+            )
+            item["has_next"] = torch.tensor(next_frames is not None)
         if depth is None and self.load_depth and self.split != "heldout":
             depth = np.zeros((self.height, self.width), np.float32)  # batches mix samples with and without
         if depth is not None:

@@ -52,6 +52,9 @@ class LossWeights:
     # Not in GeoNet (0 = off): weight of :func:`stride_ratio_error`, each ``stride2`` copy's translations
     # against twice those of its target's normal snippet (needs samples prepared with --motion-mix).
     pose_stride: float = 0.0
+    # Not in GeoNet (0 = off): weight of :func:`overlap_step_error`, the step t -> t+1 of each snippet
+    # against the same step in the next target's snippet (neighbouring PoseNet calls agree on speed).
+    pose_overlap: float = 0.0
 
     @property
     def keeps_pose(self) -> bool:
@@ -370,6 +373,31 @@ def steady_speed_error(T: torch.Tensor, reference_step: torch.Tensor | None = No
     if reference_step is not None:
         scale = scale.clamp(min=float(reference_step))
     return ((steps - mean_step).abs().mean(dim=1, keepdim=True) / scale.clamp(min=1e-6)).mean()
+
+
+def overlap_step_error(T_this: torch.Tensor, T_next: torch.Tensor) -> torch.Tensor:
+    """How far two overlapping snippets disagree on the length of the step they share:
+    mean of ``(log |t_this(t -> t+1)| - log |t_next(t+1 -> t)|)^2``.
+
+    Issue 53, round 16: the stop rounds' PoseNets measured speed but each call on its own: on held-out
+    KITTI odometry 06 the step t -> t+1 from the call on (t-1, t, t+1) and from the call on
+    (t, t+1, t+2) differed by 12.0 % (round 14, log RMS; the bundled model 2.5 %) while the two steps
+    inside one call agreed within 0.6 % (``experiments/stop_overlap_jitter.py``). A snippet trajectory is chained
+    from several calls, so that disagreement is the step-length spread that cost those rounds the
+    held-out pose. A motion and its inverse have translations of the same length, so the shared step
+    is the first source after the target in ``T_this`` and the last source before it in ``T_next``.
+
+    Args:
+        T_this: (B, N, 4, 4) motions target t -> each source, sources in temporal order
+            (N / 2 before the target, N / 2 after it).
+        T_next: (B, N, 4, 4) the same for the snippets of target t+1.
+    Returns:
+        scalar.
+    """
+    half = T_this.shape[1] // 2
+    this = T_this[:, half, :3, 3].norm(dim=-1).clamp(min=1e-6).log()
+    nxt = T_next[:, half - 1, :3, 3].norm(dim=-1).clamp(min=1e-6).log()
+    return ((this - nxt) ** 2).mean()
 
 
 def stride_ratio_error(T_fast: torch.Tensor, T_slow: torch.Tensor, ratio: float = 2.0) -> torch.Tensor:

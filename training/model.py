@@ -35,6 +35,7 @@ from training.losses import (
     flow_endpoint_error,
     has_true_pose,
     masked_mean,
+    overlap_step_error,
     path_lengths,
     photometric_error,
     pose_keep_error,
@@ -241,6 +242,9 @@ class GeoNet(nn.Module):
         twin_target: torch.Tensor | None = None,
         twin_sources: torch.Tensor | None = None,
         has_twin: torch.Tensor | None = None,
+        next_target: torch.Tensor | None = None,
+        next_sources: torch.Tensor | None = None,
+        has_next: torch.Tensor | None = None,
     ) -> StageLoss:
         """Stage 1: rigid warping + disparity smoothness, summed over scales.
 
@@ -256,17 +260,30 @@ class GeoNet(nn.Module):
         ``weights.pose_steady`` > 0 every snippet pays :func:`steady_speed_error`. With
         ``weights.pose_stride`` > 0 and the twins of ``SequenceDataset(load_twins=True)``
         (``twin_target`` (B, 3, H, W), ``twin_sources`` (B, N, 3, H, W), ``has_twin`` (B,) bool), each
-        ``stride2`` copy pays :func:`stride_ratio_error` against its normal snippet.
+        ``stride2`` copy pays :func:`stride_ratio_error` against its normal snippet. With
+        ``weights.pose_overlap`` > 0 and the next snippets of ``SequenceDataset(load_next=True)``
+        (``next_target``, ``next_sources``, ``has_next``, shaped as the twins), each snippet that has one
+        pays :func:`overlap_step_error` against it. Twins and next snippets go through PoseNet in the
+        batch's own call (one set of batch-norm statistics, as at inference).
         """
         w = self.weights
-        twin_rows = None
+        twin_rows = next_rows = None
+        extra_targets, extra_sources = [], []
         if w.pose_stride > 0 and has_twin is not None and bool(has_twin.any()):
             twin_rows = has_twin.nonzero().squeeze(1)
+            extra_targets.append(twin_target[twin_rows]), extra_sources.append(twin_sources[twin_rows])
+        if w.pose_overlap > 0 and has_next is not None and bool(has_next.any()):
+            next_rows = has_next.nonzero().squeeze(1)
+            extra_targets.append(next_target[next_rows]), extra_sources.append(next_sources[next_rows])
+        if extra_targets:
             out, target_pyr, source_pyr = self.rigid_forward(
-                target, sources, K, extra_target=twin_target[twin_rows], extra_sources=twin_sources[twin_rows]
+                target, sources, K, extra_target=torch.cat(extra_targets), extra_sources=torch.cat(extra_sources)
             )
         else:
             out, target_pyr, source_pyr = self.rigid_forward(target, sources, K)
+        extra_T = None
+        if out.extra_poses is not None:
+            extra_T = pose_vec_to_mat(out.extra_poses.flatten(0, 1)).view(*out.extra_poses.shape[:2], 4, 4)
         N = self.num_source
         B = target.shape[0]
         rigid_warp_loss = disp_smooth_loss = 0.0
@@ -293,7 +310,8 @@ class GeoNet(nn.Module):
             total = total + terms["depth_supervised"]
         supervise_pose = w.pose_supervision > 0 and pose_gt is not None
         keep_pose = w.keeps_pose and self.start_pose_net is not None
-        if supervise_pose or keep_pose or w.pose_steady > 0:  # the motions (B, N, 4, 4), once for every term
+        pairs_poses = twin_rows is not None or next_rows is not None
+        if supervise_pose or keep_pose or w.pose_steady > 0 or pairs_poses:  # the motions (B, N, 4, 4), once
             T = pose_vec_to_mat(out.poses.flatten(0, 1)).view(*out.poses.shape[:2], 4, 4)
         if supervise_pose:
             still_ref_step = None
@@ -321,12 +339,13 @@ class GeoNet(nn.Module):
         if w.pose_steady > 0:
             terms["pose_steady"] = w.pose_steady * steady_speed_error(T, batch_reference_step(T))
             total = total + terms["pose_steady"]
+        n_twins = 0 if twin_rows is None else len(twin_rows)  # extra_T: the twins' rows, then the next ones'
         if twin_rows is not None:
-            slow = out.extra_poses
-            T_slow = pose_vec_to_mat(slow.flatten(0, 1)).view(*slow.shape[:2], 4, 4)
-            T_fast = pose_vec_to_mat(out.poses[twin_rows].flatten(0, 1)).view(len(twin_rows), -1, 4, 4)
-            terms["pose_stride"] = w.pose_stride * stride_ratio_error(T_fast, T_slow)
+            terms["pose_stride"] = w.pose_stride * stride_ratio_error(T[twin_rows], extra_T[:n_twins])
             total = total + terms["pose_stride"]
+        if next_rows is not None:
+            terms["pose_overlap"] = w.pose_overlap * overlap_step_error(T[next_rows], extra_T[n_twins:])
+            total = total + terms["pose_overlap"]
         return StageLoss(total, _as_floats(**terms, total=total))
 
     def _photometric_mean(

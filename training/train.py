@@ -139,12 +139,16 @@ def epoch_loader(dataset: TrainSet, sampler: DistributedSampler, cfg: TrainConfi
     )
 
 
-TRUTH_KEYS = ("depth_gt", "pose_gt", "flow_gt", "twin_target", "twin_sources", "has_twin")
+TRUTH_KEYS = (
+    *("depth_gt", "pose_gt", "flow_gt"),
+    *("twin_target", "twin_sources", "has_twin", "next_target", "next_sources", "has_next"),
+)
 
 
 def to_device(batch: dict, device: torch.device) -> tuple:
     """-> (target, sources, K, truth or None): the stage loss's arguments; truth holds the
-    batch's ground truth by name (depth_gt, pose_gt, flow_gt, the stride twins: those the run loads)."""
+    batch's ground truth by name (depth_gt, pose_gt, flow_gt, the stride twins, the next snippets:
+    those the run loads)."""
     truth = {k: batch[k].to(device, non_blocking=True) for k in TRUTH_KEYS if k in batch}
     return (
         *(batch[k].to(device, non_blocking=True) for k in ("target", "sources", "intrinsics")),
@@ -223,6 +227,7 @@ class Trainer:
         self.load_flow = cfg.stage == "flow" and cfg.weights.flow_supervision > 0
         self.load_pose = cfg.stage == "rigid" and cfg.weights.pose_supervision > 0
         self.load_twins = cfg.stage == "rigid" and cfg.weights.pose_stride > 0
+        self.load_next = cfg.stage == "rigid" and cfg.weights.pose_overlap > 0
         seed_everything(cfg.seed)
         self.train_set, self.sampler = self._train_data()
         self.val_set = self._val_data() if rt.is_main else None
@@ -254,6 +259,7 @@ class Trainer:
                     load_flow=self.load_flow,
                     load_pose=self.load_pose,
                     load_twins=self.load_twins,
+                    load_next=self.load_next,
                 )
                 for k, root in enumerate([cfg.data_dir, *cfg.extra_data_dirs])
             ]
@@ -289,6 +295,7 @@ class Trainer:
             load_flow=self.load_flow,
             load_pose=self.load_pose,
             load_twins=self.load_twins,
+            load_next=self.load_next,
         )
 
     def _build_model(self) -> tuple[GeoNet, torch.optim.Optimizer, torch.amp.GradScaler]:

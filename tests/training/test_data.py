@@ -354,3 +354,30 @@ def test_stride2_copies_load_their_normal_snippet_under_the_same_augmentation(tm
             torch.testing.assert_close(plain["twin_sources"][k], torch.from_numpy(frame).permute(2, 0, 1) / 255.0)
         assert not torch.equal(fast["twin_sources"], fast["sources"])
     assert "has_twin" not in D.SequenceDataset(tmp_path, "train")[1]  # only when asked
+
+
+def test_a_snippet_loads_the_next_targets_snippet_under_the_same_augmentation(tmp_path):
+    """load_next (--pose-overlap): sample t (t-1, t, t+1) carries the snippet of target t+1 (t, t+1, t+2)
+    under the same draws, so frames t and t+1, held by both, are equal to the byte after the same scale,
+    crop and (shared) colour. No neighbour for the last listed target, for a motion-mix copy, or for a
+    target whose neighbour another split lists."""
+    rng = np.random.default_rng(1)
+    f = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(6)]  # frames 3..8
+    (tmp_path / "s").mkdir()
+    snippets = {"000004": f[0:3], "000005": f[1:4], "000006": f[2:5], "000007": f[3:6], "000004_static": [f[1]] * 3}
+    for frame, frames in snippets.items():
+        ok, png = cv2.imencode(".png", cv2.cvtColor(np.concatenate(frames, axis=1), cv2.COLOR_RGB2BGR))
+        (tmp_path / "s" / f"{frame}.jpg").write_bytes(png.tobytes())
+        (tmp_path / "s" / f"{frame}_cam.txt").write_text(f"{K0[0, 0]},0.,{K0[0, 2]},0.,{K0[1, 1]},{K0[1, 2]},0.,0.,1.")
+    write_lists(tmp_path, ["s 000004", "s 000005", "s 000004_static", "s 000007"], val=["s 000006"])
+    for epoch in range(3):
+        ds = D.SequenceDataset(tmp_path, "train", augment=True, share_color_gain=True, seed=epoch, load_next=True)
+        ds.set_epoch(epoch)
+        first, second, still, last = ds[0], ds[1], ds[2], ds[3]
+        assert first["has_next"] and not second["has_next"] and not still["has_next"] and not last["has_next"]
+        # frame t+1: source 1 of snippet t, the target of snippet t+1; frame t: the target, then source 0
+        torch.testing.assert_close(first["next_target"], first["sources"][1], rtol=0, atol=0)
+        torch.testing.assert_close(first["next_sources"][0], first["target"], rtol=0, atol=0)
+    plain = D.SequenceDataset(tmp_path, "train", augment=False, load_next=True)[0]
+    torch.testing.assert_close(plain["next_sources"][1], torch.from_numpy(f[3]).permute(2, 0, 1) / 255.0)
+    assert "has_next" not in D.SequenceDataset(tmp_path, "train")[0]  # only when asked

@@ -233,3 +233,35 @@ def test_dense_traffic_fills_the_view_with_near_vehicles_and_trucks():
     assert np.mean(dense) > 2 * np.mean(light), (light, dense)
     with pytest.raises(GeoNetError, match="traffic"):
         synth.generate(synth.SynthConfig(out=Path("unused"), traffic="jam"))
+
+
+def test_queue_traffic_stops_the_camera_while_the_vehicles_beside_it_move_on():
+    from training.synth.scene import make_road, make_trajectory
+
+    # A stop (a target speed below 0) holds the camera exactly still: no step, no turn, no jitter.
+    rng = np.random.default_rng(3)
+    T, z, v = make_trajectory(rng, 120, make_road(rng), (-0.3, 0.6))
+    assert np.isfinite(T).all() and (v >= 0).all() and v.max() <= 0.6 + 1e-9
+    still = np.flatnonzero(v[:-1] == 0)
+    assert still.size >= 5, "seed 3 draws no stop"
+    for t in still:
+        assert np.abs(T[t + 1] - T[t]).max() < 1e-12
+    # The other kinds draw their trajectories exactly as before (the same seed, the same scenes).
+    rng_a, rng_b = np.random.default_rng(4), np.random.default_rng(4)
+    road_a, road_b = make_road(rng_a), make_road(rng_b)
+    assert np.array_equal(make_trajectory(rng_a, 30, road_a)[0], make_trajectory(rng_b, 30, road_b, (0.4, 1.5))[0])
+
+    # In a queue sequence with a still pair, the static scene does not move and vehicles still do.
+    for i in range(6):
+        s = synth.generate_sequence(SEED, i, 40, H, W, traffic="queue")
+        steps = [np.abs(s["poses"][t + 1] - s["poses"][t]).max() for t in range(39)]
+        t = int(np.argmin(steps))
+        if steps[t] > 1e-9 or not s["motion_mask"][t].any():
+            continue
+        speed = np.linalg.norm(s["flow"][t], axis=-1)
+        static = s["flow_occ"][t] & ~s["motion_mask"][t]
+        assert speed[static].max() < 1e-3
+        assert np.percentile(speed[s["motion_mask"][t] & s["flow_occ"][t]], 90) > 0.3
+        break
+    else:
+        pytest.fail("no queue sequence of seed 7 (0-5) has a still pair with vehicles in view")

@@ -651,3 +651,48 @@ def test_pose_stride_term_trains_posenet_on_the_stride2_rows_only(tmp_path):
     torch.testing.assert_close(out.extra_poses.detach(), joint[B:])
     torch.testing.assert_close(out.poses.detach(), joint[:B])
     assert not torch.allclose(out.extra_poses.detach(), alone, atol=1e-4)
+
+
+def test_pose_overlap_term_trains_posenet_with_the_next_snippets_in_the_batchs_call(tmp_path):
+    """--pose-overlap (round 16): with next snippets in the batch, rigid_loss logs ``pose_overlap``, its
+    gradient reaches PoseNet and not DepthNet; with twins too, both terms come from one PoseNet call
+    (the twins' rows first, then the next snippets'), each term its own rows; no next snippet, no term."""
+    from geonet_infer.conventions import IMAGE_NORM
+    from training.checkpoint import build_model
+    from training.geometry import pose_vec_to_mat
+    from training.losses import overlap_step_error, stride_ratio_error
+
+    torch.manual_seed(0)
+    cfg = config(tmp_path, tmp_path / "o", weights=LossWeights(pose_overlap=1.0, rigid_warp=0.0, disp_smooth=0.0))
+    model = build_model(cfg)
+    B, h, w = 3, 64, 192
+    target, sources = torch.rand(B, 3, h, w), torch.rand(B, 2, 3, h, w)
+    K = torch.tensor([[100.0, 0, w / 2], [0, 100.0, h / 2], [0, 0, 1]]).expand(B, 3, 3)
+    nxt = {"next_target": torch.rand(B, 3, h, w), "next_sources": torch.rand(B, 2, 3, h, w)}
+    twins = {"twin_target": torch.rand(B, 3, h, w), "twin_sources": torch.rand(B, 2, 3, h, w)}
+    loss = model.rigid_loss(target, sources, K, **nxt, has_next=torch.tensor([False, True, True]))
+    loss.total.backward()
+    assert loss.terms["pose_overlap"] > 0
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.pose_net.parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.depth_net.parameters())
+    none = model.rigid_loss(target, sources, K, **nxt, has_next=torch.tensor([False, False, False]))
+    assert "pose_overlap" not in none.terms
+
+    model.weights = LossWeights(pose_overlap=1.0, pose_stride=1.0, rigid_warp=0.0, disp_smooth=0.0)
+    model.eval()  # running statistics: each row's pose does not depend on the others, so it can be checked
+    both = model.rigid_loss(
+        target, sources, K, **twins, has_twin=torch.tensor([True, False, False]), **nxt,
+        has_next=torch.tensor([False, True, True]),
+    )  # fmt: skip
+
+    @torch.no_grad()
+    def motions(snippet_target, snippet_sources):  # (b, 2, 4, 4) from a call on these snippets alone
+        pose_input = torch.cat([snippet_target, snippet_sources.flatten(1, 2)], dim=1)
+        poses = model.pose_net(IMAGE_NORM.apply(pose_input))
+        return pose_vec_to_mat(poses.flatten(0, 1)).view(*poses.shape[:2], 4, 4)
+
+    T = motions(target, sources)
+    T_twin = motions(twins["twin_target"][:1], twins["twin_sources"][:1])
+    T_next = motions(nxt["next_target"][1:], nxt["next_sources"][1:])
+    assert math.isclose(both.terms["pose_stride"], stride_ratio_error(T[:1], T_twin).item(), rel_tol=1e-4)
+    assert math.isclose(both.terms["pose_overlap"], overlap_step_error(T[1:], T_next).item(), rel_tol=1e-4)

@@ -36,7 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
         choices=tuple(TRAFFIC),
         default=D.traffic,
         help="light: the lead car 14-35 m ahead, few cars (the original scenes); dense: queues 5-15 m "
-        "ahead and beside the camera, a third of the vehicles trucks (default %(default)s)",
+        "ahead and beside the camera, a third of the vehicles trucks; queue: dense traffic on a one-way "
+        "road, the camera stopping and crawling (0-0.6 m per frame) while the lanes beside it move on "
+        "(default %(default)s)",
     )
     return p
 

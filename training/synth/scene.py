@@ -183,28 +183,48 @@ def _smooth_noise(rng: np.random.Generator, n: int, amp: float, periods=(40, 160
     return out
 
 
-def make_trajectory(rng: np.random.Generator, frames: int, road: Road) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Ego camera at 10 Hz: speed 0.4-1.5 m/frame, following its lane on the curving road.
+def make_trajectory(
+    rng: np.random.Generator, frames: int, road: Road, speeds: tuple[float, float] = (0.4, 1.5)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ego camera at 10 Hz: speed in ``speeds`` (m/frame), following its lane on the curving road.
+
+    A target speed below 0 is a stop (speed 0 until the next target): stop-and-go traffic draws
+    its targets from a range that starts below 0.
 
     Returns:
         T_wc: (M, 4, 4) camera-to-road-world; z: (M,) road position; v: (M,) speed (m/frame).
     """
+    lo, hi = speeds
     v = np.empty(frames)
-    speed, target = rng.uniform(0.5, 1.4), rng.uniform(0.4, 1.5)
+    speed, target = rng.uniform(max(lo, 0.0) + 0.1, hi - 0.1), rng.uniform(lo, hi)
     for t in range(frames):
         if rng.random() < 1 / 30:
-            target = rng.uniform(0.4, 1.5)
-        speed += np.clip(target - speed, -0.04, 0.04)  # ~0.4 m/s^2 at 10 Hz
+            target = rng.uniform(lo, hi)
+        speed += np.clip(max(target, 0.0) - speed, -0.04, 0.04)  # ~0.4 m/s^2 at 10 Hz
         v[t] = speed
     z = np.concatenate([[0.0], np.cumsum(v[:-1])])
-    d = EGO_LANE + _smooth_noise(rng, frames, 0.25, (60, 200))
-    x = road.centre(z) + d
-    # Heading from the path tangent (dx/dz of the road plus lane drift) plus small steering jitter.
-    dxdz = np.gradient(x, z) if frames > 1 else np.tan(road.heading(z))
-    yaw = np.arctan(dxdz) + np.radians(_smooth_noise(rng, frames, 0.3, (20, 80)))
-    pitch = np.radians(_smooth_noise(rng, frames, 0.5, (15, 60)))
-    roll = np.radians(_smooth_noise(rng, frames, 0.3, (15, 60)))
-    y = -CAM_HEIGHT + _smooth_noise(rng, frames, 0.02, (10, 40))
+    drift = _smooth_noise(rng, frames, 0.25, (60, 200))
+    if lo >= 0:  # always moving: the jitters run in frames (the scenes of the first generator)
+        d = EGO_LANE + drift
+        x = road.centre(z) + d
+        # Heading from the path tangent (dx/dz of the road plus lane drift) plus small steering jitter.
+        dxdz = np.gradient(x, z) if frames > 1 else np.tan(road.heading(z))
+        yaw = np.arctan(dxdz) + np.radians(_smooth_noise(rng, frames, 0.3, (20, 80)))
+        pitch = np.radians(_smooth_noise(rng, frames, 0.5, (15, 60)))
+        roll = np.radians(_smooth_noise(rng, frames, 0.3, (15, 60)))
+        y = -CAM_HEIGHT + _smooth_noise(rng, frames, 0.02, (10, 40))
+    else:  # stops: the jitters run in distance travelled, so a stopped camera holds still
+        v_mean = max(z[-1] / max(frames - 1, 1), 1e-6)
+        tau = z / v_mean  # frames at the mean speed; constant while stopped
+        frame = np.arange(frames)
+        d = EGO_LANE + np.interp(tau, frame, drift)
+        x = road.centre(z) + d
+        dd_dz = np.interp(tau, frame, np.gradient(drift) if frames > 1 else np.zeros(frames)) / v_mean
+        yaw = np.arctan(np.tan(road.heading(z)) + dd_dz)
+        yaw += np.radians(np.interp(tau, frame, _smooth_noise(rng, frames, 0.3, (20, 80))))
+        pitch = np.radians(np.interp(tau, frame, _smooth_noise(rng, frames, 0.5, (15, 60))))
+        roll = np.radians(np.interp(tau, frame, _smooth_noise(rng, frames, 0.3, (15, 60))))
+        y = -CAM_HEIGHT + np.interp(tau, frame, _smooth_noise(rng, frames, 0.02, (10, 40)))
     T = np.stack([make_T(rot_y(yaw[i]) @ rot_x(pitch[i]) @ rot_z(roll[i]), (x[i], y[i], z[i])) for i in range(frames)])
     return T, z, v
 
@@ -255,11 +275,11 @@ def make_scene(rng: np.random.Generator, frames: int, height: int, width: int, t
     """Random road, ego trajectory, static dressing, traffic, lighting and textures for one sequence.
 
     Everything is drawn from ``rng`` in a fixed order (the output of a seed depends on it).
-    ``traffic``: "light" (the original scenes) or "dense" (see :data:`TRAFFIC`).
+    ``traffic``: "light" (the original scenes), "dense" or "queue" (see :data:`TRAFFIC`).
     """
     K = kitti_like_K(height, width)
     road = make_road(rng)
-    T_wc, ego_z, _ = make_trajectory(rng, frames, road)
+    T_wc, ego_z, _ = make_trajectory(rng, frames, road, TRAFFIC[traffic].ego_speed)
     z_end = ego_z[-1]
     boxes = _BoxList()
     for side in (-1, 1):
@@ -415,6 +435,8 @@ class Traffic:
     speed: tuple[float, float]  # |speed| in m per frame
     spacing: tuple[float, float]  # gap to the next vehicle in a lane (m)
     truck_prob: float  # a vehicle is a truck (cab + box, 7-12 m long, up to 3.8 m high)
+    ego_speed: tuple[float, float] = (0.4, 1.5)  # the camera's target speeds, m per frame (below 0: a stop)
+    one_way: bool = False  # every lane drives the camera's way (a multi-lane road), none towards it
 
 
 TRAFFIC = {
@@ -423,6 +445,10 @@ TRAFFIC = {
     # Queues: vehicles 5-15 m ahead and beside the camera, a third of them trucks, slow. Real
     # traffic fills much of the view with near vehicle sides and backs, which light traffic never does.
     "dense": Traffic(0.95, (5, 15), 4.5, 0.05, (0.1, 1.0), (8, 20), 0.3),
+    # Stop-and-go: dense traffic on a one-way road, the camera stopping (a third of its target
+    # speeds are stops) and crawling, the vehicles beside it crawling on at their own pace. Still
+    # and slow cameras among moving vehicles, which the other kinds never show (issue 53).
+    "queue": Traffic(0.95, (5, 15), 4.5, 0.0, (0.0, 0.6), (8, 20), 0.3, (-0.3, 0.6), True),
 }
 
 
@@ -464,6 +490,7 @@ def _add_traffic(
         gap = rng.uniform(*traffic.lead_gap) + _smooth_noise(rng, frames, rng.uniform(0, 10), (40, 150))
         groups.append(group_poses(ego_z + np.maximum(gap, traffic.lead_min), EGO_LANE))
     for d, direction in ((LANE + EGO_LANE, 1), (-EGO_LANE, -1), (-(LANE + EGO_LANE), -1)):
+        direction = 1 if traffic.one_way else direction
         if rng.random() < traffic.lane_skip:
             continue
         speed = direction * rng.uniform(*traffic.speed)

@@ -52,7 +52,7 @@ class SynthConfig:
     height: int = REFERENCE_HEIGHT
     width: int = REFERENCE_WIDTH
     workers: int = 1  # processes, one sequence each
-    traffic: str = "light"  # "light" (the original scenes) or "dense" (queues and trucks, scene.TRAFFIC)
+    traffic: str = "light"  # "light" (the original), "dense" (queues, trucks), "queue" (stop-and-go): scene.TRAFFIC
 
 
 # ---------------------------------------------------------------------------- one sequence

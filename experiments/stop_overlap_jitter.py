@@ -1,0 +1,96 @@
+"""Issue 53: where a PoseNet's step-length spread comes from, without exporting it.
+
+    python -m experiments.stop_overlap_jitter weights/small_synth.pt weights/stop_round14.pt
+
+On the held-out KITTI odometry targets of ``experiments.stop_speed_probe`` (06: t 3-27, 01: t 34-47; never
+trained on), every target t is fed as the snippet (t-1, t, t+1), as the runtime does. Per checkpoint and
+sequence, in log units (0.01 = 1 %):
+
+* within a call: the spread of log(step t -> t+1 / step t-1 -> t) around the truth's ratio, the two
+  steps of one call;
+* across calls: the RMS of log(step t -> t+1 from the call on t / the same step from the call on t+1),
+  one step measured twice (0 in the truth);
+* against the truth: the spread of log(predicted / true step t -> t+1).
+
+Round 16's ``--pose-overlap`` was chosen on these figures: round 14's two steps of a call agreed (0.6 % on
+06, 0.4 % on 01) and one step measured by neighbouring calls did not (12.0 % on 06, 8.2 % on 01; the bundled
+model 2.5 % and 2.2 %). Frames are resized to 128x416 with
+OpenCV's area filter (the grey camera 0 repeated to three channels), not through the runtime.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from geonet_infer.conventions import IMAGE_NORM
+from training.checkpoint import load_weights, model_from_checkpoint
+from training.geometry import pose_vec_to_mat
+
+ODOMETRY = Path("../shared/realdata")
+TARGETS = {"06": range(3, 28), "01": range(34, 48)}  # held out: experiments.stop_speed_probe's
+
+
+def read_frame(sequence: str, t: int, root: Path = ODOMETRY) -> torch.Tensor:
+    """(3, 128, 416) float32 in [0, 1]: grey camera 0, area-resized."""
+    path = root / f"kitti_odometry_{sequence}" / "sequences" / sequence / "image_0" / f"{t:06d}.png"
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise SystemExit(f"{path}: cannot read the frame")
+    small = cv2.resize(image, (416, 128), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+    return torch.from_numpy(small)[None].expand(3, -1, -1).contiguous()
+
+
+def true_steps(sequence: str, root: Path = ODOMETRY) -> np.ndarray:
+    """(M,) the length of each true step t -> t+1 (metres)."""
+    poses = np.loadtxt(root / f"kitti_odometry_{sequence}" / "poses" / f"{sequence}.txt").reshape(-1, 3, 4)
+    return np.linalg.norm(np.diff(poses[:, :, 3], axis=0), axis=1)
+
+
+@torch.no_grad()
+def call_steps(model, frames: dict[int, torch.Tensor], t: int) -> tuple[float, float]:
+    """(|step t-1 -> t|, |step t -> t+1|) from PoseNet's call on (t-1, t, t+1): a motion and its inverse
+    have translations of the same length."""
+    sources = torch.stack([frames[t - 1], frames[t + 1]])[None]
+    pose_input = torch.cat([IMAGE_NORM.apply(frames[t][None]), IMAGE_NORM.apply(sources).flatten(1, 2)], dim=1)
+    T = pose_vec_to_mat(model.pose_net(pose_input)[0])
+    return T[0, :3, 3].norm().item(), T[1, :3, 3].norm().item()
+
+
+def jitter(checkpoint: str, sequence: str, targets: range) -> dict[str, float]:
+    model = model_from_checkpoint(load_weights(checkpoint)).eval()
+    frames = {t: read_frame(sequence, t) for t in range(targets.start - 1, targets.stop + 1)}
+    steps = {t: call_steps(model, frames, t) for t in targets}
+    truth = true_steps(sequence)
+    within = [np.log(steps[t][1] / steps[t][0]) - np.log(truth[t] / truth[t - 1]) for t in targets]
+    across = [np.log(steps[t][1] / steps[t + 1][0]) for t in targets if t + 1 in steps]
+    against = [np.log(steps[t][1] / truth[t]) for t in targets]
+    return {
+        "within_call": float(np.std(within)),
+        "across_calls": float(np.sqrt(np.mean(np.square(across)))),
+        "against_truth": float(np.std(against)),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("checkpoints", nargs="+", help="weights or stage-rigid checkpoints")
+    args = p.parse_args(argv)
+    print("| checkpoint | sequence | within a call | across calls | against the truth |")
+    print("|---|---|---|---|---|")
+    for checkpoint in args.checkpoints:
+        for sequence, targets in TARGETS.items():
+            j = jitter(checkpoint, sequence, targets)
+            print(
+                f"| {checkpoint} | {sequence} | {j['within_call']:.3f} | {j['across_calls']:.3f} | "
+                f"{j['against_truth']:.3f} |"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
