@@ -174,6 +174,16 @@ NOTES[16] = (  # written before round 16 was trained or scored, with the same ru
     "sequences (`training.synth --traffic queue`: the camera stops and crawls while the vehicles beside it move "
     "on; exact poses, exact flow); then 600 flow steps from round 14's ResFlowNet."
 )
+NOTES[17] = (  # written before round 17 was trained or scored, with the same rule
+    "Round 17 (`OUT=runs/stop17 bash scripts/stop_finetune.sh`): round 16 (rules 1, 2, 5 met) cut the step "
+    "jitter between calls (held-out 06: 12.0 % -> 7.2 %) and the held-out pose with it (0.0492 -> 0.0370; "
+    "rule 3's bar 0.0272), but its flow stage lost the held-back clip (rule 4: 36 of 37 pairs no better than "
+    "no motion; round 14 14) and the drive (63 of 67): the synthetic queues' exact flow pulled ResFlowNet away "
+    "from real footage. Round 16's rigid nets (`runs/stop16/rigid_combined.pt`, round 14's ResFlowNet) with "
+    "PoseNet trained 2,000 more steps under round 16's flags but `--pose-overlap 100`, the queues in the "
+    "rigid stage only; then round 14's flow stage (no synthetic folder) for 600 steps from round 14's "
+    "ResFlowNet."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

@@ -251,17 +251,24 @@ def test_queue_traffic_stops_the_camera_while_the_vehicles_beside_it_move_on():
     road_a, road_b = make_road(rng_a), make_road(rng_b)
     assert np.array_equal(make_trajectory(rng_a, 30, road_a)[0], make_trajectory(rng_b, 30, road_b, (0.4, 1.5))[0])
 
-    # In a queue sequence with a still pair, the static scene does not move and vehicles still do.
-    for i in range(6):
-        s = synth.generate_sequence(SEED, i, 40, H, W, traffic="queue")
-        steps = [np.abs(s["poses"][t + 1] - s["poses"][t]).max() for t in range(39)]
-        t = int(np.argmin(steps))
-        if steps[t] > 1e-9 or not s["motion_mask"][t].any():
+    # In a queue sequence with a still pair, the static scene does not move and vehicles still do
+    # (small frames, and only a sequence whose trajectory holds a stop is rendered).
+    from training.synth.scene import make_scene
+    from training.synth.sequence import sequence_rng
+
+    h, w, frames = 64, 208, 12
+    for i in range(12):
+        T_wc = make_scene(sequence_rng(SEED, i), frames, h, w, "queue").T_wc
+        still = [t for t in range(frames - 1) if np.abs(T_wc[t + 1] - T_wc[t]).max() == 0]
+        if not still:
             continue
+        s = synth.generate_sequence(SEED, i, frames, h, w, traffic="queue")
+        t = still[0]
         speed = np.linalg.norm(s["flow"][t], axis=-1)
         static = s["flow_occ"][t] & ~s["motion_mask"][t]
-        assert speed[static].max() < 1e-3
-        assert np.percentile(speed[s["motion_mask"][t] & s["flow_occ"][t]], 90) > 0.3
+        assert static.any() and speed[static].max() < 1e-3
+        moving = s["motion_mask"][t] & s["flow_occ"][t]
+        assert moving.any() and np.percentile(speed[moving], 90) > 0.2
         break
     else:
-        pytest.fail("no queue sequence of seed 7 (0-5) has a still pair with vehicles in view")
+        pytest.fail("no queue sequence of seed 7 (0-11) stops within its first 12 frames")
