@@ -2,6 +2,7 @@
 
     python -m experiments.stop_speed_probe --model bundled=geonet_infer/models/small_synth \\
         --model round12=runs/stop12/model --json docs/stop_speed_probe.json
+    python -m experiments.stop_speed_probe --model round16=runs/stop16/model --json docs/stop_speed_probe.json  # adds
 
 On the KITTI odometry frames no model trained on (06 targets 3-27, 01 targets 34-47; grey, the
 sequence's calibration not needed by PoseNet), every target t is given to PoseNet as the snippets
@@ -61,9 +62,11 @@ def probe(model: str | Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", action="append", required=True, metavar="NAME=DIR", help="repeatable")
-    parser.add_argument("--json", type=Path, help="write the figures here")
+    parser.add_argument(
+        "--json", type=Path, help="write the figures here (the models already in the file are kept, these replaced)"
+    )
     args = parser.parse_args(argv)
-    result = {}
+    result = json.loads(args.json.read_text()) if args.json and args.json.is_file() else {}
     for spec in args.model:
         name, _, path = spec.partition("=")
         result[name] = probe(path)
