@@ -184,6 +184,15 @@ NOTES[17] = (  # written before round 17 was trained or scored, with the same ru
     "rigid stage only; then round 14's flow stage (no synthetic folder) for 600 steps from round 14's "
     "ResFlowNet."
 )
+NOTES[18] = (  # written before round 18 was trained or scored, with the same rule
+    "Round 18 (`OUT=runs/stop18 bash scripts/stop_finetune.sh`): round 17 came closest yet on held-out pose "
+    "(0.0312; bar 0.0272) but measured speed no more (held-out stride 2 / stride 1 1.10-1.15, truth 2) and lost "
+    "the stops (still clip 0.44; held-back clip 20 pairs no better than no motion): its overlap term (100) "
+    "outweighed the stride term (5). Round 17's rigid nets (`runs/stop17/rigid_combined.pt`, round 14's "
+    "ResFlowNet) with PoseNet trained 2,000 more steps with both terms strong, `--pose-stride 20` (round 15's) "
+    "and `--pose-overlap 100` (round 17's), the rest as round 17; then round 14's flow stage for 600 steps "
+    "from round 14's ResFlowNet."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

@@ -10,7 +10,7 @@
 #
 #   bash scripts/stop_finetune.sh                 prepare | rigid | flow | finish, each skipping what is there
 #   RIGID_MINUTES=60 bash scripts/stop_finetune.sh rigid
-#   OUT=runs/stop17 bash scripts/stop_finetune.sh  round 17 (the default); ROUND=1 to 16 for those rounds' settings
+#   OUT=runs/stop18 bash scripts/stop_finetune.sh  round 18 (the default); ROUND=1 to 17 for those rounds' settings
 #
 # Round 1: DepthNet and PoseNet trained in stage rigid (depth got worse), flow supervision 1, 35+35 min.
 # Round 2: DepthNet frozen in stage rigid (--freeze-depth: the still copies give it no photometric
@@ -92,6 +92,10 @@
 # real footage. Round 16's rigid nets (INIT, with round 14's ResFlowNet) trained 2,000 more steps with
 # --pose-overlap 100, the queues kept in the rigid stage only; then round 14's flow stage (no synthetic
 # folder) for 600 steps from round 14's ResFlowNet.
+# Round 18: round 17 came close on held-out pose (0.0312) but measured speed no more (held-out stride 2 /
+# stride 1 1.10-1.15) and lost the stops (still clip 0.44): the overlap term outweighed the stride term (5).
+# Round 17's rigid nets (INIT, with round 14's ResFlowNet) trained 2,000 more steps with both terms strong:
+# --pose-stride 20 (round 15's) and --pose-overlap 100 (round 17's); the rest as round 17.
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -100,7 +104,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-17} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-18} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -137,18 +141,20 @@ elif [ "$ROUND" -le 15 ]; then  # 13-15: PoseNet taught speed ratios on round 12
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride "$([ "$ROUND" = 15 ] && echo 20 || echo 5)")
     REAL=_norev ODOM_REPEAT=15
     [ "$ROUND" = 13 ] || RIGID_ODOM_REPEAT=5
-else  # 16-17: neighbouring calls held to one speed, the stop-and-go synthetic queues
+else  # 16-18: neighbouring calls held to one speed, the stop-and-go synthetic queues
     RIGID_MINUTES=${RIGID_MINUTES:-600} RIGID_STEPS=${RIGID_STEPS:-2000}
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-600}
     REAL=_norev ODOM_REPEAT=15 RIGID_ODOM_REPEAT=5 RIGID_QUEUE=(--extra-data-dir data/synth_queue_pose)
     if [ "$ROUND" = 16 ]; then  # round 14's model; the queues in both stages
         INIT=${INIT:-weights/stop_round14.pt} OVERLAP=20 FLOW_QUEUE=("${RIGID_QUEUE[@]}")
-    else  # round 16's rigid nets with round 14's ResFlowNet; the queues in the rigid stage only
+    elif [ "$ROUND" = 17 ]; then  # round 16's rigid nets with round 14's ResFlowNet; the queues in the rigid stage only
         INIT=${INIT:-runs/stop16/rigid_combined.pt} OVERLAP=100
+    else  # 18: round 17's rigid nets with round 14's ResFlowNet, the stride term as strong as round 15's
+        INIT=${INIT:-runs/stop17/rigid_combined.pt} OVERLAP=100 STRIDE=20
     fi
-    RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride 5 --pose-overlap "$OVERLAP")
+    RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride "${STRIDE:-5}" --pose-overlap "$OVERLAP")
 fi
-RIGID_QUEUE=("${RIGID_QUEUE[@]}") FLOW_QUEUE=("${FLOW_QUEUE[@]}")  # the stop-and-go synthetic folder (rounds 16-17)
+RIGID_QUEUE=("${RIGID_QUEUE[@]}") FLOW_QUEUE=("${FLOW_QUEUE[@]}")  # the stop-and-go synthetic folder (rounds 16-18)
 RIGID_ODOM_REPEAT=${RIGID_ODOM_REPEAT:-2}  # times the odometry folder is listed in the rigid stage
 RIGID_STEPS=${RIGID_STEPS:-100000}
 FLOW_STEPS=${FLOW_STEPS:-100000} BASE=${BASE:-}  # BASE: a finished round whose whole model the flow stage continues
