@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from geonet_infer.conventions import IMAGE_NORM
+from geonet_infer.io import read_kitti_poses
 from training.checkpoint import load_weights, model_from_checkpoint
 from training.geometry import pose_vec_to_mat
 
@@ -47,16 +48,11 @@ def read_frame(sequence: str, t: int, root: Path = ODOMETRY) -> torch.Tensor:
     return torch.from_numpy(small)[None].expand(3, -1, -1).contiguous()
 
 
-def true_steps(sequence: str, root: Path = ODOMETRY) -> np.ndarray:
-    """(M,) the length of each true step t -> t+1 (metres)."""
-    poses = np.loadtxt(root / f"kitti_odometry_{sequence}" / "poses" / f"{sequence}.txt").reshape(-1, 3, 4)
-    return np.linalg.norm(np.diff(poses[:, :, 3], axis=0), axis=1)
-
-
 def true_next_centres(sequence: str, root: Path = ODOMETRY) -> np.ndarray:
-    """(M, 3) camera t+1's centre in camera t's coordinates, from the official camera-to-world poses."""
-    poses = np.loadtxt(root / f"kitti_odometry_{sequence}" / "poses" / f"{sequence}.txt").reshape(-1, 3, 4)
-    return np.einsum("mji,mj->mi", poses[:-1, :, :3], poses[1:, :, 3] - poses[:-1, :, 3])
+    """(M, 3) camera t+1's centre in camera t's coordinates, from the official camera-to-world poses (its
+    length is the true step t -> t+1, metres)."""
+    poses = read_kitti_poses(root / f"kitti_odometry_{sequence}" / "poses" / f"{sequence}.txt")
+    return np.einsum("mji,mj->mi", poses[:-1, :3, :3], poses[1:, :3, 3] - poses[:-1, :3, 3])
 
 
 @torch.no_grad()
@@ -80,8 +76,8 @@ def jitter(checkpoint: str, sequence: str, targets: range) -> dict[str, float]:
     # camera t+1 seen from camera t: the inverse's translation of t -> t+1, or t+1 -> t's own translation
     ahead = {t: -T[t][1, :3, :3].T @ T[t][1, :3, 3] for t in targets}
     behind = {t: T[t][0, :3, 3] for t in targets}  # camera t-1 seen from camera t
-    truth = true_steps(sequence)
     centres = true_next_centres(sequence)
+    truth = np.linalg.norm(centres, axis=1)
     within = [np.log(steps[t][1] / steps[t][0]) - np.log(truth[t] / truth[t - 1]) for t in targets]
     across = [np.log(steps[t][1] / steps[t + 1][0]) for t in targets if t + 1 in steps]
     against = [np.log(steps[t][1] / truth[t]) for t in targets]

@@ -309,17 +309,13 @@ def test_overlap_step_error_compares_the_shared_step_of_two_neighbouring_snippet
     t -> t+1: it is T_this[:, 1] and the inverse of T_next[:, 0], a motion and its inverse having
     translations of the same length. Equal lengths pay 0 whatever the rotations and the other steps;
     a step 1.5 times as long pays (log 1.5)^2; the mean is over snippets."""
+    from training.geometry import invert_rigid
     from training.losses import overlap_step_error
-
-    def invert(T: torch.Tensor) -> torch.Tensor:
-        out = torch.eye(4).repeat(*T.shape[:-2], 1, 1)
-        out[..., :3, :3] = T[..., :3, :3].transpose(-1, -2)
-        out[..., :3, 3] = -(T[..., :3, :3].transpose(-1, -2) @ T[..., :3, 3:]).squeeze(-1)
-        return out
 
     shared = _motion(0.2, [0.1, 0.05, 0.9])  # t -> t+1
     this = torch.stack([_motion(-0.1, [0, 0, -0.5]), shared])[None]  # t -> t-1 (another length), t -> t+1
-    following = torch.stack([invert(shared), _motion(0.3, [0.2, 0, 2.0])])[None]  # t+1 -> t, t+1 -> t+2
+    back = invert_rigid(shared[None])[0]  # t+1 -> t
+    following = torch.stack([back, _motion(0.3, [0.2, 0, 2.0])])[None]  # t+1 -> t, t+1 -> t+2
     torch.testing.assert_close(overlap_step_error(this, following), torch.tensor(0.0), atol=1e-10, rtol=0)
     longer = following.clone()
     longer[0, 0, :3, 3] *= 1.5
