@@ -96,6 +96,9 @@
 # stride 1 1.10-1.15) and lost the stops (still clip 0.44): the overlap term outweighed the stride term (5).
 # Round 17's rigid nets (INIT, with round 14's ResFlowNet) trained 2,000 more steps with both terms strong:
 # --pose-stride 20 (round 15's) and --pose-overlap 100 (round 17's); the rest as round 17.
+# Round 19: every PoseNet trained for the stops lost steady driving's pose (rounds 1-18). The bundled
+# nets kept, PoseNet given a motion gate trained alone (GATE_STEPS steps of --gate-only --pose-gate 1);
+# then round 14's ResFlowNet (FLOW_INIT) on the gated rigid flow with --rigid-corruption 3, 1,200 steps.
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -104,7 +107,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-18} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-19} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -141,6 +144,10 @@ elif [ "$ROUND" -le 15 ]; then  # 13-15: PoseNet taught speed ratios on round 12
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride "$([ "$ROUND" = 15 ] && echo 20 || echo 5)")
     REAL=_norev ODOM_REPEAT=15
     [ "$ROUND" = 13 ] || RIGID_ODOM_REPEAT=5
+elif [ "$ROUND" = 19 ]; then  # the bundled nets with a motion gate, then a ResFlowNet that corrects rigid flow
+    GATE_STEPS=${GATE_STEPS:-3000} FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
+    FLOW_STEPS=${FLOW_STEPS:-1200} FLOW_INIT=${FLOW_INIT:-weights/stop_round14.pt} REAL=_norev ODOM_REPEAT=15
+    FLOW_FLAGS=(--pose-gate 1 --rigid-corruption 3)
 else  # 16-18: neighbouring calls held to one speed, the stop-and-go synthetic queues
     RIGID_MINUTES=${RIGID_MINUTES:-600} RIGID_STEPS=${RIGID_STEPS:-2000}
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-600}
@@ -155,6 +162,8 @@ else  # 16-18: neighbouring calls held to one speed, the stop-and-go synthetic q
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride "${STRIDE:-5}" --pose-overlap "$OVERLAP")
 fi
 RIGID_QUEUE=("${RIGID_QUEUE[@]}") FLOW_QUEUE=("${FLOW_QUEUE[@]}")  # the stop-and-go synthetic folder (rounds 16-18)
+FLOW_FLAGS=("${FLOW_FLAGS[@]}") GATE_STEPS=${GATE_STEPS:-0}  # GATE_STEPS: train a motion gate instead of stage rigid
+FLOW_INIT=${FLOW_INIT:-}  # the checkpoint whose ResFlowNet the flow stage starts from (default: INIT's)
 RIGID_ODOM_REPEAT=${RIGID_ODOM_REPEAT:-2}  # times the odometry folder is listed in the rigid stage
 RIGID_STEPS=${RIGID_STEPS:-100000}
 FLOW_STEPS=${FLOW_STEPS:-100000} BASE=${BASE:-}  # BASE: a finished round whose whole model the flow stage continues
@@ -202,7 +211,13 @@ if want prepare; then
         --out data/synth_queue_pose --heldout 2 --workers 1 --train-pose --train-flow
 fi
 
-if want rigid && [ -z "$BASE" ]; then
+if want rigid && [ "$GATE_STEPS" -gt 0 ]; then  # round 19: INIT's nets kept, PoseNet's motion gate trained alone
+    run $PY -m training.train --stage rigid --gate-only --pose-gate 1 --arch small --device "$DEVICE" --num-workers 0 \
+        --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$REAL" --extra-data-dir "data/s_udacity_guess$REAL" \
+        --extra-data-dir data/synth40_pose --extra-data-dir data/synth_queue_pose --init-checkpoint "$INIT" \
+        --out-dir "$OUT/rigid" --batch-size 8 --lr 1e-3 --max-steps "$GATE_STEPS" --val-every 1000000 \
+        --save-every 500 --log-every 50
+elif want rigid && [ -z "$BASE" ]; then
     if [ "$ROUND" = 4 ] || [ "$ROUND" = 5 ]; then  # one rig with true poses (see round 4 above)
         POSED=(--extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL" --extra-data-dir "data/s_odom$REAL")
     else
@@ -222,14 +237,14 @@ if want flow; then
     if [ -n "$BASE" ]; then
         run cp "$BASE/combined.pt" "$OUT/rigid_combined.pt"  # the flow stage trains ResFlowNet alone
     else
-        run $PY -m training.checkpoint --combine "$OUT/rigid/last.pt" "$INIT" "$OUT/rigid_combined.pt"
+        run $PY -m training.checkpoint --combine "$OUT/rigid/last.pt" "${FLOW_INIT:-$INIT}" "$OUT/rigid_combined.pt"
     fi
     ODOM=()
     for _ in $(seq "$ODOM_REPEAT"); do ODOM+=(--extra-data-dir "data/s_odom$REAL"); done
     run $PY -m training.train --stage flow --arch small --device "$DEVICE" --num-workers 0 \
         --data-dir "data/s_udacity$REAL" --extra-data-dir "data/s_udacity_guess$REAL" "${ODOM[@]}" "${FLOW_QUEUE[@]}" \
         --init-checkpoint "$OUT/rigid_combined.pt" --out-dir "$OUT/flow" --flow-supervision "$FLOW_SUPERVISION" \
-        --lr "$FLOW_LR" --batch-size 4 --max-steps "$FLOW_STEPS" --max-minutes "$FLOW_MINUTES" --val-every 1000000 \
+        --lr "$FLOW_LR" --batch-size 4 --max-steps "$FLOW_STEPS" --max-minutes "$FLOW_MINUTES" --val-every 1000000 "${FLOW_FLAGS[@]}" \
         --save-every 200 --log-every 20
 fi
 

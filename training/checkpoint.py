@@ -270,6 +270,7 @@ def build_model(cfg: TrainConfig) -> GeoNet:
         mask_out_of_view=cfg.mask_out_of_view,
         automask=cfg.automask,
         scale_normalize=cfg.scale_normalize,
+        rigid_corruption=cfg.rigid_corruption,
     )
 
 

@@ -35,6 +35,8 @@ class TrainConfig:
     augment: bool = True
     share_color_gain: bool = False
     freeze_depth: bool = False  # stage rigid: train PoseNet alone, DepthNet kept as initialised
+    gate_only: bool = False  # stage rigid: train PoseNet's motion gate alone (--pose-gate)
+    rigid_corruption: float = 1.0  # stage flow: poses behind ResFlowNet's rigid input scaled in [1/c, c]
     bn_momentum: float = 1e-3
     mask_out_of_view: bool = False  # deviation: rigid loss ignores pixels warped from outside the source
     automask: bool = False  # deviation: rigid loss ignores pixels the unwarped source already explains
@@ -119,6 +121,14 @@ WEIGHT_FLAGS = (  # the LossWeights set from the command line, each `--NAME W`: 
         "--motion-mix ...stride2=P...). Not in GeoNet",
     ),
     (
+        "pose_gate",
+        "give PoseNet a motion gate (a small net whose probability that the camera moves multiplies every "
+        "pose; W > 0 in every stage of such a model, so its checkpoints load) and, in stage rigid, add W x "
+        "its cross-entropy against the snippets' motion (still: identity true poses, e.g. the still copies of "
+        "--motion-mix and synthetic stops; moving: every other snippet, with or without true poses). "
+        "Not in GeoNet",
+    ),
+    (
         "pose_overlap",
         "stage rigid: add W x the squared log-ratio of the step t -> t+1 as two overlapping snippets "
         "give it: each snippet's (t-1, t, t+1) and the next target's (t, t+1, t+2), loaded beside it "
@@ -195,6 +205,21 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="stage rigid: train PoseNet alone and keep DepthNet as --init-checkpoint has it (its batch-norm "
         "statistics too)",
+    )
+    p.add_argument(
+        "--gate-only",
+        action="store_true",
+        help="stage rigid with --pose-gate: train the motion gate alone on its labels (DepthNet and the rest "
+        "of PoseNet kept as --init-checkpoint has them and not run: no photometric loss)",
+    )
+    p.add_argument(
+        "--rigid-corruption",
+        type=float,
+        default=d.rigid_corruption,
+        metavar="C",
+        help="stage flow: ResFlowNet trains on rigid flows made from poses scaled per snippet by a factor "
+        "log-uniform in [1/C, C], and zero for a quarter of the snippets, so it learns to correct a wrong "
+        "rigid flow (1 = off, as GeoNet). Validation and inference use the poses as they are",
     )
     p.add_argument(
         "--bn-momentum",

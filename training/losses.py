@@ -55,6 +55,9 @@ class LossWeights:
     # Not in GeoNet (0 = off): weight of :func:`overlap_step_error`, the step t -> t+1 of each snippet
     # against the same step in the next target's snippet (neighbouring PoseNet calls agree on speed).
     pose_overlap: float = 0.0
+    # Not in GeoNet (0 = none): PoseNet gets a motion gate (``training.networks.posenet.MotionGate``),
+    # and stage rigid pays W x :func:`gate_error` against :func:`motion_labels`.
+    pose_gate: float = 0.0
 
     @property
     def keeps_pose(self) -> bool:
@@ -420,3 +423,26 @@ def stride_ratio_error(T_fast: torch.Tensor, T_slow: torch.Tensor, ratio: float 
     fast = T_fast[..., :3, 3].norm(dim=-1).clamp(min=1e-6).log()
     slow = T_slow[..., :3, 3].norm(dim=-1).clamp(min=1e-6).log()
     return ((fast - slow - math.log(ratio)) ** 2).mean()
+
+
+def motion_labels(T_gt: torch.Tensor) -> torch.Tensor:
+    """(B,) 1.0 where the camera moves, 0.0 where it stands still, from true motions (B, N, 4, 4).
+
+    A snippet with true motions is still when their path is under :data:`STILL_PATH` (the still copies'
+    identity poses, the synthetic queues' stops); a snippet without them (all zeros) counts as moving:
+    the footage without true poses here is driving footage, whose still copies carry identity poses
+    (``training.prepare --motion-mix static=P``).
+    """
+    true_path = T_gt[..., :3, 3].norm(dim=-1).sum(dim=1)
+    still = has_true_pose(T_gt) & (true_path < STILL_PATH)
+    return (~still).to(T_gt.dtype)
+
+
+def gate_error(logits: torch.Tensor, moving: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy of a motion gate's logits (B,) against labels (B,) in {0, 1}.
+
+    Issue 53, round 19: every PoseNet trained to see the stops lost the held-out pose of steady driving
+    (rounds 1-18), as one net answered both whether and how the camera moves. The gate answers whether;
+    the trunk, frozen, keeps how.
+    """
+    return F.binary_cross_entropy_with_logits(logits, moving)

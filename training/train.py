@@ -47,9 +47,12 @@ def seed_everything(seed: int) -> None:
 
 
 def trainable_modules(model: GeoNet, cfg: TrainConfig) -> list[torch.nn.Module]:
-    """The nets the stage trains (``--freeze-depth``: stage rigid without DepthNet)."""
+    """The nets the stage trains (``--freeze-depth``: stage rigid without DepthNet; ``--gate-only``: PoseNet's
+    motion gate)."""
     if cfg.stage == "flow":
         return [model.flow_net]
+    if cfg.gate_only:
+        return [model.pose_net.gate]
     return [model.pose_net] if cfg.freeze_depth else [model.depth_net, model.pose_net]
 
 
@@ -60,9 +63,16 @@ def set_modes(model: GeoNet, cfg: TrainConfig, training: bool) -> None:
         module.train(training)
 
 
+def loss_name(cfg: TrainConfig) -> str:
+    """Which loss a run trains: its stage's, or "gate" (stage rigid with ``--gate-only``)."""
+    return "gate" if cfg.gate_only else cfg.stage
+
+
 def stage_loss(model: GeoNet, stage: str, target, sources, K, truth: dict | None = None) -> StageLoss:
-    """``truth``: the batch's ground truth for supervision by name (depth_gt and pose_gt in stage
-    rigid, flow_gt in stage flow) or None."""
+    """``stage``: :func:`loss_name`. ``truth``: the batch's ground truth for supervision by name (depth_gt
+    and pose_gt in stage rigid and gate, flow_gt in stage flow) or None."""
+    if stage == "gate":
+        return model.gate_loss(target, sources, **(truth or {}))
     if stage == "rigid":
         return model.rigid_loss(target, sources, K, **(truth or {}))
     return model.flow_loss(target, sources, K, **(truth or {}))
@@ -108,6 +118,8 @@ def check_options(cfg: TrainConfig, device: torch.device) -> None:
             "it needs stage rigid and --init-checkpoint, not --resume",
             "start a new run from the weights to keep (--init-checkpoint)",
         )
+    if cfg.gate_only and (cfg.stage != "rigid" or cfg.weights.pose_gate <= 0):
+        raise InputError(None, "--gate-only trains the motion gate of stage rigid", "pass --stage rigid --pose-gate W")
     if cfg.stage == "flow" and not (cfg.init_checkpoint or cfg.resume):
         raise InputError(None, "stage flow needs --init-checkpoint", "pass the last.pt of a stage rigid run")
 
@@ -167,7 +179,7 @@ def validate(model: GeoNet, cfg: TrainConfig, val_set: SequenceDataset | None, d
     for i, batch in enumerate(loader):
         if i >= cfg.val_batches:
             break
-        for name, value in stage_loss(model, cfg.stage, *to_device(batch, device)).terms.items():
+        for name, value in stage_loss(model, loss_name(cfg), *to_device(batch, device)).terms.items():
             sums[name] = sums.get(name, 0.0) + value
         count += 1
     set_modes(model, cfg, training=True)
@@ -178,13 +190,15 @@ def validate(model: GeoNet, cfg: TrainConfig, val_set: SequenceDataset | None, d
 def init_from(model: GeoNet, cfg: TrainConfig) -> None:
     """Start from ``cfg.init_checkpoint`` (a checkpoint or a weights-only file) with a fresh optimizer.
 
-    Stage rigid: its DepthNet and PoseNet (fine-tuning, e.g. on your own footage). Stage flow:
-    its DepthNet and PoseNet, frozen, and its ResFlowNet too if it has one (else a new one).
+    Stage rigid: its DepthNet and PoseNet (fine-tuning, e.g. on your own footage), PoseNet's motion gate
+    new if it has none. Stage flow: its DepthNet and PoseNet (with the gate of a gated model), frozen, and
+    its ResFlowNet too if it has one (else a new one).
     """
     init = load_weights(cfg.init_checkpoint, expect_arch=cfg.arch)
     state = {k: v for k, v in init["model"].items() if cfg.stage == "flow" or not k.startswith("flow_net.")}
     missing, unexpected = model.load_state_dict(state, strict=False)
-    missing = [k for k in missing if not k.startswith("flow_net.")]
+    fresh = ("flow_net.", "pose_net.gate.") if cfg.stage == "rigid" else ("flow_net.",)  # may start new here
+    missing = [k for k in missing if not k.startswith(fresh)]
     if missing or unexpected:
         raise InputError(
             cfg.init_checkpoint,
@@ -225,7 +239,7 @@ class Trainer:
         # the samples carry their ground truth when the stage's loss is supervised by it
         self.load_depth = cfg.stage == "rigid" and cfg.weights.depth_supervision > 0
         self.load_flow = cfg.stage == "flow" and cfg.weights.flow_supervision > 0
-        self.load_pose = cfg.stage == "rigid" and cfg.weights.pose_supervision > 0
+        self.load_pose = cfg.stage == "rigid" and (cfg.weights.pose_supervision > 0 or cfg.gate_only)
         self.load_twins = cfg.stage == "rigid" and cfg.weights.pose_stride > 0
         self.load_next = cfg.stage == "rigid" and cfg.weights.pose_overlap > 0
         seed_everything(cfg.seed)
@@ -311,10 +325,12 @@ class Trainer:
         if cfg.weights.keeps_pose:
             model.keep_pose_of(model.pose_net)
         trainable = trainable_modules(model, cfg)
-        params = [p for m in trainable for p in m.parameters() if p.requires_grad]
         frozen = [m for m in (model.depth_net, model.pose_net, model.flow_net) if m is not None and m not in trainable]
         for module in frozen:
             module.requires_grad_(False)
+        for module in trainable:  # after: the motion gate of --gate-only lies inside the frozen PoseNet
+            module.requires_grad_(True)
+        params = [p for m in trainable for p in m.parameters()]
         optimizer = torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
         scaler = torch.amp.GradScaler(rt.device.type, enabled=cfg.amp == "fp16")
         return model, optimizer, scaler
@@ -335,7 +351,7 @@ class Trainer:
         cfg, rt = self.cfg, self.rt
         if cfg.amp != "off":
             autocast_nets(self.model, rt.device.type, AMP_DTYPES[cfg.amp])
-        loss_fn: torch.nn.Module = StageLossModule(self.model, cfg.stage)
+        loss_fn: torch.nn.Module = StageLossModule(self.model, loss_name(cfg))
         if rt.distributed:
             loss_fn = DistributedDataParallel(loss_fn, device_ids=[rt.device] if rt.device.type == "cuda" else None)
         if cfg.compile:

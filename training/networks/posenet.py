@@ -5,6 +5,9 @@ Archs:
   conv to 6 * num_source (bias), spatial mean, x ``POSE.output_scale``.
 * ``small``: same 7-conv topology and kernels with narrower layers (see
   docs/networks.md).
+
+Optional (not in GeoNet, issue 53): a :class:`MotionGate` that multiplies every pose by the
+probability that the camera moves, so a stopped camera gets the identity whatever the trunk says.
 """
 
 from __future__ import annotations
@@ -23,6 +26,39 @@ POSE_WIDTHS = {
 }
 
 
+GATE_WIDTHS = (16, 32, 32, 64, 64)  # stride-2 3x3 convs: 128x416 -> 4x13
+GATE_OPEN_LOGIT = 4.0  # a new gate starts open (sigmoid 0.98): the trunk's poses nearly unchanged
+
+
+class MotionGate(nn.Module):
+    """Frame stack -> (B, 1, 1) probability that the camera moves between the frames.
+
+    Five stride-2 3x3 convs with ReLU, no batch norm (its batch statistics differ between a
+    training batch and one inference call, and a gate must give one answer for one snippet),
+    spatial mean, one linear unit, sigmoid. Input as PoseNet's: (B, 3 * (1 + N), H, W) in [-1, 1].
+    Trained alone on motion labels (``training.losses.gate_error``); a moving snippet's gate
+    saturates near 1, so the trunk's poses pass unchanged.
+    """
+
+    def __init__(self, in_ch: int):
+        super().__init__()
+        layers: list[nn.Module] = []
+        for width in GATE_WIDTHS:
+            layers += [nn.Conv2d(in_ch, width, 3, 2, 1), nn.ReLU()]
+            in_ch = width
+        self.convs = nn.Sequential(*layers)
+        self.logit = nn.Linear(in_ch, 1)
+        init_xavier(self)
+        nn.init.constant_(self.logit.bias, GATE_OPEN_LOGIT)
+
+    def logits(self, x: torch.Tensor) -> torch.Tensor:
+        """(B,) the logit of moving (what the loss reads: stable where the sigmoid saturates)."""
+        return self.logit(self.convs(x).mean(dim=(2, 3)))[:, 0]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.logits(x))[:, None, None]
+
+
 class PoseNet(nn.Module):
     """Frame stack -> poses.
 
@@ -30,6 +66,7 @@ class PoseNet(nn.Module):
         num_source: number of source frames N (seq_len - 1).
         arch: "standard" | "small".
         bn_momentum: PyTorch BN momentum (1e-3 == TF decay 0.999).
+        gate: add a :class:`MotionGate` (``self.gate``) whose output multiplies every pose.
 
     forward(x): x (B, 3 * (1 + N), H, W) in [-1, 1], channels
     [target, sources in temporal order] -> (B, N, 6) = [tx, ty, tz, rx, ry, rz]
@@ -37,7 +74,7 @@ class PoseNet(nn.Module):
     (0.01) factor is applied inside the net so an export carries it.
     """
 
-    def __init__(self, num_source: int, arch: str = "standard", bn_momentum: float = BN_MOMENTUM):
+    def __init__(self, num_source: int, arch: str = "standard", bn_momentum: float = BN_MOMENTUM, gate: bool = False):
         super().__init__()
         if arch not in POSE_ARCHS:
             raise ValueError(f"PoseNet arch must be one of {POSE_ARCHS}, got {arch!r}")
@@ -54,8 +91,10 @@ class PoseNet(nn.Module):
         # slim 1x1 conv with bias, no BN / activation.
         self.pose_pred = nn.Conv2d(in_ch, 6 * num_source, 1, 1, bias=True)
         init_xavier(self)
+        self.gate = MotionGate(3 * (1 + num_source)) if gate else None  # after init_xavier: its own init
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         pose = self.pose_pred(self.convs(x))  # (B, 6N, h, w)
         pose = pose.mean(dim=(2, 3))  # (B, 6N)
-        return POSE.output_scale * pose.reshape(-1, self.num_source, 6)
+        pose = POSE.output_scale * pose.reshape(-1, self.num_source, 6)
+        return pose if self.gate is None else pose * self.gate(x)
