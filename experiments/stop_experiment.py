@@ -208,6 +208,19 @@ NOTES[19] = (  # written before round 19 was trained or scored, with the same ru
     "(frames 10-48) where its rigid flow made it lose 24; and every ResFlowNet (bundled, rounds 14, 18) "
     "returns 0.2-0.3 px of flow for three identical frames."
 )
+NOTES[20] = (  # written before round 20 was trained or scored, with the same rule
+    "Round 20 (`OUT=runs/stop20 bash scripts/stop_finetune.sh`): round 19's gate saw the stops (still clip "
+    "0.0003, rule 5) but lost rule 3 (0.0296): a soft gate rescales moving snippets too (one held-out snippet of "
+    "06 got 0.76; seen in a probe of round 19's gate before this note, so said here); and its flow stage, on the "
+    "bundled rigid flow, lost rules 2 and 4. Round 19's gate recipe (3,000 steps of `--gate-only`), now "
+    "`--hard-gate`: outside training the gate is a step at probability 1/2, the classifier's own boundary (not "
+    "fitted), so a moving snippet's poses pass exactly as the bundled trunk gives them. Flow: `--direct-flow` "
+    "(ResFlowNet predicts the whole flow from the two frames, its rigid channels fed as for a camera at rest: "
+    "GeoNet's DirFlowNet ablation in ResFlowNet's interface; the exported graph subtracts the rigid flow it is "
+    "given, the runtime unchanged), round 14's ResFlowNet trained 1,200 more steps of round 14's flow stage "
+    "that way. From the drive diagnosis in round 19's note: round 14's ResFlowNet fed a zero rigid flow beat no "
+    "motion on all 39 moving pairs of frames 10-48."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

@@ -29,7 +29,7 @@ import torch.nn as nn
 from geonet_infer.conventions import IMAGE_NORM, kitti_like_K
 from training.geometry import l2_norm, pose_vec_to_mat
 from training.losses import LossWeights
-from training.model import GeoNet, normalize_disparity_scale, rigid_warp
+from training.model import GeoNet, direct_flownet_input, normalize_disparity_scale, rigid_warp
 
 GRAPH_NAMES = ("depthnet", "posenet", "rigidflow", "resflownet")
 RIGID_GRAPHS = ("depthnet", "posenet", "rigidflow")  # what a stage 'rigid' checkpoint can export
@@ -146,15 +146,25 @@ class RigidFlowExport(nn.Module):
 
 class ResFlowExport(nn.Module):
     """flow_input (B,12,H,W) (``training.model.flownet_input`` order) ->
-    residual_flow (B,2,H,W) px and flow = residual + rigid flow (channels 9:11), scale 0."""
+    residual_flow (B,2,H,W) px and flow = residual + rigid flow (channels 9:11), scale 0.
 
-    def __init__(self, flow_net: nn.Module):
+    ``direct_alpha`` (a ``direct_flow`` model, its photometric α): the net reads the frames alone
+    (``training.model.direct_flownet_input`` of channels 0:3 and 3:6) and its output is the flow; the
+    residual returned is that flow minus the rigid flow given, so the interface is unchanged."""
+
+    def __init__(self, flow_net: nn.Module, direct_alpha: float | None = None):
         super().__init__()
         self.flow_net = flow_net
+        self.direct_alpha = direct_alpha
 
     def forward(self, flow_input: torch.Tensor):
+        rigid = flow_input[:, RIGID_FLOW_CHANNELS]
+        if self.direct_alpha is not None:
+            frames = direct_flownet_input(flow_input[:, 0:3], flow_input[:, 3:6], self.direct_alpha)
+            flow = self.flow_net(frames)[0]
+            return flow - rigid, flow
         residual = self.flow_net(flow_input)[0]
-        return residual, residual + flow_input[:, RIGID_FLOW_CHANNELS]
+        return residual, residual + rigid
 
 
 def photometric_alpha(model: GeoNet) -> float:
@@ -173,7 +183,7 @@ def build_wrapper(graph: str, model: GeoNet) -> nn.Module:
     elif graph == "resflownet":
         if model.flow_net is None:
             raise ValueError("this GeoNet has no ResFlowNet (stage 'rigid')")
-        wrapper = ResFlowExport(model.flow_net)
+        wrapper = ResFlowExport(model.flow_net, photometric_alpha(model) if model.direct_flow else None)
     else:
         raise ValueError(f"unknown graph {graph!r}; expected one of {GRAPH_NAMES}")
     return wrapper.eval()

@@ -99,6 +99,8 @@
 # Round 19: every PoseNet trained for the stops lost steady driving's pose (rounds 1-18). The bundled
 # nets kept, PoseNet given a motion gate trained alone (GATE_STEPS steps of --gate-only --pose-gate 1);
 # then round 14's ResFlowNet (FLOW_INIT) on the gated rigid flow with --rigid-corruption 3, 1,200 steps.
+# Round 20: round 19's gate recipe made a step (--hard-gate: moving poses pass exactly as the bundled
+# trunk gives them), and round 14's ResFlowNet trained 1,200 steps as a direct flow net (--direct-flow).
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -107,7 +109,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-19} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-20} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -144,10 +146,14 @@ elif [ "$ROUND" -le 15 ]; then  # 13-15: PoseNet taught speed ratios on round 12
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride "$([ "$ROUND" = 15 ] && echo 20 || echo 5)")
     REAL=_norev ODOM_REPEAT=15
     [ "$ROUND" = 13 ] || RIGID_ODOM_REPEAT=5
-elif [ "$ROUND" = 19 ]; then  # the bundled nets with a motion gate, then a ResFlowNet that corrects rigid flow
+elif [ "$ROUND" -le 20 ]; then  # the bundled nets with a motion gate, then round 14's ResFlowNet trained on
     GATE_STEPS=${GATE_STEPS:-3000} FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     FLOW_STEPS=${FLOW_STEPS:-1200} FLOW_INIT=${FLOW_INIT:-weights/stop_round14.pt} REAL=_norev ODOM_REPEAT=15
-    FLOW_FLAGS=(--pose-gate 1 --rigid-corruption 3)
+    if [ "$ROUND" = 19 ]; then  # a soft gate; ResFlowNet on the gated rigid flow, taught to correct a wrong one
+        FLOW_FLAGS=(--pose-gate 1 --rigid-corruption 3)
+    else  # 20: a hard gate; ResFlowNet predicts the whole flow from the frames
+        FLOW_FLAGS=(--pose-gate 1 --hard-gate --direct-flow)
+    fi
 else  # 16-18: neighbouring calls held to one speed, the stop-and-go synthetic queues
     RIGID_MINUTES=${RIGID_MINUTES:-600} RIGID_STEPS=${RIGID_STEPS:-2000}
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-600}

@@ -271,6 +271,8 @@ def build_model(cfg: TrainConfig) -> GeoNet:
         automask=cfg.automask,
         scale_normalize=cfg.scale_normalize,
         rigid_corruption=cfg.rigid_corruption,
+        hard_gate=cfg.hard_gate,
+        direct_flow=cfg.direct_flow,
     )
 
 

@@ -37,6 +37,8 @@ class TrainConfig:
     freeze_depth: bool = False  # stage rigid: train PoseNet alone, DepthNet kept as initialised
     gate_only: bool = False  # stage rigid: train PoseNet's motion gate alone (--pose-gate)
     rigid_corruption: float = 1.0  # stage flow: poses behind ResFlowNet's rigid input scaled in [1/c, c]
+    hard_gate: bool = False  # with --pose-gate: outside training the gate is a step at 1/2
+    direct_flow: bool = False  # ResFlowNet predicts the whole flow from the frames (GeoNet's DirFlowNet ablation)
     bn_momentum: float = 1e-3
     mask_out_of_view: bool = False  # deviation: rigid loss ignores pixels warped from outside the source
     automask: bool = False  # deviation: rigid loss ignores pixels the unwarped source already explains
@@ -220,6 +222,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="stage flow: ResFlowNet trains on rigid flows made from poses scaled per snippet by a factor "
         "log-uniform in [1/C, C], and zero for a quarter of the snippets, so it learns to correct a wrong "
         "rigid flow (1 = off, as GeoNet). Validation and inference use the poses as they are",
+    )
+    p.add_argument(
+        "--hard-gate",
+        action="store_true",
+        help="with --pose-gate: outside training (inference, export, the frozen PoseNet of stage flow) the gate "
+        "is a step at probability 1/2, so a moving snippet's poses pass exactly as the trunk gives them and a "
+        "still one's are zero",
+    )
+    p.add_argument(
+        "--direct-flow",
+        action="store_true",
+        help="ResFlowNet predicts the whole flow from the two frames, its rigid channels fed as for a camera at "
+        "rest (the source frame, zero flow, the unwarped photometric error): GeoNet's DirFlowNet ablation "
+        "(paper Table 4) in ResFlowNet's interface; the exported resflownet.onnx subtracts the rigid flow it is "
+        "given, so the runtime's flow is this flow. Stage flow trains without running DepthNet and PoseNet",
     )
     p.add_argument(
         "--bn-momentum",

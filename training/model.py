@@ -109,6 +109,14 @@ def flownet_input(frame_from, frame_to, warped, flow, error) -> torch.Tensor:
     return torch.cat([parts[name] for name, _ in RESFLOW_INPUT], dim=1)
 
 
+def direct_flownet_input(frame_from, frame_to, alpha: float) -> torch.Tensor:
+    """:func:`flownet_input` for a camera at rest (zero rigid flow): ``frame_to`` itself as the warped frame and
+    the photometric error of the frames as they are; what a ``direct_flow`` ResFlowNet reads, in training and
+    in its exported graph. (B, 3, H, W) network-range frames -> (B, 12, H, W)."""
+    zero_flow = torch.zeros_like(frame_from[:, :2])
+    return flownet_input(frame_from, frame_to, frame_to, zero_flow, photometric_error(frame_to, frame_from, alpha))
+
+
 @dataclass
 class RigidOutputs:
     """Per-scale tensors of the rigid stage (lists indexed by scale)."""
@@ -151,6 +159,8 @@ class GeoNet(nn.Module):
         automask: bool = False,
         scale_normalize: bool = False,
         rigid_corruption: float = 0.0,
+        hard_gate: bool = False,
+        direct_flow: bool = False,
     ):
         super().__init__()
         self.arch = arch
@@ -171,10 +181,16 @@ class GeoNet(nn.Module):
         self.scale_normalize = scale_normalize
         self.depth_net = DepthNet(arch, bn_momentum=bn_momentum)
         pose_arch = "small" if arch == "small" else "standard"
-        self.pose_net = PoseNet(num_source, arch=pose_arch, bn_momentum=bn_momentum, gate=self.weights.pose_gate > 0)
+        gate = ("hard" if hard_gate else "soft") if self.weights.pose_gate > 0 else None
+        self.pose_net = PoseNet(num_source, arch=pose_arch, bn_momentum=bn_momentum, gate=gate)
         # Deviation (1 = off): in stage flow's training the poses behind the rigid flow ResFlowNet sees are
         # scaled per snippet (:meth:`corrupted_pose_factors`), so it learns to correct a wrong rigid flow.
         self.rigid_corruption = rigid_corruption
+        # Deviation (off = official): ResFlowNet predicts the whole flow from the two frames, its rigid channels
+        # fed as for a camera at rest (:func:`direct_flownet_input`): GeoNet's DirFlowNet ablation (paper
+        # Table 4) in ResFlowNet's interface. The exported graph subtracts the rigid flow it is given, so the
+        # runtime's flow = rigid + residual is this flow.
+        self.direct_flow = direct_flow
         flow_arch = "small" if arch == "small" else "resnet50"
         self.flow_net = ResFlowNet(flow_arch, bn_momentum=bn_momentum) if with_flow else None
         self.speed_unit = SpeedUnit()  # a plain attribute: not in the state dict, re-learnt on resume
@@ -389,6 +405,8 @@ class GeoNet(nn.Module):
         Returns (fwd_full, bwd_full, target_pyr, source_pyr), each flow list
         holding (N*B, 2, H_s, W_s) pixels.
         """
+        if self.direct_flow:
+            return self._direct_flow_forward(target, sources)
         corrupt = self.flow_net is not None and self.flow_net.training and self.rigid_corruption > 1
         with torch.no_grad():
             factors = self.corrupted_pose_factors(target.shape[0], target.device) if corrupt else None
@@ -400,6 +418,19 @@ class GeoNet(nn.Module):
         fwd_full = [residual[s][:NB] + rigid.fwd_flow[s] for s in range(NUM_SCALES)]
         bwd_full = [residual[s][NB:] + rigid.bwd_flow[s] for s in range(NUM_SCALES)]
         return fwd_full, bwd_full, target_pyr, source_pyr
+
+    def _direct_flow_forward(self, target, sources):
+        """:meth:`flow_forward` of a ``direct_flow`` model: DepthNet and PoseNet are not run."""
+        B, N = sources.shape[:2]
+        target_n, sources_n = IMAGE_NORM.apply(target), IMAGE_NORM.apply(sources)
+        source_rows = sources_n.transpose(0, 1).reshape(N * B, *sources_n.shape[2:])
+        target_pyr, source_pyr = image_pyramid(target_n.repeat(N, 1, 1, 1)), image_pyramid(source_rows)
+        alpha = self.weights.alpha_recon
+        fwd_in = direct_flownet_input(target_pyr[0], source_pyr[0], alpha)
+        bwd_in = direct_flownet_input(source_pyr[0], target_pyr[0], alpha)
+        flows = self.flow_net(torch.cat([fwd_in, bwd_in], dim=0))
+        NB = fwd_in.shape[0]
+        return [f[:NB] for f in flows], [f[NB:] for f in flows], target_pyr, source_pyr
 
     def corrupted_pose_factors(self, batch: int, device: torch.device) -> torch.Tensor:
         """(B, 1, 1) factors for the poses behind a training batch's rigid flow: 0 for a share

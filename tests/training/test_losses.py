@@ -322,3 +322,24 @@ def test_overlap_step_error_compares_the_shared_step_of_two_neighbouring_snippet
     torch.testing.assert_close(overlap_step_error(this, longer), torch.tensor(math.log(1.5) ** 2))
     batch = overlap_step_error(torch.cat([this, this]), torch.cat([following, longer]))
     torch.testing.assert_close(batch, torch.tensor(math.log(1.5) ** 2 / 2))
+
+
+def test_motion_labels_call_identity_true_poses_still_and_every_other_snippet_moving():
+    """Round 19's gate labels: a snippet with identity true poses (a still copy, a synthetic stop) is still;
+    true poses that move, and no true poses at all (driving footage, all zeros), are moving."""
+    from training.losses import motion_labels
+
+    still = torch.eye(4).expand(2, 4, 4)
+    moving = still.clone()
+    moving[1, 2, 3] = 0.8  # the camera 0.8 m ahead at the second source
+    none = torch.zeros(2, 4, 4)
+    assert motion_labels(torch.stack([still, moving, none])).tolist() == [0.0, 1.0, 1.0]
+
+
+def test_gate_error_is_the_cross_entropy_of_the_gate_probability():
+    from training.losses import gate_error
+
+    logits, labels = torch.tensor([2.0, -1.0]), torch.tensor([1.0, 0.0])
+    p = [1 / (1 + math.exp(-2.0)), 1 / (1 + math.exp(1.0))]  # sigmoid by hand
+    expected = -(math.log(p[0]) + math.log(1 - p[1])) / 2
+    assert abs(float(gate_error(logits, labels)) - expected) < 1e-6

@@ -335,3 +335,22 @@ def test_resize_bilinear_tf_legacy_values():
     v2, u2 = torch.meshgrid(torch.arange(6.0) / 2, torch.arange(8.0) / 2, indexing="ij")
     expected = 2 * u2.clamp(max=3) + 3 * v2.clamp(max=2)
     torch.testing.assert_close(out[0, 0], expected)
+
+
+def test_motion_gate_multiplies_the_trunks_poses_and_a_closed_gate_stops_the_camera():
+    """PoseNet(gate="soft") (round 19): its poses are the trunk's times the gate's probability, one per
+    snippet; an ungated PoseNet has no gate weights, so the weights of every earlier model still load."""
+    from training.networks import PoseNet
+
+    torch.manual_seed(0)
+    gated = PoseNet(2, arch="small", gate="soft").eval()
+    plain = PoseNet(2, arch="small").eval()
+    assert not any(k.startswith("gate.") for k in plain.state_dict())
+    plain.load_state_dict({k: v for k, v in gated.state_dict().items() if not k.startswith("gate.")})
+    x = torch.rand(3, 9, 64, 192) * 2 - 1
+    with torch.no_grad():
+        probability = torch.sigmoid(gated.gate.logits(x))
+        torch.testing.assert_close(gated(x), plain(x) * probability[:, None, None])
+        assert 0.9 < float(probability.min())  # a new gate starts open: the trunk's poses nearly unchanged
+        gated.gate.logit.bias.fill_(-60.0)  # closed: every pose is the identity
+        assert float(gated(x).abs().max()) < 1e-20

@@ -696,3 +696,68 @@ def test_pose_overlap_term_trains_posenet_with_the_next_snippets_in_the_batchs_c
     T_next = motions(nxt["next_target"][1:], nxt["next_sources"][1:])
     assert math.isclose(both.terms["pose_stride"], stride_ratio_error(T[:1], T_twin).item(), rel_tol=1e-4)
     assert math.isclose(both.terms["pose_overlap"], overlap_step_error(T[1:], T_next).item(), rel_tol=1e-4)
+
+
+def test_gate_only_trains_the_motion_gate_alone(synth_prepared, tmp_path):
+    """--gate-only --pose-gate (round 19): from an ungated model, the gate starts new and is the only thing
+    that changes (DepthNet and PoseNet's trunk, batch-norm statistics included, stay as initialised); the
+    checkpoint rebuilds a gated model, and a gated model's flow stage needs --pose-gate to load it. Refused
+    without --pose-gate or outside stage rigid."""
+    from training.checkpoint import load_weights, model_from_checkpoint
+
+    init = str(train(config(synth_prepared, tmp_path / "a", max_steps=1), progress=False)["last"])
+    gate = LossWeights(pose_gate=1.0)
+    short, longer = (
+        train(config(synth_prepared, tmp_path / n, max_steps=s, gate_only=True, init_checkpoint=init, weights=gate),
+              progress=False)["last"]
+        for n, s in (("b", 1), ("c", 3))
+    )  # fmt: skip
+    before, one, three = (load_checkpoint(p)["model"] for p in (init, short, longer))
+    rest = [k for k in before if not k.startswith("flow_net.")]
+    assert all(torch.equal(before[k], three[k]) for k in rest)
+    gate_keys = [k for k in three if k.startswith("pose_net.gate.")]
+    assert gate_keys and any(not torch.equal(one[k], three[k]) for k in gate_keys)
+    assert all(math.isfinite(r["pose_gate"]) for r in read_log(tmp_path / "c" / "log.jsonl") if "pose_gate" in r)
+    assert model_from_checkpoint(load_weights(longer)).pose_net.gate is not None
+    flow = config(synth_prepared, tmp_path / "d", stage="flow", max_steps=1, init_checkpoint=str(longer))
+    assert cfg_refused(flow) or _init_refused(flow)
+    assert cfg_refused(config(synth_prepared, tmp_path / "e", gate_only=True))
+    assert cfg_refused(
+        config(synth_prepared, tmp_path / "f", gate_only=True, stage="flow", weights=gate, init_checkpoint=init)
+    )
+
+
+def _init_refused(cfg: TrainConfig) -> bool:
+    try:
+        train(cfg, progress=False)
+    except GeoNetError:
+        return True
+    return False
+
+
+def test_rigid_corruption_scales_the_poses_behind_resflownets_input_in_training_only():
+    """--rigid-corruption C (round 19): a quarter of a training batch's snippets get zero poses, so zero rigid
+    flow (the identity warp, at every scale), the rest factors log-uniform in [1/C, C]; validation and
+    inference (ResFlowNet in eval mode) use PoseNet's poses as they are."""
+    from training.checkpoint import build_model
+
+    torch.manual_seed(0)
+    cfg = config("unused", "unused", stage="flow", rigid_corruption=3.0)
+    model = build_model(cfg)
+    factors = model.corrupted_pose_factors(8000, torch.device("cpu")).flatten()
+    zero = factors == 0
+    assert abs(float(zero.float().mean()) - 0.25) < 0.02
+    assert float(factors[~zero].min()) >= 1 / 3 and float(factors[~zero].max()) <= 3
+    assert abs(float(factors[~zero].log().mean())) < 0.05
+    B, h, w = 2, 64, 192
+    target, sources = torch.rand(B, 3, h, w), torch.rand(B, 2, 3, h, w)
+    K = torch.tensor([[100.0, 0, w / 2], [0, 100.0, h / 2], [0, 0, 1]]).expand(B, 3, 3)
+    model.eval()
+    with torch.no_grad():
+        still, _, _ = model.rigid_forward(target, sources, K, pose_factors=torch.zeros(B, 1, 1))
+        assert all(float(f.abs().max()) < 1e-4 for f in still.fwd_flow + still.bwd_flow)
+        plain = build_model(config("unused", "unused", stage="flow"))
+        plain.load_state_dict(model.state_dict())
+        plain.eval()
+        a, b = model.flow_forward(target, sources, K)[0], plain.flow_forward(target, sources, K)[0]
+        assert all(torch.equal(x, y) for x, y in zip(a, b))

@@ -36,12 +36,14 @@ class MotionGate(nn.Module):
     Five stride-2 3x3 convs with ReLU, no batch norm (its batch statistics differ between a
     training batch and one inference call, and a gate must give one answer for one snippet),
     spatial mean, one linear unit, sigmoid. Input as PoseNet's: (B, 3 * (1 + N), H, W) in [-1, 1].
-    Trained alone on motion labels (``training.losses.gate_error``); a moving snippet's gate
-    saturates near 1, so the trunk's poses pass unchanged.
+    Trained alone on motion labels (``training.losses.gate_error``, on :meth:`logits`). ``hard``: outside
+    training the gate is a step at probability 1/2 (1 moving, 0 still), so a confident gate never rescales
+    a moving snippet's poses (round 19's soft gate gave one held-out snippet 0.76 and cost the held-out ATE).
     """
 
-    def __init__(self, in_ch: int):
+    def __init__(self, in_ch: int, hard: bool = False):
         super().__init__()
+        self.hard = hard
         layers: list[nn.Module] = []
         for width in GATE_WIDTHS:
             layers += [nn.Conv2d(in_ch, width, 3, 2, 1), nn.ReLU()]
@@ -56,7 +58,10 @@ class MotionGate(nn.Module):
         return self.logit(self.convs(x).mean(dim=(2, 3)))[:, 0]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(self.logits(x))[:, None, None]
+        logits = self.logits(x)[:, None, None]
+        if self.hard and not self.training:  # a step: a moving snippet's poses pass exactly as the trunk gives them
+            return (logits > 0).to(logits.dtype)
+        return torch.sigmoid(logits)
 
 
 class PoseNet(nn.Module):
@@ -66,7 +71,8 @@ class PoseNet(nn.Module):
         num_source: number of source frames N (seq_len - 1).
         arch: "standard" | "small".
         bn_momentum: PyTorch BN momentum (1e-3 == TF decay 0.999).
-        gate: add a :class:`MotionGate` (``self.gate``) whose output multiplies every pose.
+        gate: add a :class:`MotionGate` (``self.gate``) whose output multiplies every pose: "soft" (its
+            probability) or "hard" (a step at 1/2 outside training); None: no gate.
 
     forward(x): x (B, 3 * (1 + N), H, W) in [-1, 1], channels
     [target, sources in temporal order] -> (B, N, 6) = [tx, ty, tz, rx, ry, rz]
@@ -74,7 +80,9 @@ class PoseNet(nn.Module):
     (0.01) factor is applied inside the net so an export carries it.
     """
 
-    def __init__(self, num_source: int, arch: str = "standard", bn_momentum: float = BN_MOMENTUM, gate: bool = False):
+    def __init__(
+        self, num_source: int, arch: str = "standard", bn_momentum: float = BN_MOMENTUM, gate: str | None = None
+    ):
         super().__init__()
         if arch not in POSE_ARCHS:
             raise ValueError(f"PoseNet arch must be one of {POSE_ARCHS}, got {arch!r}")
@@ -91,7 +99,9 @@ class PoseNet(nn.Module):
         # slim 1x1 conv with bias, no BN / activation.
         self.pose_pred = nn.Conv2d(in_ch, 6 * num_source, 1, 1, bias=True)
         init_xavier(self)
-        self.gate = MotionGate(3 * (1 + num_source)) if gate else None  # after init_xavier: its own init
+        if gate not in (None, "soft", "hard"):
+            raise ValueError(f"PoseNet gate must be None, 'soft' or 'hard', got {gate!r}")
+        self.gate = None if gate is None else MotionGate(3 * (1 + num_source), hard=gate == "hard")  # own init
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         pose = self.pose_pred(self.convs(x))  # (B, 6N, h, w)
