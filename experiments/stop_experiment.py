@@ -221,6 +221,18 @@ NOTES[20] = (  # written before round 20 was trained or scored, with the same ru
     "that way. From the drive diagnosis in round 19's note: round 14's ResFlowNet fed a zero rigid flow beat no "
     "motion on all 39 moving pairs of frames 10-48."
 )
+NOTES[21] = (  # written before round 21 was scored, with the same rule
+    "Round 21 (`ROUND=21 OUT=runs/stop21 bash scripts/stop_finetune.sh`): round 20 met rules 1, 3 (held-out "
+    "pose 0.0272, the bundled trunk's exactly: every held-out gate opens) and 5 (still clip 0), but its direct "
+    "ResFlowNet returned 0.8 px of flow for three identical frames: the flow stage trains on batch statistics, "
+    "and at --bn-momentum 1e-3 the running statistics inference uses still described round 14's residual "
+    "inputs after 1,200 steps. Round 20's model (its flow/last.pt, the same training) with ResFlowNet's "
+    "running statistics recomputed on its flow stage's training folders (`python -m training.recalibrate`: "
+    "200 batches of 4, no augmentation, no gradients, no weight changes). Seen before this note, so said here: "
+    "identical frames then give 0.02 px, and a trial recalibration (with augmentation) of round 20's model "
+    "beat no motion on 38 of the test drive's 67 pairs 10-76 in the torch diagnosis of round 19's note; no "
+    "rule figure of it was looked at."
+)
 CLIPS = Path("../shared/realdata/udacity_dashcam")
 HOLDBACK_CLIP, HOLDBACK_CALIB = CLIPS / "test_video.mp4", CLIPS / "calib_advanced_lane_lines.txt"
 DRIVE = Path("../shared/realdata/kitti_raw_2011_09_26_sfnd")

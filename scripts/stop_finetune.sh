@@ -101,6 +101,9 @@
 # then round 14's ResFlowNet (FLOW_INIT) on the gated rigid flow with --rigid-corruption 3, 1,200 steps.
 # Round 20: round 19's gate recipe made a step (--hard-gate: moving poses pass exactly as the bundled
 # trunk gives them), and round 14's ResFlowNet trained 1,200 steps as a direct flow net (--direct-flow).
+# Round 21: round 20 with ResFlowNet's batch-norm running statistics recomputed on its training folders
+# (RECALIBRATE batches: python -m training.recalibrate), which a 1,200-step fine-tune at --bn-momentum
+# 1e-3 had left describing the residual inputs of round 14.
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -109,7 +112,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-20} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-21} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -146,14 +149,15 @@ elif [ "$ROUND" -le 15 ]; then  # 13-15: PoseNet taught speed ratios on round 12
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride "$([ "$ROUND" = 15 ] && echo 20 || echo 5)")
     REAL=_norev ODOM_REPEAT=15
     [ "$ROUND" = 13 ] || RIGID_ODOM_REPEAT=5
-elif [ "$ROUND" -le 20 ]; then  # the bundled nets with a motion gate, then round 14's ResFlowNet trained on
+elif [ "$ROUND" -le 21 ]; then  # the bundled nets with a motion gate, then round 14's ResFlowNet trained on
     GATE_STEPS=${GATE_STEPS:-3000} FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     FLOW_STEPS=${FLOW_STEPS:-1200} FLOW_INIT=${FLOW_INIT:-weights/stop_round14.pt} REAL=_norev ODOM_REPEAT=15
     if [ "$ROUND" = 19 ]; then  # a soft gate; ResFlowNet on the gated rigid flow, taught to correct a wrong one
         FLOW_FLAGS=(--pose-gate 1 --rigid-corruption 3)
-    else  # 20: a hard gate; ResFlowNet predicts the whole flow from the frames
+    else  # 20, 21: a hard gate; ResFlowNet predicts the whole flow from the frames
         FLOW_FLAGS=(--pose-gate 1 --hard-gate --direct-flow)
     fi
+    [ "$ROUND" = 21 ] && RECALIBRATE=${RECALIBRATE:-200}  # round 20, ResFlowNet's batch-norm statistics recomputed
 else  # 16-18: neighbouring calls held to one speed, the stop-and-go synthetic queues
     RIGID_MINUTES=${RIGID_MINUTES:-600} RIGID_STEPS=${RIGID_STEPS:-2000}
     FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1} FLOW_STEPS=${FLOW_STEPS:-600}
@@ -255,5 +259,6 @@ if want flow; then
 fi
 
 if want finish; then  # the classical-teacher round's finish: combine, export FP32 + INT8, eval_all
-    OUT="$OUT" INT8_OPS="$INT8_OPS" REALDATA="$REALDATA" PY="$PY" bash scripts/teacher_finetune.sh finish
+    OUT="$OUT" INT8_OPS="$INT8_OPS" REALDATA="$REALDATA" PY="$PY" RECALIBRATE="${RECALIBRATE:-}" \
+        bash scripts/teacher_finetune.sh finish
 fi

@@ -57,7 +57,11 @@ fi
 
 if want finish; then
     # the flow stage froze DepthNet/PoseNet: its checkpoint holds the whole model
-    run $PY -m training.checkpoint --weights-only "$OUT/flow/last.pt" "$OUT/combined.pt"
+    if [ -n "${RECALIBRATE:-}" ]; then  # the weights with their batch-norm statistics recomputed (stop round 21)
+        run $PY -m training.recalibrate "$OUT/flow/last.pt" "$OUT/combined.pt" --batches "$RECALIBRATE"
+    else
+        run $PY -m training.checkpoint --weights-only "$OUT/flow/last.pt" "$OUT/combined.pt"
+    fi
     run $PY -m export --checkpoint "$OUT/combined.pt" --out "$OUT/model" --force --precision fp32,int8 \
         --calib-data data/synth40/seq_0000/image --calib-method percentile --calib-frames 40 --int8-ops "$INT8_OPS"
     run $PY -m benchmarks.eval_all --data "$REALDATA" --model "$OUT/model" --json "$OUT/real_eval.json" \

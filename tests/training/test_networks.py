@@ -354,3 +354,23 @@ def test_motion_gate_multiplies_the_trunks_poses_and_a_closed_gate_stops_the_cam
         assert 0.9 < float(probability.min())  # a new gate starts open: the trunk's poses nearly unchanged
         gated.gate.logit.bias.fill_(-60.0)  # closed: every pose is the identity
         assert float(gated(x).abs().max()) < 1e-20
+
+
+def test_a_hard_motion_gate_is_a_step_at_one_half_outside_training():
+    """gate="hard" (round 20): in eval mode the gate is 1 where its logit is positive and 0 elsewhere, so a
+    moving snippet's poses are exactly the trunk's; in training mode it is the sigmoid, as a soft gate."""
+    from training.networks import PoseNet
+
+    torch.manual_seed(1)
+    net = PoseNet(2, arch="small", gate="hard")
+    x = torch.rand(4, 9, 64, 192) * 2 - 1
+    with torch.no_grad():
+        net.gate.logit.bias.copy_(-net.gate.logits(x)[1:3].mean() + net.gate.logit.bias)  # logits on both sides of 0
+        logits = net.gate.logits(x)
+        assert (logits > 0).any() and (logits < 0).any()
+        net.eval()
+        assert net.gate(x).flatten().tolist() == (logits > 0).float().tolist()
+        net.gate.train()
+        torch.testing.assert_close(net.gate(x).flatten(), torch.sigmoid(logits))
+    with pytest.raises(ValueError, match="gate"):
+        PoseNet(2, arch="small", gate="on")

@@ -761,3 +761,35 @@ def test_rigid_corruption_scales_the_poses_behind_resflownets_input_in_training_
         plain.eval()
         a, b = model.flow_forward(target, sources, K)[0], plain.flow_forward(target, sources, K)[0]
         assert all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def test_direct_flow_reads_the_frames_alone_and_its_graph_keeps_the_runtimes_interface():
+    """--direct-flow (round 20): stage flow runs neither DepthNet nor PoseNet, ResFlowNet reads the frames as a
+    camera at rest would give them (the source as its own warp, zero rigid flow) and its output is the flow. The
+    export wrapper, fed the runtime's 12 channels with any rigid flow, returns that flow and flow - rigid."""
+    from export.wrappers import build_wrapper
+    from geonet_infer.conventions import IMAGE_NORM
+    from training.checkpoint import build_model
+    from training.model import flownet_input
+
+    class Refuse(torch.nn.Module):
+        def forward(self, x):
+            raise AssertionError("a direct-flow stage ran a rigid net")
+
+    torch.manual_seed(0)
+    model = build_model(config("unused", "unused", stage="flow", direct_flow=True)).eval()
+    B, h, w = 1, 64, 192
+    target, sources = torch.rand(B, 3, h, w), torch.rand(B, 2, 3, h, w)
+    wrapper = build_wrapper("resflownet", model)
+    model.depth_net, model.pose_net = Refuse(), Refuse()
+    K = torch.tensor([[100.0, 0, w / 2], [0, 100.0, h / 2], [0, 0, 1]]).expand(B, 3, 3)
+    with torch.no_grad():
+        fwd, _, _, _ = model.flow_forward(target, sources, K)
+        next_source = IMAGE_NORM.apply(sources[:, model.next_source])
+        rigid = torch.randn(B, 2, h, w)  # whatever the runtime's rigid op gave; the warp and error likewise
+        runtime_input = flownet_input(
+            IMAGE_NORM.apply(target), next_source, torch.rand(B, 3, h, w), rigid, torch.rand(B, 3, h, w)
+        )
+        residual, flow = wrapper(runtime_input)
+    torch.testing.assert_close(flow, fwd[0][model.next_source * B :][:B], atol=1e-4, rtol=0)
+    torch.testing.assert_close(residual + rigid, flow)
