@@ -158,13 +158,12 @@ class ResFlowExport(nn.Module):
         self.direct_alpha = direct_alpha
 
     def forward(self, flow_input: torch.Tensor):
-        rigid = flow_input[:, RIGID_FLOW_CHANNELS]
         if self.direct_alpha is not None:
             frames = direct_flownet_input(flow_input[:, 0:3], flow_input[:, 3:6], self.direct_alpha)
             flow = self.flow_net(frames)[0]
-            return flow - rigid, flow
-        residual = self.flow_net(flow_input)[0]
-        return residual, residual + rigid
+            return flow - flow_input[:, RIGID_FLOW_CHANNELS], flow
+        residual = self.flow_net(flow_input)[0]  # the graph's ops in the order the shipped templates have
+        return residual, residual + flow_input[:, RIGID_FLOW_CHANNELS]
 
 
 def photometric_alpha(model: GeoNet) -> float:

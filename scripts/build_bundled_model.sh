@@ -23,6 +23,9 @@
 #   3f. (since issue 32, not run by this script) DepthNet/PoseNet fine-tuned 1290 steps on real footage
 #      with the pose loss: round 2 of `scripts/real_pose_finetune.sh` from 3e's weights, INT8 with
 #      --int8-ops Conv,Relu,Add,MaxPool (docs/training.md, "Real footage and true poses");
+#   3g. (since issue 53, not run by this script) a motion gate added to PoseNet and ResFlowNet retrained as a
+#      direct flow net, its batch-norm statistics recomputed: round 21 of `scripts/stop_finetune.sh`
+#      (docs/training.md, "Rounds 19–21");
 #   4. ONNX export fp32 + INT8 (calibrated on training sequence seq_0000, never a held-out one),
 #      with the INT8 accuracy delta on the held-out sequences written into the manifest;
 #   5. copy into the package, publish the checkpoint's weights (weights/small_synth.pt, to fine-tune

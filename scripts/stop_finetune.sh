@@ -104,6 +104,8 @@
 # Round 21: round 20 with ResFlowNet's batch-norm running statistics recomputed on its training folders
 # (RECALIBRATE batches: python -m training.recalibrate), which a 1,200-step fine-tune at --bn-momentum
 # 1e-3 had left describing the residual inputs of round 14.
+# Round 22: round 21's ResFlowNet (FLOW_FROM, untouched) with a gate half as wide (--gate-width 8; round
+# 21's took the model directory over its 25 MiB budget), trained by round 19's recipe.
 #
 # Training footage (never the test drive kitti_raw_2011_09_26_sfnd, nor any scored frame): grey KITTI
 # odometry 06 frames 31-50 and 01 frames 0-30 (scripts/link_real_odom.sh), the three calibrated Udacity
@@ -112,7 +114,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 MIX=${MIX:-static=0.3,stride2=0.3,reverse=0.3}
-ROUND=${ROUND:-21} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
+ROUND=${ROUND:-22} DEVICE=${DEVICE:-auto} POSE_SUPERVISION=${POSE_SUPERVISION:-10}
 if [ "$ROUND" = 1 ]; then
     RIGID_MINUTES=${RIGID_MINUTES:-35} FLOW_MINUTES=${FLOW_MINUTES:-35} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     RIGID_FLAGS=()
@@ -149,6 +151,9 @@ elif [ "$ROUND" -le 15 ]; then  # 13-15: PoseNet taught speed ratios on round 12
     RIGID_FLAGS=(--freeze-depth --pose-keep-shape 10 --pose-steady 10 --pose-stride "$([ "$ROUND" = 15 ] && echo 20 || echo 5)")
     REAL=_norev ODOM_REPEAT=15
     [ "$ROUND" = 13 ] || RIGID_ODOM_REPEAT=5
+elif [ "$ROUND" = 22 ]; then  # round 21's ResFlowNet with a gate half as wide (after round 21: FLOW_FROM)
+    GATE_STEPS=${GATE_STEPS:-3000} FLOW_FROM=${FLOW_FROM:-runs/stop21/combined.pt} REAL=_norev
+    GATE_FLAGS=(--gate-width 8 --hard-gate --direct-flow)
 elif [ "$ROUND" -le 21 ]; then  # the bundled nets with a motion gate, then round 14's ResFlowNet trained on
     GATE_STEPS=${GATE_STEPS:-3000} FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     FLOW_STEPS=${FLOW_STEPS:-1200} FLOW_INIT=${FLOW_INIT:-weights/stop_round14.pt} REAL=_norev ODOM_REPEAT=15
@@ -174,6 +179,7 @@ fi
 RIGID_QUEUE=("${RIGID_QUEUE[@]}") FLOW_QUEUE=("${FLOW_QUEUE[@]}")  # the stop-and-go synthetic folder (rounds 16-18)
 FLOW_FLAGS=("${FLOW_FLAGS[@]}") GATE_STEPS=${GATE_STEPS:-0}  # GATE_STEPS: train a motion gate instead of stage rigid
 FLOW_INIT=${FLOW_INIT:-}  # the checkpoint whose ResFlowNet the flow stage starts from (default: INIT's)
+GATE_FLAGS=("${GATE_FLAGS[@]}") FLOW_FROM=${FLOW_FROM:-}  # FLOW_FROM: a finished model whose ResFlowNet is kept, no flow stage
 RIGID_ODOM_REPEAT=${RIGID_ODOM_REPEAT:-2}  # times the odometry folder is listed in the rigid stage
 RIGID_STEPS=${RIGID_STEPS:-100000}
 FLOW_STEPS=${FLOW_STEPS:-100000} BASE=${BASE:-}  # BASE: a finished round whose whole model the flow stage continues
@@ -222,7 +228,7 @@ if want prepare; then
 fi
 
 if want rigid && [ "$GATE_STEPS" -gt 0 ]; then  # round 19: INIT's nets kept, PoseNet's motion gate trained alone
-    run $PY -m training.train --stage rigid --gate-only --pose-gate 1 --arch small --device "$DEVICE" --num-workers 0 \
+    run $PY -m training.train --stage rigid --gate-only --pose-gate 1 "${GATE_FLAGS[@]}" --arch small --device "$DEVICE" --num-workers 0 \
         --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$REAL" --extra-data-dir "data/s_udacity_guess$REAL" \
         --extra-data-dir data/synth40_pose --extra-data-dir data/synth_queue_pose --init-checkpoint "$INIT" \
         --out-dir "$OUT/rigid" --batch-size 8 --lr 1e-3 --max-steps "$GATE_STEPS" --val-every 1000000 \
@@ -243,7 +249,9 @@ elif want rigid && [ -z "$BASE" ]; then
         --save-every 200 --log-every 20
 fi
 
-if want flow; then
+if want flow && [ -n "$FLOW_FROM" ]; then  # round 22: the gate put on a finished model's nets, nothing trained
+    run $PY -m training.checkpoint --combine "$OUT/rigid/last.pt" "$FLOW_FROM" "$OUT/combined.pt"
+elif want flow; then
     if [ -n "$BASE" ]; then
         run cp "$BASE/combined.pt" "$OUT/rigid_combined.pt"  # the flow stage trains ResFlowNet alone
     else
@@ -260,5 +268,5 @@ fi
 
 if want finish; then  # the classical-teacher round's finish: combine, export FP32 + INT8, eval_all
     OUT="$OUT" INT8_OPS="$INT8_OPS" REALDATA="$REALDATA" PY="$PY" RECALIBRATE="${RECALIBRATE:-}" \
-        bash scripts/teacher_finetune.sh finish
+        COMBINED=$([ -n "$FLOW_FROM" ] && echo ready) bash scripts/teacher_finetune.sh finish
 fi

@@ -57,7 +57,9 @@ fi
 
 if want finish; then
     # the flow stage froze DepthNet/PoseNet: its checkpoint holds the whole model
-    if [ -n "${RECALIBRATE:-}" ]; then  # the weights with their batch-norm statistics recomputed (stop round 21)
+    if [ "${COMBINED:-}" = ready ]; then  # made by the caller (stop round 22)
+        echo "+ using $OUT/combined.pt as it is"
+    elif [ -n "${RECALIBRATE:-}" ]; then  # the weights with their batch-norm statistics recomputed (stop round 21)
         run $PY -m training.recalibrate "$OUT/flow/last.pt" "$OUT/combined.pt" --batches "$RECALIBRATE"
     else
         run $PY -m training.checkpoint --weights-only "$OUT/flow/last.pt" "$OUT/combined.pt"

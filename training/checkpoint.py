@@ -273,6 +273,7 @@ def build_model(cfg: TrainConfig) -> GeoNet:
         rigid_corruption=cfg.rigid_corruption,
         hard_gate=cfg.hard_gate,
         direct_flow=cfg.direct_flow,
+        gate_width=cfg.gate_width,
     )
 
 

@@ -39,6 +39,7 @@ class TrainConfig:
     rigid_corruption: float = 1.0  # stage flow: poses behind ResFlowNet's rigid input scaled in [1/c, c]
     hard_gate: bool = False  # with --pose-gate: outside training the gate is a step at 1/2
     direct_flow: bool = False  # ResFlowNet predicts the whole flow from the frames (GeoNet's DirFlowNet ablation)
+    gate_width: int = 16  # with --pose-gate: the motion gate's first width (its convs: w, 2w, 2w, 4w, 4w)
     bn_momentum: float = 1e-3
     mask_out_of_view: bool = False  # deviation: rigid loss ignores pixels warped from outside the source
     automask: bool = False  # deviation: rigid loss ignores pixels the unwarped source already explains
@@ -229,6 +230,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --pose-gate: outside training (inference, export, the frozen PoseNet of stage flow) the gate "
         "is a step at probability 1/2, so a moving snippet's poses pass exactly as the trunk gives them and a "
         "still one's are zero",
+    )
+    p.add_argument(
+        "--gate-width",
+        type=int,
+        default=d.gate_width,
+        metavar="W",
+        help="with --pose-gate: the motion gate's five convolutions are W, 2W, 2W, 4W and 4W channels wide "
+        "(W=16: 70,689 parameters, W=8: 17,913); a run from a gated model keeps that model's width",
     )
     p.add_argument(
         "--direct-flow",

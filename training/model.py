@@ -161,6 +161,7 @@ class GeoNet(nn.Module):
         rigid_corruption: float = 0.0,
         hard_gate: bool = False,
         direct_flow: bool = False,
+        gate_width: int = 16,
     ):
         super().__init__()
         self.arch = arch
@@ -182,7 +183,7 @@ class GeoNet(nn.Module):
         self.depth_net = DepthNet(arch, bn_momentum=bn_momentum)
         pose_arch = "small" if arch == "small" else "standard"
         gate = ("hard" if hard_gate else "soft") if self.weights.pose_gate > 0 else None
-        self.pose_net = PoseNet(num_source, arch=pose_arch, bn_momentum=bn_momentum, gate=gate)
+        self.pose_net = PoseNet(num_source, arch=pose_arch, bn_momentum=bn_momentum, gate=gate, gate_width=gate_width)
         # Deviation (1 = off): in stage flow's training the poses behind the rigid flow ResFlowNet sees are
         # scaled per snippet (:meth:`corrupted_pose_factors`), so it learns to correct a wrong rigid flow.
         self.rigid_corruption = rigid_corruption

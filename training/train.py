@@ -18,6 +18,7 @@ import json
 import random
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
 
@@ -104,6 +105,29 @@ def autocast_nets(model: GeoNet, device_type: str, dtype: torch.dtype) -> None:
             return [o.float() for o in out] if isinstance(out, (list, tuple)) else out.float()
 
         net.forward = forward  # an instance attribute: parameters and state_dict keys unchanged
+
+
+def with_model_options_of_its_weights(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` with the options that shape the nets taken from the weights the run starts from (``--resume`` or
+    ``--init-checkpoint``) where the command line left them off: PoseNet's motion gate (``--pose-gate``,
+    ``--hard-gate``; its width always theirs) and a direct ResFlowNet (``--direct-flow``). So fine-tuning a gated or direct model, the
+    bundled one since issue 53's round 21, needs no flags to load it."""
+    source = cfg.resume or cfg.init_checkpoint
+    if not source:
+        return cfg
+    theirs = TrainConfig.from_dict(load_weights(source)["config"])
+    weights, gate_width = cfg.weights, cfg.gate_width
+    if theirs.weights.pose_gate > 0:  # their gate, as wide as they made it
+        gate_width = theirs.gate_width
+        if weights.pose_gate == 0:
+            weights = replace(weights, pose_gate=theirs.weights.pose_gate)
+    return replace(
+        cfg,
+        weights=weights,
+        gate_width=gate_width,
+        hard_gate=cfg.hard_gate or theirs.hard_gate,
+        direct_flow=cfg.direct_flow or theirs.direct_flow,
+    )
 
 
 def check_options(cfg: TrainConfig, device: torch.device) -> None:
@@ -232,6 +256,7 @@ class Trainer:
     """
 
     def __init__(self, cfg: TrainConfig, rt: distributed.Runtime, progress: bool):
+        cfg = with_model_options_of_its_weights(cfg)
         check_options(cfg, rt.device)
         self.cfg, self.rt, self.progress = cfg, rt, progress
         self.out_dir = Path(cfg.out_dir)

@@ -355,7 +355,7 @@ def run(args, command: str, progress: Progress) -> dict:
     result = {
         "command": command,
         "generated_utc": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
-        "git_commit": git_commit(Path(__file__).resolve().parents[1]),
+        "git_commit": git_commit(Path(__file__).resolve().parents[2]),  # the repository root
         "allow_random_init": bool(args.allow_random_init),
         "model": after["model"],
         "synthetic": {

@@ -26,14 +26,14 @@ POSE_WIDTHS = {
 }
 
 
-GATE_WIDTHS = (16, 32, 32, 64, 64)  # stride-2 3x3 convs: 128x416 -> 4x13
+GATE_WIDTH = 16  # a gate's first width; its five stride-2 3x3 convs are (w, 2w, 2w, 4w, 4w) wide: 128x416 -> 4x13
 GATE_OPEN_LOGIT = 4.0  # a new gate starts open (sigmoid 0.98): the trunk's poses nearly unchanged
 
 
 class MotionGate(nn.Module):
     """Frame stack -> (B, 1, 1) probability that the camera moves between the frames.
 
-    Five stride-2 3x3 convs with ReLU, no batch norm (its batch statistics differ between a
+    Five stride-2 3x3 convs with ReLU (``width``: the first one's channels), no batch norm (its batch statistics differ between a
     training batch and one inference call, and a gate must give one answer for one snippet),
     spatial mean, one linear unit, sigmoid. Input as PoseNet's: (B, 3 * (1 + N), H, W) in [-1, 1].
     Trained alone on motion labels (``training.losses.gate_error``, on :meth:`logits`). ``hard``: outside
@@ -41,11 +41,11 @@ class MotionGate(nn.Module):
     a moving snippet's poses (round 19's soft gate gave one held-out snippet 0.76 and cost the held-out ATE).
     """
 
-    def __init__(self, in_ch: int, hard: bool = False):
+    def __init__(self, in_ch: int, hard: bool = False, width: int = GATE_WIDTH):
         super().__init__()
         self.hard = hard
         layers: list[nn.Module] = []
-        for width in GATE_WIDTHS:
+        for width in (width, 2 * width, 2 * width, 4 * width, 4 * width):
             layers += [nn.Conv2d(in_ch, width, 3, 2, 1), nn.ReLU()]
             in_ch = width
         self.convs = nn.Sequential(*layers)
@@ -72,7 +72,7 @@ class PoseNet(nn.Module):
         arch: "standard" | "small".
         bn_momentum: PyTorch BN momentum (1e-3 == TF decay 0.999).
         gate: add a :class:`MotionGate` (``self.gate``) whose output multiplies every pose: "soft" (its
-            probability) or "hard" (a step at 1/2 outside training); None: no gate.
+            probability) or "hard" (a step at 1/2 outside training); None: no gate. ``gate_width``: its width.
 
     forward(x): x (B, 3 * (1 + N), H, W) in [-1, 1], channels
     [target, sources in temporal order] -> (B, N, 6) = [tx, ty, tz, rx, ry, rz]
@@ -81,7 +81,12 @@ class PoseNet(nn.Module):
     """
 
     def __init__(
-        self, num_source: int, arch: str = "standard", bn_momentum: float = BN_MOMENTUM, gate: str | None = None
+        self,
+        num_source: int,
+        arch: str = "standard",
+        bn_momentum: float = BN_MOMENTUM,
+        gate: str | None = None,
+        gate_width: int = GATE_WIDTH,
     ):
         super().__init__()
         if arch not in POSE_ARCHS:
@@ -101,7 +106,8 @@ class PoseNet(nn.Module):
         init_xavier(self)
         if gate not in (None, "soft", "hard"):
             raise ValueError(f"PoseNet gate must be None, 'soft' or 'hard', got {gate!r}")
-        self.gate = None if gate is None else MotionGate(3 * (1 + num_source), hard=gate == "hard")  # own init
+        in_ch = 3 * (1 + num_source)
+        self.gate = None if gate is None else MotionGate(in_ch, hard=gate == "hard", width=gate_width)  # own init
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         pose = self.pose_pred(self.convs(x))  # (B, 6N, h, w)

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pytest
 
 import geonet_infer
 from geonet_infer.io import list_images, read_camera, read_image
@@ -42,7 +41,6 @@ def steps_and_rigid(predictor, frames, camera) -> tuple[float, float]:
     return float(np.median(steps)), float(np.median(np.concatenate([x.ravel() for x in rigid])))
 
 
-@pytest.mark.xfail(reason="until a model that sees a stop ships (issue 53)", strict=False)
 def test_a_still_clip_gives_a_near_identity_pose_and_near_zero_rigid_flow(kitti_odometry_06):
     seq = kitti_odometry_06 / "sequences" / "06"
     camera = read_camera(seq / "calib.txt", "P0")
