@@ -240,7 +240,7 @@ NOTES[22] = (  # written before round 22 was trained or scored, with the same ru
     "against FP32 (the INT8 rule on real frames allows 5 %): the quantiser's input-layer rule kept only nodes "
     "reading the graph input in FP32, and a direct ResFlowNet builds its input (slices, the photometric "
     "error) before its first convolution. Round 21's ResFlowNet (`runs/stop21/combined.pt`, unchanged: a "
-    "direct ResFlowNet does not read the poses) with a gate half as wide (`--gate-width 8`: 17,913 parameters) "
+    "direct ResFlowNet does not read the poses) with a gate half as wide (`--gate-width 8`: 18,065 parameters) "
     "trained by round 19's recipe (3,000 steps of `--gate-only`), `--hard-gate`; INT8 with the input layer "
     "followed from the graph input to the first convolution (`geonet_infer.convert.quantize.input_layer_nodes`)."
 )

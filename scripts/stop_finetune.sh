@@ -153,10 +153,12 @@ elif [ "$ROUND" -le 15 ]; then  # 13-15: PoseNet taught speed ratios on round 12
     [ "$ROUND" = 13 ] || RIGID_ODOM_REPEAT=5
 elif [ "$ROUND" = 22 ]; then  # round 21's ResFlowNet with a gate half as wide (after round 21: FLOW_FROM)
     GATE_STEPS=${GATE_STEPS:-3000} FLOW_FROM=${FLOW_FROM:-runs/stop21/combined.pt} REAL=_norev
+    INIT=${INIT:-runs/bundled_0033beb.pt}  # the bundled weights before the gate shipped: a new gate, not round 21's
     GATE_FLAGS=(--gate-width 8 --hard-gate --direct-flow)
 elif [ "$ROUND" -le 21 ]; then  # the bundled nets with a motion gate, then round 14's ResFlowNet trained on
     GATE_STEPS=${GATE_STEPS:-3000} FLOW_MINUTES=${FLOW_MINUTES:-600} FLOW_SUPERVISION=${FLOW_SUPERVISION:-1}
     FLOW_STEPS=${FLOW_STEPS:-1200} FLOW_INIT=${FLOW_INIT:-weights/stop_round14.pt} REAL=_norev ODOM_REPEAT=15
+    INIT=${INIT:-runs/bundled_0033beb.pt}  # the bundled weights before the gate shipped (weights/small_synth.pt then)
     if [ "$ROUND" = 19 ]; then  # a soft gate; ResFlowNet on the gated rigid flow, taught to correct a wrong one
         FLOW_FLAGS=(--pose-gate 1 --rigid-corruption 3)
     else  # 20, 21: a hard gate; ResFlowNet predicts the whole flow from the frames
@@ -228,6 +230,7 @@ if want prepare; then
 fi
 
 if want rigid && [ "$GATE_STEPS" -gt 0 ]; then  # round 19: INIT's nets kept, PoseNet's motion gate trained alone
+    [ "$INIT" != runs/bundled_0033beb.pt ] || [ -f "$INIT" ] || git show 0033beb:weights/small_synth.pt > "$INIT"
     run $PY -m training.train --stage rigid --gate-only --pose-gate 1 "${GATE_FLAGS[@]}" --arch small --device "$DEVICE" --num-workers 0 \
         --data-dir "data/s_odom$REAL" --extra-data-dir "data/s_udacity$REAL" --extra-data-dir "data/s_udacity_guess$REAL" \
         --extra-data-dir data/synth40_pose --extra-data-dir data/synth_queue_pose --init-checkpoint "$INIT" \

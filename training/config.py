@@ -237,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=d.gate_width,
         metavar="W",
         help="with --pose-gate: the motion gate's five convolutions are W, 2W, 2W, 4W and 4W channels wide "
-        "(W=16: 70,689 parameters, W=8: 17,913); a run from a gated model keeps that model's width",
+        "(W=16: 70,689 parameters, W=8: 18,065); a run from a gated model keeps that model's width",
     )
     p.add_argument(
         "--direct-flow",

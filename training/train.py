@@ -110,8 +110,8 @@ def autocast_nets(model: GeoNet, device_type: str, dtype: torch.dtype) -> None:
 def with_model_options_of_its_weights(cfg: TrainConfig) -> TrainConfig:
     """``cfg`` with the options that shape the nets taken from the weights the run starts from (``--resume`` or
     ``--init-checkpoint``) where the command line left them off: PoseNet's motion gate (``--pose-gate``,
-    ``--hard-gate``; its width always theirs) and a direct ResFlowNet (``--direct-flow``). So fine-tuning a gated or direct model, the
-    bundled one since issue 53's round 21, needs no flags to load it."""
+    ``--hard-gate``; its width always theirs) and a direct ResFlowNet (``--direct-flow``). So fine-tuning a
+    gated or direct model, the bundled one since issue 53, needs no flags to load it."""
     source = cfg.resume or cfg.init_checkpoint
     if not source:
         return cfg

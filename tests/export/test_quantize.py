@@ -181,3 +181,21 @@ def test_resnet50_keeps_resflownets_input_layer_quantised():
     assert not resnet50.float_input_layer
     assert resnet50.float_finest_levels == 2 and resnet50.float_output_layer and resnet50.equalize_concats
     assert qz.plan_for("depthnet", "resnet50") == qz.GraphPlan()
+
+
+def test_input_layer_nodes_follow_the_graph_input_to_the_first_convolution():
+    """A direct ResFlowNet (issue 53) slices its input and builds a photometric error before its first conv:
+    all of that is its input layer; nothing past a Conv is."""
+    nodes = [
+        helper.make_node("Slice", ["x", "s0", "e0"], ["a"], name="slice_a"),
+        helper.make_node("Slice", ["x", "s1", "e1"], ["b"], name="slice_b"),
+        helper.make_node("Sub", ["a", "b"], ["d"], name="diff"),
+        helper.make_node("Abs", ["d"], ["err"], name="error"),
+        helper.make_node("Concat", ["a", "b", "err"], ["stack"], name="stack", axis=1),
+        helper.make_node("Conv", ["stack", "w1"], ["f1"], name="first_conv"),
+        helper.make_node("Relu", ["f1"], ["r1"], name="relu"),
+        helper.make_node("Conv", ["r1", "w2"], ["y"], name="second_conv"),
+    ]
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 6, 8, 8])
+    model = helper.make_model(helper.make_graph(nodes, "direct", [x], []))
+    assert sorted(qz.input_layer_nodes(model)) == sorted(["slice_a", "slice_b", "diff", "error", "stack", "first_conv"])

@@ -374,3 +374,16 @@ def test_a_hard_motion_gate_is_a_step_at_one_half_outside_training():
         torch.testing.assert_close(net.gate(x).flatten(), torch.sigmoid(logits))
     with pytest.raises(ValueError, match="gate"):
         PoseNet(2, arch="small", gate="on")
+
+
+@pytest.mark.parametrize("width", [16, 8])
+def test_a_motion_gates_parameters_follow_its_width(width):
+    """--gate-width W (round 22): five 3x3 convs of W, 2W, 2W, 4W, 4W channels over the 9 input channels, each
+    with a bias, and one linear unit: counted here by hand."""
+    from training.networks import PoseNet
+
+    widths = [9, width, 2 * width, 2 * width, 4 * width, 4 * width]
+    by_hand = sum(a * b * 9 + b for a, b in zip(widths, widths[1:])) + 4 * width + 1
+    gate = PoseNet(2, arch="small", gate="soft", gate_width=width).gate
+    assert sum(p.numel() for p in gate.parameters()) == by_hand
+    assert by_hand == {16: 70_689, 8: 18_065}[width]

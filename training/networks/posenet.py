@@ -33,8 +33,9 @@ GATE_OPEN_LOGIT = 4.0  # a new gate starts open (sigmoid 0.98): the trunk's pose
 class MotionGate(nn.Module):
     """Frame stack -> (B, 1, 1) probability that the camera moves between the frames.
 
-    Five stride-2 3x3 convs with ReLU (``width``: the first one's channels), no batch norm (its batch statistics differ between a
-    training batch and one inference call, and a gate must give one answer for one snippet),
+    Five stride-2 3x3 convs with ReLU (``width``: the first one's channels), no batch norm (its batch
+    statistics differ between a training batch and one inference call, and a gate must give one answer
+    for one snippet),
     spatial mean, one linear unit, sigmoid. Input as PoseNet's: (B, 3 * (1 + N), H, W) in [-1, 1].
     Trained alone on motion labels (``training.losses.gate_error``, on :meth:`logits`). ``hard``: outside
     training the gate is a step at probability 1/2 (1 moving, 0 still), so a confident gate never rescales
@@ -45,9 +46,9 @@ class MotionGate(nn.Module):
         super().__init__()
         self.hard = hard
         layers: list[nn.Module] = []
-        for width in (width, 2 * width, 2 * width, 4 * width, 4 * width):
-            layers += [nn.Conv2d(in_ch, width, 3, 2, 1), nn.ReLU()]
-            in_ch = width
+        for out_ch in (width, 2 * width, 2 * width, 4 * width, 4 * width):
+            layers += [nn.Conv2d(in_ch, out_ch, 3, 2, 1), nn.ReLU()]
+            in_ch = out_ch
         self.convs = nn.Sequential(*layers)
         self.logit = nn.Linear(in_ch, 1)
         init_xavier(self)

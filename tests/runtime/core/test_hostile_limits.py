@@ -449,6 +449,10 @@ def test_export_refuses_a_graph_whose_output_is_nan_or_degenerate(tmp_path, weig
     _check_outputs(_constant_graph(tmp_path / "ok.onnx", 2.0), example)  # a working graph passes
     with pytest.raises(ExportCheckError, match=needle):
         _check_outputs(_constant_graph(tmp_path / "bad.onnx", weight), example)
+    if weight == 0.0:  # a hard motion gate's zero poses on frames it calls still (issue 53) are an answer
+        _check_outputs(_constant_graph(tmp_path / "still.onnx", weight), example, may_be_constant=("y",))
+        with pytest.raises(ExportCheckError, match="NaN"):  # never NaN
+            _check_outputs(_constant_graph(tmp_path / "nan.onnx", float("nan")), example, may_be_constant=("y",))
 
 
 def test_export_from_tf_refuses_a_checkpoint_with_nan_weights(tmp_path, capsys):
