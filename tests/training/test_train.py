@@ -788,3 +788,42 @@ def test_direct_flow_reads_the_frames_alone_and_its_graph_keeps_the_runtimes_int
         residual, flow = wrapper(runtime_input)
     torch.testing.assert_close(flow, fwd[0][model.next_source * B :][:B], atol=1e-4, rtol=0)
     torch.testing.assert_close(residual + rigid, flow)
+
+
+def test_recalibrate_sets_the_running_statistics_to_the_average_of_the_batch_statistics(synth_prepared, tmp_path):
+    """python -m training.recalibrate (round 21): the stage's nets' running means become the plain average of
+    their batch means over the batches it reads (measured here with a hook on the same batches, in the same
+    order), every weight unchanged, the frozen nets' statistics untouched."""
+    from torch.utils.data import ConcatDataset
+
+    from training import recalibrate
+    from training.checkpoint import load_weights, model_from_checkpoint
+    from training.data import SequenceDataset, make_loader
+
+    first = train(config(synth_prepared, tmp_path / "r", max_steps=1), progress=False)["last"]
+    flow = train(config(synth_prepared, tmp_path / "f", stage="flow", max_steps=1, init_checkpoint=str(first)),
+                 progress=False)["last"]  # fmt: skip
+    out = tmp_path / "recalibrated.pt"
+    assert recalibrate.main([str(flow), str(out), "--batches", "2", "--data-dir", str(synth_prepared)]) == 0
+    before, after = load_weights(flow)["model"], load_weights(out)["model"]
+    weights = [k for k in before if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
+    assert all(torch.allclose(before[k], after[k], rtol=1e-3, atol=1e-4) for k in weights)  # float16 kernels
+    frozen = [k for k in before if k.endswith("running_mean") and not k.startswith("flow_net.")]
+    assert frozen and all(torch.equal(before[k], after[k]) for k in frozen)
+
+    model = model_from_checkpoint(load_weights(flow))
+    norm = next(m for m in model.flow_net.modules() if isinstance(m, torch.nn.BatchNorm2d))
+    name = next(k for k, m in model.named_modules() if m is norm)
+    means = []
+    norm.register_forward_hook(lambda m, inputs, _: means.append(inputs[0].mean(dim=(0, 2, 3))))
+    cfg = TrainConfig.from_dict(load_weights(flow)["config"])
+    data = ConcatDataset(
+        [SequenceDataset(synth_prepared, "train", cfg.seq_length, cfg.height, cfg.width, augment=False)]
+    )
+    model.eval()
+    with torch.no_grad():
+        for k, batch in enumerate(make_loader(data, recalibrate.BATCH_SIZE, shuffle=True, seed=0, drop_last=True)):
+            if k == 2:
+                break
+            model.flow_forward(batch["target"], batch["sources"], batch["intrinsics"])
+    torch.testing.assert_close(after[f"{name}.running_mean"], torch.stack(means).mean(dim=0), rtol=1e-4, atol=1e-5)
