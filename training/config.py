@@ -6,6 +6,7 @@ import argparse
 from dataclasses import asdict, dataclass, field, fields
 
 from training.losses import LossWeights
+from training.networks.posenet import GATE_WIDTH
 
 STAGES = ("rigid", "flow")
 ARCHS = ("resnet50", "vgg", "small")
@@ -39,7 +40,7 @@ class TrainConfig:
     rigid_corruption: float = 1.0  # stage flow: poses behind ResFlowNet's rigid input scaled in [1/c, c]
     hard_gate: bool = False  # with --pose-gate: outside training the gate is a step at 1/2
     direct_flow: bool = False  # ResFlowNet predicts the whole flow from the frames (GeoNet's DirFlowNet ablation)
-    gate_width: int = 16  # with --pose-gate: the motion gate's first width (its convs: w, 2w, 2w, 4w, 4w)
+    gate_width: int = GATE_WIDTH  # with --pose-gate: the motion gate's first width (its convs: w, 2w, 2w, 4w, 4w)
     bn_momentum: float = 1e-3
     mask_out_of_view: bool = False  # deviation: rigid loss ignores pixels warped from outside the source
     automask: bool = False  # deviation: rigid loss ignores pixels the unwarped source already explains

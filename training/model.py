@@ -49,6 +49,7 @@ from training.losses import (
     stride_ratio_error,
 )
 from training.networks import DepthNet, PoseNet, ResFlowNet
+from training.networks.posenet import GATE_WIDTH
 
 RIGID_ZEROED = 0.25  # share of a --rigid-corruption batch whose rigid flow is zeroed
 
@@ -109,6 +110,14 @@ def flownet_input(frame_from, frame_to, warped, flow, error) -> torch.Tensor:
     return torch.cat([parts[name] for name, _ in RESFLOW_INPUT], dim=1)
 
 
+def network_rows(target: torch.Tensor, sources: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """[0, 1] frames -> network range: target (B, 3, H, W), sources (B, N, 3, H, W), and the sources as rows
+    (N*B, 3, H, W), source-major (source i at rows ``[i*B, (i+1)*B)``, the order of every per-source tensor)."""
+    target_n, sources_n = IMAGE_NORM.apply(target), IMAGE_NORM.apply(sources)
+    B, N = sources.shape[:2]
+    return target_n, sources_n, sources_n.transpose(0, 1).reshape(N * B, *sources_n.shape[2:])
+
+
 def direct_flownet_input(frame_from, frame_to, alpha: float) -> torch.Tensor:
     """:func:`flownet_input` for a camera at rest (zero rigid flow): ``frame_to`` itself as the warped frame and
     the photometric error of the frames as they are; what a ``direct_flow`` ResFlowNet reads, in training and
@@ -158,10 +167,10 @@ class GeoNet(nn.Module):
         mask_out_of_view: bool = False,
         automask: bool = False,
         scale_normalize: bool = False,
-        rigid_corruption: float = 0.0,
+        rigid_corruption: float = 1.0,
         hard_gate: bool = False,
         direct_flow: bool = False,
-        gate_width: int = 16,
+        gate_width: int = GATE_WIDTH,
     ):
         super().__init__()
         self.arch = arch
@@ -229,9 +238,7 @@ class GeoNet(nn.Module):
             (outputs, target pyramid tiled N times, source pyramid), images network-range.
         """
         B, N = sources.shape[:2]
-        target_n = IMAGE_NORM.apply(target)
-        sources_n = IMAGE_NORM.apply(sources)
-        source_rows = sources_n.transpose(0, 1).reshape(N * B, *sources_n.shape[2:])
+        target_n, sources_n, source_rows = network_rows(target, sources)
         disp = self.depth_net(torch.cat([target_n, source_rows], dim=0))
         if self.scale_normalize:
             disp = [normalize_disparity_scale(d) for d in disp]
@@ -422,10 +429,8 @@ class GeoNet(nn.Module):
 
     def _direct_flow_forward(self, target, sources):
         """:meth:`flow_forward` of a ``direct_flow`` model: DepthNet and PoseNet are not run."""
-        B, N = sources.shape[:2]
-        target_n, sources_n = IMAGE_NORM.apply(target), IMAGE_NORM.apply(sources)
-        source_rows = sources_n.transpose(0, 1).reshape(N * B, *sources_n.shape[2:])
-        target_pyr, source_pyr = image_pyramid(target_n.repeat(N, 1, 1, 1)), image_pyramid(source_rows)
+        target_n, _, source_rows = network_rows(target, sources)
+        target_pyr, source_pyr = image_pyramid(target_n.repeat(sources.shape[1], 1, 1, 1)), image_pyramid(source_rows)
         alpha = self.weights.alpha_recon
         fwd_in = direct_flownet_input(target_pyr[0], source_pyr[0], alpha)
         bwd_in = direct_flownet_input(source_pyr[0], target_pyr[0], alpha)
