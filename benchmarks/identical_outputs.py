@@ -4,12 +4,17 @@ A restructure must not change what users get. This runs the documented `predict`
 on the KITTI drive in ../shared with the working tree and with REVISION (checked out into a
 temporary git worktree, run from there), then compares the two output folders file by file:
 the same names, the same bytes. ``summary.json`` is compared as JSON without what is
-measured or per-run (timings, frames/s, dates, the output path); every other file must match
+measured or per-run (timings, frames/s, dates, the output path); records this checkout added are
+listed, not compared (every record the revision wrote must be unchanged); every other file must match
 byte for byte (depth .npy, colour maps, KITTI flow PNGs, pose files).
 
     python benchmarks/identical_outputs.py --against 3c9be22
     python benchmarks/identical_outputs.py --against 3c9be22 --cases kitti_depth_metric
     python benchmarks/identical_outputs.py --against c56716d --after-args "--mode latency"   (this checkout's only)
+    python benchmarks/identical_outputs.py --against c56716d --same-model   (both on c56716d's bundled model)
+
+``--same-model``: both trees run REVISION's bundled model instead of their own, so that the runtime's
+arithmetic is compared after the bundled model itself was replaced (issue 53 shipped a new one).
 
 Exit 0 when every case is identical, 1 otherwise (the differing files are listed).
 """
@@ -30,6 +35,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from geonet_infer.models import DEFAULT_MODEL
+
 REPO = Path(__file__).resolve().parents[1]
 KITTI = (REPO / "../shared/realdata/kitti_raw_2011_09_26_sfnd").resolve()
 CASES = {  # name -> predict arguments after INPUT (all on the KITTI drive, calibration found there)
@@ -38,6 +45,7 @@ CASES = {  # name -> predict arguments after INPUT (all on the KITTI drive, cali
     "kitti_int8_batch3": ["--precision", "int8", "--batch-size", "3", "--no-vis"],
     "kitti_pose": ["--tasks", "pose"],
 }
+BUNDLED_MODEL = Path("geonet_infer/models", DEFAULT_MODEL)  # inside a tree
 # summary.json keys that differ between any two runs of the same code
 PER_RUN_KEYS = {"timings_ms_per_frame", "overlapped_ms_per_frame", "wall_s", "frames_per_s"}
 
@@ -83,6 +91,25 @@ def _unrooted(text: bytes, roots: tuple[Path, Path]) -> str:
     return out
 
 
+def _json_diff(before, after, at: str = "") -> tuple[list[str], list[str]]:
+    """(changed, added): the key paths whose values differ or that ``after`` lost, and those only ``after``
+    has (records a later version added: what was there before must be unchanged, new records are new)."""
+    if not (isinstance(before, dict) and isinstance(after, dict)):
+        return ([at or "."] if before != after else []), []
+    changed, added = [], []
+    for key in sorted(before.keys() | after.keys()):
+        path = f"{at}.{key}" if at else key
+        if key not in after:
+            changed.append(path)
+        elif key not in before:
+            added.append(path)
+        else:
+            more_changed, more_added = _json_diff(before[key], after[key], path)
+            changed += more_changed
+            added += more_added
+    return changed, added
+
+
 def _same_pixels(a: Path, b: Path) -> bool:
     pixels = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in (a, b)]
     return all(p is not None for p in pixels) and pixels[0].dtype == pixels[1].dtype and np.array_equal(*pixels)
@@ -101,9 +128,11 @@ def compare(before: Path, after: Path, roots: tuple[Path, Path]) -> list[str]:
         a, b = (before / rel).read_bytes(), (after / rel).read_bytes()
         if rel.name == "summary.json":
             sa, sb = _strip(json.loads(_unrooted(a, roots))), _strip(json.loads(_unrooted(b, roots)))
-            if sa != sb:
-                keys = sorted(k for k in sa.keys() | sb.keys() if sa.get(k) != sb.get(k))
-                diffs.append(f"differs (beyond timings): {rel}: {', '.join(keys)}")
+            changed, added = _json_diff(sa, sb)
+            if changed:
+                diffs.append(f"differs (beyond timings): {rel}: {', '.join(changed)}")
+            if added:
+                print(f"  records added since, not compared: {rel}: {', '.join(added)}")
         elif rel.name.startswith(".geonet-predict"):
             continue  # ownership marker and lock: paths and pids of this run
         elif rel.suffix == ".png" and a != b:
@@ -121,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--against", required=True, help="git revision to compare with (e.g. the last release)")
     parser.add_argument("--cases", default=",".join(CASES), help=f"comma list of {','.join(CASES)}")
     parser.add_argument("--after-args", default="", help="more predict arguments for this checkout's runs")
+    parser.add_argument(
+        "--same-model", action="store_true", help="both trees run the revision's bundled model, not their own"
+    )
     args = parser.parse_args(argv)
     cases = args.cases.split(",")
     unknown = [c for c in cases if c not in CASES]
@@ -131,9 +163,11 @@ def main(argv: list[str] | None = None) -> int:
         tempfile.TemporaryDirectory(prefix="geonet_identical_") as tmp,
         revision_tree(args.against, Path(tmp)) as old_tree,
     ):
+        model = ["--model", str(old_tree / BUNDLED_MODEL)] if args.same_model else []
         for case in cases:
             outs = {}
             for label, tree, more in (("before", old_tree, []), ("after", REPO, shlex.split(args.after_args))):
+                more = model + more
                 outs[label] = Path(tmp) / f"{case}_{label}"
                 run_predict(tree, CASES[case] + more, outs[label])
             diffs = compare(outs["before"], outs["after"], (old_tree, REPO))
