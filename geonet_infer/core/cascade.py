@@ -5,7 +5,8 @@ Per frame t of a sequence:
 1. ``depthnet``  frame t -> disparity and depth (relative scale);
 2. ``posenet``   snippet [t, t-k .. t-1, t+1 .. t+k] -> poses t -> each source;
 3. ``rigidflow`` depth of t, pose t -> t+1, K -> rigid flow t -> t+1, frame t+1
-   warped onto t, photometric error;
+   warped onto t, photometric error (the last two only when ResFlowNet reads them:
+   :meth:`GraphSet._skip_unread_rigid_outputs`);
 4. ``resflownet`` [t, t+1, warped, rigid flow, error] (:data:`RESFLOW_INPUT`) -> full flow
    t -> t+1 (= rigid + residual).
 

@@ -11,9 +11,12 @@ import numpy as np
 from geonet_infer import conventions
 from geonet_infer.core.int8_safety import int8_unsafe_reason
 from geonet_infer.core.rigid import RigidFlowOp
+from geonet_infer.core.snippets import resflow_channels
+from geonet_infer.core.spec import GRAPH_IO
 from geonet_infer.engines import AUTO, ENGINES, Engine, make_engine, pick_fastest
 from geonet_infer.errors import InputError, ModelError
 from geonet_infer.models.manifest import MANIFEST_NAME, PRECISIONS, Manifest, check_graph_io
+from geonet_infer.models.onnx_graph import channels_read
 
 RIGID_OPS = ("graph", "numpy")  # how the rigid-flow op runs: geonet_infer.core.rigid, or rigidflow.onnx
 
@@ -75,6 +78,32 @@ class GraphSet:
             for label, reason in unsafe.items():  # an engine named with --precision int8 runs anyway (warned)
                 why += f"; {'' if label == engine.name else 'skipped '}{label}: {reason}"
             self.runs[name] = {"engine": engine.name, "precision": self._runs_as(name, chosen_precision), "why": why}
+        self._skip_unread_rigid_outputs()
+
+    def _skip_unread_rigid_outputs(self) -> None:
+        """The rigid-flow op computes only what ResFlowNet reads, and the rigid flow (the flow and the
+        output check use it): a direct ResFlowNet (``training.train --direct-flow``) reads the frames and
+        the rigid flow of its input, not the warped frame or the photometric error, which are most of
+        the op's time. The channels a graph reads come from its Slice nodes
+        (:func:`geonet_infer.models.onnx_graph.channels_read`); a graph that reads its input any other way
+        reads all of it. Unread parts enter ResFlowNet as zeros (:func:`~geonet_infer.core.snippets.resflow_input`)."""
+        if "rigidflow" not in self._engines or "resflownet" not in self._engines:
+            return
+        read: set[int] = set()
+        for path in self._files("resflownet").values():
+            channels = channels_read(path.read_bytes(), GRAPH_IO["resflownet"][0][0])
+            if channels is None:
+                return
+            read |= channels
+        engine = self._engines["rigidflow"]
+        unread = [
+            name
+            for name, channels in resflow_channels().items()
+            if name in engine.output_names and name != "rigid_flow" and not read.intersection(channels)
+        ]
+        if unread:
+            self._engines["rigidflow"] = engine.only([name for name in engine.output_names if name not in unread])
+            self.runs["rigidflow"]["why"] += f"; {' and '.join(unread)} not computed: resflownet does not read them"
 
     def _files(self, name: str) -> dict[str, Path]:
         """{precision: file} of graph ``name``: one precision, or under "auto" each of the model's whose

@@ -13,6 +13,7 @@ graph is tested to 1e-4 px (tests/runtime/core/test_rigid_op.py); the graph stay
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from functools import lru_cache
 
 import cv2
@@ -214,16 +215,17 @@ class RigidFlowOp:
 
     ``run({"depth": (B,1,H,W), "pose": (B,6), "intrinsics": (B,3,3), "target": (B,3,H,W),
     "source": (B,3,H,W)})`` -> ``{"rigid_flow": (B,2,H,W), "warped": (B,3,H,W), "error": (B,1,H,W)}``.
-    ``alpha``: the DSSIM weight baked into the model's graph (``Manifest.photometric_alpha``).
+    ``alpha``: the DSSIM weight baked into the model's graph (``Manifest.photometric_alpha``);
+    ``outputs``: those it computes (:meth:`only`).
     """
 
     name = "numpy"
     input_names = ["depth", "pose", "intrinsics", "target", "source"]
-    output_names = list(OUTPUTS)
 
-    def __init__(self, alpha: float, graph_io: tuple[list, list] | None = None):
+    def __init__(self, alpha: float, graph_io: tuple[list, list] | None = None, outputs: Sequence[str] = OUTPUTS):
         self.alpha = float(alpha)
         self._io = graph_io
+        self.output_names = [name for name in OUTPUTS if name in outputs]
         self._workspace = threading.local()  # one set of buffers per thread: a Predictor may be shared
 
     @staticmethod
@@ -238,24 +240,37 @@ class RigidFlowOp:
         target, source = feeds["target"], feeds["source"]
         B, _, H, W = target.shape
         flows = np.empty((B, 2, H, W), np.float32)
-        warped = np.empty((B, 3, H, W), np.float32)
-        errors = np.empty((B, 1, H, W), np.float32)
+        photometric = "warped" in self.output_names or "error" in self.output_names
+        warped = np.empty((B, 3, H, W), np.float32) if photometric else None
+        errors = np.empty((B, 1, H, W), np.float32) if photometric else None
         ws = getattr(self._workspace, "buffers", None)
         if ws is None:
             ws = self._workspace.buffers = Workspace()
         for b in range(B):
             flows[b] = rigid_flow(depth[b, 0], pose_to_matrix(pose[b]), K[b], ws)
-            warped[b] = warp_bilinear(source[b], flows[b], ws)
-            errors[b, 0] = photometric_error_map(warped[b], target[b], self.alpha, ws)
-        return {"rigid_flow": flows, "warped": warped, "error": errors}
+            if warped is not None and errors is not None:
+                warped[b] = warp_bilinear(source[b], flows[b], ws)
+                errors[b, 0] = photometric_error_map(warped[b], target[b], self.alpha, ws)
+        made = {"rigid_flow": flows, "warped": warped, "error": errors}
+        return {name: array for name in self.output_names if (array := made[name]) is not None}
+
+    def only(self, outputs: Sequence[str]) -> RigidFlowOp:
+        """The op computing only ``outputs`` (the warp and the error are most of its time)."""
+        return RigidFlowOp(self.alpha, self._io, outputs)
 
     def io(self) -> tuple[list, list]:
         if self._io is None:
             raise NotImplementedError("RigidFlowOp.io needs the graph's io (given by GraphSet)")
-        return self._io
+        inputs, outputs = self._io
+        return inputs, [spec for spec in outputs if spec[0] in self.output_names]
 
     def input_shapes(self) -> dict[str, list]:
         return {name: list(shape) for name, shape, _ in self.io()[0]}
 
     def describe(self) -> dict:
-        return {"engine": self.name, "op": "rigidflow in numpy + OpenCV", "photometric_alpha": self.alpha}
+        return {
+            "engine": self.name,
+            "op": "rigidflow in numpy + OpenCV",
+            "photometric_alpha": self.alpha,
+            "outputs": self.output_names,
+        }

@@ -91,8 +91,23 @@ RESFLOW_INPUT = (("target", 3), ("source", 3), ("warped", 3), ("rigid_flow", 2),
 
 
 def resflow_input(parts: dict[str, np.ndarray]) -> np.ndarray:
-    """The (B, 12, h, w) ResFlowNet input from its :data:`RESFLOW_INPUT` parts, each (B, C, h, w)."""
-    return np.concatenate([parts[name] for name, _ in RESFLOW_INPUT], axis=1)
+    """The (B, 12, h, w) ResFlowNet input from its :data:`RESFLOW_INPUT` parts, each (B, C, h, w).
+
+    A part missing from ``parts`` is zeros: one the ResFlowNet graph does not read, so the rigid-flow
+    op did not make it (:meth:`geonet_infer.core.graphs.GraphSet._skip_unread_rigid_outputs`)."""
+    B, _, h, w = parts["target"].shape
+    return np.concatenate(
+        [parts[name] if name in parts else np.zeros((B, c, h, w), np.float32) for name, c in RESFLOW_INPUT], axis=1
+    )
+
+
+def resflow_channels() -> dict[str, range]:
+    """The channels of the ResFlowNet input each :data:`RESFLOW_INPUT` part fills."""
+    channels, first = {}, 0
+    for name, count in RESFLOW_INPUT:
+        channels[name] = range(first, first + count)
+        first += count
+    return channels
 
 
 def posenet_order(target: int, seq_length: int) -> list[int]:

@@ -22,8 +22,8 @@ library itself::
         cls.summary         # the engine in --backend's help text
 
 and an engine (``make_engine(path, name, threads, streams)`` or ``pick_fastest(path, threads, streams=)``) has
-``name``, ``input_names``, ``output_names``, ``run(feeds)``, ``io()``, ``input_shapes()``
-and ``describe()`` (:class:`Engine`).
+``name``, ``input_names``, ``output_names``, ``run(feeds)``, ``only(outputs)``, ``io()``,
+``input_shapes()`` and ``describe()`` (:class:`Engine`).
 
 Adding an engine is one new module plus one registry line. A TensorRT engine, say, would be
 ``engines/tensorrt.py``::
@@ -42,7 +42,7 @@ Adding an engine is one new module plus one registry line. A TensorRT engine, sa
 
         def __init__(self, path, threads, streams=1):  # raise BackendUnavailableError(None, ..., install_hint)
             ...                             # when not available(); ModelError for a bad file
-        # run / io / input_shapes / describe as in the Engine protocol
+        # run / only / io / input_shapes / describe as in the Engine protocol
 
 and in this file ``ENGINES[TensorRtEngine.name] = TensorRtEngine`` (next to the others):
 ``--backend tensorrt``, ``auto``, ``info`` and ``bench`` then offer it.
@@ -51,6 +51,7 @@ and in this file ``ENGINES[TensorRtEngine.name] = TensorRtEngine`` (next to the 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 from typing import Protocol
@@ -148,6 +149,10 @@ class Engine(Protocol):
     def version() -> str | None: ...
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
+
+    def only(self, outputs: Sequence[str]) -> Engine:
+        """The same graph on the same threads computing only ``outputs`` and what they need (a graph
+        engine runs every node whatever outputs a call asks for)."""
 
     def io(self) -> tuple[list[IoSpec], list[IoSpec]]: ...
 

@@ -40,6 +40,7 @@ import onnxruntime as ort
 from geonet_infer.engines.cpu import cpu_info
 from geonet_infer.errors import InputError, ModelError
 from geonet_infer.models.manifest import IoSpec
+from geonet_infer.models.onnx_graph import keep_outputs
 
 # onnxruntime's kOrtSessionOptionsAvx2PrecisionMode (see the module docstring)
 X64_QUANT_PRECISION = "session.x64quantprecision"
@@ -103,9 +104,13 @@ def _share_one_arena() -> bool:
 
 
 def make_session(
-    path: str | Path, options: ort.SessionOptions | None = None, providers: Sequence[str] = ("CPUExecutionProvider",)
+    path: str | Path,
+    options: ort.SessionOptions | None = None,
+    providers: Sequence[str] = ("CPUExecutionProvider",),
+    model: bytes | None = None,
 ) -> ort.InferenceSession:
-    """Load an ONNX graph; errors name the file.
+    """Load an ONNX graph; errors name the file. ``model``: the graph's bytes as they should run (the
+    file's, cut down by :func:`geonet_infer.models.onnx_graph.keep_outputs`) instead of the file.
 
     Raises GeoNetError if the file is missing or onnxruntime cannot load it,
     or if a requested execution provider did not become active.
@@ -116,14 +121,18 @@ def make_session(
     options = options or make_session_options()
     try:
         try:
-            session = ort.InferenceSession(str(path), sess_options=options, providers=list(providers))
+            session = ort.InferenceSession(
+                str(path) if model is None else model, sess_options=options, providers=list(providers)
+            )
         except Exception as exc:
             if "Attempt to replace the existing tensor" not in str(exc) or not _has_int8_remedy(options):
                 raise
             # onnxruntime cannot apply its remedy to an int8 weight that feeds several nodes: without it
             # the graph loads, and its INT8 may saturate on this CPU (said in one line)
             options.add_session_config_entry(X64_QUANT_PRECISION, "0")
-            session = ort.InferenceSession(str(path), sess_options=options, providers=list(providers))
+            session = ort.InferenceSession(
+                str(path) if model is None else model, sess_options=options, providers=list(providers)
+            )
             print(
                 f"geonet-infer: warning: {path}: onnxruntime cannot run this graph's INT8 exactly on a CPU "
                 "without VNNI (an int8 weight feeds several nodes); its INT8 may saturate here",
@@ -166,12 +175,18 @@ class OrtEngine:
     def version() -> str | None:
         return ort.__version__
 
-    def __init__(self, path: str | Path, threads: int | None, streams: int = 1):
+    def __init__(self, path: str | Path, threads: int | None, streams: int = 1, outputs: Sequence[str] | None = None):
         del streams  # a session takes concurrent calls as it is
-        self.path = Path(path)
-        self.session = make_session(self.path, make_session_options(threads=threads))
+        self.path, self.threads = Path(path), threads
+        # onnxruntime runs every node whatever outputs a call asks for: fewer outputs need a smaller graph
+        model = None if outputs is None or not self.path.is_file() else keep_outputs(self.path.read_bytes(), outputs)
+        self.session = make_session(self.path, make_session_options(threads=threads), model=model)
         self.input_names = [i.name for i in self.session.get_inputs()]
         self.output_names = [o.name for o in self.session.get_outputs()]
+
+    def only(self, outputs: Sequence[str]) -> OrtEngine:
+        """This graph computing only ``outputs`` (and what they need)."""
+        return OrtEngine(self.path, self.threads, outputs=outputs)
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         return dict(zip(self.output_names, self.session.run(None, feeds)))
@@ -194,6 +209,7 @@ class OrtEngine:
             "graph_optimization_level": str(so.graph_optimization_level),
             "enable_cpu_mem_arena": so.enable_cpu_mem_arena,
             "enable_mem_pattern": so.enable_mem_pattern,
+            "outputs": self.output_names,  # fewer than the file's after only()
         }
         for key in (
             "session.intra_op.allow_spinning",

@@ -12,6 +12,7 @@ imports (and ``available()`` answers False) without the extra.
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +53,7 @@ class OpenVinoEngine:
         ov = _openvino()
         return None if ov is None else ov.__version__
 
-    def __init__(self, path: str | Path, threads: int | None, streams: int = 1):
+    def __init__(self, path: str | Path, threads: int | None, streams: int = 1, outputs: Sequence[str] | None = None):
         ov = _openvino()
         if ov is None:
             raise BackendUnavailableError(
@@ -72,6 +73,12 @@ class OpenVinoEngine:
                 f"OpenVINO cannot read this model ({str(exc).splitlines()[0][:300]})",
                 "re-export it, or use backend='onnxruntime'",
             ) from exc
+        if outputs is not None:  # a model of those results alone: compiling drops what they do not need
+            results = zip(self.model.get_results(), self.model.outputs)
+            kept = [result for result, port in results if port.get_any_name() in outputs]
+            if kept:
+                self.model = ov.Model(kept, self.model.get_parameters(), self.model.get_friendly_name())
+        self.threads, self.streams = threads, streams
         self.input_names = [p.get_any_name() for p in self.model.inputs]
         self.output_names = [p.get_any_name() for p in self.model.outputs]
         # streams > 1 (throughput mode): as many infer requests run at once, each on `threads` threads; with one
@@ -82,6 +89,10 @@ class OpenVinoEngine:
         self._compiled: dict[tuple, tuple] = {}  # input shapes -> (compiled model, output ports)
         self._compile_lock = threading.Lock()
         self._local = threading.local()  # .requests: input shapes -> this thread's infer request
+
+    def only(self, outputs: Sequence[str]) -> OpenVinoEngine:
+        """This graph computing only ``outputs`` (and what they need)."""
+        return OpenVinoEngine(self.path, self.threads, self.streams, outputs)
 
     def _compiled_for(self, shapes: tuple) -> tuple:
         with self._compile_lock:  # two threads meeting a new batch size compile it once
@@ -126,7 +137,7 @@ class OpenVinoEngine:
         return specs(self.model.inputs), specs(self.model.outputs)
 
     def describe(self) -> dict:
-        out = {"engine": self.name, "config": dict(self.config)}
+        out = {"engine": self.name, "config": dict(self.config), "outputs": self.output_names}
         if self._compiled:
             compiled = next(iter(self._compiled.values()))[0]
             out["properties"] = {

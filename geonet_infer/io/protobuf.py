@@ -27,27 +27,36 @@ def fields(buf, start: int, end: int) -> Iterator[tuple[int, int, int | tuple[in
     """(field number, wire type, value) of one message in ``buf[start:end]``: an int for varint and
     fixed64/fixed32 fields, (start, end) of the payload for length-delimited ones. ValueError when
     the message is malformed."""
+    for number, wire, value, _ in field_spans(buf, start, end):
+        yield number, wire, value
+
+
+def field_spans(buf, start: int, end: int) -> Iterator[tuple[int, int, int | tuple[int, int], tuple[int, int]]]:
+    """As :func:`fields`, each with the (start, end) of the whole field (key included): what a writer
+    copies to keep the field as it was."""
     pos = start
     while pos < end:
+        field_start = pos
         key, pos = read_varint(buf, pos)
         number, wire = key >> 3, key & 7
+        value: int | tuple[int, int]
         if wire == 0:
             value, pos = read_varint(buf, pos)
-            yield number, wire, value
         elif wire == 2:
             size, pos = read_varint(buf, pos)
             if pos + size > end:
                 raise ValueError("field runs past its message")
-            yield number, wire, (pos, pos + size)
+            value = (pos, pos + size)
             pos += size
         elif wire in (1, 5):
             width = 8 if wire == 1 else 4
             if pos + width > end:
                 raise ValueError("field runs past its message")
-            yield number, wire, struct.unpack_from("<Q" if wire == 1 else "<I", buf, pos)[0]
+            value = struct.unpack_from("<Q" if wire == 1 else "<I", buf, pos)[0]
             pos += width
         else:
             raise ValueError(f"wire type {wire}")
+        yield number, wire, value, (field_start, pos)
     if pos != end:
         raise ValueError("message runs past its end")
 
