@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import geonet_infer
+from geonet_infer import conventions
 from geonet_infer.eval import evaluation
 from geonet_infer.eval.adapters import model_depth_fn, model_flow_fn
 from geonet_infer.eval.datasets import load_dataset
@@ -20,7 +21,9 @@ from tests.runtime.core.test_hostile_model import rehash
 
 RULE = {"depth AbsRel": 0.02, "flow EPE-noc": 0.05}  # INT8 - FP32, relative to FP32
 # The KITTI 2015 extract has no calibration: K of KITTI 2011_09_26 (P_rect_02), as benchmarks/eval_all.py assumes.
-KITTI_2015_K = np.array([[721.5377, 0, 609.5593], [0, 721.5377, 172.854], [0, 0, 1]])
+KITTI_2015_K = np.array(
+    [[conventions.KITTI_FX, 0, conventions.KITTI_CX], [0, conventions.KITTI_FY, conventions.KITTI_CY], [0, 0, 1]]
+)
 
 
 def scores(model: Path, precision: str, real) -> dict[str, float]:
