@@ -91,7 +91,10 @@ class GraphSet:
             return
         read: set[int] = set()
         for path in self._files("resflownet").values():
-            channels = channels_read(path.read_bytes(), GRAPH_IO["resflownet"][0][0])
+            try:
+                channels = channels_read(path.read_bytes(), GRAPH_IO["resflownet"][0][0])
+            except ValueError:  # protobuf this reader does not follow: the graph keeps all it is given
+                channels = None
             if channels is None:
                 return
             read |= channels

@@ -179,7 +179,12 @@ class OrtEngine:
         del streams  # a session takes concurrent calls as it is
         self.path, self.threads = Path(path), threads
         # onnxruntime runs every node whatever outputs a call asks for: fewer outputs need a smaller graph
-        model = None if outputs is None or not self.path.is_file() else keep_outputs(self.path.read_bytes(), outputs)
+        model = None
+        if outputs is not None and self.path.is_file():
+            try:
+                model = keep_outputs(self.path.read_bytes(), outputs)
+            except ValueError:  # protobuf this reader does not follow: the whole graph, all its outputs
+                model = None
         self.session = make_session(self.path, make_session_options(threads=threads), model=model)
         self.input_names = [i.name for i in self.session.get_inputs()]
         self.output_names = [o.name for o in self.session.get_outputs()]

@@ -107,3 +107,17 @@ def test_the_bundled_model_skips_the_warp_and_gives_the_same_outputs(monkeypatch
             if x is not None:
                 np.testing.assert_array_equal(x, y, err_msg=f"{a.name} {field}")
         assert (a.check is None) == (b.check is None) and (a.check is None or a.check == b.check)
+
+
+def test_a_graph_the_reader_cannot_follow_keeps_the_whole_op(monkeypatch):
+    import geonet_infer.core.graphs as graphs
+
+    def unreadable(*_args):
+        raise ValueError("wire type 3")
+
+    monkeypatch.setattr(graphs, "channels_read", unreadable)
+    predictor = geonet_infer.load()
+    assert sorted(predictor.graph_set.engine("rigidflow").output_names) == ["error", "rigid_flow", "warped"]
+    monkeypatch.setattr("geonet_infer.engines.onnxruntime.keep_outputs", unreadable)
+    engine = make_engine(MANIFEST.path("rigidflow", "fp32"), "onnxruntime", 1).only(["rigid_flow"])
+    assert sorted(engine.output_names) == ["error", "rigid_flow", "warped"]  # the whole graph, still right
