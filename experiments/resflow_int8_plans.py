@@ -22,8 +22,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 from geonet_infer import conventions
 from geonet_infer.convert import quantize as qz
 from geonet_infer.core.predictor import Predictor
@@ -38,9 +36,7 @@ CALIB = REPO / "data" / "synth40" / "seq_0000" / "image"
 SYNTH, PREPARED = REPO / "data" / "synth40", REPO / "data" / "synth40_prepared"
 KITTI_2015 = REPO.parent / "shared" / "realdata" / "kitti2015_flow_000010"
 # no calibration in the extract: KITTI 2011_09_26's P_rect_02, as the INT8 rule and benchmarks/eval_all.py assume
-KITTI_2015_K = np.array(
-    [[conventions.KITTI_FX, 0, conventions.KITTI_CX], [0, conventions.KITTI_FY, conventions.KITTI_CY], [0, 0, 1]]
-)
+KITTI_2015_K = conventions.kitti_like_K(conventions.KITTI_HEIGHT, conventions.KITTI_WIDTH)
 SETTINGS = qz.QuantSettings(calibrate_method="percentile", max_frames=40, op_types=("Conv", "Relu", "Add", "MaxPool"))
 SHIPPED = qz.PLANS["resflownet"]
 PLANS = {

@@ -21,9 +21,7 @@ from tests.runtime.core.test_hostile_model import rehash
 
 RULE = {"depth AbsRel": 0.02, "flow EPE-noc": 0.05}  # INT8 - FP32, relative to FP32
 # The KITTI 2015 extract has no calibration: K of KITTI 2011_09_26 (P_rect_02), as benchmarks/eval_all.py assumes.
-KITTI_2015_K = np.array(
-    [[conventions.KITTI_FX, 0, conventions.KITTI_CX], [0, conventions.KITTI_FY, conventions.KITTI_CY], [0, 0, 1]]
-)
+KITTI_2015_K = conventions.kitti_like_K(conventions.KITTI_HEIGHT, conventions.KITTI_WIDTH)
 
 
 def scores(model: Path, precision: str, real) -> dict[str, float]:
