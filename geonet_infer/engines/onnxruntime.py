@@ -29,6 +29,7 @@ CPU facts behind the defaults (``../shared/reference/onnx_notes.md`` section 2):
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 from collections.abc import Sequence
@@ -119,20 +120,17 @@ def make_session(
     if not path.is_file():
         raise ModelError(path, "ONNX model not found", "export models with `python -m export`")
     options = options or make_session_options()
+    source = str(path) if model is None else model
     try:
         try:
-            session = ort.InferenceSession(
-                str(path) if model is None else model, sess_options=options, providers=list(providers)
-            )
+            session = ort.InferenceSession(source, sess_options=options, providers=list(providers))
         except Exception as exc:
             if "Attempt to replace the existing tensor" not in str(exc) or not _has_int8_remedy(options):
                 raise
             # onnxruntime cannot apply its remedy to an int8 weight that feeds several nodes: without it
             # the graph loads, and its INT8 may saturate on this CPU (said in one line)
             options.add_session_config_entry(X64_QUANT_PRECISION, "0")
-            session = ort.InferenceSession(
-                str(path) if model is None else model, sess_options=options, providers=list(providers)
-            )
+            session = ort.InferenceSession(source, sess_options=options, providers=list(providers))
             print(
                 f"geonet-infer: warning: {path}: onnxruntime cannot run this graph's INT8 exactly on a CPU "
                 "without VNNI (an int8 weight feeds several nodes); its INT8 may saturate here",
@@ -181,10 +179,8 @@ class OrtEngine:
         # onnxruntime runs every node whatever outputs a call asks for: fewer outputs need a smaller graph
         model = None
         if outputs is not None and self.path.is_file():
-            try:
+            with contextlib.suppress(ValueError):  # protobuf this reader does not follow: the whole graph
                 model = keep_outputs(self.path.read_bytes(), outputs)
-            except ValueError:  # protobuf this reader does not follow: the whole graph, all its outputs
-                model = None
         self.session = make_session(self.path, make_session_options(threads=threads), model=model)
         self.input_names = [i.name for i in self.session.get_inputs()]
         self.output_names = [o.name for o in self.session.get_outputs()]
