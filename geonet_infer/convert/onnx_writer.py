@@ -16,17 +16,18 @@ from pathlib import Path
 import numpy as np
 
 from geonet_infer.io.protobuf import encode_field, encode_varint
-
-# Field numbers of onnx.proto (onnx/onnx.proto, stable since IR version 3).
-MODEL_GRAPH = 7
-MODEL_METADATA_PROPS = 14
-GRAPH_INITIALIZER = 5
-TENSOR_DIMS = 1
-TENSOR_DATA_TYPE = 2
-TENSOR_NAME = 8
-TENSOR_RAW_DATA = 9
-ENTRY_KEY, ENTRY_VALUE = 1, 2
-ONNX_FLOAT = 1
+from geonet_infer.models.onnx_graph import (  # onnx.proto's field numbers, listed once
+    ENTRY_KEY,
+    ENTRY_VALUE,
+    GRAPH_INITIALIZER,
+    MODEL_GRAPH,
+    MODEL_METADATA_PROPS,
+    TENSOR_DATA_TYPE,
+    TENSOR_DIMS,
+    TENSOR_NAME,
+    TENSOR_RAW_DATA,
+)
+from geonet_infer.models.onnx_graph import FLOAT as ONNX_FLOAT
 
 
 def tensor_record(name: str, value: np.ndarray) -> list:

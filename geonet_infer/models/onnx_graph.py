@@ -18,13 +18,15 @@ from dataclasses import dataclass
 
 from geonet_infer.io.protobuf import encode_field, field_spans, fields, read_varint
 
-MODEL_GRAPH = 7
+# Field numbers of onnx.proto (stable since IR version 3), for this reader and convert/onnx_writer.py
+MODEL_GRAPH, MODEL_METADATA_PROPS = 7, 14
 GRAPH_NODE, GRAPH_INITIALIZER, GRAPH_OUTPUT = 1, 5, 12
 NODE_INPUT, NODE_OUTPUT, NODE_OP_TYPE, NODE_ATTRIBUTE = 1, 2, 4, 5
 ATTRIBUTE_NAME, ATTRIBUTE_TENSOR, ATTRIBUTE_GRAPH, ATTRIBUTE_GRAPHS = 1, 5, 6, 11
-TENSOR_DATA_TYPE, TENSOR_INT64_DATA, TENSOR_NAME, TENSOR_RAW_DATA = 2, 7, 8, 9
+TENSOR_DIMS, TENSOR_DATA_TYPE, TENSOR_INT64_DATA, TENSOR_NAME, TENSOR_RAW_DATA = 1, 2, 7, 8, 9
 VALUE_INFO_NAME = 1
-INT64 = 7  # TensorProto.DataType
+ENTRY_KEY, ENTRY_VALUE = 1, 2  # StringStringEntryProto
+FLOAT, INT64 = 1, 7  # TensorProto.DataType
 CHANNEL_AXES = (1, -3)  # NCHW: the channel axis, counted from either end
 
 
