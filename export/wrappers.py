@@ -27,14 +27,17 @@ import torch
 import torch.nn as nn
 
 from geonet_infer.conventions import IMAGE_NORM, kitti_like_K
+from geonet_infer.core.snippets import resflow_channels
 from training.geometry import l2_norm, pose_vec_to_mat
 from training.losses import LossWeights
 from training.model import GeoNet, direct_flownet_input, normalize_disparity_scale, rigid_warp
 
 GRAPH_NAMES = ("depthnet", "posenet", "rigidflow", "resflownet")
 RIGID_GRAPHS = ("depthnet", "posenet", "rigidflow")  # what a stage 'rigid' checkpoint can export
-FLOW_INPUT_CHANNELS = 12
-RIGID_FLOW_CHANNELS = slice(9, 11)  # channels of flownet_input holding the rigid flow (px)
+# ResFlowNet's input channels, laid out once by geonet_infer.core.snippets.RESFLOW_INPUT
+_PARTS = {name: slice(r.start, r.stop) for name, r in resflow_channels().items()}
+FLOW_INPUT_CHANNELS = max(part.stop for part in _PARTS.values())  # 12
+RIGID_FLOW_CHANNELS = _PARTS["rigid_flow"]  # channels of flownet_input holding the rigid flow (px): 9, 10
 
 
 @dataclass(frozen=True)
@@ -159,7 +162,8 @@ class ResFlowExport(nn.Module):
 
     def forward(self, flow_input: torch.Tensor):
         if self.direct_alpha is not None:
-            frames = direct_flownet_input(flow_input[:, 0:3], flow_input[:, 3:6], self.direct_alpha)
+            target, source = flow_input[:, _PARTS["target"]], flow_input[:, _PARTS["source"]]
+            frames = direct_flownet_input(target, source, self.direct_alpha)
             flow = self.flow_net(frames)[0]
             return flow - flow_input[:, RIGID_FLOW_CHANNELS], flow
         residual = self.flow_net(flow_input)[0]  # the graph's ops in the order the shipped templates have
