@@ -21,16 +21,24 @@ The wrappers only re-use training code (``training.model.rigid_warp``,
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 
+from export.phase_form import export_depth_net
 from geonet_infer.conventions import IMAGE_NORM, kitti_like_K
 from geonet_infer.core.snippets import resflow_channels
 from training.geometry import l2_norm, pose_vec_to_mat
 from training.losses import LossWeights
-from training.model import GeoNet, direct_flownet_input, normalize_disparity_scale, rigid_warp
+from training.model import (
+    DIRECT_FLOW_PARTS,
+    GeoNet,
+    direct_flownet_input,
+    normalize_disparity_scale,
+    rigid_warp,
+)
 
 GRAPH_NAMES = ("depthnet", "posenet", "rigidflow", "resflownet")
 RIGID_GRAPHS = ("depthnet", "posenet", "rigidflow")  # what a stage 'rigid' checkpoint can export
@@ -152,22 +160,40 @@ class ResFlowExport(nn.Module):
     residual_flow (B,2,H,W) px and flow = residual + rigid flow (channels 9:11), scale 0.
 
     ``direct_alpha`` (a ``direct_flow`` model, its photometric α): the net reads the frames alone
-    (``training.model.direct_flownet_input`` of channels 0:3 and 3:6) and its output is the flow; the
-    residual returned is that flow minus the rigid flow given, so the interface is unchanged."""
+    (``training.model.direct_flownet_input`` of channels 0:3 and 3:6, folded: :func:`fold_direct_input`) and
+    its output is the flow; the residual returned is that flow minus the rigid flow given, so the interface
+    is unchanged."""
 
     def __init__(self, flow_net: nn.Module, direct_alpha: float | None = None):
         super().__init__()
-        self.flow_net = flow_net
+        self.flow_net = flow_net if direct_alpha is None else fold_direct_input(flow_net)
         self.direct_alpha = direct_alpha
 
     def forward(self, flow_input: torch.Tensor):
         if self.direct_alpha is not None:
             target, source = flow_input[:, _PARTS["target"]], flow_input[:, _PARTS["source"]]
-            frames = direct_flownet_input(target, source, self.direct_alpha)
+            frames = direct_flownet_input(target, source, self.direct_alpha, folded=True)
             flow = self.flow_net(frames)[0]
             return flow - flow_input[:, RIGID_FLOW_CHANNELS], flow
         residual = self.flow_net(flow_input)[0]  # the graph's ops in the order the shipped templates have
         return residual, residual + flow_input[:, RIGID_FLOW_CHANNELS]
+
+
+def fold_direct_input(flow_net: nn.Module) -> nn.Module:
+    """A copy of a direct ResFlowNet whose first convolution reads only ``training.model.DIRECT_FLOW_PARTS``
+    (target, source, error: 7 channels, ``direct_flownet_input(..., folded=True)``) instead of all 12.
+
+    In a direct net's input the warped frame is the source frame itself and the rigid flow is zero, so the
+    warped frame's weights add to the source's and the rigid flow's drop out: the same function (up to float
+    summation order), 5 input channels fewer in the first convolution, which INT8 keeps FP32."""
+    folded = copy.deepcopy(flow_net)
+    conv = folded.encoder.conv1.conv
+    weight = conv.weight.detach()
+    by_part = {name: weight[:, _PARTS[name]] for name in DIRECT_FLOW_PARTS}
+    by_part["source"] = by_part["source"] + weight[:, _PARTS["warped"]]
+    conv.weight = nn.Parameter(torch.cat([by_part[name] for name in DIRECT_FLOW_PARTS], dim=1))
+    conv.in_channels = conv.weight.shape[1]
+    return folded
 
 
 def photometric_alpha(model: GeoNet) -> float:
@@ -178,7 +204,7 @@ def photometric_alpha(model: GeoNet) -> float:
 def build_wrapper(graph: str, model: GeoNet) -> nn.Module:
     """The export module of ``graph`` around ``model``'s (eval-mode) networks."""
     if graph == "depthnet":
-        wrapper = DepthExport(model.depth_net, model.scale_normalize)
+        wrapper = DepthExport(export_depth_net(model.depth_net), model.scale_normalize)
     elif graph == "posenet":
         wrapper = PoseExport(model.pose_net, model.num_source)
     elif graph == "rigidflow":

@@ -118,12 +118,20 @@ def network_rows(target: torch.Tensor, sources: torch.Tensor) -> tuple[torch.Ten
     return target_n, sources_n, sources_n.transpose(0, 1).reshape(N * B, *sources_n.shape[2:])
 
 
-def direct_flownet_input(frame_from, frame_to, alpha: float) -> torch.Tensor:
+# The parts of a direct ResFlowNet's input that carry information: its "warped" frame is "source" and its
+# "rigid_flow" is zero (direct_flownet_input), so the export folds them away (export.wrappers.fold_direct_input).
+DIRECT_FLOW_PARTS = ("target", "source", "error")
+
+
+def direct_flownet_input(frame_from, frame_to, alpha: float, folded: bool = False) -> torch.Tensor:
     """:func:`flownet_input` for a camera at rest (zero rigid flow): ``frame_to`` itself as the warped frame and
     the photometric error of the frames as they are; what a ``direct_flow`` ResFlowNet reads, in training and
-    in its exported graph. (B, 3, H, W) network-range frames -> (B, 12, H, W)."""
-    zero_flow = torch.zeros_like(frame_from[:, :2])
-    return flownet_input(frame_from, frame_to, frame_to, zero_flow, photometric_error(frame_to, frame_from, alpha))
+    in its exported graph. (B, 3, H, W) network-range frames -> (B, 12, H, W); ``folded``: only the
+    :data:`DIRECT_FLOW_PARTS`, in that order (B, 7, H, W), what the exported graph's folded net reads."""
+    error = photometric_error(frame_to, frame_from, alpha)
+    if folded:
+        return torch.cat([frame_from, frame_to, l2_norm(error)], dim=1)
+    return flownet_input(frame_from, frame_to, frame_to, torch.zeros_like(frame_from[:, :2]), error)
 
 
 @dataclass

@@ -384,12 +384,19 @@ class UpconvDecoder(nn.Module):
 
     def forward(self, bottleneck: torch.Tensor, skips: Sequence[torch.Tensor]) -> list[torch.Tensor]:
         """bottleneck (B,C,h,w) + skips fine-to-coarse -> [pred scale 0 (B,P,H,W), ..., scale 3]."""
+        return self.run_levels(bottleneck, skips, self.num_levels)[1][::-1]
+
+    def run_levels(
+        self, bottleneck: torch.Tensor, skips: Sequence[torch.Tensor], levels: int
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """The first ``levels`` levels, coarse to fine -> (the last level's features, its predictions so far,
+        coarse to fine). The export's phase form (``export.phase_form``) runs the finest level its own way."""
         skips_coarse_to_fine = list(skips)[::-1]
         first_pred_level = self.num_levels - self.num_preds
         x = bottleneck
         pred = None
         preds_coarse_to_fine = []
-        for level in range(self.num_levels):
+        for level in range(levels):
             x = self.upconvs[level](x)
             parts = [x]
             if level < len(skips_coarse_to_fine):
@@ -403,7 +410,7 @@ class UpconvDecoder(nn.Module):
                 scale = self.num_levels - 1 - level
                 pred = self.heads[scale](x)
                 preds_coarse_to_fine.append(pred)
-        return preds_coarse_to_fine[::-1]
+        return x, preds_coarse_to_fine
 
 
 def init_xavier(module: nn.Module) -> None:
