@@ -43,7 +43,10 @@ def bench_graphs(model: str, threads: int, backends: str, iters: int) -> dict:
 def shares(model: str, threads: int, backends: str, iters: int) -> dict:
     model_dir = resolve_model(model)
     manifest = load_manifest(model_dir)
-    macs = {graph: target_limits.graph_macs(manifest.path(graph, "fp32")) for graph in NETWORKS.values()}
+    macs = {
+        graph: target_limits.graph_macs(manifest.path(graph, "fp32"), skip_zero_taps=True)
+        for graph in NETWORKS.values()
+    }
     bench = bench_graphs(model, threads, backends, iters)
     peaks = target_limits.gemm_peaks(threads)
     rows = []

@@ -41,9 +41,15 @@ def median_ms(fn, calls: int = 15) -> float:
     return statistics.median(times)
 
 
-def graph_macs(path: Path) -> int:
-    """Multiply-accumulates of one run of the graph's Conv and ConvTranspose nodes (batch 1)."""
+def graph_macs(path: Path, skip_zero_taps: bool = False) -> int:
+    """Multiply-accumulates of one run of the graph's Conv and ConvTranspose nodes (batch 1).
+
+    ``skip_zero_taps``: a Conv whose weight is in the file counts only its non-zero taps. The zeros of a
+    layer written in another form (DepthNet's finest level in :mod:`export.phase_form`: up to 4x the taps,
+    the same function) are no work of the model, so a share of the peak must not count them; trained
+    weights have no other exact zeros (random ones may: the peers' counts keep every tap)."""
     import onnx
+    from onnx import numpy_helper
 
     model = onnx.shape_inference.infer_shapes(onnx.load(str(path)))
     shapes = {}
@@ -51,13 +57,17 @@ def graph_macs(path: Path) -> int:
         dims = value.type.tensor_type.shape.dim
         shapes[value.name] = [d.dim_value if d.HasField("dim_value") else 1 for d in dims]  # batch "B": 1
     shapes.update({init.name: list(init.dims) for init in model.graph.initializer})
+    weights = {init.name: init for init in model.graph.initializer}
     macs = 0
     for node in model.graph.node:
         if node.op_type not in ("Conv", "ConvTranspose"):
             continue
         kernel = shapes[node.input[1]]  # Conv (Cout, Cin/g, kh, kw); ConvTranspose (Cin, Cout/g, kh, kw)
         if node.op_type == "Conv":
-            macs += int(np.prod(shapes[node.output[0]])) * int(np.prod(kernel[1:]))
+            taps = int(np.prod(kernel))  # of all output channels, at each output pixel
+            if skip_zero_taps and node.input[1] in weights:
+                taps = int(np.count_nonzero(numpy_helper.to_array(weights[node.input[1]])))
+            macs += int(np.prod(shapes[node.output[0]])) // kernel[0] * taps
         else:
             macs += int(np.prod(shapes[node.input[0]])) * int(np.prod(kernel[1:]))
     return macs
@@ -89,7 +99,9 @@ def sequence_macs_per_frame(model_dir: Path) -> int:
     """Convolution MACs the cascade runs per frame of a long sequence: DepthNet once per frame,
     PoseNet and ResFlowNet once per pair."""
     manifest = load_manifest(model_dir)
-    return sum(graph_macs(manifest.path(name, "fp32")) for name in ("depthnet", "posenet", "resflownet"))
+    return sum(
+        graph_macs(manifest.path(name, "fp32"), skip_zero_taps=True) for name in ("depthnet", "posenet", "resflownet")
+    )
 
 
 def pre_post_ms(frame: Path) -> dict[str, float]:

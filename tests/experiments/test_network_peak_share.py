@@ -25,7 +25,7 @@ def bench_result(*_args) -> dict:
 def test_shares_and_the_frame_on_the_fastest_of_each(monkeypatch):
     monkeypatch.setattr(nps, "bench_graphs", bench_result)
     monkeypatch.setattr(nps.target_limits, "gemm_peaks", lambda threads: {"int8_gops": 500.0, "fp32_gflops": 100.0})
-    monkeypatch.setattr(nps.target_limits, "graph_macs", lambda path: MACS[path.stem])
+    monkeypatch.setattr(nps.target_limits, "graph_macs", lambda path, skip_zero_taps: MACS[path.stem])
     result = nps.shares("small_synth", 2, "onnxruntime,openvino", 5)
     depth_ov = next(r for r in result["rows"] if r["graph"] == "depthnet" and r["engine"] == "openvino")
     assert depth_ov["gops"] == pytest.approx(2 * 4e8 / 4e-3 / 1e9)  # 200 GOP/s

@@ -15,9 +15,10 @@ from experiments.target_limits import graph_macs  # noqa: E402
 EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"  # speed_targets imports its siblings by name
 
 
-def _conv_graph(path: Path) -> None:
+def _conv_graph(path: Path, conv_weight: np.ndarray | None = None) -> None:
     """Conv 3 -> 4 channels, 3x3, pad 1, on B x 3 x 8 x 10; then ConvTranspose 4 -> 2, 2x2, stride 2; a ReLU."""
-    conv_w = numpy_helper.from_array(np.zeros((4, 3, 3, 3), np.float32), "conv_w")
+    weight = np.ones((4, 3, 3, 3), np.float32) if conv_weight is None else conv_weight
+    conv_w = numpy_helper.from_array(weight, "conv_w")
     deconv_w = numpy_helper.from_array(np.zeros((4, 2, 2, 2), np.float32), "deconv_w")
     nodes = [
         helper.make_node("Conv", ["x", "conv_w"], ["a"], pads=[1, 1, 1, 1]),
@@ -39,6 +40,17 @@ def test_graph_macs_counts_each_convolution_once_per_output_or_input_pixel(tmp_p
     conv = (4 * 8 * 10) * (3 * 3 * 3)  # every output value: Cin x kh x kw multiply-adds
     deconv = (4 * 8 * 10) * (2 * 2 * 2)  # every input value spreads to Cout x kh x kw outputs
     assert graph_macs(tmp_path / "g.onnx") == conv + deconv
+
+
+def test_graph_macs_leave_out_the_taps_whose_weight_is_zero(tmp_path):
+    weight = np.ones((4, 3, 3, 3), np.float32)
+    weight[:, :, 0, :] = 0  # the top row of every kernel: 6 of 9 taps left
+    weight[3] = 0  # and one output channel with none
+    _conv_graph(tmp_path / "g.onnx", weight)
+    conv = (8 * 10) * (3 * 3 * 6)  # per output pixel: three channels' 3 x 6 taps
+    deconv = (4 * 8 * 10) * (2 * 2 * 2)
+    assert graph_macs(tmp_path / "g.onnx", skip_zero_taps=True) == conv + deconv
+    assert graph_macs(tmp_path / "g.onnx") == (4 * 8 * 10) * (3 * 3 * 3) + deconv  # by default, every tap
 
 
 def _result(after: dict) -> dict:
