@@ -22,8 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -31,6 +29,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from experiments.graph_bench import bench_graphs_json
 from export.phase_form import PhaseDepthNet
 from export.to_onnx import export_graph
 from export.wrappers import DepthExport, example_inputs, io_spec
@@ -86,14 +85,8 @@ def same_graph(a: Path, b: Path) -> bool:
 
 def graph_ms(model: Path) -> dict[str, float]:
     """p50 ms of the DepthNet graph, FP32 and INT8 on each engine, one thread."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "bench.json"
-        command = [sys.executable, "-m", "geonet_infer.cli", "bench", "--model", str(model), "--tasks", "depth"]
-        command += ["--modes", "graph", "--precision", "fp32,int8", "--backend", "onnxruntime,openvino"]
-        command += ["--threads", "1", "--iters", "30", "--json", str(out), "--quiet"]
-        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-        rows = json.loads(out.read_text())["results"]
-        return {f"{row['backend']} {row['precision']}": row["p50_ms"] for row in rows}
+    rows = bench_graphs_json(model, "depth", "fp32,int8", "onnxruntime,openvino", threads=1)["results"]
+    return {f"{row['backend']} {row['precision']}": row["p50_ms"] for row in rows}
 
 
 def depth_abs_rel(model: Path, precision: str) -> float:

@@ -17,12 +17,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 from experiments import target_limits
+from experiments.graph_bench import bench_graphs_json
 from geonet_infer.models import resolve_model
 from geonet_infer.models.manifest import load_manifest
 
@@ -31,13 +30,7 @@ NETWORKS = {"depth": "depthnet", "pose": "posenet", "resflow": "resflownet"}  # 
 
 def bench_graphs(model: str, threads: int, backends: str, iters: int) -> dict:
     """One ``geonet-infer bench --modes graph`` run of the three networks, fp32 and int8: its JSON."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "bench.json"
-        command = [sys.executable, "-m", "geonet_infer.cli", "bench", "--model", model, "--modes", "graph"]
-        command += ["--tasks", ",".join(NETWORKS), "--precision", "fp32,int8", "--backend", backends]
-        command += ["--threads", str(threads), "--iters", str(iters), "--json", str(out), "--quiet"]
-        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-        return json.loads(out.read_text())
+    return bench_graphs_json(model, ",".join(NETWORKS), "fp32,int8", backends, threads, iters)
 
 
 def shares(model: str, threads: int, backends: str, iters: int) -> dict:

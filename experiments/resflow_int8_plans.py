@@ -17,11 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+from experiments.graph_bench import bench_graphs_json
 from geonet_infer import conventions
 from geonet_infer.convert import quantize as qz
 from geonet_infer.core.predictor import Predictor
@@ -72,13 +72,8 @@ def variant(shipped: Path, plan: qz.GraphPlan, feeds: list[dict], out: Path) -> 
 
 def graph_ms(model: Path) -> dict[str, float]:
     """p50 ms of the INT8 ResFlowNet graph on each engine, one thread."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "bench.json"
-        command = [sys.executable, "-m", "geonet_infer.cli", "bench", "--model", str(model), "--tasks", "resflow"]
-        command += ["--modes", "graph", "--precision", "int8", "--backend", "onnxruntime,openvino"]
-        command += ["--threads", "1", "--iters", "30", "--json", str(out), "--quiet"]
-        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-        return {row["backend"]: row["p50_ms"] for row in json.loads(out.read_text())["results"]}
+    rows = bench_graphs_json(model, "resflow", "int8", "onnxruntime,openvino", threads=1)["results"]
+    return {row["backend"]: row["p50_ms"] for row in rows}
 
 
 def flow_epe(model: Path, precision: str) -> dict[str, float]:
