@@ -86,15 +86,20 @@ def flow_epe(model: Path, precision: str) -> dict[str, float]:
     return {"synthetic held-out EPE-noc": synth["noc"]["epe"], "KITTI 2015 000010 EPE-noc": kitti["metrics"]["epe_noc"]}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--json", type=Path, help="write the result here too")
-    args = parser.parse_args(argv)
+def shipped_calibration() -> tuple[Path, list[dict]]:
+    """The bundled model directory and its ResFlowNet's INT8 calibration inputs, made as the shipped ones were."""
     shipped = resolve_model(None)
     spec = load_manifest(shipped)
     frames, original = qz.load_frames(CALIB, spec.height, spec.width, SETTINGS.max_frames, min_frames=spec.seq_length)
     K, _ = qz.calibration_intrinsics(CALIB, original, spec.height, spec.width)
-    feeds = qz.resflow_feeds(Predictor(shipped, "fp32"), frames, K)
+    return shipped, qz.resflow_feeds(Predictor(shipped, "fp32"), frames, K)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--json", type=Path, help="write the result here too")
+    args = parser.parse_args(argv)
+    shipped, feeds = shipped_calibration()
     fp32 = flow_epe(shipped, "fp32")
     result: dict = {"fp32": fp32, "calibration_inputs": len(feeds), "plans": {}}
     with tempfile.TemporaryDirectory() as tmp:

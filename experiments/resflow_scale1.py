@@ -34,13 +34,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from experiments.graph_bench import bench_graphs_json
-from experiments.resflow_int8_plans import CALIB, SETTINGS, flow_epe
+from experiments.resflow_int8_plans import SETTINGS, flow_epe, shipped_calibration
 from experiments.stop_experiment import HOLDBACK_CALIB, HOLDBACK_CLIP, check_figures, predict
 from export.to_onnx import export_graph
 from export.wrappers import ResFlowExport, example_inputs, io_spec, photometric_alpha
 from geonet_infer.convert import quantize as qz
-from geonet_infer.core.predictor import Predictor
-from geonet_infer.models import resolve_model
 from geonet_infer.models.manifest import MANIFEST_NAME, file_sha256, load_manifest
 from training.checkpoint import load_weights, model_from_checkpoint
 
@@ -100,11 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", type=Path, help="write the result here too")
     args = parser.parse_args(argv)
-    shipped = resolve_model(None)
-    spec = load_manifest(shipped)
-    frames, original = qz.load_frames(CALIB, spec.height, spec.width, SETTINGS.max_frames, min_frames=spec.seq_length)
-    K, _ = qz.calibration_intrinsics(CALIB, original, spec.height, spec.width)
-    feeds = qz.resflow_feeds(Predictor(shipped, "fp32"), frames, K)
+    shipped, feeds = shipped_calibration()
     result: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
         models = {"bundled": shipped, "scale 1": export_variant(shipped, Path(tmp) / "scale1", feeds)}
