@@ -130,7 +130,8 @@ def direct_flownet_input(frame_from, frame_to, alpha: float, folded: bool = Fals
     :data:`DIRECT_FLOW_PARTS`, in that order (B, 7, H, W), what the exported graph's folded net reads."""
     error = photometric_error(frame_to, frame_from, alpha)
     if folded:
-        return torch.cat([frame_from, frame_to, l2_norm(error)], dim=1)
+        parts = {"target": frame_from, "source": frame_to, "error": l2_norm(error)}
+        return torch.cat([parts[name] for name in DIRECT_FLOW_PARTS], dim=1)
     return flownet_input(frame_from, frame_to, frame_to, torch.zeros_like(frame_from[:, :2]), error)
 
 
