@@ -50,17 +50,15 @@ def upsampled_conv_to_phases(weight: torch.Tensor) -> torch.Tensor:
     """A 3x3 conv (pad 1) of a nearest-x2-upsampled input, as a 3x3 conv (pad 1) of the input itself whose
     output channel ``o * 4 + phase`` is output channel o at that phase (``F.pixel_shuffle(y, 2)`` restores it).
 
-    (Co, Ci, 3, 3) -> (4 Co, Ci, 3, 3). Full-resolution row 2i + a + ky - 1 holds half-resolution row
-    i + (a + ky - 1) // 2; the zero padding of both is the same pixels."""
-    co, ci = weight.shape[:2]
-    out = weight.new_zeros(co * 4, ci, 3, 3)
-    rows = torch.arange(co) * 4
-    for phase, (a, b) in enumerate(PHASES):
-        for ky in range(3):
-            for kx in range(3):
-                p, q = _tap(a + ky - 1)[0], _tap(b + kx - 1)[0]
-                out[rows + phase, :, p + 1, q + 1] += weight[:, :, ky, kx]
-    return out
+    (Co, Ci, 3, 3) -> (4 Co, Ci, 3, 3): the upsampled input's four phases are the input itself
+    (:func:`_read_at_every_phase`); the zero padding of both is the same pixels."""
+    return _read_at_every_phase(full_res_conv_to_phases(weight))
+
+
+def _read_at_every_phase(phase_weight: torch.Tensor) -> torch.Tensor:
+    """Phase-form weights (4 Co, 4 Ci, 3, 3) of an input whose four phases are one tensor (a nearest-x2
+    upsampled one) -> (4 Co, Ci, 3, 3) reading that tensor once: each channel's four phase taps add up."""
+    return phase_weight.reshape(phase_weight.shape[0], -1, 4, 3, 3).sum(2)
 
 
 def full_res_conv_to_phases(weight: torch.Tensor) -> torch.Tensor:
@@ -103,10 +101,8 @@ class PhaseFinestLevel(nn.Module):
             up_w, up_b = fold_batch_norm(decoder.upconvs[level].conv)
             ic_w, ic_b = fold_batch_norm(decoder.iconvs[level])
             width = up_w.shape[0]
-            self.pred_channels = head.conv.out_channels
             phases = full_res_conv_to_phases(ic_w)
-            # the fed-back prediction's four upsampled phases are one tensor: their taps add up
-            fed = phases[:, width * 4 :].reshape(width * 4, self.pred_channels, 4, 3, 3).sum(2)
+            fed = _read_at_every_phase(phases[:, width * 4 :])  # the scale-1 prediction, upsampled nearest
             self.upconv = self._conv(upsampled_conv_to_phases(up_w), up_b.repeat_interleave(4))
             self.iconv = self._conv(torch.cat([phases[:, : width * 4], fed], 1), ic_b.repeat_interleave(4))
             self.head = self._conv(full_res_conv_to_phases(head.conv.weight), head.conv.bias.repeat_interleave(4))
