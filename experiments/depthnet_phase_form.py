@@ -21,59 +21,24 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn as nn
 
 from experiments.graph_bench import bench_graphs_json
+from experiments.shipped_variants import CALIB, PREPARED, REPO, SETTINGS, SYNTH, export_variant
 from export.phase_form import PhaseDepthNet
-from export.to_onnx import export_graph
-from export.wrappers import DepthExport, example_inputs, io_spec
-from geonet_infer.convert import quantize as qz
+from export.wrappers import DepthExport
 from geonet_infer.convert.frames import depth_feeds, load_frames
 from geonet_infer.core.predictor import Predictor
 from geonet_infer.core.spec import InputSpec
 from geonet_infer.models import resolve_model
-from geonet_infer.models.manifest import MANIFEST_NAME, file_sha256, load_manifest
+from geonet_infer.models.manifest import load_manifest
 from training.checkpoint import load_weights, model_from_checkpoint
 
-REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "weights" / "small_synth.pt"  # the shipped model's weights (manifest provenance)
-CALIB = REPO / "data" / "synth40" / "seq_0000" / "image"
-SYNTH, PREPARED = REPO / "data" / "synth40", REPO / "data" / "synth40_prepared"
-SETTINGS = qz.QuantSettings(calibrate_method="percentile", max_frames=40, op_types=("Conv", "Relu", "Add", "MaxPool"))
-
-
-def export_variant(shipped: Path, out: Path, depth_module: nn.Module, scale_normalize: bool, feeds: list) -> Path:
-    """The shipped model directory with ``depth_module`` as its FP32 and INT8 DepthNet."""
-    shutil.copytree(shipped, out)
-    manifest_path = out / MANIFEST_NAME
-    manifest = json.loads(manifest_path.read_text())
-    spec = load_manifest(shipped)
-    fp32_file = out / manifest["graphs"]["fp32"]["depthnet"]["file"]
-    example = example_inputs("depthnet", spec.height, spec.width, spec.seq_length)
-    export_graph(
-        DepthExport(depth_module, scale_normalize), example, io_spec("depthnet", spec.height, spec.width, 1), fp32_file
-    )
-    manifest["graphs"]["fp32"]["depthnet"]["sha256"] = file_sha256(fp32_file)
-    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
-    quantize(out, feeds)
-    return out
-
-
-def quantize(model: Path, feeds: list) -> None:
-    """Quantise ``model``'s FP32 DepthNet into its INT8 file as the shipped one was, and record the file's sha256."""
-    manifest_path = model / MANIFEST_NAME
-    manifest = json.loads(manifest_path.read_text())
-    entry = manifest["graphs"]["int8"]["depthnet"]
-    fp32_file = model / manifest["graphs"]["fp32"]["depthnet"]["file"]
-    qz.quantize_graph(fp32_file, model / entry["file"], feeds, SETTINGS, qz.plan_for("depthnet", manifest["arch"]))
-    entry["sha256"] = file_sha256(model / entry["file"])
-    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
 
 
 def same_graph(a: Path, b: Path) -> bool:
@@ -114,7 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     result: dict = {"torch_max_abs_disparity_difference": float((reference - phased).abs().max())}
     with tempfile.TemporaryDirectory() as tmp:
         variants = {
-            name: export_variant(shipped, Path(tmp) / str(i), net, model.scale_normalize, feeds)
+            name: export_variant(
+                shipped, Path(tmp) / str(i), "depthnet", DepthExport(net, model.scale_normalize), feeds
+            )
             for i, (name, net) in enumerate((("trained layout", model.depth_net), ("phase form", phase_net)))
         }
         result["phase_form_is_shipped"] = {  # the graphs (the files' metadata say how each was made)

@@ -22,22 +22,18 @@ import tempfile
 from pathlib import Path
 
 from experiments.graph_bench import bench_graphs_json
+from experiments.shipped_variants import PREPARED, REPO, SYNTH, quantize_into, shipped_calibration
 from geonet_infer import conventions
 from geonet_infer.convert import quantize as qz
 from geonet_infer.core.predictor import Predictor
 from geonet_infer.eval import evaluation
 from geonet_infer.eval.adapters import model_flow_fn
 from geonet_infer.eval.datasets import load_dataset
-from geonet_infer.models import resolve_model
-from geonet_infer.models.manifest import MANIFEST_NAME, file_sha256, load_manifest
+from geonet_infer.models.manifest import file_sha256
 
-REPO = Path(__file__).resolve().parents[1]
-CALIB = REPO / "data" / "synth40" / "seq_0000" / "image"
-SYNTH, PREPARED = REPO / "data" / "synth40", REPO / "data" / "synth40_prepared"
 KITTI_2015 = REPO.parent / "shared" / "realdata" / "kitti2015_flow_000010"
 # no calibration in the extract: KITTI 2011_09_26's P_rect_02, as the INT8 rule and benchmarks/eval_all.py assume
 KITTI_2015_K = conventions.kitti_like_K(conventions.KITTI_HEIGHT, conventions.KITTI_WIDTH)
-SETTINGS = qz.QuantSettings(calibrate_method="percentile", max_frames=40, op_types=("Conv", "Relu", "Add", "MaxPool"))
 SHIPPED = qz.PLANS["resflownet"]
 PLANS = {
     "shipped: input layer + 2 finest levels + output layer FP32": SHIPPED,
@@ -60,13 +56,7 @@ PLANS = {
 def variant(shipped: Path, plan: qz.GraphPlan, feeds: list[dict], out: Path) -> Path:
     """The shipped model directory with its INT8 ResFlowNet quantised by ``plan``."""
     shutil.copytree(shipped, out)
-    manifest_path = out / MANIFEST_NAME
-    manifest = json.loads(manifest_path.read_text())
-    entry = manifest["graphs"]["int8"]["resflownet"]
-    fp32_file = out / manifest["graphs"]["fp32"]["resflownet"]["file"]
-    qz.quantize_graph(fp32_file, out / entry["file"], feeds, SETTINGS, plan)
-    entry["sha256"] = file_sha256(out / entry["file"])
-    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
+    quantize_into(out, "resflownet", plan, feeds)
     return out
 
 
@@ -84,15 +74,6 @@ def flow_epe(model: Path, precision: str) -> dict[str, float]:
     kitti_pair = load_dataset("flow", KITTI_2015)
     kitti = evaluation.evaluate_flow(model_flow_fn(predictor), kitti_pair, intrinsics=KITTI_2015_K)
     return {"synthetic held-out EPE-noc": synth["noc"]["epe"], "KITTI 2015 000010 EPE-noc": kitti["metrics"]["epe_noc"]}
-
-
-def shipped_calibration() -> tuple[Path, list[dict]]:
-    """The bundled model directory and its ResFlowNet's INT8 calibration inputs, made as the shipped ones were."""
-    shipped = resolve_model(None)
-    spec = load_manifest(shipped)
-    frames, original = qz.load_frames(CALIB, spec.height, spec.width, SETTINGS.max_frames, min_frames=spec.seq_length)
-    K, _ = qz.calibration_intrinsics(CALIB, original, spec.height, spec.width)
-    return shipped, qz.resflow_feeds(Predictor(shipped, "fp32"), frames, K)
 
 
 def main(argv: list[str] | None = None) -> int:

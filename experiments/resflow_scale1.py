@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import tempfile
 from pathlib import Path
 
@@ -34,15 +33,12 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from experiments.graph_bench import bench_graphs_json
-from experiments.resflow_int8_plans import SETTINGS, flow_epe, shipped_calibration
+from experiments.resflow_int8_plans import flow_epe
+from experiments.shipped_variants import REPO, export_variant, shipped_calibration
 from experiments.stop_experiment import HOLDBACK_CALIB, HOLDBACK_CLIP, check_figures, predict
-from export.to_onnx import export_graph
-from export.wrappers import ResFlowExport, example_inputs, io_spec, photometric_alpha
-from geonet_infer.convert import quantize as qz
-from geonet_infer.models.manifest import MANIFEST_NAME, file_sha256, load_manifest
+from export.wrappers import ResFlowExport, photometric_alpha
 from training.checkpoint import load_weights, model_from_checkpoint
 
-REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "weights" / "small_synth.pt"  # the shipped model's weights (manifest provenance)
 
 
@@ -63,23 +59,12 @@ class ScaleOneFlow(nn.Module):
         return [full * size]
 
 
-def export_variant(shipped: Path, out: Path, feeds: list) -> Path:
-    """The shipped model directory with the scale-1 ResFlowNet as its FP32 and INT8 ResFlowNet."""
+def scale_one_export() -> nn.Module:
+    """The bundled ResFlowNet's export module (the folded direct input) taking its flow at scale 1."""
     model = model_from_checkpoint(load_weights(WEIGHTS)).eval()
     wrapper = ResFlowExport(model.flow_net, photometric_alpha(model) if model.direct_flow else None).eval()
     wrapper.flow_net = ScaleOneFlow(wrapper.flow_net)
-    shutil.copytree(shipped, out)
-    manifest_path = out / MANIFEST_NAME
-    manifest = json.loads(manifest_path.read_text())
-    spec = load_manifest(shipped)
-    fp32_file, int8_entry = out / "resflownet.onnx", manifest["graphs"]["int8"]["resflownet"]
-    example = example_inputs("resflownet", spec.height, spec.width, spec.seq_length)
-    export_graph(wrapper, example, io_spec("resflownet", spec.height, spec.width, spec.seq_length), fp32_file)
-    qz.quantize_graph(fp32_file, out / int8_entry["file"], feeds, SETTINGS, qz.plan_for("resflownet", spec.arch))
-    manifest["graphs"]["fp32"]["resflownet"]["sha256"] = file_sha256(fp32_file)
-    int8_entry["sha256"] = file_sha256(out / int8_entry["file"])
-    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
-    return out
+    return wrapper
 
 
 def graph_ms(model: Path) -> dict[str, float]:
@@ -101,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     shipped, feeds = shipped_calibration()
     result: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
-        models = {"bundled": shipped, "scale 1": export_variant(shipped, Path(tmp) / "scale1", feeds)}
+        scale1 = export_variant(shipped, Path(tmp) / "scale1", "resflownet", scale_one_export(), feeds)
+        models = {"bundled": shipped, "scale 1": scale1}
         for name, model in models.items():
             work = Path(tmp) / f"work_{name.replace(' ', '')}"
             work.mkdir()
