@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
 import time
 from collections import deque
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,15 +28,48 @@ from geonet_infer.output.viz import depth_to_color, flow_to_color
 WRITE_THREADS = 2  # frames written while the next are predicted; colour maps and PNGs are most of the cost
 
 
+@contextlib.contextmanager
+def interrupts_held() -> Iterator[None]:
+    """Ctrl-C and SIGTERM (where a Python handler catches them) held back until the block ends, then raised.
+
+    Python runs a signal's handler between any two bytecodes of the main thread, so an interrupt could
+    cut bookkeeping that must happen together in two: a write handed to the pool but not queued (its
+    files written, never counted), a written frame taken off the queue but not recorded. Keep the block
+    short: a wait inside it could not be interrupted. Off the main thread no handler runs: nothing to do.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous: dict[int, Callable] = {}
+    try:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            handler = signal.getsignal(signum)
+            if callable(handler):  # SIG_DFL / SIG_IGN: no Python code runs, nothing is cut
+                signal.signal(signum, lambda caught, frame: held.append(caught))
+                previous[signum] = handler
+        yield
+    finally:
+        for installed, handler in previous.items():
+            signal.signal(installed, handler)
+        for caught in held:
+            signal.raise_signal(caught)  # its own handler now, as if it came just after the block
+
+
 @dataclass(frozen=True)
 class Written:
     """What writing one frame made, for the result video and the world cloud: each is computed once."""
 
     ms: float  # the write's wall time
     cpu_ms: float  # the writing thread's CPU time for it
-    sizes: dict[str, int]  # bytes written per layout pattern (depth/*.npy: ...)
+    files: dict[str, tuple[Path, int]]  # per layout pattern (depth/*.npy: ...), the file and its bytes
     pictures: tuple[np.ndarray | None, np.ndarray | None]  # depth colour map, flow colour wheel (RGB) or None
     points: tuple[np.ndarray, np.ndarray | None] | None  # the frame's points and colours (point clouds)
+
+    @property
+    def sizes(self) -> dict[str, int]:
+        """Bytes written per layout pattern."""
+        return {name: size for name, (_, size) in self.files.items()}
 
 
 class FrameWriter:
@@ -70,15 +106,20 @@ class FrameWriter:
     def _write(self, result: FrameResult, scale: tuple[float | None, float | None], rgb: np.ndarray | None) -> Written:
         t0, cpu0 = time.perf_counter(), time.thread_time()
         pictures = colour_pictures(result, self.tasks, scale) if self.pictures else (None, None)
-        sizes = write_frame(self.out_dir, result, self.tasks, pictures, self.outputs)
+        files = write_frame(self.out_dir, result, self.tasks, pictures, self.outputs)
         points = None
-        if self.options.point_cloud and result.depth is not None and result.intrinsics is not None:
-            points = result.points(rgb, self.options.point_stride, self.options.max_depth)
-            path = frame_path(self.out_dir, POINTS, result.name)
-            write_ply(path, *points, ply_comments(f"frame {result.name}, in its camera's frame", self.camera_height))
-            sizes[pattern(POINTS)] = path.stat().st_size
+        try:
+            if self.options.point_cloud and result.depth is not None and result.intrinsics is not None:
+                points = result.points(rgb, self.options.point_stride, self.options.max_depth)
+                path = frame_path(self.out_dir, POINTS, result.name)
+                comments = ply_comments(f"frame {result.name}, in its camera's frame", self.camera_height)
+                write_ply(path, *points, comments)
+                files[pattern(POINTS)] = (path, path.stat().st_size)
+        except BaseException:
+            _remove(files)  # all of a frame's files or none
+            raise
         ms, cpu_ms = (time.perf_counter() - t0) * 1e3, (time.thread_time() - cpu0) * 1e3
-        return Written(ms, cpu_ms, sizes, pictures, points)
+        return Written(ms, cpu_ms, files, pictures, points)
 
     def submit(
         self,
@@ -88,24 +129,30 @@ class FrameWriter:
     ) -> None:
         """Queue ``result``'s files (pictures at ``scale``: inverse-depth max, flow max; None = the frame's
         own); frames finished meanwhile go to ``on_written`` (waits while too many are queued)."""
-        self.pending.append((result, rgb, self.pool.submit(self._write, result, scale, rgb)))
+        with interrupts_held():  # a write the pool took is always queued, so it is always recorded
+            self.pending.append((result, rgb, self.pool.submit(self._write, result, scale, rgb)))
         self._settle(self.in_flight)
 
     def drain(self) -> None:
         self._settle(0)
 
     def _settle(self, keep: int) -> None:
-        # Each written frame goes to on_written right as it leaves the queue: an interrupt (Ctrl-C,
-        # SIGTERM) between two frames can neither drop a written frame nor count one twice.
+        # Each written frame goes to on_written as it leaves the queue, both or neither (interrupts_held):
+        # an interrupt (Ctrl-C, SIGTERM) can neither drop a written frame nor count one twice. The wait
+        # for a write stays outside, interruptible.
         while self.pending and (len(self.pending) > keep or self.pending[0][2].done()):
             result, rgb, future = self.pending[0]
             t0 = time.perf_counter()
             written = future.result()
             self.waited_ms += (time.perf_counter() - t0) * 1e3
-            self.pending.popleft()
-            self.on_written(result, rgb, written)
+            with interrupts_held():
+                self.pending.popleft()
+                self.on_written(result, rgb, written)
 
     def close(self) -> None:
+        """Finish the writes already started, drop the others, and remove the files of every frame written
+        but never recorded (a second interrupt stopped :meth:`drain`; a failed write before it): the
+        files on disk are the frames ``on_written`` saw."""
         interrupt = None
         while True:  # an interrupt here would leave writes running while the caller cleans up after them
             try:
@@ -113,6 +160,10 @@ class FrameWriter:
                 break
             except BaseException as exc:  # Ctrl-C, SIGTERM: raised once the started writes are done
                 interrupt = exc
+        for _, _, future in self.pending:
+            if not future.cancelled() and future.exception() is None:
+                _remove(future.result().files)
+        self.pending.clear()
         if interrupt is not None:
             raise interrupt
 
@@ -135,11 +186,11 @@ def write_frame(
     tasks: tuple[str, ...],
     pictures: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
     outputs: Collection[str] = DEFAULT_OUTPUTS,
-) -> dict[str, int]:
+) -> dict[str, tuple[Path, int]]:
     """All files of one frame, or none: an interrupt or a failed write removes the ones already written.
 
     ``outputs``: the --outputs names to write (:mod:`geonet_infer.output.layout`); the colour maps
-    only with their ``pictures`` (:func:`colour_pictures`). Returns bytes written per layout pattern."""
+    only with their ``pictures`` (:func:`colour_pictures`). Returns per layout pattern the file and its bytes."""
     data: dict[str, np.ndarray | None] = {
         "depth-npy": result.depth,
         "depth-npy16": result.depth,
@@ -153,19 +204,22 @@ def write_frame(
         array = data.get(output.name or "")
         if array is not None:
             writes.append((output, array))
-    written: list[Path] = []
-    sizes: dict[str, int] = {}
+    files: dict[str, tuple[Path, int]] = {}
     try:
         for output, array in writes:
             path = frame_path(out_dir, output, result.name)
             _WRITERS[output.name](path, array)
-            written.append(path)
-            sizes[pattern(output)] = path.stat().st_size
+            files[pattern(output)] = (path, 0)  # removed on a failure from here on
+            files[pattern(output)] = (path, path.stat().st_size)
     except BaseException:
-        for path in written:
-            path.unlink(missing_ok=True)
+        _remove(files)
         raise
-    return sizes
+    return files
+
+
+def _remove(files: dict[str, tuple[Path, int]]) -> None:
+    for path, _ in files.values():
+        path.unlink(missing_ok=True)
 
 
 _WRITERS: dict[str | None, Callable[[Path, np.ndarray], object]] = {  # --outputs name -> how its file is written

@@ -244,6 +244,91 @@ def test_sigterm_mid_run_cleans_up_writes_an_interrupted_summary_and_exits_130(t
     assert temp_files(out) == []
 
 
+@pytest.mark.parametrize("cut", ["queued", "recorded"])
+def test_an_interrupt_between_two_steps_of_the_writer_neither_loses_nor_hides_a_written_frame(
+    tmp_path, capsys, monkeypatch, cut
+):
+    """Python runs a signal's handler between any two bytecodes of the main thread. A Ctrl-C right after the
+    write pool took frame 3 ("queued": its files were written, it was never recorded) left 8 frames on disk
+    and 7 in the summary (CI, 2026-12-07); so would one right after a written frame left the queue
+    ("recorded"). The signal is raised at exactly those points (signal.raise_signal runs its handler there)."""
+    from geonet_infer.output import writer as writer_module
+
+    calls = {"n": 0}
+
+    def cut_here() -> None:
+        calls["n"] += 1
+        if calls["n"] == 4:
+            signal.raise_signal(signal.SIGINT)
+
+    class CutPool(writer_module.ThreadPoolExecutor):
+        def submit(self, *args, **kwargs):
+            future = super().submit(*args, **kwargs)
+            if cut == "queued":
+                cut_here()
+            return future
+
+    class CutQueue(writer_module.deque):
+        def popleft(self):
+            item = super().popleft()
+            if cut == "recorded":
+                cut_here()
+            return item
+
+    monkeypatch.setattr(writer_module, "ThreadPoolExecutor", CutPool)
+    monkeypatch.setattr(writer_module, "deque", CutQueue)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    folder = sample_folder(tmp_path, 12)
+    out = tmp_path / "out"
+    rc, _, stderr = run_cli(capsys, "predict", folder, "--out", out, "--no-progress", "--calib", SAMPLE_CALIB)
+    assert rc == 130, stderr
+    assert calls["n"] >= 4
+    summary = summary_of(out)
+    assert summary["interrupted"] is True
+    npy, png = stems(out / "depth", "*.npy"), stems(out / "depth", "*.png")
+    assert npy == png == [f"{i:06d}" for i in range(summary["frames"])]
+    assert summary["frames"] >= 4  # the frame written when the signal came is counted, not left behind uncounted
+    assert temp_files(out) == []
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_closing_the_writer_removes_the_files_of_frames_written_but_never_recorded(tmp_path, monkeypatch):
+    """A second Ctrl-C stops predict's drain: close() lets the started writes finish, then removes their files,
+    so the files on disk are the frames recorded (the summary's count); recorded frames stay."""
+    import threading
+
+    from geonet_infer.core.results import FrameResult
+    from geonet_infer.output import writer as writer_module
+
+    gate, waiting, made = threading.Event(), threading.Semaphore(0), []
+    real_npy = writer_module._WRITERS["depth-npy"]
+
+    def gated_npy(path, depth):
+        if path.stem >= "f3":
+            waiting.release()
+            assert gate.wait(30)
+        real_npy(path, depth)
+        made.append(path.stem)
+
+    monkeypatch.setitem(writer_module._WRITERS, "depth-npy", gated_npy)
+    recorded: list[str] = []
+    writer = writer_module.FrameWriter(
+        tmp_path, ("depth",), {"depth-npy", "depth-vis"}, lambda result, rgb, written: recorded.append(result.name)
+    )
+    depth = np.linspace(1, 50, 6 * 8, dtype=np.float32).reshape(6, 8)
+    for i in range(5):
+        fields = dict(camera_to_world=np.eye(4), pose_to_next=None, pose_vector_to_next=None, flow=None)
+        writer.submit(FrameResult(i, f"f{i}", depth, 1 / depth, **fields, undistorted=False, timings_ms={}))
+        if i == 2:
+            writer.drain()
+    assert waiting.acquire(timeout=30) and waiting.acquire(timeout=30)  # both writes started (none cancelled)
+    gate.set()  # frames 3 and 4 now written, never drained
+    writer.close()
+    assert sorted(made) == ["f0", "f1", "f2", "f3", "f4"]
+    assert recorded == ["f0", "f1", "f2"]
+    assert stems(tmp_path / "depth", "*.npy") == stems(tmp_path / "depth", "*.png") == recorded
+
+
 # ----------------------------------------------------------------------------- 5. non-finite outputs
 @pytest.mark.parametrize("what", ["depth", "flow", "pose"])
 def test_a_non_finite_output_fails_its_frame_and_is_not_written(tmp_path, capsys, monkeypatch, what):
