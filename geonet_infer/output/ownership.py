@@ -245,8 +245,9 @@ class OwnedFolder:
         """Record more files before writing them (a video that decodes more frames than it lists)."""
         if not files <= self.files:
             check_writes(self.out_dir, files - self.files, (), self.inputs)
+            # the marker first: cut short (Ctrl-C), the names are not taken as recorded and are claimed again
+            self._write_marker(self.files | files)
             self.files |= files
-            self._write_marker()
 
     def video_written(self, path: Path) -> None:
         """Record the digest of the finished video outside OUT: an identical re-run may replace it."""
@@ -269,9 +270,9 @@ class OwnedFolder:
         remove_listed(self.out_dir, previous["files"])
         remove_outside_temps(previous["outside"])
 
-    def _write_marker(self) -> None:
+    def _write_marker(self, files: set[str] | None = None) -> None:
         marker: dict[str, object] = {**self.record, "input": self.input}
-        marker["files"] = sorted(self.files)
+        marker["files"] = sorted(self.files if files is None else files)
         marker["outside"] = [] if self.outside is None else [{"path": str(self.outside), "sha256": self.outside_sha256}]
         with atomic_write(self.marker) as tmp:
             tmp.write_text(json.dumps(marker) + "\n")

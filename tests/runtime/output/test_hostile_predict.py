@@ -9,6 +9,7 @@ or need a signal run the CLI in a subprocess (`python -m geonet_infer.cli`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import json
@@ -327,6 +328,34 @@ def test_closing_the_writer_removes_the_files_of_frames_written_but_never_record
     assert sorted(made) == ["f0", "f1", "f2", "f3", "f4"]
     assert recorded == ["f0", "f1", "f2"]
     assert stems(tmp_path / "depth", "*.npy") == stems(tmp_path / "depth", "*.png") == recorded
+
+
+def test_names_claimed_while_an_interrupt_cuts_the_marker_write_are_claimed_again(tmp_path, monkeypatch):
+    """A video's frame names are claimed in blocks as it decodes. A Ctrl-C inside the marker's write must not
+    leave the names taken as claimed: the next frame would be written unlisted, and the next run into OUT
+    refuse it as a file predict did not write."""
+    from geonet_infer.output import ownership
+
+    out = tmp_path / "out"
+    record = {"written_by": "geonet-infer predict", "version": "test"}
+    owned = ownership.OwnedFolder(out, {"a.npy"}, "in.mp4", marker=".m", lock=".m.lock", record=record)
+    real_write = ownership.atomic_write
+    cut = {"left": 1}
+
+    @contextlib.contextmanager
+    def interrupted_write(path):
+        with real_write(path) as tmp:
+            yield tmp
+            if cut["left"]:
+                cut["left"] -= 1
+                raise KeyboardInterrupt  # the temp file is dropped, the marker stays as it was
+
+    with owned:
+        monkeypatch.setattr(ownership, "atomic_write", interrupted_write)
+        with pytest.raises(KeyboardInterrupt):
+            owned.add({"b.npy"})
+        owned.add({"b.npy"})  # the next frame claims the name again
+        assert ownership.read_marker(out / ".m")["files"] == ["a.npy", "b.npy"]
 
 
 # ----------------------------------------------------------------------------- 5. non-finite outputs
