@@ -99,15 +99,16 @@ def normalize_disparity_scale(disp: torch.Tensor) -> torch.Tensor:
     return disp / disp.mean(dim=(1, 2, 3), keepdim=True)
 
 
-def flownet_input(frame_from, frame_to, warped, flow, error) -> torch.Tensor:
+def flownet_input(frame_from, frame_to, warped, flow, error, parts=None) -> torch.Tensor:
     """The 12 ResFlowNet channels, in the official order, which the runtime reads from the same
     :data:`geonet_infer.core.cascade.RESFLOW_INPUT`.
 
     ``[I_from (3), I_to (3), I_to rigidly warped to I_from (3), rigid flow (2),
-    L2 norm of the rigid photometric error (1)]`` -> (B, 12, H, W).
+    L2 norm of the rigid photometric error (1)]`` -> (B, 12, H, W). ``parts``: only these parts, in this
+    order (:data:`DIRECT_FLOW_PARTS`); a part left out may be given as None.
     """
-    parts = {"target": frame_from, "source": frame_to, "warped": warped, "rigid_flow": flow, "error": l2_norm(error)}
-    return torch.cat([parts[name] for name, _ in RESFLOW_INPUT], dim=1)
+    by_name = {"target": frame_from, "source": frame_to, "warped": warped, "rigid_flow": flow, "error": l2_norm(error)}
+    return torch.cat([by_name[name] for name in parts or [name for name, _ in RESFLOW_INPUT]], dim=1)
 
 
 def network_rows(target: torch.Tensor, sources: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -130,8 +131,7 @@ def direct_flownet_input(frame_from, frame_to, alpha: float, folded: bool = Fals
     :data:`DIRECT_FLOW_PARTS`, in that order (B, 7, H, W), what the exported graph's folded net reads."""
     error = photometric_error(frame_to, frame_from, alpha)
     if folded:
-        parts = {"target": frame_from, "source": frame_to, "error": l2_norm(error)}
-        return torch.cat([parts[name] for name in DIRECT_FLOW_PARTS], dim=1)
+        return flownet_input(frame_from, frame_to, None, None, error, parts=DIRECT_FLOW_PARTS)
     return flownet_input(frame_from, frame_to, frame_to, torch.zeros_like(frame_from[:, :2]), error)
 
 
