@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from experiments.graph_bench import bench_graphs_json
-from experiments.shipped_variants import CALIB, PREPARED, REPO, SETTINGS, SYNTH, export_variant
+from experiments.shipped_variants import CALIB, PREPARED, SETTINGS, SYNTH, export_variant, shipped_geonet
 from export.phase_form import PhaseDepthNet
 from export.wrappers import DepthExport
 from geonet_infer.convert.frames import depth_feeds, load_frames
@@ -36,9 +36,6 @@ from geonet_infer.core.predictor import Predictor
 from geonet_infer.core.spec import InputSpec
 from geonet_infer.models import resolve_model
 from geonet_infer.models.manifest import load_manifest
-from training.checkpoint import load_weights, model_from_checkpoint
-
-WEIGHTS = REPO / "weights" / "small_synth.pt"  # the shipped model's weights (manifest provenance)
 
 
 def same_graph(a: Path, b: Path) -> bool:
@@ -69,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     shipped = resolve_model(None)
     spec = load_manifest(shipped)
-    model = model_from_checkpoint(load_weights(WEIGHTS)).eval()
+    model = shipped_geonet()
     frames, _ = load_frames(CALIB, spec.height, spec.width, SETTINGS.max_frames)
     feeds = depth_feeds(frames, InputSpec.from_conventions(spec.height, spec.width, spec.seq_length))
     image = torch.from_numpy(np.concatenate([f["image"] for f in feeds[:4]]))

@@ -34,12 +34,9 @@ import torch.nn.functional as F
 
 from experiments.graph_bench import bench_graphs_json
 from experiments.resflow_int8_plans import flow_epe
-from experiments.shipped_variants import REPO, export_variant, shipped_calibration
+from experiments.shipped_variants import export_variant, shipped_calibration, shipped_geonet
 from experiments.stop_experiment import HOLDBACK_CALIB, HOLDBACK_CLIP, check_figures, predict
 from export.wrappers import ResFlowExport, photometric_alpha
-from training.checkpoint import load_weights, model_from_checkpoint
-
-WEIGHTS = REPO / "weights" / "small_synth.pt"  # the shipped model's weights (manifest provenance)
 
 
 class ScaleOneFlow(nn.Module):
@@ -61,7 +58,7 @@ class ScaleOneFlow(nn.Module):
 
 def scale_one_export() -> nn.Module:
     """The bundled ResFlowNet's export module (the folded direct input) taking its flow at scale 1."""
-    model = model_from_checkpoint(load_weights(WEIGHTS)).eval()
+    model = shipped_geonet()
     wrapper = ResFlowExport(model.flow_net, photometric_alpha(model) if model.direct_flow else None).eval()
     wrapper.flow_net = ScaleOneFlow(wrapper.flow_net)
     return wrapper

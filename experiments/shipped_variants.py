@@ -21,6 +21,14 @@ REPO = Path(__file__).resolve().parents[1]
 CALIB = REPO / "data" / "synth40" / "seq_0000" / "image"
 SETTINGS = qz.QuantSettings(calibrate_method="percentile", max_frames=40, op_types=("Conv", "Relu", "Add", "MaxPool"))
 SYNTH, PREPARED = REPO / "data" / "synth40", REPO / "data" / "synth40_prepared"  # the held-out sequences' set
+WEIGHTS = REPO / "weights" / "small_synth.pt"  # the shipped model's weights (manifest provenance)
+
+
+def shipped_geonet() -> nn.Module:
+    """The shipped model's trained GeoNet (eval mode), from :data:`WEIGHTS`."""
+    from training.checkpoint import load_weights, model_from_checkpoint
+
+    return model_from_checkpoint(load_weights(WEIGHTS)).eval()
 
 
 def shipped_calibration() -> tuple[Path, list[dict]]:
