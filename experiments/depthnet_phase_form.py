@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from experiments.graph_bench import bench_graphs_json
+from experiments.graph_bench import p50_ms_one_thread
 from experiments.shipped_variants import CALIB, PREPARED, SETTINGS, SYNTH, export_variant, shipped_geonet
 from export.phase_form import PhaseDepthNet
 from export.wrappers import DepthExport
@@ -43,12 +43,6 @@ def same_graph(a: Path, b: Path) -> bool:
     import onnx
 
     return onnx.load(str(a)).graph.SerializeToString() == onnx.load(str(b)).graph.SerializeToString()
-
-
-def graph_ms(model: Path) -> dict[str, float]:
-    """p50 ms of the DepthNet graph, FP32 and INT8 on each engine, one thread."""
-    rows = bench_graphs_json(model, "depth", "fp32,int8", "onnxruntime,openvino", threads=1)["results"]
-    return {f"{row['backend']} {row['precision']}": row["p50_ms"] for row in rows}
 
 
 def depth_abs_rel(model: Path, precision: str) -> float:
@@ -94,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         timings: dict[str, list[dict]] = {name: [] for name in variants}
         for _ in range(args.rounds):
             for name, path in variants.items():
-                timings[name].append(graph_ms(path))
+                timings[name].append(p50_ms_one_thread(path, "depth"))
         for name in variants:
             result[name]["graph_ms_one_thread"] = {k: min(t[k] for t in timings[name]) for k in timings[name][0]}
         print(json.dumps(result, indent=1))

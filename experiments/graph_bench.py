@@ -21,3 +21,9 @@ def bench_graphs_json(
         command += ["--threads", str(threads), "--iters", str(iters), "--json", str(out), "--quiet"]
         subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
         return json.loads(out.read_text())
+
+
+def p50_ms_one_thread(model: str | Path, tasks: str) -> dict[str, float]:
+    """p50 ms of ``tasks``' graphs, FP32 and INT8 on onnxruntime and OpenVINO, one thread: {"engine precision": ms}."""
+    rows = bench_graphs_json(model, tasks, "fp32,int8", "onnxruntime,openvino", threads=1)["results"]
+    return {f"{row['backend']} {row['precision']}": row["p50_ms"] for row in rows}

@@ -32,7 +32,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from experiments.graph_bench import bench_graphs_json
+from experiments.graph_bench import p50_ms_one_thread
 from experiments.resflow_int8_plans import flow_epe
 from experiments.shipped_variants import export_variant, shipped_calibration, shipped_geonet
 from experiments.stop_experiment import HOLDBACK_CALIB, HOLDBACK_CLIP, check_figures, predict
@@ -64,12 +64,6 @@ def scale_one_export() -> nn.Module:
     return wrapper
 
 
-def graph_ms(model: Path) -> dict[str, float]:
-    """p50 ms of the ResFlowNet graph, FP32 and INT8 on each engine, one thread."""
-    rows = bench_graphs_json(model, "resflow", "fp32,int8", "onnxruntime,openvino", threads=1)["results"]
-    return {f"{row['backend']} {row['precision']}": row["p50_ms"] for row in rows}
-
-
 def score(model: Path, work: Path) -> dict:
     fp32, int8 = flow_epe(model, "fp32"), flow_epe(model, "int8")
     held = predict(model, HOLDBACK_CLIP, work / "held", HOLDBACK_CALIB)
@@ -88,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, model in models.items():
             work = Path(tmp) / f"work_{name.replace(' ', '')}"
             work.mkdir()
-            result[name] = score(model, work) | {"graph_ms_one_thread": graph_ms(model)}
+            result[name] = score(model, work) | {"graph_ms_one_thread": p50_ms_one_thread(model, "resflow")}
             print(name, json.dumps(result[name]), flush=True)
     before, after = result["bundled"], result["scale 1"]
     kitti, synth = "KITTI 2015 000010 EPE-noc", "synthetic held-out EPE-noc"
