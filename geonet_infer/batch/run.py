@@ -6,9 +6,7 @@ import contextlib
 import json
 import os
 import platform
-import signal
 import sys
-import threading
 import time
 import warnings
 from collections.abc import Collection, Iterable, Iterator
@@ -44,7 +42,7 @@ from geonet_infer.core.tasks import needs_intrinsics
 from geonet_infer.engines import usable_cpus
 from geonet_infer.engines.cpu import isa_line
 from geonet_infer.errors import InputError
-from geonet_infer.io.atomic import atomic_write
+from geonet_infer.io.atomic import atomic_write, signals_noted
 from geonet_infer.io.calib import Camera
 from geonet_infer.io.camera import ASSUMED_RULE
 from geonet_infer.limits import DEFAULT_BATCH_SIZE, check_batch_size
@@ -109,24 +107,6 @@ class _Progress:
 
     def close(self):
         self.bar.close()
-
-
-@contextlib.contextmanager
-def _signals_deferred() -> Iterator[list]:
-    """Ctrl-C and SIGTERM only noted (not raised) inside: stopping the workers and writing the
-    summary must not be cut short by a second signal. Yields a list that gets the signals caught."""
-    caught: list[int] = []
-    if threading.current_thread() is not threading.main_thread():
-        yield caught
-        return
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    for sig in previous:
-        signal.signal(sig, lambda signum, frame: caught.append(signum))
-    try:
-        yield caught
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 def check_out(out_dir: Path, units: list[WorkUnit]) -> None:
@@ -321,10 +301,10 @@ def run_batch(
         except KeyboardInterrupt:
             interrupted = True
         except BaseException:
-            with _signals_deferred():
+            with signals_noted():  # stopping the workers is not cut short by a second signal
                 _stop(bar, stream, active)
             raise
-        with _signals_deferred() as caught:
+        with signals_noted() as caught:  # nor is the summary
             _stop(bar, stream, active)
             interrupted = interrupted or bool(caught)
             # A worker can finish a sequence (its .done marker written) after the job stopped listening:

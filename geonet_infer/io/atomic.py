@@ -1,4 +1,5 @@
-"""Atomic writes: a crash never leaves a half-written file where a reader would trust it."""
+"""Atomic writes: a crash never leaves a half-written file where a reader would trust it. Blocks that a
+Ctrl-C or SIGTERM does not cut in two (:func:`signals_noted`, :func:`interrupts_held`)."""
 
 from __future__ import annotations
 
@@ -8,13 +9,14 @@ import math
 import os
 import re
 import secrets
+import signal
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_write", "create_temp", "leftover_temps", "save_npy_atomic"]
+__all__ = ["atomic_write", "create_temp", "interrupts_held", "leftover_temps", "save_npy_atomic", "signals_noted"]
 
 
 def _temp_affixes(path: Path) -> tuple[str, str]:
@@ -106,6 +108,43 @@ def save_npy_atomic(path, array) -> None:
     arr = np.asarray(array)
     with atomic_write(path) as tmp, open(tmp, "wb") as f:
         np.save(f, arr, allow_pickle=False)
+
+
+@contextlib.contextmanager
+def signals_noted() -> Iterator[list[int]]:
+    """Ctrl-C and SIGTERM only noted (not acted on) inside the block; yields the list that gets the signals
+    that came. Their handlers are put back at the end. Signal handlers run on the main thread only:
+    elsewhere this does nothing (and the list stays empty)."""
+    caught: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+    previous: dict[int, Callable | int] = {}
+    try:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            handler = signal.getsignal(signum)
+            if handler is not None:  # None: set outside Python, it could not be put back
+                signal.signal(signum, lambda number, frame: caught.append(number))
+                previous[signum] = handler
+        yield caught
+    finally:
+        for installed, handler in previous.items():
+            signal.signal(installed, handler)
+
+
+@contextlib.contextmanager
+def interrupts_held() -> Iterator[None]:
+    """Ctrl-C and SIGTERM held back until the block ends, then delivered to their own handlers, as if they
+    came just after it. Python runs a signal's handler between any two bytecodes of the main thread: this
+    keeps bookkeeping that must happen together from being cut in two. Keep the block short: a wait
+    inside it cannot be interrupted."""
+    caught: list[int] = []
+    try:
+        with signals_noted() as caught:
+            yield
+    finally:
+        for signum in caught:
+            signal.raise_signal(signum)
 
 
 def json_safe(value):

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
-import signal
-import threading
 import time
 from collections import deque
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +13,7 @@ import numpy as np
 
 from geonet_infer.core.points import write_ply
 from geonet_infer.core.results import FrameResult
-from geonet_infer.io.atomic import save_npy_atomic
+from geonet_infer.io.atomic import interrupts_held, save_npy_atomic
 from geonet_infer.io.depth import write_depth_kitti
 from geonet_infer.io.flow import write_flow_kitti
 from geonet_infer.io.images import write_image
@@ -26,34 +23,6 @@ from geonet_infer.output.options import OutputOptions
 from geonet_infer.output.viz import depth_to_color, flow_to_color
 
 WRITE_THREADS = 2  # frames written while the next are predicted; colour maps and PNGs are most of the cost
-
-
-@contextlib.contextmanager
-def interrupts_held() -> Iterator[None]:
-    """Ctrl-C and SIGTERM (where a Python handler catches them) held back until the block ends, then raised.
-
-    Python runs a signal's handler between any two bytecodes of the main thread, so an interrupt could
-    cut bookkeeping that must happen together in two: a write handed to the pool but not queued (its
-    files written, never counted), a written frame taken off the queue but not recorded. Keep the block
-    short: a wait inside it could not be interrupted. Off the main thread no handler runs: nothing to do.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    held: list[int] = []
-    previous: dict[int, Callable] = {}
-    try:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            handler = signal.getsignal(signum)
-            if callable(handler):  # SIG_DFL / SIG_IGN: no Python code runs, nothing is cut
-                signal.signal(signum, lambda caught, frame: held.append(caught))
-                previous[signum] = handler
-        yield
-    finally:
-        for installed, handler in previous.items():
-            signal.signal(installed, handler)
-        for caught in held:
-            signal.raise_signal(caught)  # its own handler now, as if it came just after the block
 
 
 @dataclass(frozen=True)
